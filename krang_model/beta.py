@@ -1,0 +1,85 @@
+"""Beta files: the authors' text format (one 4B-vector per line) and our labelled YAML/JSON."""
+import json
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+
+class BetaFileError(ValueError):
+    """A beta file that cannot be read as the robot's parameter vector."""
+
+
+def load_beta(path, robot, row=None):
+    """One beta vector from a .txt (authors' rows; `row` picks line K from 0, default the last line
+    for a multi-row file... no: default 0), .yaml or .json file; validated against the robot."""
+    path = Path(path)
+    if not path.exists():
+        raise BetaFileError(f'{path}: no such beta file')
+    if path.suffix in ('.yaml', '.yml', '.json'):
+        with open(path) as f:
+            doc = yaml.safe_load(f) if path.suffix != '.json' else json.load(f)
+        beta = _from_labelled(doc, robot, path)
+    else:
+        try:
+            rows = np.atleast_2d(np.loadtxt(path, ndmin=2))
+        except ValueError as err:
+            raise BetaFileError(f'{path}: not a whitespace-separated numeric file ({err})') from None
+        k = 0 if row is None else int(row)
+        if not -rows.shape[0] <= k < rows.shape[0]:
+            raise BetaFileError(f'{path}: --row {k} out of range, the file has {rows.shape[0]} rows')
+        beta = rows[k]
+    beta = np.asarray(beta, dtype=float)
+    if beta.shape != (robot.n_beta,):
+        raise BetaFileError(f'{path}: {beta.size} numbers per beta, {robot.name} needs {robot.n_beta} '
+                            f'(4 per body x {robot.n_bodies} bodies)')
+    if not np.all(np.isfinite(beta)):
+        raise BetaFileError(f'{path}: beta contains NaN or inf')
+    return beta
+
+
+def _from_labelled(doc, robot, path):
+    if not isinstance(doc, dict) or 'bodies' not in doc:
+        raise BetaFileError(f'{path}: expected a mapping with a "bodies" list')
+    by_name = {b.get('name'): b for b in doc['bodies'] if isinstance(b, dict)}
+    missing = [b for b in robot.body_names if b not in by_name]
+    if missing:
+        raise BetaFileError(f'{path}: bodies missing: {missing}')
+    beta = []
+    for name in robot.body_names:
+        b = by_name[name]
+        try:
+            beta += [float(b['m']), *(float(v) for v in b['m_com'])]
+        except (KeyError, TypeError, ValueError) as err:
+            raise BetaFileError(f'{path}: body {name}: needs m and m_com [3] ({err})') from None
+    return beta
+
+
+def beta_document(beta, robot, **meta):
+    """A labelled, human-readable beta: mass, mass moment and CoM per body."""
+    beta = np.asarray(beta, dtype=float)
+    bodies = []
+    for i, name in enumerate(robot.body_names):
+        m, *mc = beta[4 * i:4 * i + 4]
+        com = [v / m for v in mc] if m != 0 else [None] * 3
+        bodies.append({'name': name, 'm': float(m), 'm_com': [float(v) for v in mc],
+                       'com': [None if v is None else float(v) for v in com]})
+    doc = {'robot': robot.name, 'layout': '[m, m*x, m*y, m*z] per body, CoM in the body frame (kg, kg*m)',
+           'total_mass': float(beta[0::4].sum())}
+    doc.update(meta)
+    doc['bodies'] = bodies
+    return doc
+
+
+def save_beta(path, beta, robot, **meta):
+    """Write beta: .txt = the authors' one-line format, .json = JSON, anything else = YAML."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    beta = np.asarray(beta, dtype=float)
+    if path.suffix == '.txt':
+        path.write_text(' '.join(f'{v:.9g}' for v in beta) + '\n')
+    elif path.suffix == '.json':
+        path.write_text(json.dumps(beta_document(beta, robot, **meta), indent=1))
+    else:
+        path.write_text(yaml.safe_dump(beta_document(beta, robot, **meta), sort_keys=False))
+    return path

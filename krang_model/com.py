@@ -1,0 +1,74 @@
+"""phi(q): the regressor of the mass-weighted CoM, and the CoM quantities built on it.
+
+Frame 0 (paper §II): origin at the wheel-axle midpoint, x along the heading, z up. The base pitch
+q_base is the IMU pitch of the hardware (FACTS §2): the base frame is placed by
+R0(q_base) = RotX(pi/2) RotY(-pi/2) RotX(-q_base), so in frame 0 a base-frame vector (X, Y, Z) has
+x = sin(q_base) Y - cos(q_base) Z and z = cos(q_base) Y + sin(q_base) Z.
+
+For body i with beta_i = [m, m c] (c in the body frame) the mass-weighted position in frame 0 is
+m p_i + R_i (m c) = [p_i, R_i] beta_i, which is linear in beta. Stacking over bodies gives the
+(3, 4B) regressor; its x row divided by the nominal total mass is the paper's phi(q).
+"""
+import numpy as np
+
+from .kinematics import body_placements, projected_body_placements
+
+
+def base_to_frame0(q_base):
+    """Rotation (N, 3, 3) from the base frame to frame 0 for base pitches q_base (N,)."""
+    q_base = np.atleast_1d(np.asarray(q_base, dtype=float))
+    s, c = np.sin(q_base), np.cos(q_base)
+    r = np.zeros((q_base.size, 3, 3))
+    r[:, 0, 1], r[:, 0, 2] = s, -c
+    r[:, 1, 0] = -1.0
+    r[:, 2, 1], r[:, 2, 2] = c, s
+    return r
+
+
+def base_regressor(robot, joints):
+    """(N, 3, 4B): sum_i m_i X_i in the BASE frame = base_regressor @ beta."""
+    rot, trans = body_placements(robot, joints)
+    n = rot.shape[0]
+    reg = np.empty((n, 3, robot.n_bodies, 4))
+    reg[..., 0] = trans.transpose(0, 2, 1)
+    reg[..., 1:] = rot.transpose(0, 2, 1, 3)
+    return reg.reshape(n, 3, robot.n_beta)
+
+
+def regressor(robot, q_base, joints):
+    """(N, 3, 4B): sum_i m_i X_i^0 in frame 0 = regressor @ beta (not normalised)."""
+    return base_to_frame0(q_base) @ base_regressor(robot, joints)
+
+
+def phi(robot, q_base, joints):
+    """(N, 4B): the paper's phi(q) — x row of the regressor divided by the nominal total mass."""
+    q_base = np.atleast_1d(np.asarray(q_base, dtype=float))
+    # the x row of base_to_frame0 in base coordinates: (0, sin q_base, -cos q_base)
+    x_row = np.column_stack([np.zeros_like(q_base), np.sin(q_base), -np.cos(q_base)])
+    offset, row = projected_body_placements(robot, joints, x_row)
+    n = q_base.size
+    out = np.empty((n, robot.n_bodies, 4))
+    out[..., 0] = offset
+    out[..., 1:] = row
+    return out.reshape(n, robot.n_beta) / robot.nominal_mass
+
+
+def x_com(robot, q_base, joints, beta):
+    """The paper's x_com = phi(q)^T beta (m): horizontal CoM offset times M(beta)/M_nominal."""
+    return phi(robot, q_base, joints) @ np.asarray(beta, dtype=float)
+
+
+def com_frame0(robot, q_base, joints, beta):
+    """(N, 3) the true CoM in frame 0 (divided by beta's own total mass), wheels included."""
+    beta = np.asarray(beta, dtype=float)
+    return regressor(robot, q_base, joints) @ beta / beta[0::4].sum()
+
+
+def balance_pitch(robot, joints, beta):
+    """q_base (N,) that puts the CoM of `beta` exactly over the axle with the CoM above it.
+
+    x_com = sin(q) Y - cos(q) Z vanishes for q = atan2(Z, Y), where (Y, Z) are the base-frame y, z
+    of the mass moment; that root has z_com = hypot(Y, Z) > 0 (the other root hangs below).
+    """
+    moment = base_regressor(robot, joints) @ np.asarray(beta, dtype=float)
+    return np.arctan2(moment[:, 2], moment[:, 1])

@@ -1,0 +1,53 @@
+"""ament_python package krang_com: one ROS package, several Python packages (one per part)."""
+from glob import glob
+
+from setuptools import find_packages, setup
+
+package_name = 'krang_com'
+
+setup(
+    name=package_name,
+    version='0.1.0',
+    packages=find_packages(exclude=['test', 'test.*', 'bench']),
+    package_data={'krang_model': ['*.urdf', '*.yaml']},
+    data_files=[
+        ('share/ament_index/resource_index/packages', ['resource/' + package_name]),
+        ('share/' + package_name, ['package.xml']),
+        ('share/' + package_name + '/config', glob('config/*.yaml') + glob('config/*.dbc')),
+    ],
+    python_requires='>=3.11',
+    install_requires=[
+        'setuptools',
+        'ros-jazzy-rclpy[fastrtps]',
+        'ros-jazzy-common-interfaces',
+        'numpy',
+        'scipy',
+        'pin',
+        'control',
+        'python-can',
+        'canopen',
+        'cantools',
+        'mcap',
+        'mcap-ros2-support',
+        'pyyaml',
+        'tqdm',
+        'matplotlib',
+    ],
+    extras_require={'test': ['pytest', 'pytest-timeout', 'rosbags', 'colcon-common-extensions']},
+    zip_safe=True,
+    maintainer='krang_com developers',
+    maintainer_email='dev@krang-com.example',
+    description='Online CoM estimation for the WIP humanoid Golem Krang (ROS 2 Jazzy).',
+    license='BSD-3-Clause',
+    entry_points={
+        'console_scripts': [
+            'krang = krang_cli.main:main',
+            'can_bridge = krang_can_bridge.node:main',
+            'adrc_controller = krang_adrc_controller.node:main',
+            'pose_server = krang_pose_server.node:main',
+            'com_estimator = krang_com_estimator.node:main',
+            'mcap_recorder = krang_bag.node:main',
+            'sim_krang = krang_sim.node:main',
+        ],
+    },
+)

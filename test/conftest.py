@@ -1,0 +1,27 @@
+"""Shared fixtures: the real robot data (skipped when absent) and ROS isolation per test run."""
+import os
+import random
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+
+# Every test process gets its own DDS domain and stays on localhost, so parallel runs never cross-talk.
+os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
+os.environ.setdefault('ROS_DOMAIN_ID', str(random.Random(os.getpid()).randint(1, 100)))
+
+
+def krang_data_dir():
+    """The real-data kit: $KRANG_DATA, else ../shared/krang_data next to the checkout."""
+    env = os.environ.get('KRANG_DATA')
+    path = Path(env) if env else REPO.parent / 'shared' / 'krang_data'
+    return path if (path / 'FACTS.md').exists() else None
+
+
+@pytest.fixture(scope='session')
+def krang_data():
+    path = krang_data_dir()
+    if path is None:
+        pytest.skip('real Krang data not found: set KRANG_DATA or place shared/krang_data beside the checkout')
+    return path

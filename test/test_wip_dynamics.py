@@ -1,0 +1,123 @@
+"""The WIP reduction, nonlinear dynamics and linearisation against independent references."""
+import math
+from dataclasses import replace
+
+import numpy as np
+import pinocchio as pin
+import pytest
+
+from krang_model.com import balance_pitch, com_frame0
+from krang_model.robot import load_krang, load_wip7
+from krang_model.wip import WipDynamics, drivetrain, linearize, reduce_pose
+
+POSE = np.array([2.65, 1.17, -1.6, 1.58, 1.68, -1.13, 3.13, -1.19, 0.03, 1.26, -1.67, 2.10, -0.70, -1.19, 1.43, -1.67])
+# the upper-body pose of the Table II stand-up runs (waist 2.755 rad; balancing_runs/table2, first row)
+TABLE2_POSE = np.array([2.75467, 0.0749392, 1.00799, -1.113, -0.000251086, -1.59399, 0.0370958, 1.02202,
+                        -0.0209895, -0.854931, 1.113, 0.000271173, 1.561, -0.0280979, -1.052, 0.0210068])
+
+
+@pytest.fixture(scope='module')
+def krang():
+    return load_krang()
+
+
+def frictionless(robot):
+    return drivetrain(robot, viscous_friction=0.0, ground_viscous=0.0, coulomb_friction=0.0, yaw_friction=0.0,
+                      caster_stiffness=0.0, caster_damping=0.0)
+
+
+def test_reduction_against_pinocchio_inertia_algebra(krang):
+    """Body mass, CoM and inertia about the axle from pinocchio's spatial inertias (wheels excluded)."""
+    body = reduce_pose(krang, POSE, krang.nominal_beta)
+    model = krang.model
+    data = model.createData()
+    pin.forwardKinematics(model, data, krang.pin_configuration(POSE))
+    total = model.inertias[0].copy()  # Base, fixed to the universe
+    wheel_joints = {model.getJointId('JLWheel'), model.getJointId('JRWheel')}
+    for j in range(1, model.njoints):
+        if j not in wheel_joints:
+            total += data.oMi[j].act(model.inertias[j])
+    assert body.mass == pytest.approx(total.mass, rel=1e-12)
+    assert body.com_distance == pytest.approx(math.hypot(total.lever[1], total.lever[2]), rel=1e-12)
+    # rotational inertia about the base origin: I_c + m (|c|^2 1 - c c^T); the axle is base x
+    c = total.lever
+    about_origin = total.inertia + total.mass * (c @ c * np.eye(3) - np.outer(c, c))
+    assert body.inertia_axle == pytest.approx(about_origin[0, 0], rel=1e-12)
+
+
+def test_balanced_pose_has_zero_com_angle(krang):
+    beta = krang.nominal_beta
+    q_base = balance_pitch(krang, POSE[None], beta)[0]
+    body = reduce_pose(krang, POSE, beta)
+    assert q_base + body.com_offset_full == pytest.approx(0.0, abs=1e-12)
+    # the body alone (no wheels) is balanced at the same pitch when the wheels sit on the axle
+    assert q_base + body.com_offset == pytest.approx(0.0, abs=1e-12)
+    assert com_frame0(krang, [q_base], POSE[None], beta)[0, 2] > 0
+
+
+@pytest.mark.parametrize('make_robot', [load_krang, load_wip7])
+def test_energy_is_conserved_without_friction_or_input(make_robot):
+    robot = make_robot()
+    pose = np.zeros(len(robot.pose_joints)) if robot.name == 'wip7' else POSE
+    body = reduce_pose(robot, pose, robot.nominal_beta)
+    dyn = WipDynamics(body, frictionless(robot))
+    state = [0.0, -body.com_offset + 0.3, 0.5, -0.2, 0.0, 0.3]  # falling from 0.3 rad, rolling, turning
+    e0 = dyn.energy(state)
+    for _ in range(4000):  # 0.4 s of a fall through large angles
+        state = dyn.step_rk4(state, 0.0, 0.0, 1e-4)
+    assert abs(dyn.energy(state) - e0) < 1e-7 * abs(e0) + 1e-6
+    assert abs(state[1] - (-body.com_offset + 0.3)) > 0.1  # it really moved
+
+
+def test_semi_implicit_euler_tracks_rk4(krang):
+    body = reduce_pose(krang, POSE, krang.nominal_beta)
+    dyn = WipDynamics(body, drivetrain(krang))
+    a = b = [0.0, -body.com_offset + 0.05, 0.0, 0.0, 0.0, 0.0]
+    for _ in range(500):
+        a = dyn.step(a, 5.0, 4.0, 1e-3)
+        b = dyn.step_rk4(b, 5.0, 4.0, 1e-3)
+    np.testing.assert_allclose(a, b, atol=5e-3)
+
+
+def test_linearisation_matches_finite_differences(krang):
+    body = reduce_pose(krang, POSE, krang.nominal_beta)
+    drive = replace(drivetrain(krang), ground_viscous=0.3)
+    dyn = WipDynamics(body, drive)
+    a_lin, b_lin = linearize(body, drive)
+    r = drive.wheel_radius
+    upright = -body.com_offset
+
+    def f(x, tau):
+        # paper state [x, x', theta, theta'] -> ours [phi, q_base, phi', q_base', psi, psi']
+        state = [x[0] / r, upright + x[2], x[1] / r, x[3], 0.0, 0.0]
+        ddphi, ddqb, _ = dyn.accelerations(state, tau / 2, tau / 2)
+        return np.array([x[1], r * ddphi, x[3], ddqb])
+    h = 1e-6
+    a_fd = np.column_stack([(f(h * e, 0.0) - f(-h * e, 0.0)) / (2 * h) for e in np.eye(4)])
+    b_fd = (f(np.zeros(4), h) - f(np.zeros(4), -h)) / (2 * h)
+    np.testing.assert_allclose(a_lin, a_fd, rtol=1e-6, atol=1e-8)
+    np.testing.assert_allclose(b_lin[:, 0], b_fd, rtol=1e-6, atol=1e-8)
+    # an inverted pendulum: exactly one unstable open-loop pole
+    assert sum(np.linalg.eigvals(a_lin).real > 1e-6) == 1
+
+
+def test_caster_holds_the_sitting_robot(krang):
+    sit_pose = TABLE2_POSE.copy()
+    sit_pose[0] = 2.2  # waist: with beta_0 the Table II pose itself balances behind the caster (README)
+    body = reduce_pose(krang, sit_pose, krang.nominal_beta)
+    assert -body.com_offset > -1.5  # upright balance well forward of the caster
+    drive = drivetrain(krang)
+    dyn = WipDynamics(body, drive)
+    state = [0.0, drive.caster_pitch + 0.02, 0.0, 0.0, 0.0, 0.0]
+    for _ in range(3000):
+        state = dyn.step(state, 0.0, 0.0, 1e-3)
+    assert state[1] == pytest.approx(drive.caster_pitch, abs=0.01)  # resting on the caster
+    assert abs(state[3]) < 1e-3
+
+
+def test_current_limit_and_torque_constant(krang):
+    drive = drivetrain(krang)
+    dyn = WipDynamics(reduce_pose(krang, POSE, krang.nominal_beta), drive)
+    left, right = dyn.wheel_torques_from_currents(10.0, -1e6)
+    assert left == pytest.approx(10.0 * 0.0847 * 15.0)
+    assert right == pytest.approx(-49.0 * 0.0847 * 15.0)
