@@ -1,0 +1,257 @@
+"""Read MCAP bags back into typed messages, plus the array helpers the analysis tools use.
+
+Messages become the same rclpy classes the nodes use (rclpy deserialization) when the type is installed
+and its hash matches the one recorded; otherwise they are decoded from the schema embedded in the bag
+by mcap_ros2, so old or foreign bags stay readable. Both kinds have the same field names.
+
+Times are MCAP log times: when the recorder received the message, in ns of the recorder's clock
+(sim time if it ran with use_sim_time). The helpers return them in seconds.
+"""
+from __future__ import annotations
+
+import contextlib
+import importlib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable, Iterable, Iterator, NamedTuple
+
+import numpy as np
+import yaml
+from mcap.exceptions import McapError
+from mcap.reader import make_reader
+
+from krang_bag import schemas
+
+RECOVER_HINT = 'it was probably never finished (recorder killed?); try `krang bag recover {path}`'
+
+
+class BagError(Exception):
+    """A bag cannot be read as asked (broken file, missing topic, wrong type)."""
+
+
+class BagNotFoundError(BagError, FileNotFoundError):
+    """The bag file does not exist."""
+
+
+class BagCorruptError(BagError):
+    """The file is not a finished, valid MCAP bag."""
+
+
+@dataclass(frozen=True)
+class TopicInfo:
+    topic: str
+    type_name: str
+    message_count: int
+    offered_qos: list = field(default_factory=list)   # dicts as in offered_qos_profiles
+    type_hash: str = ''
+
+
+@dataclass(frozen=True)
+class BagInfo:
+    path: Path
+    size_bytes: int
+    profile: str
+    library: str
+    message_count: int
+    start_ns: int
+    end_ns: int
+    chunk_count: int
+    compression: tuple[str, ...]
+    topics: dict[str, TopicInfo]
+
+    @property
+    def duration_s(self) -> float:
+        return (self.end_ns - self.start_ns) / 1e9 if self.message_count else 0.0
+
+
+class JointStateSeries(NamedTuple):
+    """JointState samples: t (N,) [s]; names (J,); positions, velocities (N, J), NaN where absent."""
+
+    t: np.ndarray
+    names: list[str]
+    positions: np.ndarray
+    velocities: np.ndarray
+
+
+class FloatArraySeries(NamedTuple):
+    """Float64MultiArray samples: t (N,) [s]; rows (N, K), NaN-padded if lengths differ."""
+
+    t: np.ndarray
+    rows: np.ndarray
+
+
+@contextlib.contextmanager
+def _open_bag(path):
+    """A seeking mcap reader on a bag whose footer and summary are valid, or a clear BagError."""
+    path = Path(path)
+    if not path.exists():
+        raise BagNotFoundError(f'bag not found: {path}')
+    if path.is_dir():
+        raise BagError(f'{path} is a directory; give the .mcap file inside it')
+    with open(path, 'rb') as stream:
+        try:
+            reader = make_reader(stream)
+            header = reader.get_header()
+        except (McapError, ValueError, EOFError) as err:
+            raise BagCorruptError(f'{path} is not an MCAP file ({type(err).__name__}: {err})') from None
+        try:
+            summary = reader.get_summary()
+        except Exception as err:  # mcap raises struct/EOF/magic errors on a torn tail
+            raise BagCorruptError(f'{path} has no valid footer/summary: '
+                                  + RECOVER_HINT.format(path=path) + f' ({type(err).__name__}: {err})') from None
+        yield reader, header, summary
+
+
+def _channel_type_hash(channel) -> str:
+    return channel.metadata.get('topic_type_hash', '')
+
+
+class _Decoders:
+    """One decode function per channel: rclpy when installed and hash-identical, else mcap_ros2."""
+
+    def __init__(self):
+        self._by_channel: dict[int, Callable[[bytes], object]] = {}
+
+    def decode(self, schema, channel, data: bytes):
+        decode = self._by_channel.get(channel.id)
+        if decode is None:
+            decode = self._by_channel[channel.id] = self._make(schema, channel)
+        return decode(data)
+
+    @staticmethod
+    def _make(schema, channel) -> Callable[[bytes], object]:
+        if schema is None or channel.message_encoding != 'cdr':
+            raise BagError(f'{channel.topic}: cannot decode {channel.message_encoding!r} messages without a schema')
+        rclpy_class = _installed_class(schema.name, _channel_type_hash(channel))
+        if rclpy_class is not None:
+            from rclpy.serialization import deserialize_message
+            return lambda data: deserialize_message(data, rclpy_class)
+        from mcap_ros2.decoder import DecoderFactory
+        decode = DecoderFactory().decoder_for('cdr', schema)
+        if decode is None:
+            raise BagError(f'{channel.topic}: no decoder for schema encoding {schema.encoding!r}')
+        return decode
+
+
+def _installed_class(type_name: str, recorded_hash: str):
+    """The rclpy class of a type, only if installed and (when the bag says) the same definition."""
+    try:
+        package, interface, name = schemas.split_type_name(type_name)
+        cls = getattr(importlib.import_module(f'{package}.{interface}'), name)
+        if recorded_hash and recorded_hash != schemas.type_hash(type_name):
+            return None
+        return cls
+    except (ImportError, AttributeError, ValueError, LookupError):
+        return None
+
+
+def _iter_records(path, topics: Iterable[str] | str | None):
+    if isinstance(topics, str):
+        topics = [topics]
+    topics = None if topics is None else list(topics)
+    with _open_bag(path) as (reader, _, _summary):
+        try:
+            yield from reader.iter_messages(topics=topics, log_time_order=True)
+        except BagError:
+            raise
+        except Exception as err:
+            raise BagCorruptError(f'{path}: damaged data ({type(err).__name__}: {err})') from None
+
+
+def iter_messages(path, topics: Iterable[str] | str | None = None) -> Iterator[tuple[str, int, object]]:
+    """(topic, log_time_ns, message) for every message, in log-time order; `topics` filters."""
+    decoders = _Decoders()
+    for schema, channel, message in _iter_records(path, topics):
+        try:
+            msg = decoders.decode(schema, channel, message.data)
+        except BagError:
+            raise
+        except Exception as err:
+            raise BagCorruptError(f'{path}: cannot decode a {schema.name if schema else "?"} message on '
+                                  f'{channel.topic} at {message.log_time} ns ({type(err).__name__}: {err})') from None
+        yield channel.topic, message.log_time, msg
+
+
+def bag_info(path) -> BagInfo:
+    """Topics, types, counts, QoS and time range, from the summary (scans the file if it has none)."""
+    path = Path(path)
+    with _open_bag(path) as (reader, header, summary):
+        if summary is not None and summary.statistics is not None:
+            stats = summary.statistics
+            channels, schemas_by_id = summary.channels, summary.schemas
+            counts_by_channel = dict(stats.channel_message_counts)
+            total, start, end = stats.message_count, stats.message_start_time, stats.message_end_time
+            chunk_count = stats.chunk_count
+            compression = {index.compression or 'none' for index in summary.chunk_indexes}
+        else:  # valid but summary-less file (other writers): count by reading it through
+            channels, schemas_by_id, counts_by_channel, times = {}, {}, {}, []
+            for schema, channel, message in _iter_records(path, None):
+                channels[channel.id] = channel
+                if schema is not None:
+                    schemas_by_id[schema.id] = schema
+                counts_by_channel[channel.id] = counts_by_channel.get(channel.id, 0) + 1
+                times.append(message.log_time)
+            total, start, end = len(times), min(times, default=0), max(times, default=0)
+            chunk_count, compression = 0, set()
+        topics: dict[str, TopicInfo] = {}
+        for channel_id, channel in sorted(channels.items()):
+            schema = schemas_by_id.get(channel.schema_id)
+            count = counts_by_channel.get(channel_id, 0)
+            previous = topics.get(channel.topic)
+            if previous is not None:  # several channels on one topic (e.g. merged bags): sum them
+                count += previous.message_count
+            try:
+                qos = yaml.safe_load(channel.metadata.get('offered_qos_profiles', '') or '[]') or []
+            except yaml.YAMLError:
+                qos = []
+            topics[channel.topic] = TopicInfo(
+                channel.topic, schema.name if schema else '', count, qos, _channel_type_hash(channel))
+        return BagInfo(
+            path=path, size_bytes=path.stat().st_size, profile=header.profile, library=header.library,
+            message_count=total, start_ns=start, end_ns=end, chunk_count=chunk_count,
+            compression=tuple(sorted(compression)), topics=dict(sorted(topics.items())))
+
+
+def message_counts(path) -> dict[str, int]:
+    """topic -> number of messages, from the summary statistics."""
+    return {topic: info.message_count for topic, info in bag_info(path).topics.items()}
+
+
+def _require_topic(path, topic: str, type_names: tuple[str, ...]) -> None:
+    topics = bag_info(path).topics
+    if topic not in topics:
+        raise BagError(f'topic {topic} is not in {path}; it has: {", ".join(topics) or "no topics"}')
+    if topics[topic].type_name not in type_names:
+        raise BagError(f'{topic} in {path} is {topics[topic].type_name}, expected {" or ".join(type_names)}')
+
+
+def read_joint_states(path, topic: str = '/joint_states') -> JointStateSeries:
+    """All JointState messages of a topic as arrays, joints in first-seen order."""
+    _require_topic(path, topic, ('sensor_msgs/msg/JointState',))
+    times, samples, column = [], [], {}
+    for _, log_time, msg in iter_messages(path, [topic]):
+        names = list(msg.name)
+        for name in names:
+            column.setdefault(name, len(column))
+        times.append(log_time)
+        samples.append((names, np.asarray(msg.position, float), np.asarray(msg.velocity, float)))
+    positions = np.full((len(samples), len(column)), np.nan)
+    velocities = np.full((len(samples), len(column)), np.nan)
+    for row, (names, position, velocity) in enumerate(samples):
+        index = [column[name] for name in names]
+        positions[row, index[:len(position)]] = position[:len(index)]
+        velocities[row, index[:len(velocity)]] = velocity[:len(index)]
+    return JointStateSeries(np.asarray(times, float) / 1e9, list(column), positions, velocities)
+
+
+def read_float_arrays(path, topic: str) -> FloatArraySeries:
+    """All Float64MultiArray messages of a topic, one row each (e.g. /com_estimator/beta)."""
+    _require_topic(path, topic, ('std_msgs/msg/Float64MultiArray',))
+    times, data = [], []
+    for _, log_time, msg in iter_messages(path, [topic]):
+        times.append(log_time)
+        data.append(np.asarray(msg.data, float))
+    rows = np.full((len(data), max((len(d) for d in data), default=0)), np.nan)
+    for row, values in enumerate(data):
+        rows[row, :len(values)] = values
+    return FloatArraySeries(np.asarray(times, float) / 1e9, rows)

@@ -1,0 +1,97 @@
+"""Start the node set as child processes and stop it cleanly (our stand-in for ros2 launch)."""
+import logging
+import os
+import signal
+import subprocess
+import sys
+import time
+
+log = logging.getLogger('krang.bringup')
+
+# executable -> Python module with main(); the same entry points as setup.py's console_scripts
+NODE_MODULES = {
+    'sim_krang': 'krang_sim.node',
+    'can_bridge': 'krang_can_bridge.node',
+    'adrc_controller': 'krang_adrc_controller.node',
+    'pose_server': 'krang_pose_server.node',
+    'com_estimator': 'krang_com_estimator.node',
+    'mcap_recorder': 'krang_bag.node',
+}
+
+
+class NodeSet:
+    """A group of node processes that live and die together."""
+
+    def __init__(self, params_files, log_dir=None, env=None):
+        self.params_files = [str(p) for p in params_files]
+        self.log_dir = log_dir
+        self.env = dict(os.environ if env is None else env)
+        self.procs = {}
+
+    def start(self, name, extra_params=None):
+        cmd = [sys.executable, '-m', NODE_MODULES[name], '--ros-args']
+        for f in self.params_files:
+            cmd += ['--params-file', f]
+        for key, value in (extra_params or {}).items():
+            cmd += ['-p', f'{key}:={value}']
+        out = None
+        if self.log_dir:
+            os.makedirs(self.log_dir, exist_ok=True)
+            out = open(os.path.join(self.log_dir, f'{name}.log'), 'w')
+        log.info('starting %s', name)
+        self.procs[name] = (subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT if out else None,
+                                             env=self.env, start_new_session=True), out)
+        return self.procs[name][0]
+
+    def dead(self):
+        """Names of nodes that exited, with their return codes."""
+        return {n: p.returncode for n, (p, _) in self.procs.items() if p.poll() is not None}
+
+    def stop(self, order=None, timeout=10.0):
+        """SIGINT in order (recorder last, so it sees everything), then SIGTERM, then SIGKILL."""
+        names = list(order or self.procs)
+        names += [n for n in self.procs if n not in names]
+        for name in names:
+            proc, out = self.procs[name]
+            if proc.poll() is None:
+                proc.send_signal(signal.SIGINT)
+                try:
+                    proc.wait(timeout)
+                except subprocess.TimeoutExpired:
+                    log.warning('%s ignored SIGINT, sending SIGTERM', name)
+                    proc.terminate()
+                    try:
+                        proc.wait(timeout)
+                    except subprocess.TimeoutExpired:
+                        log.error('%s ignored SIGTERM, killing it', name)
+                        proc.kill()
+                        proc.wait()
+            if out:
+                out.close()
+            log.info('%s exited with %s', name, proc.returncode)
+        self.procs.clear()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.stop()
+
+
+def wait_forever(node_set, poll=0.5):
+    """Run until Ctrl-C or until a node dies; returns an exit code."""
+    stop = {'flag': False}
+
+    def on_signal(signum, frame):
+        stop['flag'] = True
+    signal.signal(signal.SIGTERM, on_signal)
+    try:
+        while not stop['flag']:
+            dead = node_set.dead()
+            if dead:
+                log.error('node(s) exited: %s; stopping the rest', dead)
+                return 1
+            time.sleep(poll)
+    except KeyboardInterrupt:
+        pass
+    return 0
