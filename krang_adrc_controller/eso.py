@@ -1,0 +1,227 @@
+"""Third-order extended state observer (ESO) for one channel y'' = f + b*u, in discrete time.
+
+Why discrete: the authors integrated their continuous ESO with explicit Euler at the loop period
+(munzir/18h-krang-utils eso.hpp, FACTS §7). With their gains L = (1160, 173438.396, 1343839.408)
+the continuous poles are -985.4, -166.4 and -8.19 rad/s, and Euler is stable only for
+h < 2/985.4 = 2.03 ms; the hardware loop runs at ~30 Hz (h = 33 ms). `euler_transition_matrix`
+reproduces that scheme so the instability can be shown (spectral radius 1.96 at 3 ms).
+
+This module offers two discretisations that are stable at every sample period h > 0:
+
+* ``'current'`` (default): the discrete "current" ESO of Miklosovic, Radke & Gao (ACC 2006),
+  notes/identification.md §5. Predict with the exact ZOH model of the chain of integrators, then
+  correct with the measurement of the same instant::
+
+      z- = Ad z[k-1] + Bd u[k-1];   z[k] = z- + L (y[k] - z-[0])
+
+  Its error dynamics are e[k] = (I - L C) Ad e[k-1]. The gain L is either the bandwidth design
+  (all three eigenvalues at beta = exp(-w_o h), closed form below) or the authors' continuous
+  gains with the poles *matched*: eigenvalues at exp(p_i h), p_i the roots of
+  s^3 + l1 s^2 + l2 s + l3 (Ackermann on the pair (Ad, C Ad)).
+* ``'zoh'``: the authors' continuous observer dz/dt = (A - L C) z + B u + L y sampled exactly
+  with a zero-order hold on u and y. Eigenvalues exp(p_i h) as well, but it is a predictor:
+  the estimate at k uses y[k-1] (one sample of lag), and holding y between samples biases f_hat
+  whenever y moves (the authors' l3 = 1.3e6 amplifies that hold error; closed loops built on it
+  went unstable at 10 ms in our double-integrator trials). Kept for analysis; use 'current'.
+
+State z = [y_hat, ydot_hat, f_hat]. The observer is initialised from the measurement (y_hat = y,
+optional measured rate, f_hat = 0) to avoid peaking. ``f_limit`` optionally saturates f_hat
+(both the output and the internal state, so the estimate cannot wind up).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.linalg import expm
+
+#: The authors' continuous ESO gains (both channels), FACTS §7 / munzir/18d Controller.cpp.
+AUTHORS_CONTINUOUS_GAINS = (1160.0, 173438.396, 1343839.408)
+
+_C = np.array([[1.0, 0.0, 0.0]])
+_A_CONT = np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [0.0, 0.0, 0.0]])
+
+
+def chain_model(h: float, b: float) -> tuple[np.ndarray, np.ndarray]:
+    """Exact ZOH discretisation (Ad, Bd) of z' = [z2, z3 + b u, 0] over one period h."""
+    ad = np.array([[1.0, h, 0.5 * h * h], [0.0, 1.0, h], [0.0, 0.0, 1.0]])
+    bd = np.array([0.5 * b * h * h, b * h, 0.0])
+    return ad, bd
+
+
+def continuous_bandwidth_gains(omega_o: float) -> np.ndarray:
+    """Gao's bandwidth parameterisation: L = (3w, 3w^2, w^3), a triple pole at -w (continuous)."""
+    w = float(omega_o)
+    return np.array([3.0 * w, 3.0 * w * w, w ** 3])
+
+
+def bandwidth_gains(omega_o: float, h: float) -> np.ndarray:
+    """Current-ESO gains with all eigenvalues of (I - L C) Ad at beta = exp(-omega_o h) (notes §5)."""
+    if omega_o <= 0 or h <= 0:
+        raise ValueError('omega_o and h must be positive')
+    beta = np.exp(-omega_o * h)
+    return np.array([1.0 - beta ** 3,
+                     1.5 / h * (1.0 - beta) ** 2 * (1.0 + beta),
+                     (1.0 - beta) ** 3 / h ** 2])
+
+
+def continuous_poles(l_cont) -> np.ndarray:
+    """Poles of the continuous observer, roots of s^3 + l1 s^2 + l2 s + l3."""
+    l1, l2, l3 = (float(v) for v in l_cont)
+    return np.roots([1.0, l1, l2, l3])
+
+
+def current_gains_for_poles(z_poles, h: float) -> np.ndarray:
+    """Current-ESO gain L placing eig((I - L C) Ad) at z_poles (Ackermann on (Ad, C Ad)).
+
+    Written out rather than calling ct.place, which rejects repeated poles (notes §5).
+    """
+    ad, _ = chain_model(h, 1.0)
+    c_tilde = _C @ ad                                   # error dynamics Ad - L (C Ad)
+    obs = np.vstack([c_tilde, c_tilde @ ad, c_tilde @ ad @ ad])
+    coeffs = np.real(np.poly(np.asarray(z_poles, dtype=complex)))   # z^3 + a1 z^2 + a2 z + a3
+    phi = ad @ ad @ ad + coeffs[1] * ad @ ad + coeffs[2] * ad + coeffs[3] * np.eye(3)
+    return (phi @ np.linalg.solve(obs, np.array([0.0, 0.0, 1.0]))).ravel()
+
+
+def matched_gains(l_cont, h: float) -> np.ndarray:
+    """Current-ESO gains whose eigenvalues are exp(p_i h) for the continuous gains' poles p_i."""
+    return current_gains_for_poles(np.exp(continuous_poles(l_cont) * h), h)
+
+
+def euler_transition_matrix(l_cont, h: float) -> np.ndarray:
+    """Error-transition matrix I + h (A - L C) of the authors' explicit-Euler ESO (for comparison)."""
+    lc = np.asarray(l_cont, dtype=float).reshape(3, 1)
+    return np.eye(3) + h * (_A_CONT - lc @ _C)
+
+
+def spectral_radius(m: np.ndarray) -> float:
+    return float(np.max(np.abs(np.linalg.eigvals(m))))
+
+
+@dataclass
+class _Discretisation:
+    h: float
+    phi: np.ndarray       # error-transition matrix
+    gain: np.ndarray      # L (current form) or None-equivalent
+    gam_u: np.ndarray     # input matrix for u[k-1]
+    gam_y: np.ndarray     # measurement matrix (y[k] for current, y[k-1] for zoh)
+
+
+class ExtendedStateObserver:
+    """Discrete third-order ESO for y'' = f + b u; see the module docstring for the schemes.
+
+    Parameters
+    ----------
+    b : input gain of the channel (e.g. b_x or b_theta from the linearised WIP).
+    h : nominal sample period [s]. ``update(..., dt=...)`` re-discretises for other periods
+        (cached by dt rounded to 1e-6 s), so jittery loop timing stays consistent.
+    omega_o : observer bandwidth [rad/s] for the bandwidth design (``'current'`` method only).
+    continuous_gains : (l1, l2, l3) of a continuous design; default the authors' gains
+        (FACTS §7) when ``omega_o`` is not given.
+    method : ``'current'`` (matched poles / bandwidth, uses y[k]) or ``'zoh'`` (exact sampling of
+        the continuous observer, uses y[k-1]).
+    f_limit : optional bound on |f_hat| (same unit as y'').
+    """
+
+    def __init__(self, b: float, h: float, *, omega_o: float | None = None,
+                 continuous_gains=None, method: str = 'current', f_limit: float | None = None):
+        if h <= 0:
+            raise ValueError('sample period h must be positive')
+        if method not in ('current', 'zoh'):
+            raise ValueError("method must be 'current' or 'zoh'")
+        if omega_o is not None and continuous_gains is not None:
+            raise ValueError('give either omega_o or continuous_gains, not both')
+        if omega_o is not None and method == 'zoh':
+            continuous_gains = continuous_bandwidth_gains(omega_o)
+            omega_o = None
+        if omega_o is None and continuous_gains is None:
+            continuous_gains = AUTHORS_CONTINUOUS_GAINS
+        self.b = float(b)
+        self.h = float(h)
+        self.omega_o = None if omega_o is None else float(omega_o)
+        self.continuous_gains = None if continuous_gains is None else np.asarray(continuous_gains, float)
+        self.method = method
+        self.f_limit = None if f_limit is None else abs(float(f_limit))
+        self._cache: dict[float, _Discretisation] = {}
+        self.z = np.zeros(3)
+        self._y_prev = 0.0
+        self._initialised = False
+
+    # ------------------------------------------------------------------ design
+    def discretisation(self, h: float | None = None) -> _Discretisation:
+        h = self.h if h is None else float(h)
+        key = round(h, 6)
+        d = self._cache.get(key)
+        if d is None:
+            d = self._discretise(h)
+            if len(self._cache) > 64:
+                self._cache.clear()
+            self._cache[key] = d
+        return d
+
+    def _discretise(self, h: float) -> _Discretisation:
+        ad, bd = chain_model(h, self.b)
+        if self.method == 'current':
+            if self.omega_o is not None:
+                gain = bandwidth_gains(self.omega_o, h)
+            else:
+                gain = matched_gains(self.continuous_gains, h)
+            ilc = np.eye(3) - np.outer(gain, _C)
+            return _Discretisation(h, ilc @ ad, gain, ilc @ bd, gain)
+        # exact ZOH of dz = (A - L C) z + B u + L y with inputs (u, y) held over the period
+        lc = self.continuous_gains.reshape(3, 1)
+        aug = np.zeros((5, 5))
+        aug[:3, :3] = _A_CONT - lc @ _C
+        aug[:3, 3] = [0.0, self.b, 0.0]
+        aug[:3, 4] = lc.ravel()
+        e = expm(aug * h)
+        return _Discretisation(h, e[:3, :3], lc.ravel(), e[:3, 3], e[:3, 4])
+
+    def set_b(self, b: float) -> None:
+        """New input gain (e.g. after an LQR(q) update); the estimate itself is kept."""
+        if float(b) != self.b:
+            self.b = float(b)
+            self._cache.clear()
+
+    @property
+    def gain(self) -> np.ndarray:
+        return self.discretisation().gain
+
+    def transition_matrix(self, h: float | None = None) -> np.ndarray:
+        """Error-transition matrix at period h; all eigenvalues inside the unit circle."""
+        return self.discretisation(h).phi
+
+    # ------------------------------------------------------------------ running
+    def reset(self, y0: float, ydot0: float = 0.0, f0: float = 0.0) -> None:
+        """Start from the measurement (no initial-error peaking)."""
+        self.z = np.array([float(y0), float(ydot0), float(f0)])
+        self._y_prev = float(y0)
+        self._initialised = True
+
+    def update(self, y: float, u_prev: float, dt: float | None = None) -> np.ndarray:
+        """One step: y = measurement now, u_prev = input applied over the last period."""
+        if not self._initialised:
+            self.reset(y)
+            return self.z.copy()
+        d = self.discretisation(dt)
+        if self.method == 'current':
+            self.z = d.phi @ self.z + d.gam_u * float(u_prev) + d.gam_y * float(y)
+        else:
+            self.z = d.phi @ self.z + d.gam_u * float(u_prev) + d.gam_y * self._y_prev
+            self._y_prev = float(y)
+        if self.f_limit is not None:
+            self.z[2] = float(np.clip(self.z[2], -self.f_limit, self.f_limit))
+        return self.z.copy()
+
+    @property
+    def y_hat(self) -> float:
+        return float(self.z[0])
+
+    @property
+    def ydot_hat(self) -> float:
+        return float(self.z[1])
+
+    @property
+    def f_hat(self) -> float:
+        return float(self.z[2])

@@ -1,0 +1,155 @@
+"""Mode machine, transition by transition, with the hardware's guards (FACTS §7)."""
+import math
+
+import pytest
+
+from krang_adrc_controller.modes import (GROUND_LO_GAINS, SIT_GAINS, STAND_GAINS, Mode,
+                                         ModeInputs, ModeMachine, pd_currents)
+
+DEG = math.pi / 180
+H = 0.0333
+
+
+def inp(t, **kw):
+    base = dict(imu_pitch=-101.5 * DEG, theta_com=-5 * DEG, dtheta=0.0, waist=160 * DEG,
+                last_sensor_t=t)
+    base.update(kw)
+    return ModeInputs(t=t, **base)
+
+
+def standing(m, t0=0.0):
+    out = m.step(inp(t0, stand_request=True))
+    assert out.mode is Mode.STAND_UP
+    return out
+
+
+def test_starts_sitting_with_ground_gains():
+    out = ModeMachine().step(inp(0.0))
+    assert out.mode is Mode.SIT and out.controller == 'ground_pd'
+    assert out.gains == GROUND_LO_GAINS and not out.zero_torque and not out.entered
+
+
+@pytest.mark.parametrize('theta_deg,ok', [(-12, False), (-10.01, False), (-10, True), (-5, True),
+                                          (0, True), (0.5, False)])
+def test_stand_guard_com_angle_error_in_minus10_to_0_deg(theta_deg, ok):
+    m = ModeMachine()
+    out = m.step(inp(0.0, theta_com=theta_deg * DEG, stand_request=True))
+    assert (out.mode is Mode.STAND_UP) == ok
+    assert out.entered == ok
+    if ok:
+        assert out.controller == 'stand_pd' and out.gains == STAND_GAINS
+    else:
+        assert out.mode is Mode.SIT and any('stand_refused' in e for e in out.events)
+
+
+def test_stand_to_balance_after_continuous_settle_time():
+    m = ModeMachine()
+    standing(m)
+    t = 0.0
+    # still on the caster: IMU at -101.5 deg < -101 deg, never switches
+    for _ in range(200):
+        t += H
+        assert m.step(inp(t, dtheta=0.0)).mode is Mode.STAND_UP
+    # lifted, but moving too fast
+    for _ in range(100):
+        t += H
+        assert m.step(inp(t, imu_pitch=-95 * DEG, dtheta=0.05)).mode is Mode.STAND_UP
+    # quiet from t_q on: needs 100 * 0.0333 = 3.33 s continuously
+    t += H
+    t_q = t
+    m.step(inp(t, imu_pitch=-95 * DEG, dtheta=0.01))
+    while t + H < t_q + 3.33 - 1e-9:
+        t += H
+        assert m.step(inp(t, imu_pitch=-95 * DEG, dtheta=-0.02)).mode is Mode.STAND_UP
+    t += H
+    out = m.step(inp(t, imu_pitch=-95 * DEG, dtheta=0.0))
+    assert out.mode is Mode.BALANCE and out.entered and out.controller == 'adrc'
+    assert out.gains is None and not out.zero_torque
+
+
+def test_settle_timer_restarts_when_interrupted():
+    m = ModeMachine(stand_settle_s=1.0)
+    standing(m)
+    m.step(inp(0.1, imu_pitch=-95 * DEG))
+    m.step(inp(0.9, imu_pitch=-95 * DEG))
+    m.step(inp(1.0, imu_pitch=-95 * DEG, dtheta=0.04))          # breaks the run
+    assert m.step(inp(1.5, imu_pitch=-95 * DEG)).mode is Mode.STAND_UP
+    assert m.step(inp(2.4, imu_pitch=-95 * DEG)).mode is Mode.STAND_UP
+    assert m.step(inp(2.5, imu_pitch=-95 * DEG)).mode is Mode.BALANCE
+
+
+def balancing(m):
+    standing(m)
+    assert m.step(inp(0.1, imu_pitch=-90 * DEG)).mode is Mode.BALANCE
+    return m
+
+
+def test_sit_down_guard_and_completion():
+    m = ModeMachine(stand_settle_s=0.0)
+    balancing(m)
+    out = m.step(inp(1.0, imu_pitch=-90 * DEG, waist=140 * DEG, sit_request=True))
+    assert out.mode is Mode.BALANCE and any('sit_refused' in e for e in out.events)
+    out = m.step(inp(1.1, imu_pitch=-90 * DEG, waist=None, sit_request=True))
+    assert out.mode is Mode.BALANCE
+    out = m.step(inp(1.2, imu_pitch=-90 * DEG, waist=151 * DEG, sit_request=True))
+    assert out.mode is Mode.SIT_DOWN and out.entered and out.gains == SIT_GAINS
+    assert m.step(inp(1.3, imu_pitch=-102.9 * DEG)).mode is Mode.SIT_DOWN
+    out = m.step(inp(1.4, imu_pitch=-103.1 * DEG))
+    assert out.mode is Mode.SIT and out.entered and out.controller == 'ground_pd'
+
+
+@pytest.mark.parametrize('start', ['sit', 'stand', 'balance', 'sit_down'])
+def test_stop_request_latches_safe_stop_from_every_mode(start):
+    m = ModeMachine(stand_settle_s=0.0)
+    if start != 'sit':
+        standing(m)
+    if start in ('balance', 'sit_down'):
+        m.step(inp(0.1, imu_pitch=-90 * DEG))
+    if start == 'sit_down':
+        m.step(inp(0.2, imu_pitch=-90 * DEG, sit_request=True))
+    out = m.step(inp(0.5, stop_request=True))
+    assert out.mode is Mode.SAFE_STOP and out.zero_torque and out.controller == 'off'
+    # latched: requests and fresh data do not leave it
+    for t in (0.6, 0.7):
+        out = m.step(inp(t, stand_request=True))
+        assert out.mode is Mode.SAFE_STOP and out.zero_torque
+    out = m.step(inp(0.8, reset_request=True, stop_request=True))
+    assert out.mode is Mode.SAFE_STOP
+    out = m.step(inp(0.9, reset_request=True))
+    assert out.mode is Mode.SIT and out.entered and not out.zero_torque
+
+
+def test_stale_sensors_stop_and_block_reset():
+    m = ModeMachine(stand_settle_s=0.0, stale_timeout_s=0.1)
+    balancing(m)
+    assert m.step(inp(1.00, last_sensor_t=0.95, imu_pitch=-90 * DEG)).mode is Mode.BALANCE
+    out = m.step(inp(1.06, last_sensor_t=0.95, imu_pitch=-90 * DEG))     # 0.11 s old
+    assert out.mode is Mode.SAFE_STOP and out.zero_torque
+    out = m.step(inp(1.2, last_sensor_t=0.95, reset_request=True))
+    assert out.mode is Mode.SAFE_STOP and any('reset_refused' in e for e in out.events)
+    assert m.step(inp(1.3, reset_request=True)).mode is Mode.SIT
+
+
+def test_optional_fall_guard():
+    m = ModeMachine(stand_settle_s=0.0, fall_angle_rad=0.5)
+    balancing(m)
+    assert m.step(inp(1.0, imu_pitch=-90 * DEG, theta_com=0.49)).mode is Mode.BALANCE
+    assert m.step(inp(1.1, imu_pitch=-90 * DEG, theta_com=-0.51)).mode is Mode.SAFE_STOP
+    # off by default
+    m = ModeMachine(stand_settle_s=0.0)
+    balancing(m)
+    assert m.step(inp(1.0, imu_pitch=-90 * DEG, theta_com=1.0)).mode is Mode.BALANCE
+
+
+def test_pd_currents_by_hand():
+    e = (0.02, -0.1, 0.5, 0.2, 0.0, 0.0)
+    u = 277.4 * 0.02 + 61.889 * -0.1 + 7.4484 * 0.5 + 18.235 * 0.2
+    left, right = pd_currents(STAND_GAINS, e)
+    assert left == pytest.approx(u) and right == pytest.approx(u)
+    # spin term: u_spin = -(K_psi e_psi + K_dpsi e_dpsi), clamped to +/-30 A, added left / right
+    left, right = pd_currents(GROUND_LO_GAINS, (0, 0, 0, 0.0, 0.0, 1.0))
+    assert (left, right) == (pytest.approx(15.0), pytest.approx(-15.0))
+    left, right = pd_currents(GROUND_LO_GAINS, (0, 0, 0, 0.0, 0.0, 3.0))
+    assert (left, right) == (30.0, -30.0)
+    left, right = pd_currents(STAND_GAINS, (1.0, 0, 0, 0, 0, 0), current_limit_a=49.0)
+    assert (left, right) == (49.0, 49.0)
