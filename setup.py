@@ -25,6 +25,7 @@ setup(
         'pin',
         'control',
         'python-can',
+        'msgpack',            # python-can's udp_multicast interface (the simulated buses)
         'canopen',
         'cantools',
         'mcap',

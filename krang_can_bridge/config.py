@@ -1,0 +1,334 @@
+"""Typed view of config/can_devices.yaml: buses, devices, drive constants and command limits.
+
+Everything the bridge, the codecs and the emulators need to know about the robot's CAN side comes from here,
+so a number lives in exactly one place (the YAML, or the DBC for the IMU's LSB scales). The loader validates
+the file so that a typo fails at start-up, not as a wrong current on the bus.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Mapping
+
+import yaml
+
+PACKAGE_NAME = 'krang_com'
+DEVICES_FILE_NAME = 'can_devices.yaml'
+
+
+class ConfigError(ValueError):
+    """The device map is inconsistent or incomplete."""
+
+
+@dataclass(frozen=True)
+class BusConfig:
+    """One CAN bus: python-can `interface` and `channel`, plus any extra `can.Bus` keyword arguments."""
+
+    name: str
+    interface: str
+    channel: str
+    options: Mapping[str, Any] = field(default_factory=dict)
+
+    def bus_kwargs(self) -> dict:
+        """Keyword arguments for `can.Bus(**kwargs)`."""
+        return {'interface': self.interface, 'channel': self.channel, **dict(self.options)}
+
+
+@dataclass(frozen=True)
+class WheelDriveConfig:
+    """One AMC drive. `sign` flips current, position and velocity (amciod: right drive -1)."""
+
+    joint: str
+    node_id: int
+    sign: int
+    peak_current_kp: float      # drive object 0x20D8.0C, units of 0.1 A
+    k_i: float                  # feedback interpolation, 0x2032.08
+    k_s: float                  # switching frequency in Hz (0x20D8.24)
+
+    @property
+    def peak_current_a(self) -> float:
+        return self.peak_current_kp / 10.0
+
+
+@dataclass(frozen=True)
+class WheelsConfig:
+    bus: str
+    encoder_counts_per_rev: float
+    gear_ratio: float
+    torque_constant_nm_per_a: float
+    current_limit_a: float
+    silence_timeout_s: float
+    command_timeout_s: float
+    command_rate_hz: float
+    required: bool
+    drives: tuple[WheelDriveConfig, ...]
+
+    @property
+    def counts_per_wheel_rad(self) -> float:
+        return self.encoder_counts_per_rev * self.gear_ratio / (2.0 * math.pi)
+
+    def drive(self, joint: str) -> WheelDriveConfig:
+        for d in self.drives:
+            if d.joint == joint:
+                return d
+        raise KeyError(joint)
+
+
+@dataclass(frozen=True)
+class KalmanConfig:
+    process_k1: float
+    process_k1b: float
+    measurement_noise: float
+    init_samples: int
+
+
+@dataclass(frozen=True)
+class ImuConfig:
+    bus: str
+    mount_angle_rad: float
+    gyro_bias_rad_s: tuple[float, float, float]   # about sensor x (dQ), y (dP), z (dR)
+    silence_timeout_s: float
+    stream_toggle_retry_s: float
+    required: bool
+    frame_id: str
+    kalman: KalmanConfig
+
+
+@dataclass(frozen=True)
+class PowerCubeModuleConfig:
+    """One module; its position is `sign * q` for the joint q it drives."""
+
+    bus: str
+    module_id: int
+    sign: int
+
+
+@dataclass(frozen=True)
+class BodyJointConfig:
+    joint: str
+    lower: float
+    upper: float
+    module_type: str
+    max_velocity_rad_s: float
+    max_acceleration_rad_s2: float
+    modules: tuple[PowerCubeModuleConfig, ...]
+
+    def clamp(self, q: float) -> float:
+        return min(self.upper, max(self.lower, q))
+
+    def module_limits(self, module: PowerCubeModuleConfig) -> tuple[float, float]:
+        """Joint limits in module coordinates (sign-inverted for a sign -1 module)."""
+        a, b = module.sign * self.lower, module.sign * self.upper
+        return (min(a, b), max(a, b))
+
+
+@dataclass(frozen=True)
+class PowerCubeConfig:
+    poll_rate_hz: float
+    silence_timeout_s: float
+    required: bool
+    joints: tuple[BodyJointConfig, ...]
+
+    def joint(self, name: str) -> BodyJointConfig:
+        for j in self.joints:
+            if j.joint == name:
+                return j
+        raise KeyError(name)
+
+
+@dataclass(frozen=True)
+class CanDevicesConfig:
+    path: Path
+    dbc_path: Path
+    buses: Mapping[str, BusConfig]
+    wheels: WheelsConfig
+    imu: ImuConfig
+    powercube: PowerCubeConfig
+
+    @property
+    def body_joint_names(self) -> list[str]:
+        return [j.joint for j in self.powercube.joints]
+
+    @property
+    def wheel_joint_names(self) -> list[str]:
+        return [d.joint for d in self.wheels.drives]
+
+    @property
+    def joint_names(self) -> list[str]:
+        """Names published on /joint_states: body joints, then the wheels (URDF names)."""
+        return self.body_joint_names + self.wheel_joint_names
+
+    def buses_in_use(self) -> list[str]:
+        """Buses that carry at least one bridged device, in config order."""
+        used = {self.wheels.bus, self.imu.bus}
+        used |= {m.bus for j in self.powercube.joints for m in j.modules}
+        return [name for name in self.buses if name in used]
+
+    def bus_for_channel(self, channel: Any) -> str | None:
+        """Bus name whose configured channel equals `channel` (for frames that carry only msg.channel)."""
+        for name, bus in self.buses.items():
+            if str(bus.channel) == str(channel) or name == channel:
+                return name
+        return None
+
+
+def default_devices_file() -> Path:
+    """The installed config (share/krang_com/config), else the one next to this source checkout."""
+    try:
+        from ament_index_python.packages import get_package_share_directory
+        installed = Path(get_package_share_directory(PACKAGE_NAME)) / 'config' / DEVICES_FILE_NAME
+        if installed.exists():
+            return installed
+    except Exception:  # noqa: BLE001 - no ament index (plain pip install / source tree): fall through
+        pass
+    return Path(__file__).resolve().parents[1] / 'config' / DEVICES_FILE_NAME
+
+
+def _read_yaml(path: Path, seen: tuple[Path, ...] = ()) -> dict:
+    """Read a device map; `extends: other.yaml` inherits every top-level key the file does not set."""
+    path = path.resolve()
+    if path in seen:
+        raise ConfigError(f'circular extends: {path}')
+    with open(path) as f:
+        data = yaml.safe_load(f) or {}
+    if not isinstance(data, dict):
+        raise ConfigError(f'{path}: top level must be a mapping')
+    parent = data.pop('extends', None)
+    if parent is None:
+        return data
+    merged = _read_yaml(path.parent / parent, seen + (path,))
+    merged.update(data)
+    return merged
+
+
+def _req(d: Mapping, key: str, where: str) -> Any:
+    if not isinstance(d, Mapping) or key not in d:
+        raise ConfigError(f'{where}: missing key {key!r}')
+    return d[key]
+
+
+def _positive(value: Any, where: str) -> float:
+    v = float(value)
+    if not math.isfinite(v) or v <= 0.0:
+        raise ConfigError(f'{where} must be a positive finite number, got {value!r}')
+    return v
+
+
+def _sign(value: Any, where: str) -> int:
+    if value not in (1, -1):
+        raise ConfigError(f'{where}: sign must be 1 or -1, got {value!r}')
+    return int(value)
+
+
+def _parse_wheels(d: Mapping, buses: Mapping) -> WheelsConfig:
+    where = 'wheels'
+    drives = []
+    for i, dd in enumerate(_req(d, 'drives', where)):
+        w = f'{where}.drives[{i}]'
+        node_id = int(_req(dd, 'node_id', w))
+        if not 1 <= node_id <= 0x7F:
+            raise ConfigError(f'{w}: CANopen node id {node_id} outside 1..127')
+        drives.append(WheelDriveConfig(
+            joint=str(_req(dd, 'joint', w)), node_id=node_id, sign=_sign(_req(dd, 'sign', w), w),
+            peak_current_kp=_positive(_req(dd, 'peak_current_kp', w), f'{w}.peak_current_kp'),
+            k_i=_positive(_req(dd, 'k_i', w), f'{w}.k_i'), k_s=_positive(_req(dd, 'k_s', w), f'{w}.k_s')))
+    if len({x.node_id for x in drives}) != len(drives) or len({x.joint for x in drives}) != len(drives):
+        raise ConfigError(f'{where}: duplicate node id or joint')
+    cfg = WheelsConfig(
+        bus=str(_req(d, 'bus', where)),
+        encoder_counts_per_rev=_positive(_req(d, 'encoder_counts_per_rev', where), 'encoder_counts_per_rev'),
+        gear_ratio=_positive(_req(d, 'gear_ratio', where), 'gear_ratio'),
+        torque_constant_nm_per_a=_positive(_req(d, 'torque_constant_nm_per_a', where), 'torque_constant'),
+        current_limit_a=_positive(_req(d, 'current_limit_a', where), 'current_limit_a'),
+        silence_timeout_s=_positive(_req(d, 'silence_timeout_s', where), 'wheels.silence_timeout_s'),
+        command_timeout_s=_positive(_req(d, 'command_timeout_s', where), 'wheels.command_timeout_s'),
+        command_rate_hz=_positive(_req(d, 'command_rate_hz', where), 'wheels.command_rate_hz'),
+        required=bool(d.get('required', True)), drives=tuple(drives))
+    if cfg.bus not in buses:
+        raise ConfigError(f'{where}: unknown bus {cfg.bus!r}')
+    return cfg
+
+
+def _parse_imu(d: Mapping, buses: Mapping) -> ImuConfig:
+    where = 'imu'
+    bias = _req(d, 'gyro_bias_rad_s', where)
+    k = _req(d, 'kalman', where)
+    cfg = ImuConfig(
+        bus=str(_req(d, 'bus', where)),
+        mount_angle_rad=float(_req(d, 'mount_angle_rad', where)),
+        gyro_bias_rad_s=(float(_req(bias, 'x', 'imu.gyro_bias_rad_s')), float(_req(bias, 'y', 'imu.gyro_bias_rad_s')),
+                         float(_req(bias, 'z', 'imu.gyro_bias_rad_s'))),
+        silence_timeout_s=_positive(_req(d, 'silence_timeout_s', where), 'imu.silence_timeout_s'),
+        stream_toggle_retry_s=_positive(_req(d, 'stream_toggle_retry_s', where), 'imu.stream_toggle_retry_s'),
+        required=bool(d.get('required', True)), frame_id=str(d.get('frame_id', 'imu_link')),
+        kalman=KalmanConfig(
+            process_k1=_positive(_req(k, 'process_k1', 'imu.kalman'), 'process_k1'),
+            process_k1b=_positive(_req(k, 'process_k1b', 'imu.kalman'), 'process_k1b'),
+            measurement_noise=_positive(_req(k, 'measurement_noise', 'imu.kalman'), 'measurement_noise'),
+            init_samples=int(_req(k, 'init_samples', 'imu.kalman'))))
+    if cfg.bus not in buses:
+        raise ConfigError(f'{where}: unknown bus {cfg.bus!r}')
+    return cfg
+
+
+def _parse_powercube(d: Mapping, buses: Mapping) -> PowerCubeConfig:
+    where = 'powercube'
+    types = _req(d, 'module_types', where)
+    joints = []
+    seen_modules: set[tuple[str, int]] = set()
+    for name, jd in _req(d, 'joints', where).items():
+        w = f'{where}.joints.{name}'
+        lower, upper = (float(x) for x in _req(jd, 'limits', w))
+        if not (math.isfinite(lower) and math.isfinite(upper) and lower < upper):
+            raise ConfigError(f'{w}: limits must be finite with lower < upper')
+        tname = str(_req(jd, 'type', w))
+        t = _req(types, tname, f'{where}.module_types')
+        modules = []
+        for i, md in enumerate(_req(jd, 'modules', w)):
+            mw = f'{w}.modules[{i}]'
+            m = PowerCubeModuleConfig(bus=str(_req(md, 'bus', mw)), module_id=int(_req(md, 'id', mw)),
+                                      sign=_sign(md.get('sign', 1), mw))
+            if m.bus not in buses:
+                raise ConfigError(f'{mw}: unknown bus {m.bus!r}')
+            if not 1 <= m.module_id <= 0x1F:
+                raise ConfigError(f'{mw}: Amtec module id {m.module_id} outside 1..31')
+            if (m.bus, m.module_id) in seen_modules:
+                raise ConfigError(f'{mw}: module {m.module_id} on {m.bus} used twice')
+            seen_modules.add((m.bus, m.module_id))
+            modules.append(m)
+        if not modules:
+            raise ConfigError(f'{w}: no modules')
+        joints.append(BodyJointConfig(
+            joint=str(name), lower=lower, upper=upper, module_type=tname,
+            max_velocity_rad_s=math.radians(_positive(_req(t, 'max_velocity_deg_s', tname), f'{tname} velocity')),
+            max_acceleration_rad_s2=math.radians(
+                _positive(_req(t, 'max_acceleration_deg_s2', tname), f'{tname} acceleration')),
+            modules=tuple(modules)))
+    return PowerCubeConfig(
+        poll_rate_hz=_positive(_req(d, 'poll_rate_hz', where), 'poll_rate_hz'),
+        silence_timeout_s=_positive(_req(d, 'silence_timeout_s', where), 'powercube.silence_timeout_s'),
+        required=bool(d.get('required', True)), joints=tuple(joints))
+
+
+def load_devices(path: str | Path | None = None) -> CanDevicesConfig:
+    """Load and validate a device map (default: `default_devices_file()`)."""
+    path = Path(path) if path is not None else default_devices_file()
+    data = _read_yaml(path)
+    buses = {}
+    for name, bd in _req(data, 'buses', str(path)).items():
+        bd = dict(bd)
+        buses[str(name)] = BusConfig(name=str(name), interface=str(_req(bd, 'interface', f'buses.{name}')),
+                                     channel=str(_req(bd, 'channel', f'buses.{name}')),
+                                     options=dict(bd.get('options', {}) or {}))
+    cfg = CanDevicesConfig(
+        path=path.resolve(), dbc_path=(path.resolve().parent / str(_req(data, 'dbc_file', str(path)))).resolve(),
+        buses=buses, wheels=_parse_wheels(_req(data, 'wheels', str(path)), buses),
+        imu=_parse_imu(_req(data, 'imu', str(path)), buses),
+        powercube=_parse_powercube(_req(data, 'powercube', str(path)), buses))
+    names = cfg.joint_names
+    if len(set(names)) != len(names):
+        raise ConfigError('a joint name appears twice')
+    if not cfg.dbc_path.exists():
+        raise ConfigError(f'DBC file not found: {cfg.dbc_path}')
+    return cfg

@@ -1,0 +1,305 @@
+"""can_bridge: the thin rclpy shell around krang_can_bridge.bridge.BridgeCore.
+
+Buses come from the device map (parameter `devices_file`, default the installed config/can_devices.yaml). Each
+bus has a python-can Notifier thread that feeds frames to the core (under a lock), so the executor never blocks
+on CAN; the AMC start-up (blocking SDO transfers through canopen) runs in its own thread.
+
+Topics:
+- publishes /joint_states (sensor_msgs/JointState: body joints + JLWheel/JRWheel, URDF names; only joints with
+  data), /imu/data (sensor_msgs/Imu, sensor-data QoS), /diagnostics (1 Hz);
+- subscribes /wheel_effort_cmd (std_msgs/Float64MultiArray [left, right] N m at the wheel, reliable) and
+  /joint_position_cmd (sensor_msgs/JointState, positions by name).
+
+/imu/data: orientation = rotation by q_base (hardware IMU pitch, positive = top tilting forward) about +y, the
+axle pointing left; angular_velocity.y = the filtered pitch rate; the other components and linear_acceleration
+(specific force, m/s^2) are the bias-corrected DMU readings turned by the mount angle into x forward, y left,
+z up (at zero pitch). Roll and yaw are not observed: their orientation variances are set to 1e6.
+
+Wheel currents are refreshed at wheels.command_rate_hz from the latest command; a command older than
+wheels.command_timeout_s, a malformed one, a silent device, or an AMC start-up not (yet) done or whose drive
+constants disagree with the config gives zero current (see BridgeCore).
+
+Parameters: devices_file, publish_rate_hz (200), amc_startup (True: configure the drives through SDO, as
+amciod did), sdo_timeout_s (0.3), startup_retry_s (2.0), send_timeout_s (0.002).
+"""
+from __future__ import annotations
+
+import logging
+import math
+import threading
+import time
+
+import can
+import canopen
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+from sensor_msgs.msg import Imu, JointState
+from std_msgs.msg import Float64MultiArray
+
+from krang_can_bridge.bridge import BridgeCore, BusFrame
+from krang_can_bridge.config import default_devices_file, load_devices
+from krang_can_bridge.imu_filter import pitch_axis, tilt_direction
+from krang_can_bridge.protocols import amc as amc_proto
+
+UNOBSERVED_VARIANCE = 1e6
+
+
+class _RosLogHandler(logging.Handler):
+    """Forward the core's Python logging to the node's rclpy logger."""
+
+    def __init__(self, node_logger):
+        super().__init__()
+        self.node_logger = node_logger
+
+    def emit(self, record):
+        text = self.format(record)
+        if record.levelno >= logging.ERROR:
+            self.node_logger.error(text)
+        elif record.levelno >= logging.WARNING:
+            self.node_logger.warning(text)
+        else:
+            self.node_logger.info(text)
+
+
+class _BusListener(can.Listener):
+    def __init__(self, node: 'CanBridgeNode', bus: str):
+        self.node, self.bus = node, bus
+
+    def on_message_received(self, msg: can.Message) -> None:
+        self.node.on_received(self.bus, msg)
+
+    def on_error(self, exc: Exception) -> None:
+        self.node.on_bus_error(self.bus, exc)
+
+
+class CanBridgeNode(Node):
+    def __init__(self, **kwargs):
+        super().__init__('can_bridge', **kwargs)
+        self.declare_parameter('devices_file', str(default_devices_file()))
+        self.declare_parameter('publish_rate_hz', 200.0)
+        self.declare_parameter('amc_startup', True)
+        self.declare_parameter('sdo_timeout_s', 0.3)
+        self.declare_parameter('startup_retry_s', 2.0)
+        self.declare_parameter('send_timeout_s', 0.002)
+        p = self.get_parameter
+        self.config = load_devices(p('devices_file').value)
+        self.core = BridgeCore(self.config, clock=time.monotonic)
+        self._lock = threading.Lock()
+        self._send_timeout = float(p('send_timeout_s').value)
+        self._stop = threading.Event()
+        self._send_errors: dict[str, int] = {}
+        self._receive_errors: dict[str, str] = {}
+        self._startup_status: dict[str, str] = {}
+
+        self._log_handler = _RosLogHandler(self.get_logger())
+        logging.getLogger('krang_can_bridge').addHandler(self._log_handler)
+        logging.getLogger('krang_can_bridge').setLevel(logging.INFO)
+
+        self.buses: dict[str, can.BusABC] = {}
+        self.notifiers: list[can.Notifier] = []
+        for name in self.config.buses_in_use():
+            self.buses[name] = can.Bus(**self.config.buses[name].bus_kwargs())
+        self.canopen = canopen.Network(self.buses[self.config.wheels.bus])
+        for name, bus in self.buses.items():
+            self.notifiers.append(can.Notifier(bus, [_BusListener(self, name)], timeout=0.1))
+
+        self.joint_pub = self.create_publisher(JointState, '/joint_states', 10)
+        self.imu_pub = self.create_publisher(Imu, '/imu/data', qos_profile_sensor_data)
+        self.diag_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
+        reliable = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
+        self.create_subscription(Float64MultiArray, '/wheel_effort_cmd', self.on_wheel_effort, reliable)
+        self.create_subscription(JointState, '/joint_position_cmd', self.on_joint_position, 10)
+
+        self.create_timer(1.0 / float(p('publish_rate_hz').value), self.publish_state)
+        self.create_timer(1.0 / self.config.wheels.command_rate_hz, self.send_wheel_commands)
+        self.create_timer(1.0 / self.config.powercube.poll_rate_hz, self.poll_modules)
+        self.create_timer(0.5 * self.config.imu.stream_toggle_retry_s, self.check_imu_stream)
+        self.create_timer(1.0, self.publish_diagnostics)
+
+        for drive in self.config.wheels.drives:
+            self._startup_status[drive.joint] = 'pending'
+            if p('amc_startup').value:
+                self.core.inhibit(f'startup/{drive.joint}', f'{drive.joint}: AMC start-up not done')
+        self._startup_thread = threading.Thread(
+            target=self._startup_worker, args=(bool(p('amc_startup').value), float(p('sdo_timeout_s').value),
+                                               float(p('startup_retry_s').value)), daemon=True)
+        self._startup_thread.start()
+        self.get_logger().info('can_bridge on ' + ', '.join(
+            f'{n}={self.config.buses[n].interface}:{self.config.buses[n].channel}' for n in self.buses))
+
+    # ---- CAN I/O ---------------------------------------------------------------------------------------
+    def on_received(self, bus: str, msg: can.Message) -> None:
+        with self._lock:
+            self.core.on_frame(msg, time.monotonic(), bus)
+        if bus == self.config.wheels.bus and not msg.is_error_frame:
+            self.canopen.notify(msg.arbitration_id, msg.data, msg.timestamp)   # SDO responses for the start-up
+
+    def on_bus_error(self, bus: str, exc: Exception) -> None:
+        self._receive_errors[bus] = f'{type(exc).__name__}: {exc}'
+        self.get_logger().error(f'CAN receive on {bus} stopped: {exc}')
+
+    def send(self, frames: list[BusFrame]) -> None:
+        for bus, msg in frames:
+            try:
+                self.buses[bus].send(msg, timeout=self._send_timeout)
+            except can.CanError as exc:
+                self._send_errors[bus] = self._send_errors.get(bus, 0) + 1
+                self.get_logger().warning(f'send on {bus} failed: {exc}', throttle_duration_sec=1.0)
+
+    def _startup_worker(self, amc_startup: bool, sdo_timeout: float, retry_s: float) -> None:
+        with self._lock:
+            frames = self.core.startup_frames()
+        self.send(frames)
+        if not amc_startup:
+            return
+        for drive in self.config.wheels.drives:
+            key = f'startup/{drive.joint}'
+            while not self._stop.is_set():
+                try:
+                    mismatches = amc_proto.run_startup(self.canopen, drive, sdo_timeout)
+                except Exception as exc:  # noqa: BLE001 - SDO timeout/abort or bus error: retry
+                    self._startup_status[drive.joint] = f'failed: {type(exc).__name__}: {exc}'
+                    self.get_logger().warning(f'{drive.joint} start-up failed ({exc}); retrying',
+                                              throttle_duration_sec=10.0)
+                    self._stop.wait(retry_s)
+                    continue
+                with self._lock:
+                    if mismatches:
+                        self._startup_status[drive.joint] = 'constants mismatch: ' + '; '.join(mismatches)
+                        self.core.inhibit(key, '; '.join(mismatches))
+                        self.get_logger().error(self._startup_status[drive.joint])
+                    else:
+                        self._startup_status[drive.joint] = 'enabled'
+                        self.core.inhibit(key, None)
+                break
+
+    # ---- commands --------------------------------------------------------------------------------------
+    def on_wheel_effort(self, msg: Float64MultiArray) -> None:
+        data = list(msg.data)
+        left, right = (data[0], data[1]) if len(data) == 2 else (math.nan, math.nan)
+        if len(data) != 2:
+            self.get_logger().warning(f'/wheel_effort_cmd needs [left, right], got {len(data)} values: zero current',
+                                      throttle_duration_sec=1.0)
+        with self._lock:
+            self.core.set_wheel_effort_command(left, right, time.monotonic())
+            frames = self.core.wheel_command_frames(time.monotonic())
+        self.send(frames)
+
+    def on_joint_position(self, msg: JointState) -> None:
+        if len(msg.position) != len(msg.name):
+            self.get_logger().warning('/joint_position_cmd: name and position lengths differ; ignored',
+                                      throttle_duration_sec=1.0)
+            return
+        with self._lock:
+            frames = self.core.joint_position_frames(dict(zip(msg.name, msg.position)), time.monotonic())
+        self.send(frames)
+
+    def send_wheel_commands(self) -> None:
+        with self._lock:
+            frames = self.core.wheel_command_frames(time.monotonic())
+        self.send(frames)
+
+    def poll_modules(self) -> None:
+        with self._lock:
+            frames = self.core.poll_frames()
+        self.send(frames)
+
+    def check_imu_stream(self) -> None:
+        with self._lock:
+            frames = self.core.imu_stream_frames(time.monotonic())
+        if frames:
+            self.get_logger().info('DMU silent: sending the stream toggle')
+        self.send(frames)
+
+    # ---- state out -------------------------------------------------------------------------------------
+    def publish_state(self) -> None:
+        with self._lock:
+            joints = self.core.joint_state()
+            imu = self.core.imu_state()
+        stamp = self.get_clock().now().to_msg()
+        if joints.names:
+            js = JointState()
+            js.header.stamp = stamp
+            js.name, js.position, js.velocity = joints.names, joints.positions, joints.velocities
+            self.joint_pub.publish(js)
+        if imu is not None:
+            self.imu_pub.publish(self._imu_message(imu, stamp))
+
+    def _imu_message(self, imu, stamp) -> Imu:
+        m = Imu()
+        m.header.stamp = stamp
+        m.header.frame_id = self.config.imu.frame_id
+        m.orientation.y = math.sin(imu.pitch / 2.0)
+        m.orientation.w = math.cos(imu.pitch / 2.0)
+        m.orientation_covariance = [UNOBSERVED_VARIANCE, 0.0, 0.0, 0.0, imu.pitch_variance, 0.0,
+                                    0.0, 0.0, UNOBSERVED_VARIANCE]
+        e, d = pitch_axis(self.config.imu.mount_angle_rad), tilt_direction(self.config.imu.mount_angle_rad)
+        w, f = imu.rates, imu.specific_force
+        m.angular_velocity.x = -float(d @ w)
+        m.angular_velocity.y = imu.pitch_rate
+        m.angular_velocity.z = w[2]
+        m.linear_acceleration.x = -float(d @ f)
+        m.linear_acceleration.y = float(e @ f)
+        m.linear_acceleration.z = f[2]
+        return m
+
+    def publish_diagnostics(self) -> None:
+        with self._lock:
+            reports = self.core.diagnostics(time.monotonic())
+        arr = DiagnosticArray()
+        arr.header.stamp = self.get_clock().now().to_msg()
+        for r in reports:
+            arr.status.append(DiagnosticStatus(level=bytes([r.level]), name=r.name, message=r.message,
+                                               hardware_id='krang_can',
+                                               values=[KeyValue(key=k, value=str(v)) for k, v in r.values.items()]))
+        for bus in self.buses:
+            sent_err, recv_err = self._send_errors.get(bus, 0), self._receive_errors.get(bus)
+            if sent_err or recv_err:
+                arr.status.append(DiagnosticStatus(
+                    level=DiagnosticStatus.ERROR if recv_err else DiagnosticStatus.WARN,
+                    name=f'can_bridge: bus {bus} I/O', hardware_id='krang_can',
+                    message=recv_err or f'{sent_err} send errors',
+                    values=[KeyValue(key='send_errors', value=str(sent_err)),
+                            KeyValue(key='receive_error', value=str(recv_err))]))
+        for joint, status in self._startup_status.items():
+            arr.status.append(DiagnosticStatus(
+                level=DiagnosticStatus.OK if status == 'enabled' else DiagnosticStatus.WARN,
+                name=f'can_bridge: amc/{joint} start-up', hardware_id='krang_can', message=status))
+        self.diag_pub.publish(arr)
+
+    # ---- shutdown --------------------------------------------------------------------------------------
+    def close(self) -> None:
+        """Zero the wheel currents, stop the threads, release the buses."""
+        self._stop.set()
+        try:
+            with self._lock:
+                frames = self.core.wheel_current_frames(0.0, 0.0, time.monotonic())
+            self.send(frames)
+        except Exception:  # noqa: BLE001 - best effort on the way out
+            pass
+        for n in self.notifiers:
+            n.stop()
+        for b in self.buses.values():
+            b.shutdown()
+        logging.getLogger('krang_can_bridge').removeHandler(self._log_handler)
+
+
+def main(args=None) -> None:
+    rclpy.init(args=args)
+    node = CanBridgeNode()
+    try:
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        node.close()
+        node.destroy_node()
+        if rclpy.ok():
+            rclpy.shutdown()
+
+
+if __name__ == '__main__':
+    main()

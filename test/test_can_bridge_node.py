@@ -1,0 +1,150 @@
+"""can_bridge node end to end: real rclpy, udp_multicast buses, the device emulators on the robot side."""
+import math
+import random
+import threading
+import time
+
+import can
+import pytest
+import yaml
+
+pytestmark = pytest.mark.ros
+
+rclpy = pytest.importorskip('rclpy')
+pytest.importorskip('msgpack')                      # python-can's udp_multicast needs it
+
+from rclpy.executors import SingleThreadedExecutor  # noqa: E402
+from rclpy.parameter import Parameter  # noqa: E402
+from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data  # noqa: E402
+from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
+from sensor_msgs.msg import Imu, JointState  # noqa: E402
+from std_msgs.msg import Float64MultiArray  # noqa: E402
+
+from krang_can_bridge.config import load_devices  # noqa: E402
+from krang_can_bridge.node import CanBridgeNode  # noqa: E402
+from krang_sim.devices import KrangCanDevices  # noqa: E402
+
+
+@pytest.fixture
+def devices_file(tmp_path):
+    """The shipped device map with private multicast groups, so parallel runs never share a bus."""
+    base = load_devices()
+    data = yaml.safe_load(base.path.read_text())
+    rng = random.Random()
+    group = f'239.74.{rng.randint(100, 250)}'
+    for i, name in enumerate(data['buses']):
+        data['buses'][name] = {'interface': 'udp_multicast', 'channel': f'{group}.{i + 1}',
+                               'options': {'port': rng.randint(40000, 60000)}}
+    data['dbc_file'] = str(base.dbc_path)
+    path = tmp_path / 'can_devices.yaml'
+    path.write_text(yaml.safe_dump(data))
+    return path
+
+
+class Robot:
+    """KrangCanDevices on udp_multicast buses with a 250 Hz loop (what sim_krang does around its physics)."""
+
+    def __init__(self, cfg, q0):
+        self.cfg = cfg
+        self.devices = KrangCanDevices(cfg, initial_joint_positions=q0)
+        self.lock = threading.Lock()
+        self.buses = {b: can.Bus(**cfg.buses[b].bus_kwargs()) for b in cfg.buses_in_use()}
+        self.notifiers = [can.Notifier(bus, [self._listener(name)], timeout=0.05) for name, bus in self.buses.items()]
+        self.stop = threading.Event()
+        self.thread = threading.Thread(target=self.loop, daemon=True)
+        self.thread.start()
+
+    def _listener(self, name):
+        robot = self
+
+        class L(can.Listener):
+            def on_message_received(self, msg):
+                with robot.lock:
+                    replies = robot.devices.on_frame(name, msg)
+                for r in replies:
+                    robot.buses[r.bus].send(r.msg)
+        return L()
+
+    def loop(self, dt=0.004):
+        while not self.stop.is_set():
+            with self.lock:
+                self.devices.step(dt)
+                out = self.devices.wheel_feedback_frames({'JLWheel': 0.4, 'JRWheel': -0.6},
+                                                         {'JLWheel': 0.0, 'JRWheel': 0.0})
+                out += self.devices.imu_frames_from_pitch(-1.2, 0.0)
+            for f in out:
+                self.buses[f.bus].send(f.msg)
+            time.sleep(dt)
+
+    def close(self):
+        self.stop.set()
+        self.thread.join(2.0)
+        for n in self.notifiers:
+            n.stop()
+        for b in self.buses.values():
+            b.shutdown()
+
+
+@pytest.mark.timeout(60)
+def test_node_bridges_states_and_commands(devices_file):
+    cfg = load_devices(devices_file)
+    robot = Robot(cfg, {'JWaist': 1.5, 'LJ4': -0.8})
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx)
+    ex = SingleThreadedExecutor(context=ctx)
+    bridge = CanBridgeNode(context=ctx, parameter_overrides=[Parameter('devices_file', value=str(devices_file))])
+    probe = rclpy.create_node('probe', context=ctx)
+    got = {}
+    probe.create_subscription(JointState, '/joint_states', lambda m: got.__setitem__('js', m), 10)
+    probe.create_subscription(Imu, '/imu/data', lambda m: got.__setitem__('imu', m), qos_profile_sensor_data)
+    probe.create_subscription(DiagnosticArray, '/diagnostics', lambda m: got.__setitem__('diag', m), 10)
+    effort_pub = probe.create_publisher(Float64MultiArray, '/wheel_effort_cmd',
+                                        QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE))
+    joint_pub = probe.create_publisher(JointState, '/joint_position_cmd', 10)
+    ex.add_node(bridge)
+    ex.add_node(probe)
+
+    def spin_until(cond, timeout):
+        end = time.monotonic() + timeout
+        while time.monotonic() < end and not cond():
+            ex.spin_once(timeout_sec=0.02)
+        return cond()
+
+    def joints():
+        js = got.get('js')
+        return dict(zip(js.name, js.position)) if js else {}
+    try:
+        assert spin_until(lambda: 'JRWheel' in joints() and 'JWaist' in joints(), 10.0), joints()
+        assert joints()['JLWheel'] == pytest.approx(0.4, abs=1e-3)
+        assert joints()['JRWheel'] == pytest.approx(-0.6, abs=1e-3)
+        assert joints()['JWaist'] == pytest.approx(1.5, abs=1e-5)
+        assert joints()['LJ4'] == pytest.approx(-0.8, abs=1e-5)
+        assert spin_until(lambda: 'imu' in got, 5.0)
+        q = got['imu'].orientation
+        assert 2 * math.atan2(q.y, q.w) == pytest.approx(-1.2, abs=5e-3)
+
+        def motion_ok():
+            d = got.get('diag')
+            return d is not None and any(s.name == 'can_bridge: motion' and s.level == b'\x00' for s in d.status)
+        assert spin_until(motion_ok, 10.0), [(s.name, s.message) for s in got['diag'].status][:3]
+
+        expected = 8.0 / (cfg.wheels.torque_constant_nm_per_a * cfg.wheels.gear_ratio)
+
+        def current_arrived():
+            effort_pub.publish(Float64MultiArray(data=[8.0, 8.0]))
+            c = robot.devices.wheel_currents()
+            return abs(c['JLWheel'] - expected) < 0.01 and abs(c['JRWheel'] - expected) < 0.01
+        assert spin_until(current_arrived, 5.0), robot.devices.wheel_currents()
+
+        joint_pub.publish(JointState(name=['JTorso'], position=[0.1]))
+        assert spin_until(lambda: abs(joints().get('JTorso', 0.0) - 0.1) < 1e-3, 5.0), joints().get('JTorso')
+
+        # the controller stops publishing: the wheel command goes stale -> zero current
+        assert spin_until(lambda: robot.devices.wheel_currents() == {'JLWheel': 0.0, 'JRWheel': 0.0}, 2.0)
+    finally:
+        bridge.close()
+        ex.shutdown()
+        bridge.destroy_node()
+        probe.destroy_node()
+        rclpy.shutdown(context=ctx)
+        robot.close()

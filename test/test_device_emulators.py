@@ -1,0 +1,267 @@
+"""Bridge core <-> device emulators over python-can `virtual` buses in one process.
+
+The simulator side (KrangCanDevices) and the bridge side (BridgeCore + a canopen Network for the AMC start-up)
+each own one virtual bus per configured bus; frames cross only through python-can. Expectations are physical
+values put into the emulators (or computed from FACTS), never values read back from the code under test.
+"""
+import dataclasses
+import itertools
+import math
+import struct
+import threading
+import time
+
+import can
+import canopen
+import pytest
+
+from krang_can_bridge.bridge import BridgeCore
+from krang_can_bridge.config import load_devices
+from krang_can_bridge.protocols import amc as amc_proto
+from krang_can_bridge.protocols import load_dbc
+from krang_can_bridge.protocols import powercube as pc
+from krang_sim.devices import AmcDriveEmulator, DmuImuEmulator, KrangCanDevices, PowerCubeEmulator
+
+CFG = load_devices()
+_uid = itertools.count()
+
+
+def wait_for(cond, timeout=3.0, period=0.005):
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if cond():
+            return True
+        time.sleep(period)
+    return cond()
+
+
+class _Listener(can.Listener):
+    def __init__(self, fn, bus):
+        self.fn, self.bus = fn, bus
+
+    def on_message_received(self, msg):
+        self.fn(self.bus, msg)
+
+
+class Rig:
+    """Virtual buses between a BridgeCore (host) and KrangCanDevices (robot), plus a 500 Hz robot thread."""
+
+    def __init__(self, cfg=CFG, wheel_state=None, pitch=-0.9, **device_kwargs):
+        uid = f'krang-test-{time.monotonic_ns()}-{next(_uid)}'
+        self.cfg = cfg
+        self.devices = KrangCanDevices(cfg, **device_kwargs)
+        self.core = BridgeCore(cfg)
+        self.lock = threading.Lock()            # the emulators are driven from several threads
+        names = cfg.buses_in_use()
+        self.host = {b: can.Bus(interface='virtual', channel=f'{uid}-{b}') for b in names}
+        self.robot = {b: can.Bus(interface='virtual', channel=f'{uid}-{b}') for b in names}
+        self.network = canopen.Network(self.host[cfg.wheels.bus])
+        self.notifiers = [can.Notifier(self.host[b], [_Listener(self._on_host, b)], timeout=0.05) for b in names]
+        self.notifiers += [can.Notifier(self.robot[b], [_Listener(self._on_robot, b)], timeout=0.05) for b in names]
+        self.wheel_state = wheel_state or {'pos': {'JLWheel': 0.0, 'JRWheel': 0.0},
+                                           'vel': {'JLWheel': 0.0, 'JRWheel': 0.0}}
+        self.pitch = pitch
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._robot_loop, daemon=True)
+
+    def _on_host(self, bus, msg):
+        self.core.on_frame(msg, time.monotonic(), bus)
+        if bus == self.cfg.wheels.bus:
+            self.network.notify(msg.arbitration_id, msg.data, msg.timestamp)
+
+    def _on_robot(self, bus, msg):
+        with self.lock:
+            replies = self.devices.on_frame(bus, msg)
+        self.send_robot(replies)
+
+    def send_host(self, frames):
+        for f in frames:
+            self.host[f.bus].send(f.msg)
+
+    def send_robot(self, frames):
+        for f in frames:
+            self.robot[f.bus].send(f.msg)
+
+    def _robot_loop(self, dt=0.002):
+        k = 0
+        while not self._stop.is_set():
+            with self.lock:
+                self.devices.step(dt)
+                out = self.devices.wheel_feedback_frames(self.wheel_state['pos'], self.wheel_state['vel'])
+                out += self.devices.imu_frames_from_pitch(self.pitch, 0.0)
+            self.send_robot(out)
+            if k % 10 == 0:
+                self.send_host(self.core.poll_frames())     # the bridge node's poll timer
+            k += 1
+            time.sleep(dt)
+
+    def __enter__(self):
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc):
+        self._stop.set()
+        self._thread.join(2.0)
+        for n in self.notifiers:
+            n.stop()
+        for b in itertools.chain(self.host.values(), self.robot.values()):
+            b.shutdown()
+
+
+def start_drives(rig):
+    for drive in rig.cfg.wheels.drives:
+        assert amc_proto.run_startup(rig.network, drive) == []
+
+
+# ------------------------------------------------------------------------------------------------- over the bus
+def test_amc_startup_through_canopen_enables_current_mode():
+    with Rig() as rig:
+        wheels = rig.devices.wheels
+        assert all(w.nmt_state == 'PRE-OPERATIONAL' and not w.enabled for w in wheels.values())
+        start_drives(rig)
+        for w in wheels.values():
+            assert (w.nmt_state, w.state, w.mode) == ('OPERATIONAL', 'OPERATION_ENABLED', 4)
+        # a bridge whose config disagrees with the drive's constants is told so
+        wrong = dataclasses.replace(rig.cfg.wheels.drive('JLWheel'), peak_current_kp=500)
+        mismatches = amc_proto.run_startup(rig.network, wrong)
+        assert len(mismatches) == 1 and 'Kp' in mismatches[0] and '600' in mismatches[0]
+
+
+def test_commanded_current_arrives_with_value_and_sign():
+    with Rig() as rig:
+        start_drives(rig)
+        assert wait_for(lambda: rig.core.motion_allowed()), rig.core.diagnostics()[0]
+        effort = 12.0
+        expected = effort / (rig.cfg.wheels.torque_constant_nm_per_a * rig.cfg.wheels.gear_ratio)
+        frames = rig.core.wheel_current_frames(effort, effort)
+        assert struct.unpack('<Hh', bytes(frames[1].msg.data))[1] < 0          # right drive: raw sign flipped
+        rig.send_host(frames)
+        lsb = rig.cfg.wheels.drive('JLWheel').peak_current_a / 2 ** 15
+        assert wait_for(lambda: abs(rig.devices.wheels['JRWheel'].commanded_current_a - expected) < lsb)
+        currents = rig.devices.wheel_currents()
+        assert currents['JLWheel'] == pytest.approx(expected, abs=lsb)
+        assert currents['JRWheel'] == pytest.approx(expected, abs=lsb)      # same direction at the joint
+        assert rig.devices.wheels['JLWheel'].wheel_torque_nm == pytest.approx(effort, rel=1e-3)
+        rig.send_host(rig.core.wheel_current_frames(-effort, 0.5 * effort))
+        assert wait_for(lambda: rig.devices.wheels['JLWheel'].commanded_current_a < 0)
+        assert wait_for(lambda: abs(rig.devices.wheels['JRWheel'].commanded_current_a - 0.5 * expected) < lsb)
+
+
+def test_emulated_wheel_state_is_decoded_to_the_values_put_in():
+    state = {'pos': {'JLWheel': 1.234, 'JRWheel': -0.5}, 'vel': {'JLWheel': 0.3, 'JRWheel': -2.0}}
+    with Rig(wheel_state=state) as rig:
+        start_drives(rig)
+
+        def decoded():
+            js = rig.core.joint_state()
+            return dict(zip(js.names, zip(js.positions, js.velocities)))
+        assert wait_for(lambda: 'JRWheel' in decoded())
+        count = 2 * math.pi / (4000 * 15)
+        for joint in ('JLWheel', 'JRWheel'):
+            pos, vel = decoded()[joint]
+            assert pos == pytest.approx(state['pos'][joint], abs=count)
+            assert vel == pytest.approx(state['vel'][joint], abs=1e-4)
+        assert wait_for(lambda: rig.core.wheel_state('JRWheel').statusword == 0x27)   # OPERATION_ENABLED
+
+
+def test_emulated_joint_states_and_position_commands():
+    q0 = {'JWaist': 1.0, 'JTorso': -0.3, 'LJ2': 1.9, 'RJ6': -1.0, 'LJFT': 2.5}
+    with Rig(initial_joint_positions=q0) as rig:
+        def decoded():
+            js = rig.core.joint_state()
+            return dict(zip(js.names, js.positions))
+        assert wait_for(lambda: len(decoded()) >= len(rig.cfg.body_joint_names))
+        for joint, q in q0.items():
+            assert decoded()[joint] == pytest.approx(q, abs=1e-6)        # float32 on the wire
+        assert decoded()['RJ1'] == pytest.approx(0.0, abs=1e-9)
+        waist = [em.position for _, em in rig.devices.joint_modules['JWaist']]
+        assert waist == pytest.approx([1.0, -1.0], abs=1e-6)             # qWaist = (pos0 - pos1) / 2
+
+        start_drives(rig)
+        assert wait_for(lambda: rig.core.motion_allowed())
+        rig.send_host(rig.core.joint_position_frames({'JWaist': 1.2, 'RJ1': 0.15, 'LJ2': 5.0}))
+        assert wait_for(lambda: abs(decoded()['JWaist'] - 1.2) < 1e-4 and abs(decoded()['RJ1'] - 0.15) < 1e-4
+                        and abs(decoded()['LJ2'] - 2.0944) < 1e-4, timeout=4.0), decoded()
+        assert [em.position for _, em in rig.devices.joint_modules['JWaist']] == pytest.approx([1.2, -1.2], abs=1e-4)
+
+
+def test_emulated_imu_is_decoded_to_the_pitch_put_in():
+    with Rig(pitch=-1.76) as rig:
+        assert wait_for(lambda: rig.core.imu_state() is not None and rig.core.imu_state().ready)
+        time.sleep(0.1)
+        imu = rig.core.imu_state()
+        assert imu.pitch == pytest.approx(-1.76, abs=2e-3)
+        assert imu.pitch_rate == pytest.approx(0.0, abs=5e-3)        # the emulator's bias was removed
+        assert math.hypot(*imu.specific_force) == pytest.approx(9.81, abs=0.01)
+
+
+def test_silent_dmu_is_woken_by_the_stream_toggle():
+    cfg = dataclasses.replace(CFG, imu=dataclasses.replace(CFG.imu, stream_toggle_retry_s=0.1))
+    with Rig(cfg=cfg, imu_streaming=False) as rig:
+        time.sleep(0.15)
+        assert rig.core.imu_state() is None
+        frames = rig.core.imu_stream_frames()
+        assert len(frames) == 1
+        rig.send_host(frames)
+        assert wait_for(lambda: rig.devices.imu.streaming)
+        assert wait_for(lambda: rig.core.imu_state() is not None)
+        assert rig.core.imu_stream_frames() == []
+
+
+# ------------------------------------------------------------------------------------------------- emulators alone
+def test_amc_emulator_ignores_current_until_started_and_drops_it_on_fault():
+    dbc = load_dbc(CFG.dbc_path)
+    drive = CFG.wheels.drive('JLWheel')
+    em = AmcDriveEmulator(drive, CFG.wheels, dbc)
+    cmd = can.Message(arbitration_id=0x2E2, data=struct.pack('<Hh', 0x8F, 8192), is_extended_id=False)
+    em.on_frame(cmd)
+    assert em.commanded_current_a == 0.0 and em.tpdo_frames(0.0, 0.0) == []      # pre-operational
+    em = AmcDriveEmulator(drive, CFG.wheels, dbc, auto_enable=True)
+    em.on_frame(cmd)
+    assert em.commanded_current_a == pytest.approx(8192 * 60.0 / 2 ** 15)
+    em.fault()
+    assert em.commanded_current_a == 0.0
+    sw = struct.unpack('<H', bytes(em.tpdo_frames(0.0, 0.0)[3].data))[0]
+    assert sw & 0x4F == 0x08                                                     # FAULT in the status word
+
+
+def test_dmu_emulator_quantises_saturates_and_adds_bias():
+    dbc = load_dbc(CFG.dbc_path)
+    em = DmuImuEmulator(CFG.imu, dbc)
+    rates, acc = em.frames((0.0, 0.0, 10.0), (0.0, 0.0, 9.81))
+    dq, dp, dr, _, seq = struct.unpack('<hhhBB', bytes(rates.data))
+    assert (dq, dp) == (round(CFG.imu.gyro_bias_rad_s[0] / math.radians(0.008)),
+                        round(CFG.imu.gyro_bias_rad_s[1] / math.radians(0.008)))
+    assert dr == 32767 and seq == 0                                             # 10 rad/s saturates
+    assert struct.unpack('<hhhBB', bytes(acc.data))[2] == round(9.81 / (0.0003 * 9.80665))
+    assert struct.unpack('<hhhBB', bytes(em.frames((0, 0, 0), (0, 0, 0))[1].data))[4] == 1
+    em.on_frame(can.Message(arbitration_id=0x90, data=b'\x0f', is_extended_id=False))
+    assert em.frames((0, 0, 0), (0, 0, 9.81)) == []
+
+
+def test_powercube_emulator_ramps_within_its_limits():
+    joint = CFG.powercube.joint('JTorso')
+    em = PowerCubeEmulator.from_config(joint, joint.modules[0], 0.0)
+    vmax, amax = joint.max_velocity_rad_s, joint.max_acceleration_rad_s2
+    reply = em.on_frame(pc.set_motion(13, pc.FRAMP_ACK, 3.0))[0]                 # beyond +1.57
+    assert pc.decode_reply(reply).selector == pc.FRAMP_ACK
+    dt, prev_v, peak = 0.002, 0.0, 0.0
+    positions = []
+    for _ in range(int(6.0 / dt)):
+        em.step(dt)
+        positions.append(em.position)
+        assert abs(em.velocity) <= vmax + 1e-9
+        assert abs(em.velocity - prev_v) <= amax * dt * (1 + 1e-9)
+        prev_v, peak = em.velocity, max(peak, abs(em.velocity))
+    assert em.position == pytest.approx(1.57) and max(positions) <= 1.57          # clamped to the soft limit
+    assert peak == pytest.approx(vmax, rel=1e-6)
+    em.on_frame(pc.simple_command(13, pc.HALT))
+    em.on_frame(pc.set_motion(13, pc.FRAMP_ACK, 0.0))
+    em.step(0.5)
+    assert em.position == pytest.approx(1.57)                                     # halted until RESET
+    assert pc.decode_reply(em.on_frame(pc.set_motion(13, pc.FRAMP_ACK, 0.0))[0]).short_state & pc.SHORT_NOT_OK
+    em.on_frame(pc.simple_command(13, pc.RESET))
+    em.on_frame(pc.set_motion(13, pc.FRAMP_ACK, 1.0))
+    em.step(0.5)
+    assert em.position < 1.57
+    assert em.on_frame(pc.get_param(12, pc.ACT_FPOS)) == []                       # another module's frame
