@@ -171,6 +171,11 @@ class KrangSim:
         """Distance travelled along the floor (m)."""
         return self.drive.wheel_radius * self.state[0]
 
+    @property
+    def axle_acceleration(self):
+        """Forward acceleration of the axle along the floor (m/s^2) over the last step."""
+        return self.drive.wheel_radius * self._accel[0]
+
     def com_angle(self):
         """True CoM angle from vertical (rad) of the whole robot, wheels included."""
         com = com_frame0(self.robot, [self.state[1]], self.joints[None], self.true_beta)[0]

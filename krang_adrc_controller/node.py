@@ -1,0 +1,147 @@
+"""adrc_controller: the balance controller on ROS topics (thin shell over controller.BalanceController).
+
+Control runs on a wall timer at `rate_hz` from the latest /imu/data and /joint_states. If either is
+older than `stale_timeout_s`, the controller is told the data are stale and commands zero torque
+(safe stop) until it is re-enabled.
+"""
+import dataclasses
+import sys
+
+import numpy as np
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray
+from rclpy.node import Node
+from sensor_msgs.msg import Imu, JointState
+from std_msgs.msg import Float64MultiArray
+from std_srvs.srv import SetBool
+
+from krang_model.beta import load_beta
+from krang_model.robot import load_krang
+from krang_ros import messages, topics
+
+from .controller import BalanceController, ControllerConfig, ControlSample
+
+from krang_ros.names import WHEEL_JOINTS as WHEELS  # noqa: E402
+
+
+class AdrcControllerNode(Node):
+    def __init__(self):
+        super().__init__('adrc_controller')
+        self.robot = load_krang()
+        # every ControllerConfig field is a ROS parameter with the same name and default
+        overrides = {}
+        for field in dataclasses.fields(ControllerConfig):
+            default = getattr(ControllerConfig(), field.name)
+            if isinstance(default, (bool, int, float, str)):
+                overrides[field.name] = self.declare_parameter(field.name, default).value
+        self.config = dataclasses.replace(ControllerConfig(), **overrides)
+        self.stale_timeout = self.declare_parameter('stale_timeout_s', 0.1).value
+        beta_file = self.declare_parameter('initial_beta', '').value
+        enabled = self.declare_parameter('enabled', True).value
+        beta = load_beta(beta_file, self.robot) if beta_file else self.robot.nominal_beta
+        self.controller = BalanceController(self.robot, beta, self.config)
+        self.controller.set_enabled(enabled)
+        self.imu = None
+        self.joint_state = None
+        self.target = None
+        self.mode = None
+        self.effort_pub = self.create_publisher(Float64MultiArray, topics.WHEEL_EFFORT_CMD, topics.QOS[topics.WHEEL_EFFORT_CMD])
+        self.pose_pub = self.create_publisher(JointState, topics.BALANCED_POSE, topics.QOS[topics.BALANCED_POSE])
+        self.diag_pub = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, topics.QOS[topics.DIAGNOSTICS])
+        self.create_subscription(Imu, topics.IMU, self.on_imu, topics.QOS[topics.IMU])
+        self.create_subscription(JointState, topics.JOINT_STATES, self.on_joint_states, topics.QOS[topics.JOINT_STATES])
+        self.create_subscription(Float64MultiArray, topics.BETA, self.on_beta, topics.QOS[topics.BETA])
+        self.create_subscription(JointState, topics.POSE_TARGET, self.on_target, topics.QOS[topics.POSE_TARGET])
+        self.create_service(SetBool, '/adrc_controller/enable', self.on_enable)
+        self.create_timer(1.0 / self.config.rate_hz, self.on_tick)
+        self.create_timer(1.0, self.publish_diagnostics)
+        self.last_output = None
+        self.get_logger().info(f'balancing at {self.config.rate_hz:.0f} Hz, stale timeout {self.stale_timeout} s, '
+                               f'initial beta {beta_file or "nominal (URDF)"}')
+
+    def now(self):
+        return self.get_clock().now().nanoseconds * 1e-9
+
+    def on_imu(self, msg):
+        q = msg.orientation
+        self.imu = (self.now(), messages.pitch_from_quaternion(q.x, q.y, q.z, q.w), msg.angular_velocity.y)
+
+    def on_joint_states(self, msg):
+        joints = messages.joints_from_state(msg, self.robot.pose_joints)
+        wheels = messages.joints_from_state(msg, WHEELS)
+        if joints is None or wheels is None:
+            self.get_logger().warn('joint_states without all body joints and wheels; ignored', throttle_duration_sec=5)
+            return
+        rates = messages.velocities_from_state(msg, WHEELS)
+        self.joint_state = (self.now(), joints, wheels, rates if rates is not None else np.zeros(2))
+
+    def on_target(self, msg):
+        self.target = messages.joints_from_state(msg, self.robot.pose_joints)
+
+    def on_beta(self, msg):
+        beta = messages.array_values(msg, self.robot.n_beta)
+        if beta is None:
+            self.get_logger().error(f'rejected a beta of {len(msg.data)} values or with NaN/inf')
+            return
+        self.controller.set_beta(beta)
+        self.get_logger().info(f'new beta (total mass {beta[0::4].sum():.2f} kg)')
+
+    def on_enable(self, request, response):
+        self.controller.set_enabled(bool(request.data))
+        response.success = True
+        response.message = 'enabled' if request.data else 'disabled: wheels stopped'
+        self.get_logger().info(response.message)
+        return response
+
+    def on_tick(self):
+        now = self.now()
+        stale = (self.imu is None or self.joint_state is None or now - self.imu[0] > self.stale_timeout
+                 or now - self.joint_state[0] > self.stale_timeout)
+        if self.imu is None or self.joint_state is None:
+            sample = ControlSample(now, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, np.zeros(len(self.robot.pose_joints)), False)
+        else:
+            _, q_base, pitch_rate = self.imu
+            _, joints, wheels, rates = self.joint_state
+            moving = self.target is not None and bool(np.any(np.abs(self.target - joints) > 0.01))
+            sample = ControlSample(now, q_base, pitch_rate, wheels[0], wheels[1], rates[0], rates[1], joints, moving)
+        out = self.controller.step(sample, stale=stale)
+        self.last_output = out
+        effort = Float64MultiArray()
+        effort.data = [float(out.torque_left), float(out.torque_right)]
+        self.effort_pub.publish(effort)
+        for event in out.events:
+            self.get_logger().info(event)
+        if out.mode != self.mode:
+            self.get_logger().info(f'mode {self.mode} -> {out.mode}')
+            self.mode = out.mode
+        if out.balanced_point is not None:
+            point = out.balanced_point
+            names = list(self.robot.pose_joints) + [messages.BASE_PITCH]
+            values = list(point.joints) + [point.q_base]
+            self.pose_pub.publish(messages.joint_state(self.get_clock().now().to_msg(), names, values))
+            self.get_logger().info(f'balanced pose detected: q_base {point.q_base:+.4f} rad')
+
+    def publish_diagnostics(self):
+        out = self.last_output
+        level = 'ok' if out is not None and out.mode != 'safe_stop' else 'warn'
+        values = {} if out is None else {'mode': out.mode, 'theta_rad': f'{out.theta:+.4f}', 'x_m': f'{out.x:+.3f}',
+                                         'f_hat_theta': f'{out.f_hat_theta:+.3f}', 'f_hat_x': f'{out.f_hat_x:+.3f}'}
+        self.diag_pub.publish(messages.diagnostics(self.get_clock().now().to_msg(), 'adrc_controller', level,
+                                                   f'mode {out.mode if out else "starting"}', values))
+
+
+def main(args=None):
+    rclpy.init(args=args)
+    node = AdrcControllerNode()
+    try:
+        rclpy.spin(node)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())

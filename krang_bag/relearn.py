@@ -1,0 +1,55 @@
+"""Re-learn beta offline from the balanced poses recorded in a bag."""
+from dataclasses import dataclass
+
+import numpy as np
+
+from krang_com_estimator.online import OnlineLearner
+from krang_ros.names import BALANCED_POSE as BALANCED_POSE_TOPIC, BASE_PITCH, BETA as BETA_TOPIC
+
+from .reader import iter_messages
+
+
+@dataclass
+class RelearnResult:
+    beta0: np.ndarray
+    betas: np.ndarray            # (n_poses + 1, n_beta): beta0 and after each pose
+    recorded: np.ndarray         # betas the online estimator published, in order
+    poses: list                  # (q_base, joints)
+
+    @property
+    def max_deviation(self):
+        """Largest |ours - online| over the betas published after each pose (nan if none recorded)."""
+        n = min(len(self.recorded), len(self.betas))
+        if n == 0:
+            return float('nan')
+        return float(np.abs(self.recorded[:n] - self.betas[:n]).max())
+
+
+def balanced_poses(bag, robot):
+    """(q_base, joints) of every /balanced_pose message, in order; malformed ones are skipped."""
+    poses = []
+    for _, _, msg in iter_messages(bag, [BALANCED_POSE_TOPIC]):
+        index = {n: i for i, n in enumerate(msg.name)}
+        if BASE_PITCH not in index or any(j not in index for j in robot.pose_joints):
+            continue
+        poses.append((float(msg.position[index[BASE_PITCH]]),
+                      np.array([msg.position[index[j]] for j in robot.pose_joints])))
+    return poses
+
+
+def recorded_betas(bag, robot):
+    rows = [np.array(msg.data) for _, _, msg in iter_messages(bag, [BETA_TOPIC])]
+    return np.array([r for r in rows if r.size == robot.n_beta])
+
+
+def relearn(bag, robot, method='map-online', beta0=None):
+    recorded = recorded_betas(bag, robot)
+    if beta0 is None:
+        if len(recorded) == 0:
+            raise ValueError(f'{bag}: no {BETA_TOPIC} message to start from; pass an initial beta')
+        beta0 = recorded[0]
+    learner = OnlineLearner(robot, beta0, method)
+    poses = balanced_poses(bag, robot)
+    for q_base, joints in poses:
+        learner.add_balanced_pose(q_base, joints)
+    return RelearnResult(np.asarray(beta0), np.array(learner.history), recorded, poses)

@@ -1,0 +1,48 @@
+"""krang relearn: replay the balanced poses of a bag through an estimator, offline."""
+import numpy as np
+
+from krang_bag.relearn import relearn
+from krang_model.beta import load_beta, save_beta
+from krang_model.robot import load_krang
+
+from .common import print_json
+
+# The numbers the online estimator published are printed with 17 significant digits in CDR (float64);
+# replaying the same poses through the same code gives the same floating-point operations.
+REPRODUCTION_TOLERANCE = 1e-9
+
+
+def register(subparsers):
+    p = subparsers.add_parser(
+        'relearn', help='re-learn beta from the balanced poses in a bag',
+        description='Reads every /balanced_pose of an MCAP bag and runs them, in order, through an '
+                    'estimator starting from the first beta the online estimator published (or --beta0). '
+                    'With the online method (default map-online) this reproduces the online beta; '
+                    'choose --method to try another estimator on the same data.')
+    p.add_argument('bag', help='MCAP bag recorded by mcap_recorder (e.g. a krang demo session.mcap)')
+    p.add_argument('--out', required=True, help='beta file to write (.txt: authors\' one-line format; .yaml/.json)')
+    p.add_argument('--method', default='map-online', help='paper-gd, paper-gd-mass, map or map-online')
+    p.add_argument('--beta0', default=None, help='initial beta file instead of the bag\'s first published beta')
+    p.add_argument('--row', type=int, default=None, help='row of a multi-row .txt --beta0')
+    p.add_argument('--json', action='store_true', help='print a JSON summary as the last line')
+    p.set_defaults(func=run)
+
+
+def run(args):
+    robot = load_krang()
+    beta0 = load_beta(args.beta0, robot, row=args.row) if args.beta0 else None
+    result = relearn(args.bag, robot, args.method, beta0)
+    save_beta(args.out, result.betas[-1], robot, method=args.method, poses=len(result.poses), source=str(args.bag))
+    deviation = result.max_deviation
+    summary = {'poses': len(result.poses), 'method': args.method, 'out': str(args.out),
+               'online_betas': int(len(result.recorded)),
+               'max_abs_diff_to_online': None if np.isnan(deviation) else deviation}
+    if args.json:
+        print_json(summary)
+    else:
+        print(f'{len(result.poses)} balanced poses replayed with {args.method}; beta written to {args.out}')
+        if not np.isnan(deviation):
+            verdict = 'reproduces' if deviation <= REPRODUCTION_TOLERANCE else 'differs from'
+            print(f'largest difference to the {len(result.recorded)} betas published online: {deviation:.3g} '
+                  f'({verdict} the online run within {REPRODUCTION_TOLERANCE:g})')
+    return 0

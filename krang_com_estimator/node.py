@@ -1,0 +1,102 @@
+"""com_estimator: learns beta from /balanced_pose and publishes it (thin shell over OnlineLearner)."""
+import sys
+from pathlib import Path
+
+import rclpy
+from geometry_msgs.msg import PointStamped
+from rclpy.node import Node
+from sensor_msgs.msg import JointState
+from std_msgs.msg import Float64MultiArray
+from std_srvs.srv import Trigger
+
+from krang_model.beta import load_beta, save_beta
+from krang_model.robot import load_krang
+from krang_ros import messages, topics
+
+from .online import OnlineLearner
+
+
+class ComEstimatorNode(Node):
+    def __init__(self):
+        super().__init__('com_estimator')
+        self.robot = load_krang()
+        method = self.declare_parameter('method', 'map-online').value
+        beta_file = self.declare_parameter('initial_beta', '').value
+        self.output = Path(self.declare_parameter('output', 'beta.yaml').value)
+        beta0 = load_beta(beta_file, self.robot) if beta_file else self.robot.nominal_beta
+        self.learner = OnlineLearner(self.robot, beta0, method)
+        self.labels = self.robot.beta_labels()
+        self.beta_pub = self.create_publisher(Float64MultiArray, topics.BETA, topics.QOS[topics.BETA])
+        self.com_pub = self.create_publisher(PointStamped, topics.COM, topics.QOS[topics.COM])
+        self.diag_pub = self.create_publisher(messages.DiagnosticArray, topics.DIAGNOSTICS, topics.QOS[topics.DIAGNOSTICS])
+        self.create_subscription(JointState, topics.BALANCED_POSE, self.on_balanced_pose, topics.QOS[topics.BALANCED_POSE])
+        self.create_service(Trigger, '/com_estimator/save', self.on_save)
+        self.create_service(Trigger, '/com_estimator/reset', self.on_reset)
+        self.create_timer(1.0, self.publish_diagnostics)
+        self.rejected = 0
+        self.publish_beta()
+        self.get_logger().info(f'estimator {method}, initial beta {beta_file or "nominal (URDF)"}, saves to {self.output}')
+
+    def on_balanced_pose(self, msg):
+        joints = messages.joints_from_state(msg, self.robot.pose_joints)
+        pitch = messages.joints_from_state(msg, [messages.BASE_PITCH])
+        if joints is None or pitch is None:
+            self.rejected += 1
+            self.get_logger().error(f'rejected balanced pose: needs all body joints and {messages.BASE_PITCH}, '
+                                    f'finite (got {list(msg.name)})')
+            return
+        try:
+            beta = self.learner.add_balanced_pose(float(pitch[0]), joints)
+        except ValueError as err:
+            self.rejected += 1
+            self.get_logger().error(f'rejected balanced pose: {err}')
+            return
+        self.publish_beta()
+        com = self.learner.com(float(pitch[0]), joints)
+        point = PointStamped()
+        point.header = msg.header
+        point.header.frame_id = 'frame0'
+        point.point.x, point.point.y, point.point.z = (float(v) for v in com)
+        self.com_pub.publish(point)
+        self.get_logger().info(f'pose {len(self.learner.poses)}: CoM x {1000 * com[0]:+.2f} mm at the measured '
+                               f'pitch; total mass {beta[0::4].sum():.2f} kg')
+
+    def publish_beta(self):
+        self.beta_pub.publish(messages.labelled_array(self.learner.beta, self.labels))
+
+    def on_save(self, request, response):
+        path = save_beta(self.output, self.learner.beta, self.robot, method=self.learner.method,
+                         poses=len(self.learner.poses))
+        response.success, response.message = True, f'saved beta after {len(self.learner.poses)} poses to {path}'
+        self.get_logger().info(response.message)
+        return response
+
+    def on_reset(self, request, response):
+        self.learner.reset()
+        self.publish_beta()
+        response.success, response.message = True, 'beta reset to the initial estimate'
+        self.get_logger().info(response.message)
+        return response
+
+    def publish_diagnostics(self):
+        self.diag_pub.publish(messages.diagnostics(
+            self.get_clock().now().to_msg(), 'com_estimator', 'ok' if not self.rejected else 'warn',
+            f'{len(self.learner.poses)} poses learned', {'poses': len(self.learner.poses), 'rejected': self.rejected,
+                                                         'method': self.learner.method}))
+
+
+def main(args=None):
+    rclpy.init(args=args)
+    node = ComEstimatorNode()
+    try:
+        rclpy.spin(node)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())

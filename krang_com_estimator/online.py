@@ -1,0 +1,49 @@
+"""One balanced pose in, one beta out: the glue shared by the com_estimator node and `krang relearn`,
+so that replaying a bag runs exactly the computation the robot ran."""
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from krang_model.com import com_frame0, phi
+
+from .estimators import NoiseModel, make_estimator
+
+
+@dataclass
+class OnlineLearner:
+    robot: object
+    beta0: np.ndarray
+    method: str = 'map-online'
+    noise: NoiseModel = field(default_factory=NoiseModel)
+
+    def __post_init__(self):
+        self.beta0 = np.asarray(self.beta0, dtype=float)
+        self.estimator = make_estimator(self.method, self.beta0, robot=self.robot)
+        self.history = [self.beta0.copy()]
+        self.poses = []
+
+    @property
+    def beta(self):
+        return self.estimator.beta
+
+    def add_balanced_pose(self, q_base, joints):
+        """Learn from one balanced pose (q_base in rad, joints in pose order); returns the new beta."""
+        joints = np.asarray(joints, dtype=float)
+        if joints.shape != (len(self.robot.pose_joints),) or not np.all(np.isfinite(joints)) \
+                or not np.isfinite(q_base):
+            raise ValueError(f'balanced pose needs {len(self.robot.pose_joints)} finite joints and a finite q_base')
+        row = phi(self.robot, [q_base], joints[None])[0]
+        noise_var = None
+        if self.method.startswith('map'):
+            noise_var = float(self.noise.variance(self.robot, [q_base], joints[None], self.beta0)[0])
+        self.estimator.update(row, 0.0, noise_var)
+        self.poses.append((float(q_base), joints.copy()))
+        self.history.append(self.estimator.beta)
+        return self.estimator.beta
+
+    def com(self, q_base, joints):
+        """The estimated CoM (frame 0) at a pose."""
+        return com_frame0(self.robot, [q_base], np.asarray(joints, dtype=float)[None], self.estimator.beta)[0]
+
+    def reset(self):
+        self.__post_init__()

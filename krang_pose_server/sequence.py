@@ -1,0 +1,59 @@
+"""The list of excitatory poses the online session walks through, one `next_pose` at a time."""
+from dataclasses import dataclass
+
+import numpy as np
+
+from krang_model.poses import load_poses
+
+
+@dataclass(frozen=True)
+class PoseTarget:
+    index: int              # 0-based position in the list
+    total: int
+    joints: np.ndarray      # pose order, rad
+
+    @property
+    def remaining(self):
+        return self.total - self.index - 1
+
+    def describe(self):
+        return f'pose {self.index + 1}/{self.total}; {self.remaining} left'
+
+
+class PoseSequence:
+    """Poses in order, validated against the robot's joint limits when loaded."""
+
+    def __init__(self, joints, robot):
+        joints = np.atleast_2d(np.asarray(joints, dtype=float))
+        if joints.shape[1] != len(robot.pose_joints):
+            raise ValueError(f'poses have {joints.shape[1]} joints, {robot.name} has {len(robot.pose_joints)}')
+        if not np.all(np.isfinite(joints)):
+            raise ValueError('poses contain NaN or inf')
+        outside = np.flatnonzero(np.any((joints < robot.lower) | (joints > robot.upper), axis=1))
+        if outside.size:
+            raise ValueError(f'poses {outside[:10].tolist()} are outside the joint limits')
+        self.joints = joints
+        self.cursor = -1
+
+    @classmethod
+    def from_csv(cls, path, robot, columns):
+        _, joints, _ = load_poses(path, columns)
+        return cls(joints, robot)
+
+    def __len__(self):
+        return len(self.joints)
+
+    def advance(self):
+        """The next pose, or None when the list is exhausted."""
+        if self.cursor + 1 >= len(self.joints):
+            return None
+        self.cursor += 1
+        return self.current()
+
+    def current(self):
+        if self.cursor < 0:
+            return None
+        return PoseTarget(self.cursor, len(self.joints), self.joints[self.cursor])
+
+    def reset(self):
+        self.cursor = -1

@@ -1,0 +1,13 @@
+"""Topic names of DESIGN.md §5 (no rclpy import, so offline tools can use them too)."""
+JOINT_STATES = '/joint_states'
+IMU = '/imu/data'
+WHEEL_EFFORT_CMD = '/wheel_effort_cmd'
+JOINT_POSITION_CMD = '/joint_position_cmd'
+BALANCED_POSE = '/balanced_pose'
+BETA = '/com_estimator/beta'
+COM = '/com_estimator/com'
+POSE_TARGET = '/pose_server/target'
+DIAGNOSTICS = '/diagnostics'
+
+BASE_PITCH = 'base_pitch'    # the extra "joint" of /balanced_pose
+WHEEL_JOINTS = ('JLWheel', 'JRWheel')

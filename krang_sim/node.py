@@ -1,0 +1,172 @@
+"""sim_krang: the simulated Krang behind the same CAN frames as the real robot.
+
+A physics thread steps `KrangSim` at `physics_rate_hz` and paces itself at `real_time_factor` times wall
+time (1 = real time, 0 = as fast as the CPU allows). The device emulators of devices.py answer the
+bridge on the buses of the device map: AMC drives (current commands in, TPDO feedback out), the DMU
+IMU and the PowerCube modules, which move the body joints at their speed limits. With
+`publish_clock` the node publishes /clock, so nodes running with use_sim_time follow the simulated time
+when it runs faster than real time. Ground truth for evaluation goes to /sim_krang/ground_truth.
+"""
+import dataclasses
+import math
+import sys
+import threading
+import time
+
+import can
+import numpy as np
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray
+from rclpy.node import Node
+from rosgraph_msgs.msg import Clock
+from std_msgs.msg import Float64MultiArray
+
+from krang_can_bridge.config import default_devices_file, load_devices
+from krang_model.beta import load_beta
+from krang_model.config import config_path
+from krang_model.robot import load_krang
+from krang_ros import messages, topics
+
+from .devices import KrangCanDevices
+from .physics import KrangSim, SensorNoise, SimConfig, SimEffects
+
+GROUND_TRUTH = '/sim_krang/ground_truth'
+GROUND_TRUTH_FIELDS = ('t', 'q_base', 'x_m', 'balance_pitch', 'current_left_a', 'current_right_a')
+
+
+class _Inbox(can.Listener):
+    def __init__(self, node, bus_name):
+        self.node, self.bus_name = node, bus_name
+
+    def on_message_received(self, msg):
+        self.node.on_host_frame(self.bus_name, msg)
+
+
+class SimKrangNode(Node):
+    def __init__(self):
+        super().__init__('sim_krang')
+        self.robot = load_krang()
+        p = self.declare_parameter
+        devices_file = p('devices_file', str(default_devices_file())).value
+        truth_file = p('true_beta', '').value or str(config_path('sim_true_beta.yaml'))
+        pose = list(p('initial_pose', [0.0] * len(self.robot.pose_joints)).value)
+        q_base = p('initial_q_base', math.nan).value
+        self.rate = p('physics_rate_hz', 1000.0).value
+        self.feedback_every = max(1, round(self.rate / p('feedback_rate_hz', 250.0).value))
+        self.factor = p('real_time_factor', 1.0).value
+        self.publish_clock = p('publish_clock', False).value
+        seed = p('seed', 0).value
+        effects = SimEffects(**{f.name: p(f'effects.{f.name}', f.default).value
+                                for f in dataclasses.fields(SimEffects) if isinstance(f.default, (float, str))})
+        self.config = load_devices(devices_file)
+        true_beta = load_beta(truth_file, self.robot)
+        self.sim = KrangSim(self.robot, true_beta, np.array(pose), None if math.isnan(q_base) else q_base,
+                            SimConfig(dt=1.0 / self.rate, effects=effects, seed=seed,
+                                      noise=SensorNoise(imu_pitch_std_rad=0.0)))  # IMU noise: in the emulator
+        self.devices = KrangCanDevices(self.config, seed=seed, imu_rate_noise_std_rad_s=0.002,
+                                       imu_accel_noise_std_m_s2=0.02,
+                                       initial_joint_positions=dict(zip(self.robot.pose_joints, pose)))
+        self.lock = threading.Lock()
+        self.buses = {}
+        self.notifiers = []
+        for name in self.config.buses_in_use():
+            bus = can.Bus(**self.config.buses[name].bus_kwargs())
+            self.buses[name] = bus
+            self.notifiers.append(can.Notifier(bus, [_Inbox(self, name)], timeout=0.05))
+        self.clock_pub = self.create_publisher(Clock, '/clock', 10)
+        self.truth_pub = self.create_publisher(Float64MultiArray, GROUND_TRUTH, 10)
+        self.diag_pub = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, topics.QOS[topics.DIAGNOSTICS])
+        self.create_timer(0.1, self.publish_truth)
+        self.create_timer(1.0, self.publish_diagnostics)
+        self.sent_frames = 0
+        self.running = True
+        self.thread = threading.Thread(target=self.physics_loop, name='physics', daemon=True)
+        self.thread.start()
+        self.get_logger().info(f'simulated Krang: truth {truth_file}, sitting at q_base {self.sim.q_base:+.3f} rad, '
+                               f'true balance {self.sim.balance_pitch():+.3f} rad, {self.rate:.0f} Hz physics at '
+                               f'{self.factor:g}x real time, buses {sorted(self.buses)}')
+
+    def on_host_frame(self, bus_name, msg):
+        with self.lock:
+            replies = self.devices.on_frame(bus_name, msg)
+        self.send(replies)
+
+    def send(self, frames):
+        for frame in frames:
+            try:
+                self.buses[frame.bus].send(frame.msg, timeout=0.01)
+                self.sent_frames += 1
+            except can.CanError as err:
+                self.get_logger().warn(f'send on {frame.bus} failed: {err}', throttle_duration_sec=5)
+
+    def physics_loop(self):
+        dt = 1.0 / self.rate
+        start = time.monotonic()
+        k = 0
+        while self.running:
+            with self.lock:
+                self.devices.step(dt)
+                joints = self.devices.joint_positions()
+                currents = self.devices.wheel_currents()
+                self.sim.command_joints([joints[j] for j in self.robot.pose_joints])
+                self.sim.command_currents(currents['JLWheel'], currents['JRWheel'])
+                self.sim.step()
+                frames = []
+                if k % self.feedback_every == 0:
+                    read = self.sim.sensors()
+                    frames = self.devices.wheel_feedback_frames(
+                        {'JLWheel': read.wheel_left, 'JRWheel': read.wheel_right},
+                        {'JLWheel': read.wheel_left_rate, 'JRWheel': read.wheel_right_rate})
+                    frames += self.devices.imu_frames_from_pitch(
+                        self.sim.q_base + self.sim.config.effects.imu_pitch_bias_rad, self.sim.state[3],
+                        forward_specific_force=self.sim.axle_acceleration)
+            self.send(frames)
+            k += 1
+            if self.publish_clock and k % self.feedback_every == 0:
+                clock = Clock()
+                clock.clock.sec, nanosec = divmod(int(round(self.sim.t * 1e9)), 1_000_000_000)
+                clock.clock.nanosec = nanosec
+                self.clock_pub.publish(clock)
+            if self.factor > 0:
+                lag = start + self.sim.t / self.factor - time.monotonic()
+                if lag > 0:
+                    time.sleep(lag)
+
+    def publish_truth(self):
+        with self.lock:
+            values = [self.sim.t, self.sim.q_base, self.sim.x, self.sim.balance_pitch(), *self.sim.applied_current]
+        msg = messages.labelled_array(values, GROUND_TRUTH_FIELDS, label='truth')
+        self.truth_pub.publish(msg)
+
+    def publish_diagnostics(self):
+        with self.lock:
+            t, qb, bal = self.sim.t, self.sim.q_base, self.sim.balance_pitch()
+        self.diag_pub.publish(messages.diagnostics(
+            self.get_clock().now().to_msg(), 'sim_krang', 'ok', f'simulated t = {t:.1f} s',
+            {'q_base': f'{qb:+.4f}', 'true_balance_pitch': f'{bal:+.4f}', 'frames_sent': self.sent_frames}))
+
+    def close(self):
+        self.running = False
+        self.thread.join(timeout=2.0)
+        for n in self.notifiers:
+            n.stop()
+        for bus in self.buses.values():
+            bus.shutdown()
+
+
+def main(args=None):
+    rclpy.init(args=args)
+    node = SimKrangNode()
+    try:
+        rclpy.spin(node)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        node.close()
+        node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
