@@ -4,7 +4,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from krang_model.com import com_frame0, phi
+from krang_model.com import com_frame0
 
 from .estimators import NoiseModel, make_estimator
 
@@ -32,11 +32,8 @@ class OnlineLearner:
         if joints.shape != (len(self.robot.pose_joints),) or not np.all(np.isfinite(joints)) \
                 or not np.isfinite(q_base):
             raise ValueError(f'balanced pose needs {len(self.robot.pose_joints)} finite joints and a finite q_base')
-        row = phi(self.robot, [q_base], joints[None])[0]
-        noise_var = None
-        if self.method.startswith('map'):
-            noise_var = float(self.noise.variance(self.robot, [q_base], joints[None], self.beta0)[0])
-        self.estimator.update(row, 0.0, noise_var)
+        # the estimator's own measurement model (MAP: errors in the measured pitch, not in x_com)
+        self.estimator.update_pose(self.robot, float(q_base), joints, self.noise)
         self.poses.append((float(q_base), joints.copy()))
         self.history.append(self.estimator.beta)
         return self.estimator.beta

@@ -1,0 +1,235 @@
+"""Estimators of beta: the paper's GD (against the authors' own trajectory), the mass constraint, and MAP
+(batch = online, against a second implementation, recovery of a hidden beta from noisy balanced poses)."""
+import math
+
+import numpy as np
+import pytest
+from scipy.linalg import lstsq
+
+from krang_com_estimator import estimators as est
+from krang_model.com import balance_pitch, com_frame0, phi
+from krang_model.poses import load_poses
+from krang_model.robot import KRANG_POSE_COLUMNS, load_krang
+
+
+@pytest.fixture(scope='module')
+def robot():
+    return load_krang()
+
+
+@pytest.fixture(scope='module')
+def hardware(krang_data):
+    q, j, rows = load_poses(krang_data / 'hardware_balanced_poses_train.csv', KRANG_POSE_COLUMNS)
+    traj = np.loadtxt(krang_data / 'betas' / 'betaVectors1initialBetahardwareAll190Vectors.txt')
+    return q, j, traj
+
+
+def random_poses(robot, n, seed):
+    from krang_pose_server.pool import PosePool
+    res = PosePool(robot).generate(n, seed=seed)
+    return res.q_base, res.joints
+
+
+def test_paper_gd_replays_the_authors_trajectory(robot, hardware):
+    q, j, traj = hardware
+    gd = est.PaperGD(traj[0], eta=300.0)
+    rows = [gd.beta]
+    for qb, jt in zip(q, j):
+        gd.update_pose(robot, qb, jt)
+        rows.append(gd.beta)
+    err = np.abs(np.array(rows) - traj).max()
+    # The kit's figure "to 2e-4" is 2.02e-4 measured (6-digit printing of the authors' file plus the
+    # 5e-4 median relative residual of the recovered kinematics, krang_data FACTS §10).
+    assert err <= 2.05e-4, err
+    assert len(rows) == 190
+
+
+def test_paper_gd_stop_rule():
+    beta = np.array([1e-4, 0, 0, 0])
+    gd = est.PaperGD(beta, eta=0.0, x_tol=1e-3, window=3)
+    big, small = np.array([100.0, 0, 0, 0]), np.array([1.0, 0, 0, 0])
+    gd.update(big)           # error 1e-2
+    gd.update(small)
+    gd.update(small)
+    assert not gd.converged   # the big one is still in the window
+    gd.update(small)
+    assert gd.converged
+
+
+def test_total_mass_constraint_holds_exactly(robot):
+    q, j = random_poses(robot, 200, seed=3)
+    P = phi(robot, q, j)
+    beta0 = robot.nominal_beta.copy()
+    beta0[0::4] *= 1.02            # start off the constraint: the projection puts it back
+    for weights in ('mass', 'euclidean'):
+        gd = est.PaperGDMass(beta0, total_mass=robot.nominal_mass, weights=weights)
+        assert gd.beta[0::4].sum() == pytest.approx(robot.nominal_mass, abs=1e-9)
+        rng = np.random.default_rng(0)
+        for p in P:
+            gd.update(p, y=0.01 * rng.standard_normal())
+            assert gd.beta[0::4].sum() == pytest.approx(robot.nominal_mass, abs=1e-9)
+    # plain GD drifts
+    gd = est.PaperGD(robot.nominal_beta)
+    gd.update_many(P, y=np.full(len(P), 0.01))
+    assert abs(gd.beta[0::4].sum() - robot.nominal_mass) > 1e-3
+    # MAP keeps it through any number of updates, EIV rows included
+    m = est.make_estimator('map-online', robot.nominal_beta, robot=robot)
+    for qb, jt in zip(q, j):
+        m.update_pose(robot, qb, jt)
+    assert np.abs(m.constraint_residual()).max() < 1e-9
+
+
+def _problem(robot, n=80, seed=1, model='angle'):
+    q, j = random_poses(robot, n, seed=seed)
+    noise = est.NoiseModel(sigma_imu_rad=math.radians(0.1), sigma_hand_rad=0.004)
+    rows, y, var = est.balanced_pose_rows(robot, q, j, robot.nominal_beta, noise, model)
+    prior = est.physical_prior_std(robot)
+    A, b = est.equality_constraints(robot, robot.nominal_mass)
+    beta0 = robot.nominal_beta + 0.02 * np.random.default_rng(seed).standard_normal(robot.n_beta) * prior
+    return rows, y + 1e-3 * np.random.default_rng(seed + 1).standard_normal(len(y)), var, prior, A, b, beta0
+
+
+@pytest.mark.parametrize('model', ['angle', 'eiv', 'phi'])
+def test_map_batch_equals_online(robot, model):
+    rows, y, var, prior, A, b, beta0 = _problem(robot, model=model)
+    assert np.any(var < 0) == (model == 'eiv')    # the errors-in-variables rows remove information
+    online = est.MAPEstimator(beta0, prior, A=A, b=b)
+    online.update_many(rows, y, var)
+    beta_b, cov_b = est.map_batch(beta0, prior, rows, y, var, A, b)
+    scale = np.abs(beta_b).max()
+    assert np.abs(online.beta - beta_b).max() < 1e-9 * scale
+    assert np.abs(online.covariance - cov_b).max() < 1e-9 * np.abs(cov_b).max()
+
+
+def test_map_online_pose_updates_equal_the_batch(robot):
+    q, j = random_poses(robot, 30, seed=5)
+    noise = est.NoiseModel(sigma_hand_rad=0.004)
+    prior = est.physical_prior_std(robot)
+    A, b = est.equality_constraints(robot, robot.nominal_mass)
+    beta0 = robot.nominal_beta
+    # fixed linearisation (the prior mean): recursive == batch exactly
+    m = est.MAPEstimator(beta0, prior, A=A, b=b)
+    fixed = est.MAPOnline(robot, beta0, prior, noise, A, b, relinearize_tol=None)
+    for qb, jt in zip(q, j):
+        m.update_pose(robot, qb, jt, noise)
+        fixed.update_pose(robot, qb, jt)
+    rows, y, var = est.balanced_pose_rows(robot, q, j, m.prior_mean, noise)
+    beta_b, cov_b = est.map_batch(beta0, prior, rows, y, var, A, b)
+    for e in (m, fixed):
+        assert np.abs(e.beta - beta_b).max() < 1e-9 * np.abs(beta_b).max()
+        assert np.abs(e.covariance - cov_b).max() < 1e-9 * np.abs(cov_b).max()
+    # re-linearising online estimator: finalize() == batch Gauss-Newton
+    online = est.make_estimator('map-online', beta0, robot=robot, noise=noise)
+    for qb, jt in zip(q, j):
+        online.update_pose(robot, qb, jt)
+    online.finalize()
+    beta_gn, cov_gn, _ = est.map_gauss_newton(robot, q, j, beta0, prior, noise, A, b)
+    assert np.abs(online.beta - beta_gn).max() < 1e-8 * np.abs(beta_gn).max()
+    assert np.abs(online.covariance - cov_gn).max() < 1e-6 * np.abs(cov_gn).max()
+
+
+def test_map_posterior_matches_augmented_least_squares(robot):
+    """Second implementation: whitened augmented system [P0^-1/2 (beta - beta0); R^-1/2 (y - Phi beta)] in the
+    null-space coordinates of the constraints, solved by scipy lstsq; covariance Z (J^T J)^-1 Z^T."""
+    rows, y, var, prior, A, b, beta0 = _problem(robot, seed=7)
+    beta_b, cov_b = est.map_batch(beta0, prior, rows, y, var, A, b)
+    bp = lstsq(A, b)[0]
+    _, s, vt = np.linalg.svd(A)
+    Z = vt[len(s):].T
+    J = np.vstack([Z / prior[:, None], (rows @ Z) / np.sqrt(var)[:, None]])
+    rhs = np.concatenate([(beta0 - bp) / prior, (y - rows @ bp) / np.sqrt(var)])
+    z = lstsq(J, rhs)[0]
+    beta_l = bp + Z @ z
+    cov_l = Z @ np.linalg.inv(J.T @ J) @ Z.T
+    assert np.abs(beta_b - beta_l).max() < 1e-8 * np.abs(beta_l).max()
+    assert np.abs(cov_b - cov_l).max() < 1e-8 * np.abs(cov_l).max()
+    assert np.abs(A @ beta_b - b).max() < 1e-9
+
+
+def test_map_recovers_a_hidden_com_from_noisy_balanced_poses(robot):
+    """Hidden physical beta (CoMs +-5 cm, masses +-15 %), start at the URDF beta; 60 balanced poses with
+    0.1 deg IMU noise. The horizontal CoM error at held-out poses (at their true balance pitch) must fall
+    below 1 mm from a >= 2 cm start."""
+    from krang_com_estimator.experiments import HeldOut, physical_truths
+    from krang_pose_server.pool import PosePool
+
+    pool = PosePool(robot)
+    test = pool.generate(300, seed=11)
+    heldout = HeldOut(robot, test.joints)
+    truths = physical_truths(robot, 4, np.random.default_rng(2), heldout=heldout)
+    train = pool.generate(60, seed=12)
+    prior = est.physical_prior_std(robot)
+    A, b = est.equality_constraints(robot, robot.nominal_mass)
+    noise = est.NoiseModel(sigma_imu_rad=math.radians(0.1))
+    rng = np.random.default_rng(3)
+    start, end = [], []
+    for truth in truths:
+        q_meas = balance_pitch(robot, train.joints, truth) + noise.sigma_imu_rad * rng.standard_normal(60)
+        beta, _, _ = est.map_gauss_newton(robot, q_meas, train.joints, robot.nominal_beta, prior, noise, A, b)
+        start.append(heldout.errors(robot.nominal_beta[None], truth[None])[0][0])
+        end.append(heldout.errors(beta[None], truth[None])[0][0])
+    assert min(start) >= 0.02
+    assert np.mean(end) < 1e-3, end
+
+
+def test_noisy_pitch_shrinks_the_paper_regression_but_not_the_angle_model(robot):
+    """Errors in variables: with phi evaluated at a noisy pitch, least squares on the paper's rows pulls the
+    CoM down (balanced poses cannot see the scale, so only the prior resists); the CoM-angle rows are
+    scale-free and keep the height."""
+    from krang_pose_server.pool import PosePool
+
+    pool = PosePool(robot)
+    train, test = pool.generate(200, seed=12), pool.generate(200, seed=11)
+    truth = robot.nominal_beta
+    prior = est.physical_prior_std(robot)
+    A, b = est.equality_constraints(robot, robot.nominal_mass)
+    noise = est.NoiseModel(sigma_imu_rad=math.radians(0.1))
+    q_meas = balance_pitch(robot, train.joints, truth) + noise.sigma_imu_rad * \
+        np.random.default_rng(0).standard_normal(200)
+    qt = balance_pitch(robot, test.joints, truth)
+    height = lambda beta: com_frame0(robot, qt, test.joints, beta)[:, 2].mean()   # noqa: E731
+    rows, y, var = est.balanced_pose_rows(robot, q_meas, train.joints, truth, noise, 'phi')
+    plain, _ = est.map_batch(truth, prior, rows, y, var, A, b)
+    angle, _, _ = est.map_gauss_newton(robot, q_meas, train.joints, truth, prior, noise, A, b)
+    dh_plain, dh_angle = height(plain) - height(truth), height(angle) - height(truth)
+    assert dh_plain < 0
+    assert abs(dh_angle) < 0.25 * abs(dh_plain), (dh_angle, dh_plain)
+
+
+def test_physical_consistency_flags_the_authors_learned_beta(robot, hardware):
+    _, _, traj = hardware
+    assert est.physical_consistency(robot, traj[0])['ok']
+    rep = est.physical_consistency(robot, traj[189])
+    assert not rep['ok']
+    text = ' '.join(rep['violations'])
+    assert 'lgPlate1: mass' in text and 'not positive' in text
+    assert 'LWheel: CoM off the axle' in text
+    assert 'total mass 157.1' in text
+
+
+def test_make_estimator_by_name(robot):
+    for name in est.ESTIMATORS:
+        e = est.make_estimator(name, robot.nominal_beta, robot=robot)
+        assert e.name == name
+        e.update(phi(robot, [-0.5], np.zeros((1, 16)))[0])
+        assert e.beta.shape == (robot.n_beta,)
+        assert (e.covariance is None) == name.startswith('paper')
+    with pytest.raises(ValueError):
+        est.make_estimator('nope', robot.nominal_beta, robot=robot)
+
+
+def test_map_constrained_enforces_the_bounds(robot):
+    """A prior so loose that the Gaussian MAP leaves the bounds; the QP brings every CoM back inside."""
+    q, j = random_poses(robot, 40, seed=21)
+    noise = est.NoiseModel(sigma_imu_rad=math.radians(0.1))
+    rows, y, var = est.balanced_pose_rows(robot, q, j, robot.nominal_beta, noise)
+    y = y.copy()
+    y[0::2] += 0.02                                # data that want a 2 cm offset everywhere
+    prior = est.physical_prior_std(robot, mass_frac=0.5, com_std=1.0)
+    A, b = est.equality_constraints(robot, robot.nominal_mass)
+    G, h = est.inequality_constraints(robot)
+    free, _ = est.map_batch(robot.nominal_beta, prior, rows, y, var, A, b)
+    assert not est.physical_consistency(robot, free)['ok']
+    bounded = est.map_constrained(robot.nominal_beta, prior, rows, y, var, A, b, G, h, beta_start=free)
+    assert np.all(G @ bounded >= h - 1e-7)
+    assert np.abs(A @ bounded - b).max() < 1e-8
