@@ -4,7 +4,6 @@ Control runs on a wall timer at `rate_hz` from the latest /imu/data and /joint_s
 older than `stale_timeout_s`, the controller is told the data are stale and commands zero torque
 (safe stop) until it is re-enabled.
 """
-import dataclasses
 import sys
 
 import numpy as np
@@ -28,19 +27,14 @@ class AdrcControllerNode(Node):
     def __init__(self):
         super().__init__('adrc_controller')
         self.robot = load_krang()
-        # every ControllerConfig field is a ROS parameter with the same name and default
-        overrides = {}
-        for field in dataclasses.fields(ControllerConfig):
-            default = getattr(ControllerConfig(), field.name)
-            if isinstance(default, (bool, int, float, str)):
-                overrides[field.name] = self.declare_parameter(field.name, default).value
-        self.config = dataclasses.replace(ControllerConfig(), **overrides)
-        self.stale_timeout = self.declare_parameter('stale_timeout_s', 0.1).value
+        # every ControllerConfig field is a ROS parameter of the same name (config/controller.yaml)
+        defaults = ControllerConfig().to_dict()
+        values = {name: self.declare_parameter(name, default).value for name, default in defaults.items()}
+        self.config = ControllerConfig.from_dict(values)
+        self.stale_timeout = self.config.stale_timeout_s
         beta_file = self.declare_parameter('initial_beta', '').value
-        enabled = self.declare_parameter('enabled', True).value
         beta = load_beta(beta_file, self.robot) if beta_file else self.robot.nominal_beta
         self.controller = BalanceController(self.robot, beta, self.config)
-        self.controller.set_enabled(enabled)
         self.imu = None
         self.joint_state = None
         self.target = None
@@ -86,7 +80,17 @@ class AdrcControllerNode(Node):
         self.controller.set_beta(beta)
         self.get_logger().info(f'new beta (total mass {beta[0::4].sum():.2f} kg)')
 
+    def sensors_stale(self):
+        now = self.now()
+        return (self.imu is None or self.joint_state is None or now - self.imu[0] > self.stale_timeout
+                or now - self.joint_state[0] > self.stale_timeout)
+
     def on_enable(self, request, response):
+        if request.data and self.sensors_stale():
+            response.success = False
+            response.message = 'not enabled: no fresh /imu/data and /joint_states yet (is can_bridge up?)'
+            self.get_logger().warn(response.message)
+            return response
         self.controller.set_enabled(bool(request.data))
         response.success = True
         response.message = 'enabled' if request.data else 'disabled: wheels stopped'
@@ -95,8 +99,7 @@ class AdrcControllerNode(Node):
 
     def on_tick(self):
         now = self.now()
-        stale = (self.imu is None or self.joint_state is None or now - self.imu[0] > self.stale_timeout
-                 or now - self.joint_state[0] > self.stale_timeout)
+        stale = self.sensors_stale()
         if self.imu is None or self.joint_state is None:
             sample = ControlSample(now, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, np.zeros(len(self.robot.pose_joints)), False)
         else:

@@ -79,7 +79,8 @@ class WheelsConfig:
 class KalmanConfig:
     process_k1: float
     process_k1b: float
-    measurement_noise: float
+    measurement_noise_angle: float   # accelerometer pitch (corrupted by linear acceleration)
+    measurement_noise_rate: float    # gyro pitch rate
     init_samples: int
 
 
@@ -265,7 +266,9 @@ def _parse_imu(d: Mapping, buses: Mapping) -> ImuConfig:
         kalman=KalmanConfig(
             process_k1=_positive(_req(k, 'process_k1', 'imu.kalman'), 'process_k1'),
             process_k1b=_positive(_req(k, 'process_k1b', 'imu.kalman'), 'process_k1b'),
-            measurement_noise=_positive(_req(k, 'measurement_noise', 'imu.kalman'), 'measurement_noise'),
+            measurement_noise_angle=_positive(_req(k, 'measurement_noise_angle', 'imu.kalman'),
+                                              'measurement_noise_angle'),
+            measurement_noise_rate=_positive(_req(k, 'measurement_noise_rate', 'imu.kalman'), 'measurement_noise_rate'),
             init_samples=int(_req(k, 'init_samples', 'imu.kalman'))))
     if cfg.bus not in buses:
         raise ConfigError(f'{where}: unknown bus {cfg.bus!r}')

@@ -64,9 +64,10 @@ def sensor_vectors(pitch: float, pitch_rate: float, mount_angle_rad: float, grav
 class PitchKalmanFilter:
     """kore's filter_kalman on x = (angle, rate), z = (angle, rate), A = [[1, dt], [0, 1]], C = I."""
 
-    def __init__(self, process_k1: float, process_k1b: float, measurement_noise: float, init_samples: int):
+    def __init__(self, process_k1: float, process_k1b: float, measurement_noise_angle: float,
+                 measurement_noise_rate: float, init_samples: int):
         self.k1, self.k1b = process_k1, process_k1b
-        self.measurement_cov = np.eye(2) * measurement_noise
+        self.measurement_cov = np.diag([measurement_noise_angle, measurement_noise_rate])
         self.init_samples = max(1, int(init_samples))
         self._init_sum = np.zeros(2)
         self._init_count = 0
@@ -75,7 +76,7 @@ class PitchKalmanFilter:
 
     @classmethod
     def from_config(cls, k: KalmanConfig) -> 'PitchKalmanFilter':
-        return cls(k.process_k1, k.process_k1b, k.measurement_noise, k.init_samples)
+        return cls(k.process_k1, k.process_k1b, k.measurement_noise_angle, k.measurement_noise_rate, k.init_samples)
 
     @property
     def ready(self) -> bool:

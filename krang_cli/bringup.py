@@ -28,7 +28,7 @@ def register(subparsers):
 
 
 def params_files(sim, extra):
-    files = [config_path('krang_params.yaml'), config_path('controller.yaml')]
+    files = [config_path('controller.yaml'), config_path('krang_params.yaml')]  # later files win
     if sim:
         files.append(config_path('sim_params.yaml'))
     return files + list(extra)

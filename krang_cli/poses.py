@@ -28,6 +28,10 @@ def register(subparsers):
     pool.add_argument('--out', required=True, help='pose CSV to write')
     pool.add_argument('--beta', default=None, help='the "real" beta the poses are balanced under (default: the URDF)')
     pool.add_argument('--row', type=int, default=None, help='row K of a multi-row .txt --beta')
+    pool.add_argument('--min-pitch', type=float, default=None,
+                      help='lowest balanced base pitch to accept (rad; default the floor limit of config/poses.yaml). '
+                           'For online sessions keep a margin above the caster (-1.763): the true robot balances '
+                           'up to ~0.2 rad away from the model, e.g. --min-pitch -1.45')
     pool.add_argument('--no-progress', action='store_true', help='no progress bar')
     pool.add_argument('--json', action='store_true', help='only the JSON line on stdout (it is printed anyway)')
     pool.set_defaults(func=run_pool)
@@ -79,6 +83,8 @@ def run_pool(args):
         raise ValueError('--n must be positive')
     robot = load_krang()
     pool = PosePool(robot, _real_beta(args, robot))
+    if args.min_pitch is not None:
+        pool.q_base_limits = (args.min_pitch, pool.q_base_limits[1])
     bar = tqdm(total=args.n, unit='pose', file=sys.stderr, disable=args.no_progress, desc='pose pool')
     res = pool.generate(args.n, seed=args.seed, progress=bar.update)
     bar.close()

@@ -9,7 +9,7 @@ from krang_model.config import config_path
 from krang_model.robot import KRANG_POSE_COLUMNS, load_krang
 from krang_ros import messages, topics
 
-from .sequence import PoseSequence
+from .sequence import PoseSequence, StraightLineMove
 
 
 class PoseServer(Node):
@@ -25,7 +25,32 @@ class PoseServer(Node):
         self.diag_pub = self.create_publisher(messages.DiagnosticArray, topics.DIAGNOSTICS, topics.QOS[topics.DIAGNOSTICS])
         self.create_service(Trigger, '/pose_server/next_pose', self.on_next_pose)
         self.create_service(Trigger, '/pose_server/reset', self.on_reset)
+        self.create_subscription(messages.JointState, topics.JOINT_STATES, self.on_joint_states,
+                                 topics.QOS[topics.JOINT_STATES])
+        self.stream_rate = self.declare_parameter('stream_rate_hz', 20.0).value
+        self.speed_fraction = self.declare_parameter('speed_fraction', 0.8).value
+        self.measured = None
+        self.move = None
+        self.move_started = None
+        self.create_timer(1.0 / self.stream_rate, self.stream_move)
         self.create_timer(1.0, self.publish_diagnostics)
+
+    def on_joint_states(self, msg):
+        joints = messages.joints_from_state(msg, self.robot.pose_joints)
+        if joints is not None:
+            self.measured = joints
+
+    def now(self):
+        return self.get_clock().now().nanoseconds * 1e-9
+
+    def stream_move(self):
+        if self.move is None:
+            return
+        t = self.now() - self.move_started
+        self.cmd_pub.publish(messages.joint_state(self.get_clock().now().to_msg(), self.robot.pose_joints,
+                                                  self.move.at(t)))
+        if t >= self.move.duration:
+            self.move = None
 
     def on_next_pose(self, request, response):
         target = self.sequence.advance()
@@ -33,12 +58,14 @@ class PoseServer(Node):
             response.success = False
             response.message = f'no poses left (all {len(self.sequence)} done); call /pose_server/reset to start over'
             return response
-        stamp = self.get_clock().now().to_msg()
-        msg = messages.joint_state(stamp, self.robot.pose_joints, target.joints)
-        self.cmd_pub.publish(msg)
-        self.target_pub.publish(msg)
+        start = self.measured if self.measured is not None else (self.move.goal if self.move else target.joints)
+        self.move = StraightLineMove.plan(start, target.joints, self.robot.velocity_limit, self.speed_fraction)
+        self.move_started = self.now()
+        self.target_pub.publish(messages.joint_state(self.get_clock().now().to_msg(), self.robot.pose_joints,
+                                                     target.joints))
+        self.stream_move()
         response.success = True
-        response.message = target.describe()
+        response.message = f'{target.describe()} (moving for {self.move.duration:.1f} s)'
         self.get_logger().info(f'commanding {response.message}')
         return response
 

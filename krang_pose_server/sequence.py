@@ -57,3 +57,24 @@ class PoseSequence:
 
     def reset(self):
         self.cursor = -1
+
+
+@dataclass(frozen=True)
+class StraightLineMove:
+    """A coordinated move in joint space: every joint arrives at the same time, so the path is the
+    straight line between the poses (whose balance stays away from the caster when both ends do),
+    not the per-joint dash the modules would make at their own top speeds."""
+
+    start: np.ndarray
+    goal: np.ndarray
+    duration: float
+
+    @classmethod
+    def plan(cls, start, goal, velocity_limit, speed_fraction=0.8):
+        start, goal = np.asarray(start, dtype=float), np.asarray(goal, dtype=float)
+        times = np.abs(goal - start) / (speed_fraction * np.asarray(velocity_limit, dtype=float))
+        return cls(start, goal, float(times.max(initial=0.0)))
+
+    def at(self, t):
+        s = 1.0 if self.duration <= 0 else min(max(t / self.duration, 0.0), 1.0)
+        return self.start + s * (self.goal - self.start)

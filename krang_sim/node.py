@@ -1,7 +1,8 @@
 """sim_krang: the simulated Krang behind the same CAN frames as the real robot.
 
 A physics thread steps `KrangSim` at `physics_rate_hz` and paces itself at `real_time_factor` times wall
-time (1 = real time, 0 = as fast as the CPU allows). The device emulators of devices.py answer the
+time (1 = real time, 0 = as fast as the CPU allows). When the CPU cannot keep up it falls behind by
+at most `max_lag_s` and then slows down, instead of catching up in bursts the controller cannot see. The device emulators of devices.py answer the
 bridge on the buses of the device map: AMC drives (current commands in, TPDO feedback out), the DMU
 IMU and the PowerCube modules, which move the body joints at their speed limits. With
 `publish_clock` the node publishes /clock, so nodes running with use_sim_time follow the simulated time
@@ -23,12 +24,12 @@ from std_msgs.msg import Float64MultiArray
 
 from krang_can_bridge.config import default_devices_file, load_devices
 from krang_model.beta import load_beta
-from krang_model.config import config_path
 from krang_model.robot import load_krang
 from krang_ros import messages, topics
 
 from .devices import KrangCanDevices
 from .physics import KrangSim, SensorNoise, SimConfig, SimEffects
+from .session_config import resolve_config_file
 
 GROUND_TRUTH = '/sim_krang/ground_truth'
 GROUND_TRUTH_FIELDS = ('t', 'q_base', 'x_m', 'balance_pitch', 'current_left_a', 'current_right_a')
@@ -48,7 +49,7 @@ class SimKrangNode(Node):
         self.robot = load_krang()
         p = self.declare_parameter
         devices_file = p('devices_file', str(default_devices_file())).value
-        truth_file = p('true_beta', '').value or str(config_path('sim_true_beta.yaml'))
+        truth_file = str(resolve_config_file(p('true_beta', '').value, 'sim_true_beta.yaml'))
         pose = list(p('initial_pose', [0.0] * len(self.robot.pose_joints)).value)
         q_base = p('initial_q_base', math.nan).value
         self.rate = p('physics_rate_hz', 1000.0).value
@@ -67,6 +68,9 @@ class SimKrangNode(Node):
                                        imu_accel_noise_std_m_s2=0.02,
                                        initial_joint_positions=dict(zip(self.robot.pose_joints, pose)))
         self.lock = threading.Lock()
+        self.sent_frames = 0
+        self.slips = 0
+        self.max_lag = p('max_lag_s', 0.02).value
         self.buses = {}
         self.notifiers = []
         for name in self.config.buses_in_use():
@@ -78,7 +82,6 @@ class SimKrangNode(Node):
         self.diag_pub = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, topics.QOS[topics.DIAGNOSTICS])
         self.create_timer(0.1, self.publish_truth)
         self.create_timer(1.0, self.publish_diagnostics)
-        self.sent_frames = 0
         self.running = True
         self.thread = threading.Thread(target=self.physics_loop, name='physics', daemon=True)
         self.thread.start()
@@ -128,9 +131,14 @@ class SimKrangNode(Node):
                 clock.clock.nanosec = nanosec
                 self.clock_pub.publish(clock)
             if self.factor > 0:
-                lag = start + self.sim.t / self.factor - time.monotonic()
-                if lag > 0:
-                    time.sleep(lag)
+                ahead = start + self.sim.t / self.factor - time.monotonic()
+                if ahead > 0:
+                    time.sleep(ahead)
+                elif ahead < -self.max_lag:
+                    # Starved of CPU: slow the simulated time down rather than catch up in a burst,
+                    # which would let the robot fall for that long with no control in between.
+                    start -= ahead
+                    self.slips += 1
 
     def publish_truth(self):
         with self.lock:
@@ -143,7 +151,8 @@ class SimKrangNode(Node):
             t, qb, bal = self.sim.t, self.sim.q_base, self.sim.balance_pitch()
         self.diag_pub.publish(messages.diagnostics(
             self.get_clock().now().to_msg(), 'sim_krang', 'ok', f'simulated t = {t:.1f} s',
-            {'q_base': f'{qb:+.4f}', 'true_balance_pitch': f'{bal:+.4f}', 'frames_sent': self.sent_frames}))
+            {'q_base': f'{qb:+.4f}', 'true_balance_pitch': f'{bal:+.4f}', 'frames_sent': self.sent_frames,
+             'real_time_slips': self.slips}))
 
     def close(self):
         self.running = False

@@ -83,3 +83,36 @@ def test_filter_waits_for_its_initial_average(imu):
     for k in range(imu.kalman.init_samples - 1):
         assert not est.update(w + imu.gyro_bias_rad_s, f, k * 0.002).ready
     assert est.update(w + imu.gyro_bias_rad_s, f, 1.0).ready
+
+
+def test_pitch_survives_axle_acceleration():
+    """An accelerating axle tilts the accelerometer's pitch by atan(a/g); the configured filter trusts the
+    gyro and keeps the pitch error small, where kore's equal weighting (1e-3, 1e-3) follows the tilt."""
+    import math
+
+    import numpy as np
+
+    from krang_can_bridge.config import load_devices
+    from krang_can_bridge.imu_filter import PitchKalmanFilter, pitch_measurement, sensor_vectors
+    cfg = load_devices().imu
+    rng = np.random.default_rng(0)
+
+    def rms_error(kalman):
+        dt, errors = 0.01, []
+        for k in range(4000):
+            t = k * dt
+            pitch = -1.55 + 0.08 * math.sin(2 * math.pi * 0.4 * t)
+            rate = 0.08 * 2 * math.pi * 0.4 * math.cos(2 * math.pi * 0.4 * t)
+            accel = 3.0 * math.sin(2 * math.pi * 0.7 * t + 1.0)   # m/s^2 along the floor
+            force, rates = sensor_vectors(pitch, rate, cfg.mount_angle_rad, forward_specific_force=accel)
+            measured = pitch_measurement(force + rng.normal(0, 0.02, 3), rates + rng.normal(0, 0.002, 3),
+                                         cfg.mount_angle_rad)
+            estimate, _ = kalman.update(*measured, dt if k else 0.0)
+            if t > 10:
+                errors.append(estimate - pitch)
+        return float(np.sqrt(np.mean(np.square(errors))))
+    k = cfg.kalman
+    ours = rms_error(PitchKalmanFilter.from_config(k))
+    kore = rms_error(PitchKalmanFilter(k.process_k1, k.process_k1b, 1e-3, 1e-3, k.init_samples))
+    assert ours < 0.005
+    assert kore > 5 * ours

@@ -1,0 +1,101 @@
+"""krang demo: the simulated Krang end to end, learning its mass model online over next_pose."""
+import logging
+import time
+from pathlib import Path
+
+from tqdm import tqdm
+
+from krang_bag.reader import message_counts
+from krang_bag.session_report import session_figures
+from krang_model.beta import load_beta
+from krang_model.robot import load_krang
+from krang_sim.session_config import session_devices_file, sim_truth_file
+
+from .bringup import STOP_ORDER, start_node_set
+from .common import print_json
+
+log = logging.getLogger('krang.demo')
+
+
+def register(subparsers):
+    p = subparsers.add_parser(
+        'demo', help='THE MAIN JOB: simulated Krang, whole node set, online learning, report',
+        description='Starts sim_krang (a simulated Krang with a hidden true mass model: a physically consistent '
+                    'fit to the real robot\'s balanced poses) and the node set over simulated CAN buses, records '
+                    'every topic to DIR/session.mcap, lets the robot stand up, then walks through the meta-learned '
+                    'poses over /pose_server/next_pose while com_estimator learns beta online from each balanced '
+                    'pose. Writes DIR/beta.yaml, DIR/report.md with PNG figures, and prints a JSON summary.')
+    p.add_argument('--poses', type=int, default=12, help='number of poses to learn from (default 12)')
+    p.add_argument('--out', default='demo_out', help='output directory (default demo_out)')
+    p.add_argument('--method', default='map-online', help='estimator of com_estimator (default map-online)')
+    p.add_argument('--stand-timeout', type=float, default=120.0, help='s to wait for the robot to balance')
+    p.add_argument('--pose-timeout', type=float, default=90.0, help='s to wait for each balanced pose')
+    p.add_argument('--keep-logs', action='store_true', help='keep node logs in DIR/logs (always kept on failure)')
+    p.set_defaults(func=run)
+
+
+def run(args):
+    import rclpy
+    from std_srvs.srv import Trigger
+
+    from krang_ros.session_client import SessionError, open_session_client
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    bag = out / 'session.mcap'
+    if bag.exists():
+        bag.unlink()
+    robot = load_krang()
+    true_beta = load_beta(sim_truth_file(), robot)
+    devices = session_devices_file(out)
+    beta_file = (out / 'beta.yaml').resolve()
+    overrides = {'sim_krang': {'devices_file': devices}, 'can_bridge': {'devices_file': devices},
+                 'com_estimator': {'output': beta_file, 'method': args.method}}
+    started = time.monotonic()
+    nodes = start_node_set(sim=True, record=str(bag), log_dir=out / 'logs', overrides=overrides)
+    client = context = None
+    learned = 0
+    failure = None
+    try:
+        client, context = open_session_client()
+        message = client.enable_controller(timeout=60.0)
+        log.info('adrc_controller: %s; waiting for the simulated robot to stand up and balance ...', message)
+        client.wait_for_balance(args.stand_timeout)
+        with tqdm(total=args.poses, desc='online session', unit='pose') as bar:
+            for _ in range(args.poses):
+                message = client.learn_next_pose(args.pose_timeout)
+                learned += 1
+                bar.set_postfix_str(message)
+                bar.update()
+        client.call(client.save, Trigger.Request())
+    except SessionError as err:
+        failure = str(err)
+        log.error('session stopped early: %s (node logs in %s)', failure, out / 'logs')
+    finally:
+        if client is not None:
+            client.close()
+            rclpy.try_shutdown(context=context)
+        nodes.stop(STOP_ORDER)
+    wall = time.monotonic() - started
+    curve, figures = session_figures(bag, robot, true_beta, out)
+    result = {'poses': learned, 'com_error_before_m': float(curve[0]), 'com_error_after_m': float(curve[-1]),
+              'bag': str(bag)}
+    write_report(out, result, curve, figures, message_counts(bag), wall, args, failure)
+    print(f'{learned} poses learned in {wall:.0f} s: mean CoM error {1000 * curve[0]:.1f} mm -> '
+          f'{1000 * curve[-1]:.1f} mm; report {out / "report.md"}')
+    print_json(result)
+    return 0 if failure is None else 1
+
+
+def write_report(out, result, curve, figures, counts, wall, args, failure):
+    lines = ['# krang demo: online CoM learning on the simulated Krang', '',
+             f'- poses learned: {result["poses"]} of {args.poses} (estimator `{args.method}`), wall time {wall:.0f} s',
+             f'- mean horizontal CoM error against the hidden true model, over 2000 held-out configurations: '
+             f'**{1000 * result["com_error_before_m"]:.2f} mm before, {1000 * result["com_error_after_m"]:.2f} mm after**',
+             f'- learned beta: `beta.yaml`; bag: `{Path(result["bag"]).name}` ({sum(counts.values())} messages)', '']
+    if failure:
+        lines += [f'**The session stopped early:** {failure}. Node logs are in `logs/`.', '']
+    lines += ['| poses | CoM error (mm) |', '|---|---|']
+    lines += [f'| {k} | {1000 * e:.2f} |' for k, e in enumerate(curve)]
+    lines += ['', '| topic | messages |', '|---|---|'] + [f'| `{t}` | {n} |' for t, n in sorted(counts.items())]
+    lines += [''] + [f'![{p.stem}]({p.name})' for p in figures]
+    (out / 'report.md').write_text('\n'.join(lines) + '\n')

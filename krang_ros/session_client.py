@@ -1,0 +1,97 @@
+"""Drives an online learning session over the node set's services (used by `krang demo` and the tests)."""
+import time
+
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
+from std_msgs.msg import Float64MultiArray
+from std_srvs.srv import SetBool, Trigger
+
+from . import topics
+
+
+class SessionError(RuntimeError):
+    """The session could not continue (a node is missing, the robot did not balance, ...)."""
+
+
+class SessionClient(Node):
+    def __init__(self, context=None):
+        super().__init__('krang_session', context=context)
+        self.modes = []
+        self.betas = []
+        self.create_subscription(DiagnosticArray, topics.DIAGNOSTICS, self.on_diagnostics, topics.QOS[topics.DIAGNOSTICS])
+        self.create_subscription(Float64MultiArray, topics.BETA, self.on_beta, topics.QOS[topics.BETA])
+        self.next_pose = self.create_client(Trigger, '/pose_server/next_pose')
+        self.save = self.create_client(Trigger, '/com_estimator/save')
+        self.enable = self.create_client(SetBool, '/adrc_controller/enable')
+        self.spinner = SingleThreadedExecutor(context=context)
+        self.spinner.add_node(self)
+
+    @property
+    def mode(self):
+        return self.modes[-1] if self.modes else None
+
+    def on_diagnostics(self, msg):
+        for status in msg.status:
+            if status.name == 'adrc_controller':
+                values = {kv.key: kv.value for kv in status.values}
+                if 'mode' in values:
+                    self.modes.append(values['mode'])
+
+    def on_beta(self, msg):
+        self.betas.append(list(msg.data))
+
+    def spin_until(self, condition, timeout, what):
+        deadline = time.monotonic() + timeout
+        while not condition():
+            if time.monotonic() > deadline:
+                raise SessionError(f'timed out after {timeout:.0f} s waiting for {what}')
+            self.spinner.spin_once(timeout_sec=0.05)
+
+    def pause(self, seconds):
+        """Keep processing messages for `seconds`."""
+        end = time.monotonic() + seconds
+        while time.monotonic() < end:
+            self.spinner.spin_once(timeout_sec=0.05)
+
+    def call(self, client, request, timeout=10.0):
+        self.spin_until(lambda: client.service_is_ready(), timeout, f'service {client.srv_name}')
+        future = client.call_async(request)
+        self.spin_until(future.done, timeout, f'the answer of {client.srv_name}')
+        return future.result()
+
+    def enable_controller(self, timeout):
+        """Enable the balance controller as soon as it accepts (it refuses until sensor data flow)."""
+        deadline = time.monotonic() + timeout
+        while True:
+            reply = self.call(self.enable, SetBool.Request(data=True), timeout=max(1.0, deadline - time.monotonic()))
+            if reply.success:
+                return reply.message
+            if time.monotonic() > deadline:
+                raise SessionError(f'adrc_controller did not accept enable: {reply.message}')
+            self.pause(1.0)
+
+    def wait_for_balance(self, timeout):
+        self.spin_until(lambda: self.mode is not None and 'balance' in self.mode.lower(), timeout,
+                        'the robot to stand up and balance (adrc_controller mode)')
+
+    def learn_next_pose(self, timeout):
+        """Command the next pose and wait until the estimator has learned from it; returns the reply text."""
+        before = len(self.betas)
+        reply = self.call(self.next_pose, Trigger.Request())
+        if not reply.success:
+            raise SessionError(f'next_pose refused: {reply.message}')
+        self.spin_until(lambda: len(self.betas) > before, timeout,
+                        f'a balanced pose and a new beta after "{reply.message}"')
+        return reply.message
+
+    def close(self):
+        self.spinner.shutdown()
+        self.destroy_node()
+
+
+def open_session_client():
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    return SessionClient(context=context), context
