@@ -48,7 +48,8 @@ def start_node_set(sim, extra_params=(), record=None, log_dir=None, env=None, ov
 
 
 def run(args):
-    nodes = start_node_set(args.sim, args.params, args.record, args.log_dir)
+    overrides = {} if args.sim else {'can_bridge': {'devices_file': config_path('can_devices_robot.yaml')}}
+    nodes = start_node_set(args.sim, args.params, args.record, args.log_dir, overrides=overrides)
     try:
         code = wait_forever(nodes)
     finally:

@@ -1,0 +1,344 @@
+"""Closed loop: the BalanceController on the simulated Krang (hidden true beta), with sensor noise.
+
+Stand-up and balance from the caster with the true and a wrong beta, the detector's q_base against
+the true balance pitch, mode transitions, stale data -> zero current, ADRC vs plain LQR with a
+wrong CoM, a short online learning session, and the fast paths against the reference code."""
+
+import numpy as np
+import pytest
+
+from krang_adrc_controller.adrc import AdrcController
+from krang_adrc_controller.controller import (BalanceController, ControllerConfig, ControlSample,
+                                              load_controller_config, sample_from_sensors)
+from krang_adrc_controller.metrics import compute_metrics
+from krang_model.beta import load_beta
+from krang_model.com import balance_pitch, x_com
+from krang_model.config import config_path
+from krang_model.robot import load_krang
+from krang_sim.closed_loop import (TABLE2_POSE, ClosedLoop, Disturbance, FastKrangSim, PaperGradientDescent,
+                                   com_error, run_balance, run_online_session, shifted_beta)
+from krang_sim.physics import KrangSim, SimConfig, SensorNoise
+
+QUIET = SensorNoise(imu_pitch_std_rad=0.0, gyro_std_rad_s=0.0, accel_std_m_s2=0.0, joint_std_rad=0.0)
+
+
+@pytest.fixture(scope='module')
+def robot():
+    return load_krang()
+
+
+@pytest.fixture(scope='module')
+def true_beta(robot):
+    return load_beta(config_path('sim_true_beta.yaml'), robot)
+
+
+@pytest.fixture(scope='module')
+def wrong_beta(robot, true_beta):
+    """The model puts the CoM 2.5 cm forward of the truth in the Table II pose (0.16 rad of theta)."""
+    return shifted_beta(robot, true_beta, TABLE2_POSE, 0.025)
+
+
+@pytest.fixture(scope='module')
+def runs(robot, true_beta, wrong_beta):
+    """One 30 s stand-up-and-balance run per beta (shared by several tests)."""
+    return {name: run_balance(robot, true_beta, b, seconds=30.0, seed=3)
+            for name, b in (('true', true_beta), ('wrong', wrong_beta))}
+
+
+# ----------------------------------------------------------------------------- configuration
+
+
+def test_yaml_defaults_equal_the_dataclass_defaults():
+    assert load_controller_config() == ControllerConfig()
+    with pytest.raises(ValueError, match='unknown'):
+        ControllerConfig.from_dict({'no_such_gain': 1.0})
+
+
+def test_wrong_beta_is_two_and_a_half_centimetres_off(robot, true_beta, wrong_beta):
+    qb = balance_pitch(robot, TABLE2_POSE[None], true_beta)
+    assert x_com(robot, qb, TABLE2_POSE[None], wrong_beta)[0] == pytest.approx(0.025, abs=1e-9)
+    assert x_com(robot, qb, TABLE2_POSE[None], true_beta)[0] == pytest.approx(0.0, abs=1e-12)
+
+
+# ----------------------------------------------------------------------------- fast paths
+
+
+@pytest.mark.parametrize('kw', [dict(eso_omega_o=20.0), dict(), dict(eso_method='zoh'),
+                                dict(eso_omega_o=20.0, eso_input='applied', f_limit_theta=3.0),
+                                dict(eso_omega_o=20.0, use_disturbance_rejection=False)],
+                         ids=['bandwidth', 'authors', 'zoh', 'applied_flimit', 'lqr'])
+def test_scalar_adrc_equals_adrc_controller(robot, true_beta, kw):
+    from krang_adrc_controller.controller import _ScalarAdrc
+    ctl = BalanceController(robot, true_beta, ControllerConfig())
+    ctl._redesign(TABLE2_POSE)
+    d = ctl.design
+    ref = AdrcController.from_design(d, sample_period_s=0.002, current_limit_a=30.0, **kw)
+    fast = _ScalarAdrc(AdrcController.from_design(d, sample_period_s=0.002, current_limit_a=30.0, **kw))
+    rng = np.random.default_rng(0)
+    ref.reset((0.05, 0.1, 0.0, 0.0))
+    fast.reset(0.05, 0.1, 0.0, 0.0)
+    for k in range(400):
+        th, x = 0.05 + rng.normal(0, 0.02), 0.1 + rng.normal(0, 0.05)
+        dth, dx = rng.normal(0, 0.1, 2)
+        dt = 0.002 if k % 7 else 0.0025
+        rates = k % 3 != 0
+        c = ref.update(th, x, dt, dtheta=dth if rates else None, dx=dx if rates else None)
+        f = fast.update(th, x, dt, dth if rates else None, dx if rates else None)
+        assert f[2:4] == (pytest.approx(c.i_left, rel=1e-9, abs=1e-9), pytest.approx(c.i_right, rel=1e-9, abs=1e-9))
+        assert f[6:8] == (pytest.approx(c.fhat_x, rel=1e-9, abs=1e-9), pytest.approx(c.fhat_theta, rel=1e-9, abs=1e-9))
+        assert f[8] == c.saturated
+
+
+def test_fast_sim_steps_and_samples_exactly_like_krangsim(robot, true_beta):
+    cfg = SimConfig(noise=QUIET)
+    a = KrangSim(robot, true_beta, TABLE2_POSE, config=cfg)
+    b = FastKrangSim(robot, true_beta, TABLE2_POSE, config=cfg)
+    currents = [(-40.0, -38.0)] * 300 + [(60.0, 55.0)] * 100 + [(5.0, -5.0)] * 200   # incl. the clamp
+    for k, (il, ir) in enumerate(currents):
+        if k == 450:
+            pose = TABLE2_POSE.copy()
+            pose[2] += 0.05
+            a.command_joints(pose)
+            b.command_joints(pose)
+        a.command_currents(il, ir)
+        b.command_currents(il, ir)
+        a.step(2)
+        b.step(2)
+        assert b.state == a.state and b.t == a.t and b.applied_current == a.applied_current
+        ref = sample_from_sensors(a.sensors(), a.joints_moving)
+        got = b.control_sample()
+        for name in ('t', 'q_base', 'pitch_rate', 'wheel_left', 'wheel_right', 'wheel_left_rate',
+                     'wheel_right_rate', 'joints_moving'):
+            assert getattr(got, name) == getattr(ref, name), name
+        np.testing.assert_array_equal(got.joints, ref.joints)
+
+
+def test_fast_controller_path_equals_the_reference_path(robot, true_beta, wrong_beta):
+    """The whole closed loop with fast_path on and off gives the same currents (to rounding)."""
+    logs = []
+    for fast in (True, False):
+        cfg = load_controller_config(overrides={'fast_path': fast})
+        loop = ClosedLoop(robot, true_beta, wrong_beta, TABLE2_POSE, controller_config=cfg, seed=1, log_rate_hz=0)
+        out = []
+        loop.run(0.2)
+        loop.controller.set_enabled(True)
+        for _ in range(4000):
+            loop.run(loop.h)
+            out.append((loop.last_output.current_left, loop.last_output.mode))
+        logs.append(out)
+    assert [m for _, m in logs[0]] == [m for _, m in logs[1]]
+    assert 'balance' in {m for _, m in logs[0]}
+    np.testing.assert_allclose([i for i, _ in logs[0]], [i for i, _ in logs[1]], rtol=1e-6, atol=1e-6)
+
+
+# ----------------------------------------------------------------------------- stand up and balance
+
+
+@pytest.mark.parametrize('name', ['true', 'wrong'])
+def test_stands_up_from_the_caster_and_balances(runs, name):
+    run = runs[name]
+    ex = run.extra
+    assert ex['stood_up'] and ex['final_mode'] == 'balance'
+    assert ex['mode_times']['stand_up'] < 1.1 < ex['mode_times']['balance'] < 12.0
+    assert run.extra['q_base_true'][0] == pytest.approx(-1.7643, abs=2e-3)          # sat on the caster
+    last = run.t > 22.0
+    # at rest the TRUE CoM is over the axle, whatever the model says
+    assert np.abs(ex['q_base_true'][last] - ex['true_balance_pitch']).max() < 2e-3
+    assert np.abs(run.i_left).max() <= 49.0
+    assert np.ptp(ex['x_true_m'][last]) < 0.02                                     # at rest
+
+
+def test_rest_offset_is_the_lqr_offset_of_the_theta_error(runs):
+    """True beta: rest where it stood up. Wrong beta (+0.16 rad of theta): the robot drives back until
+    the position term cancels the CoM-angle error: x = -F_theta0 delta / F_x0 (m)."""
+    true, wrong = runs['true'].extra, runs['wrong'].extra
+    assert abs(true['x_true_m'][-1]) < 0.02
+    assert wrong['theta_error_rad'] == pytest.approx(0.161, abs=2e-3)
+    assert wrong['expected_rest_offset_m'] == pytest.approx(-1.66, abs=0.02)
+    assert wrong['x_true_m'][-1] == pytest.approx(wrong['expected_rest_offset_m'], rel=0.02)
+    # the controller's own theta sits at the model error, not at 0
+    assert runs['wrong'].theta_rad[-30:].mean() == pytest.approx(wrong['theta_error_rad'], abs=3e-3)
+
+
+@pytest.mark.parametrize('name', ['true', 'wrong'])
+def test_detector_reports_the_true_balance_pitch(runs, name):
+    ex = runs[name].extra
+    pts = ex['points']
+    assert len(pts) == 1                                   # one point for the one pose
+    assert pts[0].q_base == pytest.approx(ex['true_balance_pitch'], abs=2e-3)
+    np.testing.assert_allclose(pts[0].joints, TABLE2_POSE, atol=1e-4)
+
+
+def test_paper_metrics_on_a_simulated_run(runs):
+    m = compute_metrics(runs['wrong'], runs['wrong'].extra['loop'].controller.r)
+    assert m['resting_position_m'] == pytest.approx(0.27 / 0.2667 * 1.66, rel=0.05)
+    assert m['physical']['resting_displacement_m'] == pytest.approx(-1.66, rel=0.03)
+
+
+def test_nominal_beta_is_refused_in_the_table2_pose(robot, true_beta):
+    """beta_0 predicts balance at -1.99 rad, behind the caster: the CoM angle on the caster is +13 deg,
+    outside the stand window, so the controller refuses (and commands no torque)."""
+    run = run_balance(robot, true_beta, robot.nominal_beta, seconds=4.0)
+    ex = run.extra
+    assert not ex['stood_up'] and ex['final_mode'] == 'sit'
+    assert any('stand_refused' in e for _, e in ex['events'])
+    assert sum('stand_refused' in e for _, e in ex['events']) == 1                # reported once
+    assert np.abs(run.i_left).max() < 0.5
+
+
+# ----------------------------------------------------------------------------- modes and safety
+
+
+def test_mode_transitions_sit_stand_balance_sit_stop(robot, true_beta):
+    loop = ClosedLoop(robot, true_beta, true_beta, TABLE2_POSE, seed=2, log_rate_hz=0)
+    ctl = loop.controller
+    loop.run(0.2)
+    assert ctl.mode.value == 'safe_stop' and loop.last_output.current_left == 0.0
+    ctl.set_enabled(True)
+    assert loop.run(12.0, until=lambda o: o.mode == 'balance')
+    ctl.request_sit()
+    assert loop.run(10.0, until=lambda o: o.mode == 'sit')
+    loop.run(2.0)
+    assert loop.sim.q_base < -1.76                                            # back on the caster
+    ctl.request_stop()
+    loop.run(0.01)
+    assert ctl.mode.value == 'safe_stop' and loop.last_output.current_left == 0.0
+    ctl.set_enabled(True)                                                     # stands again
+    assert loop.run(12.0, until=lambda o: o.mode == 'balance')
+    modes = [e.split(':')[0] for _, e in loop.events if '->' in e]
+    assert modes == ['safe_stop->sit', 'sit->stand_up', 'stand_up->balance', 'balance->sit_down',
+                     'sit_down->sit', 'sit->safe_stop', 'safe_stop->sit', 'sit->stand_up',
+                     'stand_up->balance']
+
+
+def test_stale_sensors_stop_the_wheels_within_the_timeout(robot, true_beta):
+    loop = ClosedLoop(robot, true_beta, true_beta, TABLE2_POSE, seed=4, log_rate_hz=0)
+    ctl = loop.controller
+    loop.run(0.2)
+    ctl.set_enabled(True)
+    assert loop.run(12.0, until=lambda o: o.mode == 'balance')
+    t_drop = loop.sim.t
+    loop.schedule(Disturbance(t_drop, 'dropout'))
+    stopped = None
+    while loop.sim.t < t_drop + 0.5:
+        loop.run(loop.h)
+        if stopped is None and loop.last_output.mode == 'safe_stop':
+            stopped = loop.sim.t
+    assert stopped is not None
+    assert stopped - t_drop <= ctl.config.stale_timeout_s + 2 * loop.h
+    assert loop.last_output.current_left == 0.0 and loop.last_output.current_right == 0.0
+    assert loop.sim.applied_current == (0.0, 0.0)
+
+
+def test_caller_stale_flag_and_nan_data_stop_at_once(robot, true_beta):
+    ctl = BalanceController(robot, true_beta, load_controller_config(overrides={'start_enabled': True}))
+    s = ControlSample(0.0, -1.7643, 0.0, 0.0, 0.0, 0.0, 0.0, TABLE2_POSE.copy(), False)
+    assert ctl.step(s).mode in ('sit', 'stand_up')
+    s.t = 0.002
+    out = ctl.step(s, stale=True)
+    assert out.mode == 'safe_stop' and out.current_left == 0.0
+    ctl.set_enabled(True)
+    s.t = 0.004
+    assert ctl.step(s).mode == 'sit'
+    s.t, s.q_base = 0.006, float('nan')
+    out = ctl.step(s)
+    assert out.mode == 'safe_stop' and out.current_left == 0.0 and out.current_right == 0.0
+
+
+def test_set_beta_moves_the_com_reference_and_the_lqr(robot, true_beta, wrong_beta):
+    ctl = BalanceController(robot, true_beta)
+    ctl._redesign(TABLE2_POSE)
+    off, k = ctl.com_offset, ctl.design['K'].copy()
+    ctl.set_beta(wrong_beta)
+    assert ctl.com_offset - off == pytest.approx(0.161, abs=2e-3)
+    assert not np.allclose(ctl.design['K'], k)
+    assert ctl.com_offset == pytest.approx(-balance_pitch(robot, TABLE2_POSE[None], wrong_beta)[0], abs=1e-9)
+
+
+# ----------------------------------------------------------------------------- ADRC vs plain LQR
+
+
+def test_adrc_and_plain_lqr_with_a_wrong_com(robot, true_beta, wrong_beta):
+    """What the data show (docs/control.md): with the paper's ESO input, ADRC balances with the 2.5 cm
+    error, but so does plain LQR, and both come to rest at the same offset -F_th0 delta / F_x0; the
+    ADRC changes the transients after a push and a pose change by a few per cent only."""
+    from krang_cli.experiment import adrc_vs_lqr_scenario
+    res = {name: adrc_vs_lqr_scenario(robot, true_beta, wrong_beta, dr, seed=5, seconds=70.0)
+           for name, dr in (('adrc', True), ('lqr', False))}
+    for name, r in res.items():
+        assert r['stood_up'] and r['final_mode'] == 'balance', name
+        for phase in r['phases']:
+            assert abs(phase['x_rest_m'] - phase['x_rest_predicted_m']) < 0.03, (name, phase)
+            assert phase['max_tilt_from_balance_rad'] < 0.15
+    for pa, pl in zip(res['adrc']['phases'], res['lqr']['phases']):
+        assert pa['x_rest_m'] == pytest.approx(pl['x_rest_m'], abs=0.01)
+        assert pa['max_excursion_m'] == pytest.approx(pl['max_excursion_m'], rel=0.1, abs=0.01)
+
+
+# ----------------------------------------------------------------------------- online session
+
+
+def test_short_online_session_reduces_the_com_error(robot, true_beta, krang_data):
+    from krang_cli.experiment import load_filtered_poses
+    poses, order, _ = load_filtered_poses(krang_data)
+    train = poses[order[:4]]
+    held_out = np.delete(poses, order, axis=0)[:200]
+    learner = PaperGradientDescent(robot, robot.nominal_beta)
+    res = run_online_session(robot, true_beta, robot.nominal_beta, train, learner, seed=0, progress=False)
+    assert not res.failures and len(res.points) == 4
+    assert res.betas.shape == (5, robot.n_beta)
+    np.testing.assert_array_equal(res.betas[-1], learner.beta)
+    np.testing.assert_array_equal(res.loop.controller.beta, learner.beta)     # pushed into the controller
+    for p, tp in zip(res.points, res.true_pitch):
+        assert p.q_base == pytest.approx(tp, abs=2e-3)
+    before_train = com_error(robot, res.betas[0], true_beta, train)
+    after_train = com_error(robot, res.betas[-1], true_beta, train)
+    before = com_error(robot, res.betas[0], true_beta, held_out)
+    after = com_error(robot, res.betas[-1], true_beta, held_out)
+    print(f'CoM error, learned poses {before_train:.4f} -> {after_train:.4f} m, held-out {before:.4f} -> {after:.4f} m')
+    assert after_train < 0.6 * before_train
+    assert after < 0.9 * before
+
+
+# ----------------------------------------------------------------------------- the experiment CLI
+
+
+def test_cli_lists_the_experiments():
+    from krang_cli.main import build_parser
+    help_text = build_parser()._subparsers._group_actions[0].choices['experiment'].format_help()
+    assert 'table2' in help_text and 'adrc-vs-lqr' in help_text
+
+
+def test_cli_table2_smoke(tmp_path, robot, true_beta, krang_data):
+    """End to end on given betas (no learning): report, figures and JSON are written."""
+    import json
+    from krang_cli.main import main
+    betas = np.vstack([robot.nominal_beta] * 15 + [shifted_beta(robot, true_beta, TABLE2_POSE, 0.01)])
+    np.savetxt(tmp_path / 'betas.txt', betas)
+    out = tmp_path / 'out'
+    assert main(['experiment', 'table2', '--out', str(out), '--betas', str(tmp_path / 'betas.txt'),
+                 '--runs', '2', '--seconds', '25', '--poses', '16', '--kit', str(krang_data)]) == 0
+    for name in ('report.md', 'power_traces.png', 'standup.png', 'learning_curve.png', 'table2.json'):
+        assert (out / name).stat().st_size > 0, name
+    summary = json.loads((out / 'table2.json').read_text())
+    table = summary['table']
+    assert set(table) == {'beta_0', 'beta_16', 'TRUE beta'}
+    assert table['beta_0']['stood_up'] == 0 and table['beta_0']['refused'] == 2
+    assert table['beta_16']['stood_up'] == 2 and table['TRUE beta']['stood_up'] == 2
+    assert table['beta_16']['theta_error_rad'] == pytest.approx(0.0645, abs=2e-3)   # 1 cm at l = 0.163 m
+
+
+@pytest.mark.slow
+def test_sixteen_pose_session_learns_like_the_hardware(robot, true_beta, krang_data):
+    """15 online updates in the authors' order (= the hardware's beta_16) leave about the same CoM-angle
+    error in the Table II pose as the authors' own beta_16 has against our simulated truth."""
+    from krang_cli.experiment import load_filtered_poses
+    poses, order, _ = load_filtered_poses(krang_data)
+    res = run_online_session(robot, true_beta, robot.nominal_beta, poses[order[:15]], seed=0, progress=False)
+    assert not res.failures
+    hw = np.loadtxt(krang_data / 'betas' / 'betaVectors1initialBetahardwareAll190Vectors.txt')[15]
+    bt = balance_pitch(robot, TABLE2_POSE[None], true_beta)[0]
+    sim_delta = bt - balance_pitch(robot, TABLE2_POSE[None], res.beta)[0]
+    hw_delta = bt - balance_pitch(robot, TABLE2_POSE[None], hw)[0]
+    assert sim_delta == pytest.approx(hw_delta, abs=0.02)
+    assert abs(sim_delta) < 0.5 * abs(bt - balance_pitch(robot, TABLE2_POSE[None], robot.nominal_beta)[0])
