@@ -1,0 +1,131 @@
+"""Latency from a sensor frame on the CAN bus to the wheel-command frame on the bus, through can_bridge
+and adrc_controller (real processes, DDS, udp_multicast CAN), and the control rate achieved.
+
+The benchmark plays the robot: it answers the bridge as the devices do (emulators of krang_sim/devices.py),
+keeps the robot sitting, and toggles the wheel-velocity feedback (AMC TPDO) every 0.5 s. In SIT the
+controller's ground PD commands -10 A per rad/s of wheel speed, so the first current frame that changes
+after a toggle marks the end of the path: frame in -> bridge -> /joint_states -> controller tick ->
+/wheel_effort_cmd -> bridge -> current RPDO out.
+
+    .venv/bin/python bench/bench_ros_latency.py [--seconds 30]
+"""
+import argparse
+import os
+import tempfile
+import threading
+import time
+
+import can
+import numpy as np
+import rclpy
+from std_msgs.msg import Float64MultiArray
+
+from krang_can_bridge.config import load_devices
+from krang_can_bridge.protocols.amc import AmcDriveCodec
+from krang_can_bridge.protocols import load_dbc
+from krang_cli.bringup import params_files
+from krang_cli.processes import NodeSet
+from krang_model.robot import load_krang
+from krang_ros import topics
+from krang_ros.session_client import open_session_client
+from krang_sim.devices import KrangCanDevices
+from krang_sim.session_config import session_devices_file
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.split('\n')[0])
+    parser.add_argument('--seconds', type=float, default=30.0)
+    args = parser.parse_args()
+    os.environ.setdefault('ROS_DOMAIN_ID', str(180 + os.getpid() % 50))
+    os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
+    robot = load_krang()
+    tmp = tempfile.mkdtemp(prefix='krang_latency_')
+    devices_file = session_devices_file(tmp)
+    config = load_devices(devices_file)
+    joints = dict(zip(robot.pose_joints, [2.46] + [0.0] * 15))
+    devices = KrangCanDevices(config, initial_joint_positions=joints)
+    left = config.wheels.drive('JLWheel')
+    codec = AmcDriveCodec(left, config.wheels, load_dbc(config.dbc_path))
+    buses = {name: can.Bus(**config.buses[name].bus_kwargs()) for name in config.buses_in_use()}
+    lock = threading.Lock()
+    currents = []          # (time, amps) of the left current RPDO frames
+
+    class Devices(can.Listener):
+        def __init__(self, name):
+            self.name = name
+
+        def on_message_received(self, msg):
+            now = time.perf_counter()
+            if msg.arbitration_id in codec.command_ids:
+                try:
+                    currents.append((now, codec.decode_current_command(msg)[1]))
+                except Exception:  # noqa: BLE001 - not the current RPDO
+                    pass
+            with lock:
+                replies = devices.on_frame(self.name, msg)
+            for reply in replies:
+                buses[reply.bus].send(reply.msg)
+    notifiers = [can.Notifier(bus, [Devices(name)], timeout=0.05) for name, bus in buses.items()]
+
+    nodes = NodeSet(params_files(True, []), log_dir=os.path.join(tmp, 'logs'))
+    nodes.start('can_bridge', {'devices_file': devices_file})
+    nodes.start('adrc_controller', {'auto_stand': False})
+    toggles = []
+    efforts = []
+    stop = threading.Event()
+
+    def robot_loop():
+        velocity, next_toggle = 0.0, time.perf_counter() + 3.0
+        while not stop.is_set():
+            now = time.perf_counter()
+            if now >= next_toggle:
+                velocity = 1.0 if velocity <= 0 else -1.0
+                toggles.append((now, velocity))
+                next_toggle = now + 0.5
+            with lock:
+                devices.step(0.005)
+                frames = devices.wheel_feedback_frames({'JLWheel': 1.76, 'JRWheel': 1.76},
+                                                       {'JLWheel': velocity, 'JRWheel': velocity})
+                frames += devices.imu_frames_from_pitch(-1.763, 0.0)
+            for f in frames:
+                buses[f.bus].send(f.msg)
+            time.sleep(max(0.0, 0.005 - (time.perf_counter() - now)))
+    thread = threading.Thread(target=robot_loop, daemon=True)
+    thread.start()
+    client, context = open_session_client()
+    client.create_subscription(Float64MultiArray, topics.WHEEL_EFFORT_CMD, lambda m: efforts.append(time.perf_counter()),
+                               topics.QOS[topics.WHEEL_EFFORT_CMD])
+    try:
+        client.enable_controller(timeout=60.0)
+        client.pause(args.seconds)
+    finally:
+        stop.set()
+        client.close()
+        rclpy.try_shutdown(context=context)
+        nodes.stop()
+        for n in notifiers:
+            n.stop()
+        for bus in buses.values():
+            bus.shutdown()
+    latencies = []
+    cur = np.array(currents)
+    for t0, velocity in toggles:
+        after = cur[cur[:, 0] > t0] if len(cur) else cur
+        before = cur[cur[:, 0] <= t0]
+        if not len(after) or not len(before):
+            continue
+        changed = np.flatnonzero(np.abs(after[:, 1] - before[-1, 1]) > 3.0)
+        if changed.size and after[changed[0], 0] - t0 < 0.5:
+            latencies.append(after[changed[0], 0] - t0)
+    eff = np.array(efforts)
+    window = eff[eff > eff[0] + 2.0] if len(eff) else eff
+    rate = (len(window) - 1) / (window[-1] - window[0]) if len(window) > 1 else float('nan')
+    lat = 1000 * np.array(latencies)
+    print(f'sensor frame -> wheel command frame over {len(lat)} steps: p50 {np.percentile(lat, 50):.1f} ms, '
+          f'p99 {np.percentile(lat, 99):.1f} ms, max {lat.max():.1f} ms')
+    print(f'control rate achieved: {rate:.1f} Hz /wheel_effort_cmd (configured: see config/sim_params.yaml); '
+          f'{len(toggles) - len(lat)} of {len(toggles)} steps not seen within 0.5 s')
+
+
+if __name__ == '__main__':
+    main()
