@@ -114,7 +114,8 @@ def test_node_bridges_states_and_commands(devices_file):
         js = got.get('js')
         return dict(zip(js.name, js.position)) if js else {}
     try:
-        assert spin_until(lambda: 'JRWheel' in joints() and 'JWaist' in joints(), 10.0), joints()
+        # the modules answer polls one by one: wait until every joint has been reported once
+        assert spin_until(lambda: all(j in joints() for j in ('JLWheel', 'JRWheel', 'JWaist', 'LJ4')), 10.0), joints()
         assert joints()['JLWheel'] == pytest.approx(0.4, abs=1e-3)
         assert joints()['JRWheel'] == pytest.approx(-0.6, abs=1e-3)
         assert joints()['JWaist'] == pytest.approx(1.5, abs=1e-5)
