@@ -1,0 +1,116 @@
+"""Time a full `krang discrepancy` run on a 60 s record and the share of each stage.
+
+The record is simulated (KrangSim + ADRC, sit -> stand -> balance with pose changes and a current
+excitation; a hidden floor slope of 0.02 rad); its generation is timed separately and is not part
+of the workflow. The workflow runs as the CLI would, with the whole library, plots and report.
+
+    .venv/bin/python bench/bench_discrepancy.py [--seconds 60] [--stride 0.05] [--no-plots] [--csv FILE]
+
+--csv runs the workflow on a hardware log instead (e.g. balancing_runs/table2/beta190_trial0.csv).
+--validate prints the per-effect validation table of docs/discrepancy.md instead (the settings of
+test/test_discrepancy.py: 22 s records, seed 3, one hidden effect each, plus no effect).
+"""
+import argparse
+import json
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument('--seconds', type=float, default=60.0)
+    ap.add_argument('--stride', type=float, default=0.05)
+    ap.add_argument('--no-plots', action='store_true')
+    ap.add_argument('--csv', default=None)
+    ap.add_argument('--seed', type=int, default=1)
+    ap.add_argument('--validate', action='store_true')
+    args = ap.parse_args(argv)
+    if args.validate:
+        return validate(args.seed if args.seed != 1 else 3)
+
+    from krang_discrepancy.data import ReplayConfig, load_csv_record, simulate_record
+    from krang_discrepancy.report import run_discrepancy
+    from krang_sim.physics import SimEffects
+
+    t0 = time.perf_counter()
+    if args.csv:
+        rec = load_csv_record(args.csv)
+        cfg = ReplayConfig(stride_s=args.stride)
+        what = f'hardware log {Path(args.csv).name}'
+    else:
+        rec = simulate_record(SimEffects(floor_slope_rad=0.02), seconds=args.seconds, seed=args.seed)
+        cfg = ReplayConfig(stride_s=args.stride, pose_delay_s=0.01)
+        what = f'simulated record, hidden floor_slope 0.02 rad'
+    gen = time.perf_counter() - t0
+    with tempfile.TemporaryDirectory() as out:
+        t1 = time.perf_counter()
+        res = run_discrepancy([rec], out, replay_config=cfg, plots=not args.no_plots)
+        total = time.perf_counter() - t1
+    timing = res['timing']
+    rp = res['replay']
+    print(f'{what}: {rec.duration:.1f} s at {1 / rec.period:.0f} Hz, {len(rp)} windows '
+          f'({int(rp.active.sum())} fitting), horizon {rp.horizon:.2f} s, sub-step {rp.substep * 1e3:.2f} ms')
+    if not args.csv:
+        print(f'record generation (not part of the workflow): {gen:.2f} s')
+    print(f'full discrepancy run: {total:.2f} s')
+    for k, v in timing.items():
+        print(f'  {k:16s} {v:7.2f} s  {100 * v / total:5.1f} %')
+    nt = res['result'].timing
+    print('  naming detail: ' + ', '.join(f'{k} {v:.2f} s' for k, v in nt.items()))
+    print(f'  predictions: {rp.timing.get("predict_calls", 0)} batched calls, '
+          f'{rp.timing.get("predict_sets", 0)} parameter sets, {rp.timing.get("predict_s", 0):.2f} s')
+    print('result: ' + json.dumps({k: res['json'][k] for k in ('effect', 'value', 'gap_before', 'gap_after')
+                                   if k in res['json']}))
+    return 0
+
+
+def validate(seed):
+    from krang_discrepancy.data import NominalModel, Replay, ReplayConfig, simulate_record
+    from krang_discrepancy.naming import gaps, name_effects
+    from krang_sim.physics import SimEffects
+    cases = [
+        ('none', SimEffects(), None),
+        ('imu_pitch_bias', SimEffects(imu_pitch_bias_rad=0.02), 0.02),
+        ('floor_slope', SimEffects(floor_slope_rad=0.02), 0.02),
+        ('wheel_radius', SimEffects(wheel_radius_m=0.25), 0.25),
+        ('payload', SimEffects(payload_kg=5.0), 5.0),
+        ('wheel_viscous_friction', SimEffects(wheel_viscous_Nm_s=2.0), 2.0),
+        ('wheel_coulomb_friction', SimEffects(wheel_coulomb_Nm=2.0), 2.0),
+        ('torque_constant', SimEffects(torque_constant_scale=0.8), 0.8 * 0.0847),
+        ('actuation_delay', SimEffects(actuation_delay_s=0.02), 0.02),
+        ('encoder_offset', SimEffects(encoder_offset_rad=0.05), 0.05),
+    ]
+    model = NominalModel.default()
+    print('| hidden | true value | named | value +- 1 sigma | error | held-out improvement | t | runner-up (improvement) '
+          '| gap before -> after | naming (s) |')
+    print('|---|---|---|---|---|---|---|---|---|---|')
+    for name, hidden, truth in cases:
+        rec = simulate_record(hidden, seconds=22.0, seed=seed, hold_s=2.0, sit_down=False)
+        rp = Replay([rec], model, ReplayConfig(pose_delay_s=0.01, stride_s=0.1))
+        t = time.perf_counter()
+        res = name_effects(rp)
+        dt = time.perf_counter() - t
+        g = gaps(rp, model.terms(), res)
+        sel = res.selected
+        if sel is None:
+            best = res.singles[0]
+            print(f'| {name} | - | none | - | - | best {best.key}: {best.improvement:+.3f} | {best.t:.1f} | - | '
+                  f'{g["before"]["gap"]:.3f} -> {g["after"]["gap"]:.3f} | {dt:.1f} |')
+            continue
+        e = sel.effects[0]
+        v, unit = e.display(float(sel.values[0]))
+        u = float(sel.uncertainty[0]) * e.display_scale()
+        ru = [f for f in res.singles if f is not sel][0]
+        err = f'{100 * (v - truth) / truth:+.2f} %' if truth else '-'
+        print(f'| {name} | {truth:.4g} {unit} | {res.name} | {v:.5g} +- {u:.2g} | {err} | {sel.improvement:.3f} | '
+              f'{sel.t:.1f} | {ru.key} ({ru.improvement:.3f}) | {g["before"]["gap"]:.3f} -> {g["after"]["gap"]:.3f} '
+              f'(x{g["before"]["gap"] / g["after"]["gap"]:.1f}) | {dt:.1f} |')
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())

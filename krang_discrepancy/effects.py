@@ -1,0 +1,483 @@
+"""A library of named physical effects: each one a parameterised extension of the nominal WIP model
+with a physical meaning and a unit.
+
+The nominal model is ``krang_model.wip`` (locked pose reduced to one body on the axle, the drive
+train of ``config/robot.yaml``) with the mass model of ``config/sim_true_beta.yaml``. An effect
+changes one scalar term of that model (``ModelTerms``); ``krang_discrepancy.data.Replay`` then
+predicts the measured signals with the changed terms. Every effect also says how its value maps onto
+``krang_sim.physics.SimEffects`` so that the extended model can be simulated.
+
+Built-in effects (``name``: value unit, meaning):
+
+=========================  =========  =====================================================================
+imu_pitch_bias             rad        the IMU reads q_base + bias (a pitch misalignment of the sensor)
+floor_slope                rad        the floor rises along the heading (uphill forward is positive)
+wheel_radius               m          effective rolling radius (the nominal one is the URDF's 0.2667 m)
+payload                    kg         an unmodelled point mass rigidly on a named link, at a point of it
+wheel_viscous_friction     N m s      extra wheel-to-body viscous friction (both wheels together)
+wheel_coulomb_friction     N m        extra Coulomb friction per wheel (as ``krang_model.wip`` models it)
+torque_constant            N m/A      true motor torque constant (the fit estimates true/nominal scale)
+actuation_delay            s          transport delay between the commanded and the applied wheel torque
+encoder_offset             rad        a body-joint encoder reads q + offset (default joint JWaist)
+=========================  =========  =====================================================================
+
+Optional effects (``register_optional_effects()``, ``krang discrepancy --extra-effects``): body_inertia
+(kg m^2 about the axle), drive_current_limit (A), rolling_resistance (N m s), com_height (m). The
+simulator cannot produce them, so they are not in the default library; they serve the hardware data.
+
+Adding your own effect
+----------------------
+Subclass ``Effect`` (or instantiate it) and register it; ``krang discrepancy --effects-module
+my_effects`` (a module path or a .py file) imports your module before the run, so the decorator runs::
+
+    from krang_discrepancy.effects import Effect, register_effect
+
+    @register_effect
+    class GroundRollingResistance(Effect):
+        name = 'ground_viscous_friction'
+        unit = 'N m s'
+        bounds = (0.0, 30.0)        # physical range searched by the fit
+        scale = 1.0                 # typical magnitude (finite-difference step, x_scale)
+        description = 'rolling resistance of the tyres, proportional to the ground speed'
+
+        def apply(self, terms, value):
+            terms.ground_viscous += value       # any field of ModelTerms
+
+    # a term the nominal model has no field for: an additive generalised force (N m) on the
+    # wheel equation and on the pitch equation, evaluated on arrays of the predicted state
+    @register_effect
+    class PitchSpring(Effect):
+        name = 'cable_spring'
+        unit = 'N m/rad'
+        bounds = (-200.0, 200.0)
+        scale = 20.0
+        description = 'a cable harness pulling the body back towards q_base = -1.55 rad'
+
+        def apply(self, terms, value):
+            terms.extra_forces.append(lambda s, k=value: (0.0 * s.q_base, -k * (s.q_base + 1.55)))
+
+``s`` carries numpy arrays ``phi, q_base, dphi, dq_base, theta, tau`` (the applied total wheel
+torque) and ``t``. ``sim_effects(value)`` (optional) returns the ``SimEffects`` keyword arguments
+of the effect; without it the extended-model YAML lists the effect but the simulator cannot run it.
+Several variants of one physical effect (e.g. a payload on different links) share ``name`` and
+differ in ``key``; the report and the JSON give the name plus the variant's ``detail``.
+"""
+from __future__ import annotations
+
+import copy
+import math
+from dataclasses import dataclass, field
+
+# ----------------------------------------------------------------------------- model terms
+
+
+@dataclass
+class ModelTerms:
+    """The scalar terms of the predicted model that effects may change (SI units).
+
+    Defaults are "nominal": call ``ModelTerms.nominal(drive)`` to take them from a
+    ``krang_model.wip.Drivetrain``.
+    """
+
+    wheel_radius: float = 0.2667            # m
+    floor_slope: float = 0.0                # rad
+    torque_scale: float = 1.0               # applied / commanded wheel torque
+    viscous_friction: float = 0.1           # N m s, wheel-to-body, both wheels
+    ground_viscous: float = 0.0             # N m s, wheel-to-ground
+    coulomb_friction: float = 0.0           # N m per wheel (krang_model.wip convention)
+    actuation_delay: float = 0.0            # s
+    imu_pitch_bias: float = 0.0             # rad, measured = true + bias
+    inertia_add: float = 0.0                # kg m^2 added to the body's inertia about the axle
+    com_shift: float = 0.0                  # m added to the body CoM distance from the axle
+    current_limit: float | None = None      # A per motor where the drives clamp (None: the record's)
+    payloads: tuple = ()                    # ((link, (x, y, z) m in the link frame, kg), ...)
+    joint_offsets: dict = field(default_factory=dict)   # joint name -> encoder offset (rad)
+    extra_forces: list = field(default_factory=list)    # callables s -> (f_phi, f_qbase), N m
+
+    @classmethod
+    def nominal(cls, drive) -> 'ModelTerms':
+        return cls(wheel_radius=drive.wheel_radius, floor_slope=drive.floor_slope,
+                   viscous_friction=drive.viscous_friction, ground_viscous=drive.ground_viscous,
+                   coulomb_friction=drive.coulomb_friction)
+
+    def copy(self) -> 'ModelTerms':
+        new = copy.copy(self)
+        new.joint_offsets = dict(self.joint_offsets)
+        new.extra_forces = list(self.extra_forces)
+        new.payloads = tuple(self.payloads)
+        return new
+
+    def body_key(self):
+        """Hashable description of what changes the reduced body (payloads, joint offsets)."""
+        return (tuple((l, tuple(p), float(m)) for l, p, m in self.payloads),
+                tuple(sorted((j, float(v)) for j, v in self.joint_offsets.items() if v)))
+
+
+# ----------------------------------------------------------------------------- effects
+
+
+class Effect:
+    """One named effect with one scalar parameter. Subclass and set the class attributes, or pass
+    them to the constructor. ``apply(terms, value)`` changes ``terms`` in place."""
+
+    name: str = ''
+    unit: str = ''
+    bounds: tuple = (-math.inf, math.inf)
+    scale: float = 1.0
+    nominal_value: float = 0.0          # the value at which the effect is absent
+    description: str = ''
+
+    def __init__(self, **attrs):
+        for k, v in attrs.items():
+            setattr(self, k, v)
+        if not self.name:
+            raise ValueError('an effect needs a name')
+
+    # identity --------------------------------------------------------------------------------
+    @property
+    def key(self) -> str:
+        """Unique id in the library: the name, plus the variant for variants (payload@lGripper)."""
+        variant = self.variant()
+        return f'{self.name}@{variant}' if variant else self.name
+
+    def variant(self) -> str:
+        return ''
+
+    @property
+    def detail(self) -> dict:
+        """Extra facts about the variant (link, point, joint...) for the report and the JSON."""
+        return {}
+
+    # model -----------------------------------------------------------------------------------
+    def apply(self, terms: ModelTerms, value: float) -> None:
+        raise NotImplementedError
+
+    def sim_effects(self, value: float) -> dict | None:
+        """Keyword arguments of ``krang_sim.physics.SimEffects`` (None: not simulable)."""
+        return None
+
+    def display(self, value: float) -> tuple[float, str]:
+        """The reported (value, unit) for a fitted parameter value (default: unchanged)."""
+        return value, self.unit
+
+    def display_scale(self) -> float:
+        """d(displayed value)/d(parameter), to convert the parameter's uncertainty."""
+        return 1.0
+
+    def __repr__(self):
+        return f'<Effect {self.key} [{self.unit}]>'
+
+
+class ImuPitchBias(Effect):
+    name = 'imu_pitch_bias'
+    unit = 'rad'
+    bounds = (-0.3, 0.3)
+    scale = 0.01
+    description = 'the IMU reads q_base + bias: a pitch misalignment of the sensor (mimics a CoM error)'
+
+    def apply(self, terms, value):
+        terms.imu_pitch_bias += value
+
+    def sim_effects(self, value):
+        return {'imu_pitch_bias_rad': float(value)}
+
+
+class FloorSlope(Effect):
+    name = 'floor_slope'
+    unit = 'rad'
+    bounds = (-0.25, 0.25)
+    scale = 0.01
+    description = 'the floor rises along the heading by this angle (uphill forward positive)'
+
+    def apply(self, terms, value):
+        terms.floor_slope += value
+
+    def sim_effects(self, value):
+        return {'floor_slope_rad': float(value)}
+
+
+class WheelRadius(Effect):
+    name = 'wheel_radius'
+    unit = 'm'
+    bounds = (0.18, 0.34)
+    scale = 0.01
+    description = 'effective rolling radius of the wheels (enters the inertia and the coupling)'
+
+    def __init__(self, nominal_m: float = 0.2667, **attrs):
+        super().__init__(**attrs)
+        self.nominal_value = float(nominal_m)
+
+    def apply(self, terms, value):
+        terms.wheel_radius = float(value)
+
+    def sim_effects(self, value):
+        return {'wheel_radius_m': float(value)}
+
+
+class Payload(Effect):
+    name = 'payload'
+    unit = 'kg'
+    bounds = (0.0, 40.0)
+    scale = 1.0
+    description = 'an unmodelled point mass rigidly attached to a link'
+
+    def __init__(self, link: str = 'lGripper', point=(0.0, 0.0, 0.10), **attrs):
+        super().__init__(**attrs)
+        self.link = link
+        self.point = tuple(float(v) for v in point)
+
+    def variant(self):
+        return self.link
+
+    @property
+    def detail(self):
+        return {'link': self.link, 'point_m': list(self.point)}
+
+    def apply(self, terms, value):
+        terms.payloads = tuple(terms.payloads) + ((self.link, self.point, float(value)),)
+
+    def sim_effects(self, value):
+        return {'payload_kg': float(value), 'payload_body': self.link, 'payload_com_m': list(self.point)}
+
+
+class WheelViscousFriction(Effect):
+    name = 'wheel_viscous_friction'
+    unit = 'N m s'
+    bounds = (-0.1, 30.0)
+    scale = 0.5
+    description = 'extra viscous friction between wheels and body (both wheels), on the relative speed'
+
+    def apply(self, terms, value):
+        terms.viscous_friction += value
+
+    def sim_effects(self, value):
+        return {'wheel_viscous_Nm_s': float(value)}
+
+
+class WheelCoulombFriction(Effect):
+    name = 'wheel_coulomb_friction'
+    unit = 'N m'
+    bounds = (0.0, 15.0)
+    scale = 0.5
+    description = ('extra Coulomb friction per wheel, a smooth sign (tanh, 0.01 rad/s) of the '
+                   'wheel-to-body speed, on the wheel equation as krang_model.wip models it')
+
+    def apply(self, terms, value):
+        terms.coulomb_friction += value
+
+    def sim_effects(self, value):
+        return {'wheel_coulomb_Nm': float(value)}
+
+
+class TorqueConstant(Effect):
+    name = 'torque_constant'
+    unit = 'N m/A'
+    bounds = (0.1, 3.0)
+    scale = 0.05
+    nominal_value = 1.0
+    description = ('motor torque constant: the fit estimates the scale true/nominal of the applied '
+                   'torque; reported as the true Kt at the motor')
+
+    def __init__(self, nominal_kt: float = 0.0847, **attrs):
+        super().__init__(**attrs)
+        self.nominal_kt = float(nominal_kt)
+
+    @property
+    def detail(self):
+        return {'nominal_kt_Nm_per_A': self.nominal_kt}
+
+    def apply(self, terms, value):
+        terms.torque_scale *= value
+
+    def sim_effects(self, value):
+        return {'torque_constant_scale': float(value)}
+
+    def display(self, value):
+        return value * self.nominal_kt, self.unit
+
+    def display_scale(self):
+        return self.nominal_kt
+
+
+class ActuationDelay(Effect):
+    name = 'actuation_delay'
+    unit = 's'
+    bounds = (0.0, 0.15)
+    scale = 0.005
+    description = 'transport delay between the commanded and the applied wheel torque'
+
+    def apply(self, terms, value):
+        terms.actuation_delay += value
+
+    def sim_effects(self, value):
+        return {'actuation_delay_s': float(value)}
+
+
+class EncoderOffset(Effect):
+    name = 'encoder_offset'
+    unit = 'rad'
+    bounds = (-0.3, 0.3)
+    scale = 0.01
+    description = 'a body-joint encoder reads q + offset (the model then reduces the wrong pose)'
+
+    def __init__(self, joint: str = 'JWaist', **attrs):
+        super().__init__(**attrs)
+        self.joint = joint
+
+    def variant(self):
+        return self.joint
+
+    @property
+    def detail(self):
+        return {'joint': self.joint}
+
+    def apply(self, terms, value):
+        terms.joint_offsets[self.joint] = terms.joint_offsets.get(self.joint, 0.0) + float(value)
+
+    def sim_effects(self, value):
+        return {'encoder_offset_rad': float(value), 'encoder_offset_joint': self.joint}
+
+
+# ----------------------------------------------------------------------------- optional effects
+# Not in the default library (the simulator cannot produce them, so the per-effect tests cannot
+# check them); `krang discrepancy --extra-effects` or ``register_optional_effects()`` adds them.
+
+
+class BodyInertia(Effect):
+    name = 'body_inertia'
+    unit = 'kg m^2'
+    bounds = (-5.0, 60.0)
+    scale = 1.0
+    description = ('inertia about the axle missing from the model (the URDF rotational inertias of '
+                   'Base, Spine and Bracket are placeholders)')
+
+    def apply(self, terms, value):
+        terms.inertia_add += value
+
+
+class DriveCurrentLimit(Effect):
+    name = 'drive_current_limit'
+    unit = 'A'
+    bounds = (3.0, 60.0)
+    scale = 1.0
+    nominal_value = 49.0
+    description = 'the motor current where the drives really saturate (commanded currents are clamped there)'
+
+    def apply(self, terms, value):
+        terms.current_limit = float(value)
+
+
+class ComHeight(Effect):
+    name = 'com_height'
+    unit = 'm'
+    bounds = (-0.12, 0.5)
+    scale = 0.01
+    description = ('the body CoM is this much farther from the axle than the mass model says (same '
+                   'direction, point mass): balanced poses fix the CoM angle but not its distance')
+
+    def apply(self, terms, value):
+        terms.com_shift += value
+
+
+class RollingResistance(Effect):
+    name = 'rolling_resistance'
+    unit = 'N m s'
+    bounds = (0.0, 60.0)
+    scale = 0.5
+    description = 'tyre rolling resistance, viscous in the ground speed (wheel-to-ground, not wheel-to-body)'
+
+    def apply(self, terms, value):
+        terms.ground_viscous += value
+
+
+OPTIONAL_EFFECTS = (BodyInertia, DriveCurrentLimit, RollingResistance, ComHeight)
+
+
+def register_optional_effects():
+    for cls in OPTIONAL_EFFECTS:
+        register_effect(cls())
+
+
+# ----------------------------------------------------------------------------- registry
+
+#: key -> Effect: the library the naming step searches (in registration order).
+EFFECTS: dict[str, Effect] = {}
+
+#: the names the DESIGN.md JSON contract knows (user-added names are allowed too)
+BUILTIN_NAMES = ('imu_pitch_bias', 'floor_slope', 'wheel_radius', 'payload', 'wheel_viscous_friction',
+                 'wheel_coulomb_friction', 'torque_constant', 'actuation_delay', 'encoder_offset')
+
+
+def register_effect(effect):
+    """Add an effect to the library. Works as a decorator on an ``Effect`` subclass (instantiated
+    with no arguments) or on a function returning an Effect, or called with an instance.
+    Re-registering a key replaces the old entry. Returns its argument."""
+    obj = effect
+    if isinstance(effect, type):
+        obj = effect()
+    elif callable(effect) and not isinstance(effect, Effect):
+        obj = effect()
+    if not isinstance(obj, Effect):
+        raise TypeError(f'register_effect needs an Effect, got {obj!r}')
+    if not (obj.bounds[0] <= obj.nominal_value <= obj.bounds[1]):
+        raise ValueError(f'{obj.key}: nominal value {obj.nominal_value} outside bounds {obj.bounds}')
+    EFFECTS[obj.key] = obj
+    return effect
+
+
+def unregister_effect(key: str) -> None:
+    EFFECTS.pop(key, None)
+
+
+def library(keys=None) -> list[Effect]:
+    """The registered effects (all, or those whose key or name is in `keys`)."""
+    if keys is None:
+        return list(EFFECTS.values())
+    wanted = set(keys)
+    unknown = wanted - set(EFFECTS) - {e.name for e in EFFECTS.values()}
+    if unknown:
+        raise ValueError(f'unknown effects {sorted(unknown)}; known: {sorted(EFFECTS)}')
+    return [e for e in EFFECTS.values() if e.key in wanted or e.name in wanted]
+
+
+def get_effect(key: str) -> Effect:
+    if key in EFFECTS:
+        return EFFECTS[key]
+    by_name = [e for e in EFFECTS.values() if e.name == key]
+    if len(by_name) == 1:
+        return by_name[0]
+    raise KeyError(f'no effect {key!r} (known: {sorted(EFFECTS)})')
+
+
+def load_effects_module(spec: str) -> None:
+    """Import a module (dotted path) or a .py file so that its ``register_effect`` calls run."""
+    import importlib
+    import importlib.util
+    from pathlib import Path
+    path = Path(spec)
+    if spec.endswith('.py') or path.exists():
+        mod_spec = importlib.util.spec_from_file_location(path.stem, path)
+        if mod_spec is None or mod_spec.loader is None:
+            raise ValueError(f'cannot import effects from {spec}')
+        module = importlib.util.module_from_spec(mod_spec)
+        mod_spec.loader.exec_module(module)
+    else:
+        importlib.import_module(spec)
+
+
+def apply_effects(terms: ModelTerms, effects, values) -> ModelTerms:
+    """A copy of `terms` with each effect applied at its value."""
+    out = terms.copy()
+    for eff, v in zip(effects, values):
+        eff.apply(out, float(v))
+    return out
+
+
+def _register_builtins():
+    for eff in (ImuPitchBias(), FloorSlope(), WheelRadius(), Payload('lGripper', (0.0, 0.0, 0.10)),
+                Payload('rGripper', (0.0, 0.0, 0.10)), WheelViscousFriction(), WheelCoulombFriction(),
+                TorqueConstant(), ActuationDelay(), EncoderOffset('JWaist')):
+        register_effect(eff)
+
+
+_register_builtins()

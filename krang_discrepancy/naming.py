@@ -1,0 +1,456 @@
+"""Name the missing effect: fit every candidate of the library (and small combinations), pick by
+improvement on HELD-OUT data with a minimum effect size, report the value with its uncertainty and
+the evidence, or ``none``.
+
+Procedure (``name_effects``):
+
+1. Scales. The nominal model's residuals on the fitting windows give one robust whitening scale per
+   signal and horizon point, sqrt(median(r^2) / 0.455), so pitch, pitch rate, wheel angle and wheel
+   rate count alike and a few outlying windows do not set the yardstick.
+2. Folds. Windows are grouped in blocks of ``block_s`` seconds; block b belongs to fold b mod K.
+   Interleaved blocks keep every phase in every fold, and a window's neighbours (which share its
+   data) mostly sit in its own block.
+3. Fits. A 9-point scan over each effect's bounds gives the start; each candidate is then fitted on
+   all windows (value, uncertainty) by a bounded Levenberg-Marquardt on the soft-L1 loss
+   2 (sqrt(1 + z^2) - 1) of the whitened residuals z (finite-difference Jacobians; all candidates
+   advance in the same batched prediction), and on each fold's training windows starting from the
+   full-data optimum; each fold fit predicts the fold's held-out windows.
+4. Evidence: improvement = 1 - (held-out loss with the effect) / (held-out nominal loss);
+   t = paired t over blocks of log(loss_nominal_b / loss_candidate_b), a test over blocks that does
+   not pretend overlapping windows are independent (and, on log ratios, is not dominated by the most
+   excited blocks).
+5. Selection (forward): the best single candidate is accepted if improvement >= ``min_improvement``
+   AND t >= ``min_t``; then every remaining effect is scanned on top of the accepted set, the
+   ``combo_candidates`` best are fitted jointly with it, and one more effect is accepted only if it
+   removes a further ``min_improvement`` of the remaining held-out loss, again with t >= ``min_t``;
+   up to ``max_effects``. With a long record an information criterion alone admits spurious terms
+   (notes/identification.md §4); the minimum effect size on held-out data does not.
+6. Uncertainty: cluster-robust sandwich covariance of the full-data fit, A^-1 B A^-1 with A the
+   Gauss-Newton Hessian of the soft-L1 loss and B the sum over ``cluster_s`` clusters of the outer
+   products of the summed scores, so the autocorrelated, overlapping windows are not counted as
+   independent evidence.
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .data import Replay, gap_metrics
+from .effects import Effect, ModelTerms, apply_effects, library
+
+
+@dataclass
+class NamingConfig:
+    folds: int = 2
+    block_s: float = 2.0
+    min_improvement: float = 0.10       # minimum share of the held-out loss an effect must remove
+    min_t: float = 3.0                  # minimum paired t over held-out blocks
+    max_effects: int = 2
+    combo_candidates: int = 4           # partners tried for a combination (best singles first)
+    cluster_s: float = 1.0
+    max_nfev: int = 25                  # Levenberg-Marquardt iterations per fit
+
+
+@dataclass
+class Fit:
+    """One fitted candidate set (a single effect or a combination)."""
+    effects: list
+    values: np.ndarray
+    uncertainty: np.ndarray
+    train_loss: float                   # mean whitened loss on all fitting windows at the fit
+    heldout_loss: np.ndarray            # per active window (NaN elsewhere)
+    fold_values: np.ndarray             # (K, p)
+    improvement: float = math.nan       # vs the reference (nominal, or the smaller set)
+    t: float = math.nan
+    blocks_better: float = math.nan     # share of held-out blocks where it is better
+    at_bound: bool = False
+    nfev: int = 0
+    seconds: float = 0.0
+    reference: str = 'nominal'
+
+    @property
+    def key(self):
+        return '+'.join(e.key for e in self.effects)
+
+    def summary(self) -> dict:
+        out = {'candidate': self.key, 'improvement': self.improvement, 't': self.t,
+               'blocks_better': self.blocks_better, 'at_bound': self.at_bound, 'reference': self.reference,
+               'train_loss': self.train_loss, 'heldout_loss': float(np.nanmean(self.heldout_loss)),
+               'effects': []}
+        for e, v, u in zip(self.effects, self.values, self.uncertainty):
+            dv, unit = e.display(float(v))
+            out['effects'].append({'effect': e.name, 'key': e.key, 'value': dv, 'unit': unit,
+                                   'uncertainty': float(u) * e.display_scale(), 'parameter': float(v),
+                                   **({'detail': e.detail} if e.detail else {})})
+        return out
+
+
+@dataclass
+class NamingResult:
+    selected: Fit | None
+    singles: list
+    combos: list
+    nominal_heldout: np.ndarray
+    scales: np.ndarray
+    config: NamingConfig
+    folds: np.ndarray
+    blocks: np.ndarray
+    timing: dict = field(default_factory=dict)
+
+    @property
+    def name(self):
+        return 'none' if self.selected is None else '+'.join(e.name for e in self.selected.effects)
+
+
+def _soft_l1(z2):
+    return 2.0 * (np.sqrt(1.0 + z2) - 1.0)
+
+
+@dataclass
+class _Job:
+    """One bounded robust least-squares problem: `effects` fitted on the windows `wset`."""
+    effects: list
+    wset: int
+    x: np.ndarray
+    lo: np.ndarray
+    hi: np.ndarray
+    h: np.ndarray
+    cost: float = math.inf
+    grad: np.ndarray | None = None
+    hess: np.ndarray | None = None
+    jac: np.ndarray | None = None
+    res: np.ndarray | None = None
+    lam: float = 1e-3
+    step: np.ndarray | None = None
+    done: bool = False
+    iters: int = 0
+    nfev: int = 0
+
+
+def _interior(x, lo, hi, margin=0.01):
+    """x moved at least `margin` of the range inside the bounds (a fit started on a bound learns
+    nothing from a one-sided finite difference there)."""
+    span = hi - lo
+    return np.clip(np.asarray(x, float), lo + margin * span, hi - margin * span)
+
+
+def _fd_steps(effects, x, lo, hi):
+    h = np.array([0.02 * e.scale for e in effects])
+    return np.where(x + h > hi, -h, h)
+
+
+def _evaluate(replay, base, jobs, wsets, need_jac=True):
+    """Whitened residuals (and forward-difference Jacobians) of every job at its trial point;
+    one predict call per window set."""
+    by_set = {}
+    for j in jobs:
+        by_set.setdefault(j.wset, []).append(j)
+    for ws, js in by_set.items():
+        w = wsets[ws]
+        terms, owner = [], []
+        for j in js:
+            pts = [j.trial] + ([j.trial + np.eye(len(j.trial))[k] * j.h[k] for k in range(len(j.trial))]
+                               if need_jac else [])
+            for x in pts:
+                terms.append(apply_effects(base, j.effects, x))
+            owner.append(len(pts))
+        pred = replay.predict(terms, w)
+        z = ((replay.measured[w][None] - pred) / replay.scales).reshape(len(terms), -1)
+        k = 0
+        for j, n in zip(js, owner):
+            j.trial_res = z[k]
+            j.trial_jac = ((z[k + 1:k + n] - z[k]) / j.h[:, None]).T if need_jac else None
+            j.nfev += n
+            k += n
+
+
+def _cost_grad_hess(res, jac):
+    z2 = res ** 2
+    cost = float(np.sum(_soft_l1(z2)))
+    if jac is None:
+        return cost, None, None
+    w1 = 1.0 / np.sqrt(1.0 + z2)            # rho'(z^2): gradient weights
+    w2 = w1 ** 3                             # Gauss-Newton curvature weights
+    grad = jac.T @ (w1 * res)
+    hess = (jac * w2[:, None]).T @ jac
+    return cost, grad, hess
+
+
+def _newton(job):
+    hs = job.hess + job.lam * np.diag(np.maximum(np.diag(job.hess), 1e-12))
+    try:
+        step = -np.linalg.solve(hs, job.grad)
+    except np.linalg.LinAlgError:
+        step = -job.grad / np.maximum(np.diag(hs), 1e-12)
+    return np.clip(job.x + step, job.lo, job.hi) - job.x
+
+
+def _batched_fit(replay, base, jobs, wsets, max_iter=25, tol=1e-3):
+    """Bounded Levenberg-Marquardt on the soft-L1 loss, all jobs advancing together."""
+    for j in jobs:
+        j.trial = j.x.copy()
+    _evaluate(replay, base, jobs, wsets)
+    for j in jobs:
+        j.res, j.jac = j.trial_res, j.trial_jac
+        j.cost, j.grad, j.hess = _cost_grad_hess(j.res, j.jac)
+        j.step = _newton(j)
+    for _ in range(max_iter):
+        live = [j for j in jobs if not j.done]
+        if not live:
+            break
+        for j in live:
+            j.trial = j.x + j.step
+        _evaluate(replay, base, live, wsets)
+        for j in live:
+            j.iters += 1
+            cost, grad, hess = _cost_grad_hess(j.trial_res, j.trial_jac)
+            small = np.all(np.abs(j.step) <= tol * np.array([e.scale for e in j.effects]))
+            if cost <= j.cost:
+                rel = (j.cost - cost) / max(j.cost, 1e-300)
+                j.x, j.cost, j.grad, j.hess = j.trial.copy(), cost, grad, hess
+                j.res, j.jac = j.trial_res, j.trial_jac
+                j.lam = max(j.lam / 3.0, 1e-9)
+                j.step = _newton(j)
+                if small or rel < 1e-10:
+                    j.done = True
+            else:
+                j.lam *= 5.0
+                j.step = _newton(j)
+                if small or j.lam > 1e8:
+                    j.done = True
+    return jobs
+
+
+def _cluster_cov(jac, res, win_cluster, n_per_window):
+    """Cluster-robust sandwich covariance of the soft-L1 M-estimate (whitened residuals `res`,
+    Jacobian `jac`): A = sum w_i J_i J_i', w = (1 + z^2)^-1.5 (the Gauss-Newton Hessian of the
+    loss), scores g_i = z_i (1 + z_i^2)^-0.5 J_i summed per cluster, cov = A^-1 B A^-1."""
+    w = (1.0 + res ** 2) ** -1.5
+    a = (jac * w[:, None]).T @ jac
+    try:
+        ainv = np.linalg.inv(a)
+    except np.linalg.LinAlgError:
+        return np.full((jac.shape[1], jac.shape[1]), np.nan)
+    g = jac * (res / np.sqrt(1.0 + res ** 2))[:, None]
+    cl = np.repeat(win_cluster, n_per_window)
+    uniq, inv = np.unique(cl, return_inverse=True)
+    gsum = np.zeros((uniq.size, jac.shape[1]))
+    np.add.at(gsum, inv, g)
+    c = uniq.size
+    b = gsum.T @ gsum * (c / max(c - 1, 1))
+    return ainv @ b @ ainv
+
+
+def start_value(effect: Effect, base: ModelTerms) -> float:
+    """The parameter value at which the effect leaves `base` unchanged."""
+    if effect.name == 'wheel_radius':
+        return base.wheel_radius
+    if effect.name == 'drive_current_limit' and base.current_limit:
+        return base.current_limit
+    return effect.nominal_value
+
+
+def _scan(replay, base, effects, windows, n=9, with_loss=False):
+    """Best point of a coarse grid over each effect's bounds, all effects in one batched
+    prediction: the start of each single-effect fit, so that no fit begins far from its optimum
+    (the actuation-delay loss, for one, is not convex over its whole range). `base` may already
+    carry accepted effects (a conditional scan). With with_loss, also the best mean loss of each."""
+    w = np.flatnonzero(windows)
+    terms = []
+    grids = []
+    for e in effects:
+        grid = np.linspace(e.bounds[0], e.bounds[1], n)
+        grids.append(grid)
+        terms += [apply_effects(base, [e], [g]) for g in grid]
+    pred = replay.predict(terms, w)
+    loss = replay.window_loss(replay.measured[w][None] - pred).mean(axis=1).reshape(len(effects), n)
+    best = [float(g[int(np.argmin(l))]) for g, l in zip(grids, loss)]
+    return (best, [float(l.min()) for l in loss]) if with_loss else best
+
+
+def _blocks(replay: Replay, block_s: float, folds: int):
+    offs = np.concatenate([[0], np.cumsum([int(math.ceil(r.duration / block_s)) + 1 for r in replay.records])])
+    rec_t0 = np.array([r.t[0] for r in replay.records])
+    local = replay.win_t - rec_t0[replay.win_record]
+    blocks = np.floor(local / block_s).astype(int) + offs[replay.win_record]
+    return blocks, blocks % folds
+
+
+def _compare(ref_loss, new_loss, blocks, mask):
+    """(improvement, t, share of blocks better) of new vs ref on the masked held-out windows.
+
+    improvement = 1 - sum(new) / sum(ref); t = paired t over blocks of log(ref_b / new_b), the
+    per-block log loss ratio (a real effect shrinks the loss by a similar FACTOR in every block,
+    while the absolute differences are dominated by the most excited blocks)."""
+    bl = blocks[mask]
+    ub, inv = np.unique(bl, return_inverse=True)
+    new = np.zeros(ub.size)
+    ref = np.zeros(ub.size)
+    np.add.at(new, inv, new_loss[mask])
+    np.add.at(ref, inv, ref_loss[mask])
+    tot = ref.sum()
+    imp = float(1.0 - new.sum() / tot) if tot > 0 else 0.0
+    d = np.log(np.maximum(ref, 1e-300) / np.maximum(new, 1e-300))
+    if ub.size > 1 and np.std(d, ddof=1) > 0:
+        t = float(np.mean(d) / (np.std(d, ddof=1) / math.sqrt(ub.size)))
+    else:
+        t = math.inf if d.sum() > 0 else 0.0
+    return imp, t, float(np.mean(d > 0))
+
+
+def fit_candidates(replay: Replay, base: ModelTerms, candidate_sets, cfg: NamingConfig, folds, blocks,
+                   x0s, ref_losses) -> list:
+    """Full-data fit (value, uncertainty) and K-fold held-out losses of several candidate sets,
+    all fitted together (batched Levenberg-Marquardt)."""
+    t0 = time.perf_counter()
+    active = replay.active
+    wsets = [np.flatnonzero(active)] + [np.flatnonzero(active & (folds != f)) for f in range(cfg.folds)]
+    # stage 1: the full-data fit of every candidate; stage 2: the fold fits, each started from its
+    # candidate's full-data optimum (started from the common guess, a fold of a multi-effect fit
+    # can settle in another basin of a trade-off such as torque constant vs friction)
+    full_jobs = []
+    for effs, x0 in zip(candidate_sets, x0s):
+        lo = np.array([e.bounds[0] for e in effs], float)
+        hi = np.array([e.bounds[1] for e in effs], float)
+        x = _interior(x0, lo, hi)
+        full_jobs.append(_Job(list(effs), 0, x, lo, hi, _fd_steps(effs, x, lo, hi)))
+    _batched_fit(replay, base, full_jobs, wsets, max_iter=cfg.max_nfev)
+    jobs = []
+    for fj in full_jobs:
+        jobs.append(fj)
+        x = _interior(fj.x, fj.lo, fj.hi, margin=1e-4)
+        for ws in range(1, cfg.folds + 1):
+            jobs.append(_Job(fj.effects, ws, x.copy(), fj.lo, fj.hi, _fd_steps(fj.effects, x, fj.lo, fj.hi)))
+    _batched_fit(replay, base, [j for j in jobs if j.wset > 0], wsets, max_iter=cfg.max_nfev)
+    n = cfg.folds + 1
+    # held-out: each window predicted by the fit of the fold that did not see it
+    idx = wsets[0]
+    terms = []
+    for c in range(len(candidate_sets)):
+        for f in range(cfg.folds):
+            j = jobs[c * n + 1 + f]
+            terms.append(apply_effects(base, j.effects, j.x))
+    pred = replay.predict(terms, idx)
+    loss = replay.window_loss(replay.measured[idx][None] - pred).reshape(len(candidate_sets), cfg.folds, -1)
+    e_per = replay.measured.shape[1] * replay.measured.shape[2]
+    clusters = (np.floor(replay.win_t[idx] / cfg.cluster_s).astype(int)
+                + 100000 * replay.win_record[idx])
+    fits = []
+    for c, effs in enumerate(candidate_sets):
+        full = jobs[c * n]
+        held = np.full(len(replay), np.nan)
+        held[idx] = loss[c, folds[idx], np.arange(idx.size)]
+        cov = _cluster_cov(full.jac, full.res, clusters, e_per)
+        unc = np.sqrt(np.clip(np.diag(cov), 0, None))
+        span = full.hi - full.lo
+        start = np.array([start_value(e, base) for e in effs])
+        near_lo = (full.x - full.lo < 1e-3 * span) & (np.abs(full.lo - start) > 1e-12)
+        near_hi = (full.hi - full.x < 1e-3 * span) & (np.abs(full.hi - start) > 1e-12)
+        fit = Fit(list(effs), full.x.copy(), unc, full.cost / max(full.res.size, 1), held,
+                  np.array([jobs[c * n + 1 + f].x for f in range(cfg.folds)]),
+                  at_bound=bool(np.any(near_lo | near_hi)),
+                  nfev=sum(jobs[c * n + k].nfev for k in range(n)))
+        fit.improvement, fit.t, fit.blocks_better = _compare(ref_losses[c], held, blocks, active)
+        fits.append(fit)
+    dt = time.perf_counter() - t0
+    for f in fits:
+        f.seconds = dt / len(fits)
+    return fits
+
+
+def _accept(fit: Fit, cfg: NamingConfig) -> bool:
+    return fit.improvement >= cfg.min_improvement and fit.t >= cfg.min_t
+
+
+def name_effects(replay: Replay, base: ModelTerms | None = None, candidates=None,
+                 config: NamingConfig | None = None, progress=None) -> NamingResult:
+    """Run steps 1-6 of the module docstring on the replay's active windows."""
+    cfg = config or NamingConfig()
+    base = base if base is not None else replay.model.terms()
+    cands = library() if candidates is None else list(candidates)
+    timing = {}
+    t0 = time.perf_counter()
+    if not np.any(replay.active):
+        raise ValueError('no windows to fit: the data have no standing/balancing phase '
+                         f'(phases found: {sorted(set(replay.win_phase))})')
+    r0 = replay.residuals([base])[0]
+    replay.set_scales(r0)
+    blocks, folds = _blocks(replay, cfg.block_s, cfg.folds)
+    if len(np.unique(folds[replay.active])) < cfg.folds:
+        raise ValueError(f'too little data for {cfg.folds} folds of {cfg.block_s} s blocks')
+    nominal = np.full(len(replay), np.nan)
+    nominal[replay.active] = replay.window_loss(r0[None])[0][replay.active]
+    timing['nominal_s'] = time.perf_counter() - t0
+    t1 = time.perf_counter()
+    x0 = _scan(replay, base, cands, replay.active)
+    timing['scan_s'] = time.perf_counter() - t1
+    t1 = time.perf_counter()
+    singles = fit_candidates(replay, base, [[e] for e in cands], cfg, folds, blocks, [[v] for v in x0],
+                             [nominal] * len(cands))
+    if progress:
+        for f in singles:
+            progress(f)
+    timing['singles_s'] = time.perf_counter() - t1
+    singles.sort(key=lambda f: -f.improvement)
+    selected = None
+    combos = []
+    t2 = time.perf_counter()
+    ok = [f for f in singles if _accept(f, cfg)]
+    if ok:
+        selected = ok[0]
+        while len(selected.effects) < cfg.max_effects:
+            used = {e.key for e in selected.effects}
+            rest = [f for f in singles if f.effects[0].key not in used]
+            if not rest:
+                break
+            # partners: rank the remaining effects by a conditional scan on top of the accepted set
+            # (ranking by their single improvement would try the near-duplicates of the accepted
+            # effect first: slope, IMU bias, payload and encoder offset all shift the balance)
+            cond = extended_terms(base, selected)
+            starts, losses = _scan(replay, cond, [f.effects[0] for f in rest], replay.active, with_loss=True)
+            order = np.argsort(losses)[:cfg.combo_candidates]
+            partners = [rest[i] for i in order]
+            sets = [selected.effects + p.effects for p in partners]
+            x0s = [list(selected.values) + [starts[i]] for i in order]
+            fits = fit_candidates(replay, base, sets, cfg, folds, blocks, x0s,
+                                  [selected.heldout_loss] * len(sets))
+            best = None
+            for fit in fits:
+                fit.reference = selected.key
+                fit.improvement_vs_nominal = _compare(nominal, fit.heldout_loss, blocks, replay.active)[0]
+                combos.append(fit)
+                if progress:
+                    progress(fit)
+                if _accept(fit, cfg) and (best is None or fit.improvement > best.improvement):
+                    best = fit
+            if best is None:
+                break
+            selected = best
+    timing['combos_s'] = time.perf_counter() - t2
+    timing['total_s'] = time.perf_counter() - t0
+    return NamingResult(selected, singles, combos, nominal, replay.scales, cfg, folds, blocks, timing)
+
+
+def extended_terms(base: ModelTerms, fit: Fit | None) -> ModelTerms:
+    return base.copy() if fit is None else apply_effects(base, fit.effects, fit.values)
+
+
+def gaps(replay: Replay, base: ModelTerms, result: NamingResult) -> dict:
+    """Gap figures before (nominal) and after (selected effects, full-data fit) on all active
+    windows (``gap_metrics``), plus the held-out robust loss (each window predicted by the fold
+    fit that did not see it) before and after."""
+    r0 = replay.residuals([base])[0]
+    before = gap_metrics(replay, r0)
+    if result.selected is None:
+        after = dict(before)
+        held_after = float(np.nanmean(result.nominal_heldout))
+    else:
+        r1 = replay.residuals([extended_terms(base, result.selected)])[0]
+        after = gap_metrics(replay, r1)
+        held_after = float(np.nanmean(result.selected.heldout_loss))
+    return {'before': before, 'after': after,
+            'heldout_loss_before': float(np.nanmean(result.nominal_heldout)),
+            'heldout_loss_after': held_after}
