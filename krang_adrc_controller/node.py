@@ -1,8 +1,13 @@
 """adrc_controller: the balance controller on ROS topics (thin shell over controller.BalanceController).
 
-Control runs on a wall timer at `rate_hz` from the latest /imu/data and /joint_states. If either is
-older than `stale_timeout_s`, the controller is told the data are stale and commands zero torque
-(safe stop) until it is re-enabled.
+Control runs from the latest /imu/data and /joint_states, either on a timer at `rate_hz` (the node's
+clock: wall time, or /clock with use_sim_time) or, with `step_on_imu`, once per /imu/data sample (the
+2018 kore loop also waited for each IMU message). Stepping on the sample removes the phase lag between
+two free-running loops at the same rate: the timer fired just before the bridge's next sample arrived
+and so used a sample one period old (measured over DDS at 100 Hz: median 10 ms, p90 25 ms of extra
+sample age). The timer then only watches: if no sample has driven the loop for two periods it steps
+anyway, so stale data still end in a safe stop. If either input is older than `stale_timeout_s`, the
+controller is told the data are stale and commands zero torque (safe stop) until it is re-enabled.
 """
 import sys
 
@@ -10,6 +15,7 @@ import numpy as np
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.node import Node
+from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import Imu, JointState
 from std_msgs.msg import Float64MultiArray
 from std_srvs.srv import SetBool
@@ -32,6 +38,7 @@ class AdrcControllerNode(Node):
         values = {name: self.declare_parameter(name, default).value for name, default in defaults.items()}
         self.config = ControllerConfig.from_dict(values)
         self.stale_timeout = self.config.stale_timeout_s
+        self.step_on_imu = bool(self.declare_parameter('step_on_imu', False).value)
         beta_file = self.declare_parameter('initial_beta', '').value
         beta = load_beta(beta_file, self.robot) if beta_file else self.robot.nominal_beta
         self.controller = BalanceController(self.robot, beta, self.config)
@@ -42,23 +49,38 @@ class AdrcControllerNode(Node):
         self.effort_pub = self.create_publisher(Float64MultiArray, topics.WHEEL_EFFORT_CMD, topics.QOS[topics.WHEEL_EFFORT_CMD])
         self.pose_pub = self.create_publisher(JointState, topics.BALANCED_POSE, topics.QOS[topics.BALANCED_POSE])
         self.diag_pub = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, topics.QOS[topics.DIAGNOSTICS])
-        self.create_subscription(Imu, topics.IMU, self.on_imu, topics.QOS[topics.IMU])
-        self.create_subscription(JointState, topics.JOINT_STATES, self.on_joint_states, topics.QOS[topics.JOINT_STATES])
+        # Control acts on the newest sample only: after a stall, a queue of older samples (sensor QoS keeps
+        # 5, /joint_states 10) would be worked off one control step each, every one of them late.
+        latest = QoSProfile(depth=1, reliability=ReliabilityPolicy.BEST_EFFORT)
+        self.create_subscription(Imu, topics.IMU, self.on_imu, latest)
+        self.create_subscription(JointState, topics.JOINT_STATES, self.on_joint_states, latest)
         self.create_subscription(Float64MultiArray, topics.BETA, self.on_beta, topics.QOS[topics.BETA])
         self.create_subscription(JointState, topics.POSE_TARGET, self.on_target, topics.QOS[topics.POSE_TARGET])
         self.create_service(SetBool, '/adrc_controller/enable', self.on_enable)
-        self.create_timer(1.0 / self.config.rate_hz, self.on_tick)
+        self.period = 1.0 / self.config.rate_hz
+        self.last_step = None
+        self.last_sample_t = None
+        self.create_timer(self.period, self.on_timer)
         self.create_timer(1.0, self.publish_diagnostics)
         self.last_output = None
-        self.get_logger().info(f'balancing at {self.config.rate_hz:.0f} Hz, stale timeout {self.stale_timeout} s, '
-                               f'initial beta {beta_file or "nominal (URDF)"}')
+        self.get_logger().info(f'balancing at {self.config.rate_hz:.0f} Hz '
+                               f'({"on each /imu/data sample" if self.step_on_imu else "on a timer"}), stale '
+                               f'timeout {self.stale_timeout} s, initial beta {beta_file or "nominal (URDF)"}')
 
     def now(self):
         return self.get_clock().now().nanoseconds * 1e-9
 
     def on_imu(self, msg):
         q = msg.orientation
-        self.imu = (self.now(), messages.pitch_from_quaternion(q.x, q.y, q.z, q.w), msg.angular_velocity.y)
+        stamp = msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
+        self.imu = (self.now(), messages.pitch_from_quaternion(q.x, q.y, q.z, q.w), msg.angular_velocity.y, stamp)
+        if self.step_on_imu:
+            self.on_tick(sample_t=stamp)
+
+    def on_timer(self):
+        if self.step_on_imu and self.last_step is not None and self.now() - self.last_step < 2.0 * self.period:
+            return
+        self.on_tick()
 
     def on_joint_states(self, msg):
         joints = messages.joints_from_state(msg, self.robot.pose_joints)
@@ -82,7 +104,9 @@ class AdrcControllerNode(Node):
 
     def sensors_stale(self):
         now = self.now()
-        return (self.imu is None or self.joint_state is None or now - self.imu[0] > self.stale_timeout
+        # now == 0: on use_sim_time before the first /clock (its discovery can lag the data topics by
+        # seconds under load): every age would read 0, and the first /clock would make them all stale.
+        return (now <= 0.0 or self.imu is None or self.joint_state is None or now - self.imu[0] > self.stale_timeout
                 or now - self.joint_state[0] > self.stale_timeout)
 
     def on_enable(self, request, response):
@@ -97,16 +121,25 @@ class AdrcControllerNode(Node):
         self.get_logger().info(response.message)
         return response
 
-    def on_tick(self):
+    def on_tick(self, sample_t=None):
+        """One control step. `sample_t`: the time of the IMU sample that triggered it (its header stamp,
+        the bridge's clock when it published), so the ESO integrates over the samples' own spacing."""
         now = self.now()
+        self.last_step = now
         stale = self.sensors_stale()
+        if sample_t is None:
+            sample_t = now
+        if self.last_sample_t is not None and sample_t <= self.last_sample_t:   # a repeated or older stamp
+            sample_t = max(now, self.last_sample_t + self.period)
+        self.last_sample_t = sample_t
         if self.imu is None or self.joint_state is None:
-            sample = ControlSample(now, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, np.zeros(len(self.robot.pose_joints)), False)
+            sample = ControlSample(sample_t, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, np.zeros(len(self.robot.pose_joints)), False)
         else:
-            _, q_base, pitch_rate = self.imu
+            _, q_base, pitch_rate, _ = self.imu
             _, joints, wheels, rates = self.joint_state
             moving = self.target is not None and bool(np.any(np.abs(self.target - joints) > 0.01))
-            sample = ControlSample(now, q_base, pitch_rate, wheels[0], wheels[1], rates[0], rates[1], joints, moving)
+            sample = ControlSample(sample_t, q_base, pitch_rate, wheels[0], wheels[1], rates[0], rates[1], joints,
+                                   moving)
         out = self.controller.step(sample, stale=stale)
         self.last_output = out
         effort = Float64MultiArray()

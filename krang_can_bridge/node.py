@@ -86,7 +86,18 @@ class CanBridgeNode(Node):
         self.declare_parameter('send_timeout_s', 0.002)
         p = self.get_parameter
         self.config = load_devices(p('devices_file').value)
-        self.core = BridgeCore(self.config, clock=time.monotonic)
+        # The core's time base (IMU filter dt, silence and command timeouts) is the time of the devices:
+        # wall time (monotonic) on the robot; with use_sim_time the simulator's /clock, because a simulated
+        # DMU samples in simulated time. A simulator starved of CPU runs slower than the wall clock (sim_krang
+        # slips, max_lag_s): integrating its gyro over wall-clock gaps overstated every pitch change by the
+        # slow-down (0.57x real time measured under load: +0.10 rad IMU error within 0.5 s of the stand-up),
+        # and the gyro-dominant filter (accelerometer time constant ~80 s) never took it back.
+        if p('use_sim_time').value:
+            clock = self.get_clock()
+            self._device_time = lambda: clock.now().nanoseconds * 1e-9
+        else:
+            self._device_time = time.monotonic
+        self.core = BridgeCore(self.config, clock=self._device_time)
         self._lock = threading.Lock()
         self._send_timeout = float(p('send_timeout_s').value)
         self._stop = threading.Event()
@@ -133,7 +144,7 @@ class CanBridgeNode(Node):
     # ---- CAN I/O ---------------------------------------------------------------------------------------
     def on_received(self, bus: str, msg: can.Message) -> None:
         with self._lock:
-            self.core.on_frame(msg, time.monotonic(), bus)
+            self.core.on_frame(msg, self._device_time(), bus)
         if bus == self.config.wheels.bus and not msg.is_error_frame:
             self.canopen.notify(msg.arbitration_id, msg.data, msg.timestamp)   # SDO responses for the start-up
 
@@ -184,8 +195,8 @@ class CanBridgeNode(Node):
             self.get_logger().warning(f'/wheel_effort_cmd needs [left, right], got {len(data)} values: zero current',
                                       throttle_duration_sec=1.0)
         with self._lock:
-            self.core.set_wheel_effort_command(left, right, time.monotonic())
-            frames = self.core.wheel_command_frames(time.monotonic())
+            self.core.set_wheel_effort_command(left, right, self._device_time())
+            frames = self.core.wheel_command_frames(self._device_time())
         self.send(frames)
 
     def on_joint_position(self, msg: JointState) -> None:
@@ -194,12 +205,12 @@ class CanBridgeNode(Node):
                                       throttle_duration_sec=1.0)
             return
         with self._lock:
-            frames = self.core.joint_position_frames(dict(zip(msg.name, msg.position)), time.monotonic())
+            frames = self.core.joint_position_frames(dict(zip(msg.name, msg.position)), self._device_time())
         self.send(frames)
 
     def send_wheel_commands(self) -> None:
         with self._lock:
-            frames = self.core.wheel_command_frames(time.monotonic())
+            frames = self.core.wheel_command_frames(self._device_time())
         self.send(frames)
 
     def poll_modules(self) -> None:
@@ -209,7 +220,7 @@ class CanBridgeNode(Node):
 
     def check_imu_stream(self) -> None:
         with self._lock:
-            frames = self.core.imu_stream_frames(time.monotonic())
+            frames = self.core.imu_stream_frames(self._device_time())
         if frames:
             self.get_logger().info('DMU silent: sending the stream toggle')
         self.send(frames)
@@ -248,7 +259,7 @@ class CanBridgeNode(Node):
 
     def publish_diagnostics(self) -> None:
         with self._lock:
-            reports = self.core.diagnostics(time.monotonic())
+            reports = self.core.diagnostics(self._device_time())
         arr = DiagnosticArray()
         arr.header.stamp = self.get_clock().now().to_msg()
         for r in reports:
@@ -276,7 +287,7 @@ class CanBridgeNode(Node):
         self._stop.set()
         try:
             with self._lock:
-                frames = self.core.wheel_current_frames(0.0, 0.0, time.monotonic())
+                frames = self.core.wheel_current_frames(0.0, 0.0, self._device_time())
             self.send(frames)
         except Exception:  # noqa: BLE001 - best effort on the way out
             pass

@@ -25,7 +25,8 @@ def register(subparsers):
                     'every topic to DIR/session.mcap, lets the robot stand up, then walks through the meta-learned '
                     'poses over /pose_server/next_pose while com_estimator learns beta online from each balanced '
                     'pose. Writes DIR/beta.yaml, DIR/report.md with PNG figures, and prints a JSON summary.')
-    p.add_argument('--poses', type=int, default=12, help='number of poses to learn from (default 12)')
+    p.add_argument('--poses', type=int, default=3, help='number of poses to learn from (default 3; see the README '
+                   'on longer sessions)')
     p.add_argument('--out', default='demo_out', help='output directory (default demo_out)')
     p.add_argument('--method', default='map-online', help='estimator of com_estimator (default map-online)')
     p.add_argument('--stand-timeout', type=float, default=120.0, help='s to wait for the robot to balance')

@@ -22,6 +22,8 @@ from rclpy.node import Node
 from rosgraph_msgs.msg import Clock
 from std_msgs.msg import Float64MultiArray
 
+from krang_can_bridge.protocols import amc as amc_proto
+
 from krang_can_bridge.config import default_devices_file, load_devices
 from krang_model.beta import load_beta
 from krang_model.robot import load_krang
@@ -56,6 +58,10 @@ class SimKrangNode(Node):
         self.feedback_every = max(1, round(self.rate / p('feedback_rate_hz', 250.0).value))
         self.factor = p('real_time_factor', 1.0).value
         self.publish_clock = p('publish_clock', False).value
+        # /clock every `clock_every` physics steps (default: with each sensor feedback). Every node on
+        # use_sim_time pays for each /clock message (rclpy re-evaluates its timers), so the rate is the
+        # coarsest the nodes' timers need.
+        self.clock_every = max(1, round(self.rate / p('clock_rate_hz', self.rate / self.feedback_every).value))
         seed = p('seed', 0).value
         effects = SimEffects(**{f.name: p(f'effects.{f.name}', f.default).value
                                 for f in dataclasses.fields(SimEffects) if isinstance(f.default, (float, str))})
@@ -71,6 +77,20 @@ class SimKrangNode(Node):
         self.sent_frames = 0
         self.slips = 0
         self.max_lag = p('max_lag_s', 0.02).value
+        # Control-loop guard (0 = off): the simulated time does not run more than `max_control_lag_s` past
+        # the last wheel command of the control loop, i.e. past the newer of the controller's last
+        # /wheel_effort_cmd and the bridge's last current RPDO on the CAN bus, whichever is older. On a
+        # shared machine a node can be descheduled for a few hundred ms while this process keeps the CPU
+        # (measured at load 11-15 on 2 cores: 200-360 ms without a controller step, and the robot fell);
+        # the robot's own computer has no such stalls. Within the bound the loop's real latency stays in
+        # the simulation; beyond it the simulator waits (and so slips, as when it is starved itself). The
+        # guard arms at the first command and lets go when no command comes for `control_guard_timeout_s`
+        # of wall time (the controller stopped).
+        self.max_control_lag = p('max_control_lag_s', 0.0).value
+        self.guard_timeout = p('control_guard_timeout_s', 1.0).value
+        self.controller_beat = self.bridge_beat = None      # (sim t, wall t) of the last command seen
+        self.guard_wait_s = 0.0
+        self.rpdo_ids = {w.codec.ids[amc_proto.RPDO_CURRENT] for w in self.devices.wheels.values()}
         self.buses = {}
         self.notifiers = []
         for name in self.config.buses_in_use():
@@ -78,6 +98,9 @@ class SimKrangNode(Node):
             self.buses[name] = bus
             self.notifiers.append(can.Notifier(bus, [_Inbox(self, name)], timeout=0.05))
         self.clock_pub = self.create_publisher(Clock, '/clock', 10)
+        if self.max_control_lag > 0:
+            self.create_subscription(Float64MultiArray, topics.WHEEL_EFFORT_CMD, self.on_effort_command,
+                                     topics.QOS[topics.WHEEL_EFFORT_CMD])
         self.truth_pub = self.create_publisher(Float64MultiArray, GROUND_TRUTH, 10)
         self.diag_pub = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, topics.QOS[topics.DIAGNOSTICS])
         self.create_timer(0.1, self.publish_truth)
@@ -92,7 +115,20 @@ class SimKrangNode(Node):
     def on_host_frame(self, bus_name, msg):
         with self.lock:
             replies = self.devices.on_frame(bus_name, msg)
+            if msg.arbitration_id in self.rpdo_ids:
+                self.bridge_beat = (self.sim.t, time.monotonic())
         self.send(replies)
+
+    def on_effort_command(self, msg):
+        self.controller_beat = (self.sim.t, time.monotonic())
+
+    def control_loop_behind(self):
+        """True while the guard holds the simulated time (see max_control_lag_s)."""
+        beats = (self.controller_beat, self.bridge_beat)
+        if self.max_control_lag <= 0 or None in beats:
+            return False
+        sim_t, wall_t = min(beats)
+        return self.sim.t - sim_t > self.max_control_lag and time.monotonic() - wall_t < self.guard_timeout
 
     def send(self, frames):
         for frame in frames:
@@ -107,6 +143,13 @@ class SimKrangNode(Node):
         start = time.monotonic()
         k = 0
         while self.running:
+            if self.control_loop_behind():
+                waited = time.monotonic()
+                time.sleep(0.0005)
+                waited = time.monotonic() - waited
+                start += waited                 # the wait is a slip, not a debt to catch up
+                self.guard_wait_s += waited
+                continue
             with self.lock:
                 self.devices.step(dt)
                 joints = self.devices.joint_positions()
@@ -124,12 +167,13 @@ class SimKrangNode(Node):
                         self.sim.q_base + self.sim.config.effects.imu_pitch_bias_rad, self.sim.state[3],
                         forward_specific_force=self.sim.axle_acceleration)
             self.send(frames)
-            k += 1
-            if self.publish_clock and k % self.feedback_every == 0:
+            if self.publish_clock and k % self.clock_every == 0:
+                # right after the samples of this step: a node's timer that fires on this time finds them
                 clock = Clock()
                 clock.clock.sec, nanosec = divmod(int(round(self.sim.t * 1e9)), 1_000_000_000)
                 clock.clock.nanosec = nanosec
                 self.clock_pub.publish(clock)
+            k += 1
             if self.factor > 0:
                 ahead = start + self.sim.t / self.factor - time.monotonic()
                 if ahead > 0:
@@ -152,7 +196,7 @@ class SimKrangNode(Node):
         self.diag_pub.publish(messages.diagnostics(
             self.get_clock().now().to_msg(), 'sim_krang', 'ok', f'simulated t = {t:.1f} s',
             {'q_base': f'{qb:+.4f}', 'true_balance_pitch': f'{bal:+.4f}', 'frames_sent': self.sent_frames,
-             'real_time_slips': self.slips}))
+             'real_time_slips': self.slips, 'control_guard_wait_s': f'{self.guard_wait_s:.1f}'}))
 
     def close(self):
         self.running = False

@@ -12,7 +12,9 @@ import pytest
 
 from conftest import REPO
 
-pytestmark = pytest.mark.ros
+# slow: a 2-4 min session; it passes alone, but with other jobs sharing the 2 cores the simulated
+# session still fails now and then (README, known issues), so it is not in the default CI run yet.
+pytestmark = [pytest.mark.ros, pytest.mark.slow]
 
 
 @pytest.fixture(scope='module')
