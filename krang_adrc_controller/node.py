@@ -12,7 +12,6 @@ controller is told the data are stale and commands zero torque (safe stop) until
 import sys
 
 import numpy as np
-import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
@@ -23,6 +22,7 @@ from std_srvs.srv import SetBool
 from krang_model.beta import load_beta
 from krang_model.robot import load_krang
 from krang_ros import messages, topics
+from krang_ros.spin import run_node
 
 from .controller import BalanceController, ControllerConfig, ControlSample
 
@@ -167,16 +167,7 @@ class AdrcControllerNode(Node):
 
 
 def main(args=None):
-    rclpy.init(args=args)
-    node = AdrcControllerNode()
-    try:
-        rclpy.spin(node)
-    except KeyboardInterrupt:
-        pass
-    finally:
-        node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+    return run_node(AdrcControllerNode, args)
 
 
 if __name__ == '__main__':

@@ -31,9 +31,7 @@ import time
 
 import can
 import canopen
-import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from sensor_msgs.msg import Imu, JointState
@@ -43,6 +41,7 @@ from krang_can_bridge.bridge import BridgeCore, BusFrame
 from krang_can_bridge.config import default_devices_file, load_devices
 from krang_can_bridge.imu_filter import pitch_axis, tilt_direction
 from krang_can_bridge.protocols import amc as amc_proto
+from krang_ros.spin import run_node
 
 UNOBSERVED_VARIANCE = 1e6
 
@@ -298,18 +297,8 @@ class CanBridgeNode(Node):
         logging.getLogger('krang_can_bridge').removeHandler(self._log_handler)
 
 
-def main(args=None) -> None:
-    rclpy.init(args=args)
-    node = CanBridgeNode()
-    try:
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        node.close()
-        node.destroy_node()
-        if rclpy.ok():
-            rclpy.shutdown()
+def main(args=None):
+    return run_node(CanBridgeNode, args)
 
 
 if __name__ == '__main__':

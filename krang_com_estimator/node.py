@@ -2,7 +2,6 @@
 import sys
 from pathlib import Path
 
-import rclpy
 from geometry_msgs.msg import PointStamped
 from rclpy.node import Node
 from sensor_msgs.msg import JointState
@@ -12,6 +11,7 @@ from std_srvs.srv import Trigger
 from krang_model.beta import load_beta, save_beta
 from krang_model.robot import load_krang
 from krang_ros import messages, topics
+from krang_ros.spin import run_node
 
 from .online import OnlineLearner
 
@@ -86,16 +86,7 @@ class ComEstimatorNode(Node):
 
 
 def main(args=None):
-    rclpy.init(args=args)
-    node = ComEstimatorNode()
-    try:
-        rclpy.spin(node)
-    except KeyboardInterrupt:
-        pass
-    finally:
-        node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+    return run_node(ComEstimatorNode, args)
 
 
 if __name__ == '__main__':

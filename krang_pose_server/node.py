@@ -1,13 +1,13 @@
 """pose_server: advances through the excitatory poses on /pose_server/next_pose (thin ROS shell)."""
 import sys
 
-import rclpy
 from rclpy.node import Node
 from std_srvs.srv import Trigger
 
 from krang_model.config import config_path
 from krang_model.robot import KRANG_POSE_COLUMNS, load_krang
 from krang_ros import messages, topics
+from krang_ros.spin import run_node
 
 from .sequence import PoseSequence, StraightLineMove
 
@@ -84,16 +84,7 @@ class PoseServer(Node):
 
 
 def main(args=None):
-    rclpy.init(args=args)
-    node = PoseServer()
-    try:
-        rclpy.spin(node)
-    except KeyboardInterrupt:
-        pass
-    finally:
-        node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+    return run_node(PoseServer, args)
 
 
 if __name__ == '__main__':

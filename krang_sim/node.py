@@ -16,7 +16,6 @@ import time
 
 import can
 import numpy as np
-import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.node import Node
 from rosgraph_msgs.msg import Clock
@@ -28,6 +27,7 @@ from krang_can_bridge.config import default_devices_file, load_devices
 from krang_model.beta import load_beta
 from krang_model.robot import load_krang
 from krang_ros import messages, topics
+from krang_ros.spin import run_node
 
 from .devices import KrangCanDevices
 from .physics import KrangSim, SensorNoise, SimConfig, SimEffects
@@ -208,17 +208,7 @@ class SimKrangNode(Node):
 
 
 def main(args=None):
-    rclpy.init(args=args)
-    node = SimKrangNode()
-    try:
-        rclpy.spin(node)
-    except KeyboardInterrupt:
-        pass
-    finally:
-        node.close()
-        node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+    return run_node(SimKrangNode, args)
 
 
 if __name__ == '__main__':
