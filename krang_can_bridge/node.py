@@ -20,7 +20,8 @@ wheels.command_timeout_s, a malformed one, a silent device, or an AMC start-up n
 constants disagree with the config gives zero current (see BridgeCore).
 
 Parameters: devices_file, publish_rate_hz (200), amc_startup (True: configure the drives through SDO, as
-amciod did), sdo_timeout_s (0.3), startup_retry_s (2.0), send_timeout_s (0.002).
+amciod did), sdo_timeout_s (0.3), startup_retry_s (2.0), send_timeout_s (0.002). With use_sim_time every
+time of the core (IMU filter steps, silence and command timeouts) is the simulator's /clock, not wall time.
 """
 from __future__ import annotations
 

@@ -5,8 +5,11 @@ time (1 = real time, 0 = as fast as the CPU allows). When the CPU cannot keep up
 at most `max_lag_s` and then slows down, instead of catching up in bursts the controller cannot see. The device emulators of devices.py answer the
 bridge on the buses of the device map: AMC drives (current commands in, TPDO feedback out), the DMU
 IMU and the PowerCube modules, which move the body joints at their speed limits. With
-`publish_clock` the node publishes /clock, so nodes running with use_sim_time follow the simulated time
-when it runs faster than real time. Ground truth for evaluation goes to /sim_krang/ground_truth.
+`publish_clock` the node publishes /clock (at `clock_rate_hz`, right after the sensor frames of that
+step), so nodes running with use_sim_time follow the simulated time whether it runs faster or slower than
+real time: `krang demo` runs the node set that way, because a simulator starved of CPU slows down. With
+`max_control_lag_s` it also waits for the control loop (see there). Ground truth for evaluation goes to
+/sim_krang/ground_truth.
 """
 import dataclasses
 import math
