@@ -48,6 +48,7 @@ from krang_model.com import base_regressor
 from krang_model.wip import drivetrain, linearize, reduce_pose
 
 from .adrc import AdrcController
+from .balance_point import BalancePointObserver
 from .detector import BalancedPoint, BalancedPoseDetector
 from .eso import AUTHORS_CONTINUOUS_GAINS
 from .lqr import AUTHORS_Q_DIAG, AUTHORS_R, GainCache, LqrDesigner
@@ -112,6 +113,11 @@ class ControllerConfig:
     f_limit_x: float = 0.0
     f_limit_theta: float = 0.0
     use_measured_rates: bool = True
+    # balance-point observer (balance_point.py): reject the wrong CoM through the lean, so the robot rests at x_ref
+    balance_point_observer: bool = False
+    balance_point_time_constant_s: float = 1.0
+    balance_point_limit_rad: float = 0.3
+    balance_point_hold_s: float = 0.5   # delta_hat held this long after the joints stop (the ESO re-converges)
     rezero_x_on_balance: bool = False
     fast_path: bool = True
     single_thread_blas: bool = True    # see single_thread_blas()
@@ -189,6 +195,8 @@ class ControllerConfig:
             raise ValueError('detector_rate_hz must be in (0, rate_hz]')
         if self.current_limit_a <= 0 or self.stale_timeout_s <= 0:
             raise ValueError('current_limit_a and stale_timeout_s must be positive')
+        if self.balance_point_time_constant_s <= 0 or self.balance_point_limit_rad <= 0:
+            raise ValueError('balance_point_time_constant_s and balance_point_limit_rad must be positive')
 
 
 def default_config_path() -> Path:
@@ -247,6 +255,7 @@ class ControlOutput:
     x_ref: float = 0.0          # m, the position reference of STAND_UP/BALANCE
     psi: float = 0.0            # wheel radians
     saturated: bool = False
+    balance_trim: float = 0.0   # rad, the balance-point observer's delta_hat (0 when it is off)
 
 
 def sample_from_sensors(sensors, joints_moving: bool = False) -> ControlSample:
@@ -429,7 +438,9 @@ class BalanceController:
         self._design = None
         self.adrc = None
         self._fast = None
+        self.balance_point = None        # BalancePointObserver when config.balance_point_observer
         self._moving = False
+        self._t_still = -math.inf        # when the joints last stopped
         self._t_offset = -math.inf
         self._t_gain = -math.inf
         self._t_prev = None
@@ -516,9 +527,10 @@ class BalanceController:
     def _redesign(self, pose) -> None:
         """Full update for a (new) reference pose: offset, LQR(q), ADRC gains."""
         pose = np.array(pose, dtype=float)
+        same_pose = self._pose is not None and np.array_equal(pose, self._pose)
         self._pose = pose
         body = self._body(pose, self._beta)
-        self._shift_offset(body.com_offset_full)
+        self._shift_offset(body.com_offset_full, same_pose)
         d = self.gains.design(pose, self._beta)
         self._design = d
         self.redesigns += 1
@@ -532,11 +544,17 @@ class BalanceController:
                 current_limit_a=cfg.current_limit_a,
                 use_disturbance_rejection=cfg.use_disturbance_rejection, eso_input=cfg.eso_input)
             self._fast = _ScalarAdrc(self.adrc)
+            if cfg.balance_point_observer:
+                self.balance_point = BalancePointObserver(self.h, cfg.eso_omega_o or 20.0,
+                                                          cfg.balance_point_time_constant_s,
+                                                          cfg.balance_point_limit_rad)
         else:
             self.adrc.set_gains(d['F_x'], d['F_theta'], d['b_x'], d['b_theta'])
             self._fast.sync()
+        if self.balance_point is not None:
+            self.balance_point.set_model(d['A'], d['B'])
 
-    def _shift_offset(self, offset: float) -> None:
+    def _shift_offset(self, offset: float, same_pose: bool = False) -> None:
         """New theta offset. The theta-ESO's estimate moves with it (bumpless): a model change is a
         step in the measured theta that no motion caused, and must not read as an acceleration."""
         delta = offset - self._offset
@@ -546,6 +564,8 @@ class BalanceController:
             self._fast.yprev_t += delta
             self.adrc.eso_theta.z[0] += delta
             self.adrc.eso_theta._y_prev += delta
+        if delta and self.balance_point is not None:
+            self.balance_point.shift(delta, same_pose)
 
     def set_disturbance_rejection(self, enabled: bool) -> None:
         """ADRC (True) or plain LQR (False) in BALANCE."""
@@ -570,6 +590,7 @@ class BalanceController:
             return
         if self._moving:
             self._moving = False
+            self._t_still = t
             self._redesign(joints)
             return
         # settled: called every pose_check_period_s by step()
@@ -666,22 +687,31 @@ class BalanceController:
                 self.psi_ref = psi
                 self._fast.reset(theta, x - self.x_ref, dth, dx)
                 self.adrc.reset((theta, x - self.x_ref, dth, dx))
+                if self.balance_point is not None:
+                    self.balance_point.reset(theta, dth)
             if mode is not Mode.BALANCE:
                 self.detector.reset()
 
-        fx = ft = 0.0
+        fx = ft = trim = 0.0
         sat = False
         point = None
+        balance_point = self.balance_point if mode is Mode.BALANCE else None
         if mode is Mode.BALANCE:
             xr = x - self.x_ref
+            # regulate about the balance point the observer found (theta_c = 0 there), not the model's
+            theta_c = theta
+            if balance_point is not None:
+                hold = self._moving or t - self._t_still < cfg.balance_point_hold_s
+                trim = balance_point.update(theta, dt, hold)
+                theta_c = theta - trim
             if cfg.fast_path:
                 if cfg.use_measured_rates:
-                    tl, tr, il, ir, _, _, fx, ft, sat = self._fast.update(theta, xr, dt, dth, dx)
+                    tl, tr, il, ir, _, _, fx, ft, sat = self._fast.update(theta_c, xr, dt, dth, dx)
                 else:
-                    tl, tr, il, ir, _, _, fx, ft, sat = self._fast.update(theta, xr, dt, None, None)
+                    tl, tr, il, ir, _, _, fx, ft, sat = self._fast.update(theta_c, xr, dt, None, None)
             else:
                 rates = cfg.use_measured_rates
-                c = self.adrc.update(theta, xr, dt, dtheta=dth if rates else None, dx=dx if rates else None)
+                c = self.adrc.update(theta_c, xr, dt, dtheta=dth if rates else None, dx=dx if rates else None)
                 il, ir, fx, ft, sat = c.i_left, c.i_right, c.fhat_x, c.fhat_theta, c.saturated
             kp, kd = cfg.spin_gains
             if kp or kd:
@@ -717,7 +747,9 @@ class BalanceController:
             ir = lim if ir > 0 else -lim
             sat = True
         k = self.k_motor
+        if balance_point is not None:
+            balance_point.applied((il + ir) * k, theta, dx, dth)
         out = ControlOutput(mode.value, il * k, ir * k, il, ir, point, theta, x, fx, ft, events,
-                            dth, dx, self.x_ref, psi, sat)
+                            dth, dx, self.x_ref, psi, sat, trim)
         self.last_output = out
         return out

@@ -150,6 +150,7 @@ class AdrcControllerNode(Node):
         if out.mode != self.mode:
             self.get_logger().info(f'mode {self.mode} -> {out.mode}')
             self.mode = out.mode
+            self.publish_diagnostics()          # a mode change is reported at once, not at the next 1 Hz report
         if out.balanced_point is not None:
             point = out.balanced_point
             names = list(self.robot.pose_joints) + [messages.BASE_PITCH]

@@ -24,6 +24,11 @@ class RelearnResult:
             return float('nan')
         return float(np.abs(self.recorded[:n] - self.betas[:n]).max())
 
+    @property
+    def relative_deviation(self):
+        """max_deviation over the largest |beta| element: the significant digits the replay shares."""
+        return self.max_deviation / float(np.abs(self.betas).max())
+
 
 def balanced_poses(bag, robot):
     """(q_base, joints) of every /balanced_pose message, in order; malformed ones are skipped."""

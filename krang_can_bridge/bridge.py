@@ -446,18 +446,22 @@ class BridgeCore:
         return [BusFrame(self.config.imu.bus, self.dmu.stream_toggle())]
 
     # ---- state -------------------------------------------------------------------------------------------
-    def joint_state(self) -> JointStateSnapshot:
+    # A silent device's last reading is left out of the state, not republished under a fresh stamp: the
+    # controller then sees its input go stale and stops (its own stale_timeout_s), as the bridge does.
+    def joint_state(self, now: float | None = None) -> JointStateSnapshot:
+        """Joints whose devices have all been heard from within their silence timeouts."""
+        now = self._now(now)
         names, pos, vel = [], [], []
         for joint in self.config.powercube.joints:
             states = [self._modules[(m.bus, m.module_id)] for m in joint.modules]
-            if any(s.position is None for s in states):
+            if any(s.position is None or s.device.silent(now) for s in states):
                 continue
             names.append(joint.joint)
             pos.append(sum(s.module.sign * s.position for s in states) / len(states))
             vel.append(sum(s.module.sign * s.velocity for s in states) / len(states)
                        if all(s.velocity is not None for s in states) else math.nan)
         for joint, w in self._wheels.items():
-            if w.position is None:
+            if w.position is None or w.device.silent(now):
                 continue
             names.append(joint)
             pos.append(w.position)
@@ -467,8 +471,9 @@ class BridgeCore:
     def wheel_state(self, joint: str) -> _WheelState:
         return self._wheels[joint]
 
-    def imu_state(self) -> ImuSnapshot | None:
-        return self._imu_snapshot
+    def imu_state(self, now: float | None = None) -> ImuSnapshot | None:
+        """The filtered IMU, or None while the DMU is silent."""
+        return None if self._imu_device.silent(self._now(now)) else self._imu_snapshot
 
     # ---- diagnostics -------------------------------------------------------------------------------------
     def diagnostics(self, now: float | None = None) -> list[DiagnosticReport]:

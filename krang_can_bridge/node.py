@@ -20,8 +20,9 @@ wheels.command_timeout_s, a malformed one, a silent device, or an AMC start-up n
 constants disagree with the config gives zero current (see BridgeCore).
 
 Parameters: devices_file, publish_rate_hz (200), amc_startup (True: configure the drives through SDO, as
-amciod did), sdo_timeout_s (0.3), startup_retry_s (2.0), send_timeout_s (0.002). With use_sim_time every
-time of the core (IMU filter steps, silence and command timeouts) is the simulator's /clock, not wall time.
+amciod did), sdo_timeout_s (0.3), startup_retry_s (2.0), send_timeout_s (0.002), imu_sample_period_s (0:
+DMU samples timed by arrival; > 0: by their sequence counter at this period). With use_sim_time every time
+of the core (IMU filter steps, silence and command timeouts) is the simulator's /clock, not wall time.
 """
 from __future__ import annotations
 
@@ -45,6 +46,9 @@ from krang_can_bridge.protocols import amc as amc_proto
 from krang_ros.spin import run_node
 
 UNOBSERVED_VARIANCE = 1e6
+IMU_LAG_MAX_S = 0.04         # a DMU sample time is kept at most this far behind the clock (IMU silence: 0.05 s)
+IMU_LEAD_MAX_S = 1.0         # and re-anchored to the clock when this far ahead of it
+SIM_TIME_SLACK_S = 0.025     # with use_sim_time: checks run at most this far past the newest frame (5 samples)
 
 
 class _RosLogHandler(logging.Handler):
@@ -84,6 +88,7 @@ class CanBridgeNode(Node):
         self.declare_parameter('sdo_timeout_s', 0.3)
         self.declare_parameter('startup_retry_s', 2.0)
         self.declare_parameter('send_timeout_s', 0.002)
+        self.declare_parameter('imu_sample_period_s', 0.0)
         p = self.get_parameter
         self.config = load_devices(p('devices_file').value)
         # The core's time base (IMU filter dt, silence and command timeouts) is the time of the devices:
@@ -92,12 +97,30 @@ class CanBridgeNode(Node):
         # slips, max_lag_s): integrating its gyro over wall-clock gaps overstated every pitch change by the
         # slow-down (0.57x real time measured under load: +0.10 rad IMU error within 0.5 s of the stand-up),
         # and the gyro-dominant filter (accelerometer time constant ~80 s) never took it back.
+        # /clock reaches this process on another path (DDS, the executor) than the frames (UDP, the Notifier
+        # threads): after a stall of the process the executor could take a /clock 50+ ms ahead of frames
+        # still queued in the sockets, and the next wheel refresh found every device "silent" and sent zero
+        # current (seen as 0 A on both wheels during a pose move, and a fall). So received frames are
+        # stamped with /clock, but the checks (silence, command age) run at most SIM_TIME_SLACK_S past the
+        # newest frame stamped: a device silent while others talk is still caught, and when the simulator
+        # stops, its /clock stops too.
         if p('use_sim_time').value:
             clock = self.get_clock()
-            self._device_time = lambda: clock.now().nanoseconds * 1e-9
+            self._frame_time = lambda: clock.now().nanoseconds * 1e-9
+            self._newest_frame = self._frame_time()
+            self._device_time = lambda: min(self._frame_time(), self._newest_frame + SIM_TIME_SLACK_S)
         else:
-            self._device_time = time.monotonic
+            self._frame_time = self._device_time = time.monotonic
+            self._newest_frame = self._frame_time()
         self.core = BridgeCore(self.config, clock=self._device_time)
+        # imu_sample_period_s > 0: the DMU streams at this fixed rate, and each sample is timed by its sequence
+        # counter (the DMU's own clock) instead of its arrival, so the filter integrates the gyro over the
+        # samples' true spacing. By arrival, a burst after a stall of this process integrated the last rate
+        # over the whole gap: 0.02 rad of IMU pitch error after one pose move at load 12 on 2 cores, which
+        # the slow accelerometer correction then walked off over ~30 s, the robot creeping after it so that
+        # no balanced pose was detected. The sample time is re-anchored to the clock if it drifts off it.
+        self._imu_period = float(p('imu_sample_period_s').value)
+        self._imu_sample = None                 # (sequence, time) of the last DMU sample
         self._lock = threading.Lock()
         self._send_timeout = float(p('send_timeout_s').value)
         self._stop = threading.Event()
@@ -144,9 +167,31 @@ class CanBridgeNode(Node):
     # ---- CAN I/O ---------------------------------------------------------------------------------------
     def on_received(self, bus: str, msg: can.Message) -> None:
         with self._lock:
-            self.core.on_frame(msg, self._device_time(), bus)
+            now = self._frame_time()
+            if now > self._newest_frame:
+                self._newest_frame = now
+            if self._imu_period > 0 and bus == self.config.imu.bus and msg.arbitration_id in self.core.dmu.feedback_ids:
+                now = self._imu_sample_time(msg, now)
+            self.core.on_frame(msg, now, bus)
         if bus == self.config.wheels.bus and not msg.is_error_frame:
             self.canopen.notify(msg.arbitration_id, msg.data, msg.timestamp)   # SDO responses for the start-up
+
+    def _imu_sample_time(self, msg: can.Message, now: float) -> float:
+        """Time of a DMU frame from its sequence counter (see imu_sample_period_s); `now` if undecodable."""
+        try:
+            seq = self.core.dmu.decode(msg).sequence
+        except Exception:  # noqa: BLE001 - the core counts the malformed frame
+            return now
+        last = self._imu_sample
+        t = now
+        if last is not None:
+            t = last[1] + ((seq - last[0]) % 256) * self._imu_period    # rates and accelerations share seq
+            if t > now + IMU_LEAD_MAX_S:
+                t = now                         # far ahead of the clock: a restart, or track lost
+            elif t < now - IMU_LAG_MAX_S:
+                t = now - IMU_LAG_MAX_S         # anchored late, or the clock jumped past a queue of frames
+        self._imu_sample = (seq, t)
+        return t
 
     def on_bus_error(self, bus: str, exc: Exception) -> None:
         self._receive_errors[bus] = f'{type(exc).__name__}: {exc}'

@@ -177,7 +177,8 @@ def adrc_vs_lqr_scenario(robot, true_beta, beta_est, disturbance_rejection=True,
         loop.run(t1 - loop.sim.t)
         delta = ctl.com_offset + loop.sim.balance_pitch()
         pred = ctl.x_ref + ctl.expected_rest_offset() * delta if ctl.design else math.nan
-        phases.append({'name': name, 't0': t0, 't1': t1, 'theta_error_rad': delta, 'x_rest_predicted_m': pred})
+        phases.append({'name': name, 't0': t0, 't1': t1, 'theta_error_rad': delta, 'x_rest_predicted_m': pred,
+                       'balance_trim_rad': ctl.last_output.balance_trim})
     lg = {k: np.asarray(v, float) for k, v in loop.log.items()}
     t, x, q, i = lg['t'], lg['x_true_m'], lg['q_base_true'], lg['i_left']
     t_bal = next((tt for tt, e in loop.events if '->balance' in e), math.nan)

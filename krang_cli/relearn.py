@@ -7,8 +7,11 @@ from krang_model.robot import load_krang
 
 from .common import print_json
 
-# The numbers the online estimator published are printed with 17 significant digits in CDR (float64);
-# replaying the same poses through the same code gives the same floating-point operations.
+# The online betas travel as float64 (CDR), and the replay runs the same code on the same poses. It is not
+# bit-identical: numpy's SIMD kernels may group a sum differently with the arrays' memory alignment, and the
+# MAP solve amplifies those last-bit differences by its condition number (measured after a 3-pose demo:
+# 1.8e-9 on a beta element of 75.8, i.e. 2.3e-11 relative). So the replay must agree to 9 significant digits
+# of the largest beta element.
 REPRODUCTION_TOLERANCE = 1e-9
 
 
@@ -33,16 +36,16 @@ def run(args):
     beta0 = load_beta(args.beta0, robot, row=args.row) if args.beta0 else None
     result = relearn(args.bag, robot, args.method, beta0)
     save_beta(args.out, result.betas[-1], robot, method=args.method, poses=len(result.poses), source=str(args.bag))
-    deviation = result.max_deviation
+    deviation = result.relative_deviation
     summary = {'poses': len(result.poses), 'method': args.method, 'out': str(args.out),
                'online_betas': int(len(result.recorded)),
-               'max_abs_diff_to_online': None if np.isnan(deviation) else deviation}
+               'max_rel_diff_to_online': None if np.isnan(deviation) else deviation}
     if args.json:
         print_json(summary)
     else:
         print(f'{len(result.poses)} balanced poses replayed with {args.method}; beta written to {args.out}')
         if not np.isnan(deviation):
             verdict = 'reproduces' if deviation <= REPRODUCTION_TOLERANCE else 'differs from'
-            print(f'largest difference to the {len(result.recorded)} betas published online: {deviation:.3g} '
-                  f'({verdict} the online run within {REPRODUCTION_TOLERANCE:g})')
+            print(f'largest difference to the {len(result.recorded)} betas published online: {deviation:.3g} of the '
+                  f'largest beta element ({verdict} the online run within {REPRODUCTION_TOLERANCE:g})')
     return 0

@@ -9,6 +9,7 @@ module positions) and speak the same wire formats as the robot, through the same
     replies = devices.on_frame(bus, msg)                 # host frame in -> device replies out (BusFrames)
     devices.step(dt)                                     # PowerCube ramps advance
     amps = devices.wheels['JLWheel'].commanded_current_a # -> physics
+    devices.set_silent(['imu'])                          # fault injection: the DMU stops transmitting
     out = devices.wheel_feedback_frames({'JLWheel': q, ...}, {'JLWheel': dq, ...})  # physics -> bus
     out += devices.imu.frames_from_pitch(q_base, dq_base)                           # physics -> bus
 
@@ -22,6 +23,8 @@ Design choices (the real behaviour is not knowable from the sources; each is a d
 - PowerCube: kinematic module. FRAMP follows a trapezoidal profile within TARGET_VEL / TARGET_ACC, themselves
   capped by the module's datasheet limits; targets are clamped to the module soft limits; HALT stops and ignores
   motions until RESET; FCUR_ACK stores the current and holds position (the simulator may `set_state`).
+- Silent device (fault injection, `set_silent`): it stops transmitting (a broken TX line or a hung firmware
+  loop) but still receives, so a drive applies the zero current a bridge sends once it notices the silence.
 """
 from __future__ import annotations
 
@@ -401,20 +404,37 @@ class KrangCanDevices:
                 em = PowerCubeEmulator.from_config(joint, m, q)
                 self.modules[(m.bus, m.module_id)] = em
                 self.joint_modules.setdefault(joint.joint, []).append((m, em))
+        self.module_joint = {(m.bus, m.module_id): j for j, mods in self.joint_modules.items() for m, _ in mods}
+        self.silent: frozenset[str] = frozenset()
+
+    @property
+    def device_names(self) -> list[str]:
+        """What `set_silent` accepts: 'imu', the wheel joints (their drives) and the body joints (their modules)."""
+        return ['imu', *self.wheels, *self.joint_modules]
+
+    def set_silent(self, names: Sequence[str]) -> None:
+        """Silence these devices (see the module docstring); an empty list restores them all."""
+        unknown = sorted(set(names) - set(self.device_names))
+        if unknown:
+            raise ValueError(f'unknown device(s) {unknown}; known: {self.device_names}')
+        self.silent = frozenset(names)
 
     def on_frame(self, bus: str, msg: can.Message) -> list[BusFrame]:
         """Deliver a host frame to the devices on `bus`; their replies, tagged with the bus."""
         out: list[can.Message] = []
         if bus == self.config.wheels.bus:
-            for w in self.wheels.values():
-                out += w.on_frame(msg)
+            for joint, w in self.wheels.items():
+                out += self._unless_silent(joint, w.on_frame(msg))
         if bus == self.config.imu.bus:
-            out += self.imu.on_frame(msg)
+            out += self._unless_silent('imu', self.imu.on_frame(msg))
         if pc.is_host_frame(msg.arbitration_id):
-            for (b, _), em in self.modules.items():
+            for (b, mid), em in self.modules.items():
                 if b == bus:
-                    out += em.on_frame(msg)
+                    out += self._unless_silent(self.module_joint[(b, mid)], em.on_frame(msg))
         return [BusFrame(bus, m) for m in out]
+
+    def _unless_silent(self, device: str, frames: list) -> list:
+        return [] if device in self.silent else frames
 
     def step(self, dt: float) -> None:
         for em in self.modules.values():
@@ -436,11 +456,14 @@ class KrangCanDevices:
         for j, w in self.wheels.items():
             cur = None if currents_a is None else currents_a.get(j)
             out += [BusFrame(self.config.wheels.bus, m)
-                    for m in w.tpdo_frames(positions_rad[j], velocities_rad_s[j], cur)]
+                    for m in self._unless_silent(j, w.tpdo_frames(positions_rad[j], velocities_rad_s[j], cur))]
         return out
 
+    # a silent DMU keeps sampling (its sequence counter runs on), it only stops transmitting
     def imu_frames(self, rates_rad_s: Sequence[float], specific_force_m_s2: Sequence[float]) -> list[BusFrame]:
-        return [BusFrame(self.config.imu.bus, m) for m in self.imu.frames(rates_rad_s, specific_force_m_s2)]
+        frames = self.imu.frames(rates_rad_s, specific_force_m_s2)
+        return [BusFrame(self.config.imu.bus, m) for m in self._unless_silent('imu', frames)]
 
     def imu_frames_from_pitch(self, pitch: float, pitch_rate: float, **kwargs) -> list[BusFrame]:
-        return [BusFrame(self.config.imu.bus, m) for m in self.imu.frames_from_pitch(pitch, pitch_rate, **kwargs)]
+        frames = self.imu.frames_from_pitch(pitch, pitch_rate, **kwargs)
+        return [BusFrame(self.config.imu.bus, m) for m in self._unless_silent('imu', frames)]

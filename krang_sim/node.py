@@ -10,6 +10,11 @@ step), so nodes running with use_sim_time follow the simulated time whether it r
 real time: `krang demo` runs the node set that way, because a simulator starved of CPU slows down. With
 `max_control_lag_s` it also waits for the control loop (see there). Ground truth for evaluation goes to
 /sim_krang/ground_truth.
+
+Fault injection: `silent_devices` (string array, settable at run time, e.g. through
+/sim_krang/set_parameters) silences devices as devices.py describes: 'imu', a wheel joint for its AMC drive,
+or a body joint for its PowerCube modules; [] restores them. The change is logged and reported at once on
+/diagnostics with the simulated time it took effect (`silent_since_s`).
 """
 import dataclasses
 import math
@@ -20,7 +25,9 @@ import time
 import can
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
+from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
+from rclpy.parameter import Parameter
 from rosgraph_msgs.msg import Clock
 from std_msgs.msg import Float64MultiArray
 
@@ -109,6 +116,16 @@ class SimKrangNode(Node):
         self.create_timer(0.1, self.publish_truth)
         self.create_timer(1.0, self.publish_diagnostics)
         self.running = True
+        # When behind real time the physics loop does not sleep, and it would keep the GIL for the
+        # interpreter's 5 ms switch interval at a time; the nine bus threads then get it in turn and a
+        # wheel current command waited tens of simulated ms before it reached the drive. 1 ms slices bound
+        # that to about a millisecond per waiting thread.
+        sys.setswitchinterval(min(sys.getswitchinterval(), p('gil_switch_interval_s', 0.001).value))
+        self.silent_since = None
+        silent = p('silent_devices', Parameter.Type.STRING_ARRAY).value
+        if silent:
+            self.silence(silent)
+        self.add_on_set_parameters_callback(self.on_parameters)
         self.thread = threading.Thread(target=self.physics_loop, name='physics', daemon=True)
         self.thread.start()
         self.get_logger().info(f'simulated Krang: truth {truth_file}, sitting at q_base {self.sim.q_base:+.3f} rad, '
@@ -121,6 +138,25 @@ class SimKrangNode(Node):
             if msg.arbitration_id in self.rpdo_ids:
                 self.bridge_beat = (self.sim.t, time.monotonic())
         self.send(replies)
+
+    def on_parameters(self, params):
+        for param in params:
+            if param.name == 'silent_devices':
+                try:
+                    self.silence(param.value or [])
+                except ValueError as err:
+                    return SetParametersResult(successful=False, reason=str(err))
+        return SetParametersResult(successful=True)
+
+    def silence(self, names):
+        with self.lock:
+            self.devices.set_silent(names)
+            self.silent_since = self.sim.t if names else None
+        if names:
+            self.get_logger().warn(f'fault injection: {", ".join(names)} silent from t = {self.silent_since:.3f} s')
+        else:
+            self.get_logger().info('fault injection: every device transmits again')
+        self.publish_diagnostics()
 
     def on_effort_command(self, msg):
         self.controller_beat = (self.sim.t, time.monotonic())
@@ -196,10 +232,14 @@ class SimKrangNode(Node):
     def publish_diagnostics(self):
         with self.lock:
             t, qb, bal = self.sim.t, self.sim.q_base, self.sim.balance_pitch()
+            silent, since = sorted(self.devices.silent), self.silent_since
+        values = {'q_base': f'{qb:+.4f}', 'true_balance_pitch': f'{bal:+.4f}', 'frames_sent': self.sent_frames,
+                  'real_time_slips': self.slips, 'control_guard_wait_s': f'{self.guard_wait_s:.1f}'}
+        if silent:
+            values.update(silent_devices=', '.join(silent), silent_since_s=f'{since:.4f}')
         self.diag_pub.publish(messages.diagnostics(
-            self.get_clock().now().to_msg(), 'sim_krang', 'ok', f'simulated t = {t:.1f} s',
-            {'q_base': f'{qb:+.4f}', 'true_balance_pitch': f'{bal:+.4f}', 'frames_sent': self.sent_frames,
-             'real_time_slips': self.slips, 'control_guard_wait_s': f'{self.guard_wait_s:.1f}'}))
+            self.get_clock().now().to_msg(), 'sim_krang', 'warn' if silent else 'ok',
+            f'simulated t = {t:.1f} s' + (f'; fault injection: {", ".join(silent)} silent' if silent else ''), values))
 
     def close(self):
         self.running = False

@@ -162,14 +162,19 @@ def test_silent_device_gives_zero_current_within_the_timeout():
     assert 'imu' in core.silent_devices(t) and not core.motion_allowed(t)
     assert [wheel_amps_by_hand(f) for f in core.wheel_current_frames(20.0, -20.0, t)] == [0.0, 0.0]
     assert core.joint_position_frames({'JTorso': 0.5}, t) == []
+    # the silent IMU's last pitch is not passed on as if it were current; the talking devices still are
+    assert core.imu_state(t) is None
+    assert {'JLWheel', 'JRWheel', 'JWaist'} <= set(core.joint_state(t).names)
     # just inside the timeout a drive is still fine; just after, it is silent
     core2, dev2, t2 = healthy_core()
     assert core2.motion_allowed(t2 + CFG.wheels.silence_timeout_s * 0.9)
     assert not core2.motion_allowed(t2 + CFG.wheels.silence_timeout_s * 1.1)
     assert 'amc/JLWheel' in core2.silent_devices(t2 + CFG.wheels.silence_timeout_s * 1.1)
+    assert 'JLWheel' in core2.joint_state(t2 + CFG.wheels.silence_timeout_s * 0.9).names
+    assert 'JLWheel' not in core2.joint_state(t2 + CFG.wheels.silence_timeout_s * 1.1).names
     # recovery: traffic again -> motion again
     dev.feed(t + 0.001)
-    assert core.motion_allowed(t + 0.001)
+    assert core.motion_allowed(t + 0.001) and core.imu_state(t + 0.001) is not None
 
 
 def test_nothing_moves_before_every_device_was_heard():

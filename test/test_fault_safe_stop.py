@@ -1,0 +1,109 @@
+"""Faults over the real node set: sim_krang, can_bridge and adrc_controller as processes, on udp_multicast buses.
+
+The robot stands up and balances; then sim_krang's fault injection silences a device (it stops transmitting,
+as a broken TX line would). The bridge must cut the wheel current within the device's silence timeout
+(the drives, which still listen, apply zero), and the controller must go to safe stop within the silence
+timeout plus its own stale timeout.
+Times are the simulator's: the moment the fault took effect (sim_krang's `silent_since_s`), the ground truth
+of the applied currents, the controller's diagnostics stamp."""
+import pytest
+
+pytestmark = pytest.mark.ros
+
+rclpy = pytest.importorskip('rclpy')
+pytest.importorskip('msgpack')                      # python-can's udp_multicast needs it
+
+from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
+from rcl_interfaces.srv import SetParameters  # noqa: E402
+from rclpy.parameter import Parameter  # noqa: E402
+from std_msgs.msg import Float64MultiArray  # noqa: E402
+
+from krang_can_bridge.config import load_devices  # noqa: E402
+from krang_cli.bringup import params_files  # noqa: E402
+from krang_cli.processes import NodeSet  # noqa: E402
+from krang_model.config import load_config  # noqa: E402
+from krang_ros import topics  # noqa: E402
+from krang_ros.session_client import open_session_client  # noqa: E402
+from krang_sim.node import GROUND_TRUTH, GROUND_TRUTH_FIELDS  # noqa: E402
+from krang_sim.session_config import session_devices_file  # noqa: E402
+
+NODES = ('sim_krang', 'can_bridge', 'adrc_controller')
+TRUTH_PERIOD_S = 0.1            # sim_krang publishes the ground truth at 10 Hz: a zero current is seen this late
+DELIVERY_SLACK_S = 0.05         # a frame or message in flight when the deadline passes
+
+
+def stale_timeout_s():
+    """The controller's stale timeout as the sim node set runs it (sim_params.yaml over controller.yaml)."""
+    value = None
+    for path in params_files(sim=True, extra=()):
+        value = load_config(path).get('adrc_controller', {}).get('ros__parameters', {}).get('stale_timeout_s', value)
+    return float(value)
+
+
+class Observer:
+    """What the test needs to see, on the session client's node."""
+
+    def __init__(self, client):
+        self.truth = []                         # (t, current_left, current_right)
+        self.fault_at = None
+        self.safe_stop_at = None
+        i_t, i_l, i_r = (GROUND_TRUTH_FIELDS.index(f) for f in ('t', 'current_left_a', 'current_right_a'))
+        client.create_subscription(Float64MultiArray, GROUND_TRUTH,
+                                   lambda m: self.truth.append((m.data[i_t], m.data[i_l], m.data[i_r])), 50)
+        client.create_subscription(DiagnosticArray, topics.DIAGNOSTICS, self.on_diagnostics,
+                                   topics.QOS[topics.DIAGNOSTICS])
+
+    def on_diagnostics(self, msg):
+        for status in msg.status:
+            values = {kv.key: kv.value for kv in status.values}
+            if status.name == 'sim_krang' and 'silent_since_s' in values and self.fault_at is None:
+                self.fault_at = float(values['silent_since_s'])
+            if status.name == 'adrc_controller' and values.get('mode') == 'safe_stop' and self.safe_stop_at is None:
+                self.safe_stop_at = msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
+
+
+@pytest.fixture
+def balancing_robot(tmp_path):
+    devices = session_devices_file(tmp_path)
+    nodes = NodeSet(params_files(sim=True, extra=()), log_dir=tmp_path / 'logs')
+    for name in NODES:
+        nodes.start(name, {'devices_file': devices} if name in ('sim_krang', 'can_bridge') else None)
+    client, context = open_session_client()
+    try:
+        observer = Observer(client)
+        client.enable_controller(timeout=60.0)
+        client.wait_for_balance(timeout=120.0)
+        client.pause(2.0)
+        yield client, observer, load_devices(devices)
+    finally:
+        client.close()
+        rclpy.try_shutdown(context=context)
+        nodes.stop(NODES)
+
+
+def silence(client, device):
+    set_parameters = client.create_client(SetParameters, '/sim_krang/set_parameters')
+    param = Parameter('silent_devices', Parameter.Type.STRING_ARRAY, [device]).to_parameter_msg()
+    reply = client.call(set_parameters, SetParameters.Request(parameters=[param]))
+    assert reply.results[0].successful, reply.results[0].reason
+
+
+@pytest.mark.timeout(240)
+@pytest.mark.parametrize('device', ['imu', 'JLWheel'])
+def test_silent_device_stops_the_wheels_and_the_controller(balancing_robot, device):
+    client, observer, devices = balancing_robot
+    assert client.mode == 'balance'
+    assert any(abs(left) > 0 for _, left, _ in observer.truth[-10:]), 'the balancing robot draws current'
+    observer.safe_stop_at = None                # the one before the enable does not count
+    silence(client, device)
+    client.spin_until(lambda: observer.fault_at is not None and observer.safe_stop_at is not None, 10.0,
+                      'the fault and the safe stop')
+    client.pause(1.0)
+    t0 = observer.fault_at
+    silence_timeout = devices.imu.silence_timeout_s if device == 'imu' else devices.wheels.silence_timeout_s
+    after = [(t, left, right) for t, left, right in observer.truth if t > t0]
+    zero_from = next(t for t, left, right in after if left == 0.0 and right == 0.0)
+    assert zero_from - t0 <= silence_timeout + TRUTH_PERIOD_S + DELIVERY_SLACK_S, (zero_from - t0, after[:5])
+    assert all(left == 0.0 and right == 0.0 for t, left, right in after if t >= zero_from), 'current came back'
+    # the bridge passes the device's last reading on until it knows it silent, then the controller's input ages
+    assert 0.0 < observer.safe_stop_at - t0 <= silence_timeout + stale_timeout_s() + DELIVERY_SLACK_S
