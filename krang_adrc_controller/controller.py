@@ -29,10 +29,11 @@ One ``step(sample)`` per control period:
    per settled pose:
    the window means of all joints and of the measured q_base.
 
-Notes. With the authors' ESO input the ADRC comes to rest where plain LQR does,
+Notes. With the authors' ESO input alone the ADRC comes to rest where plain LQR does,
 x - x_ref = -F_theta0 delta / F_x0 (delta = theta error of the beta), with the TRUE CoM over the axle
-(adrc.py). That rest is what the detector needs: its q_base is the true balance pitch whatever the
-beta. ``rezero_x_on_balance`` (default off) reproduces the 2018 code's reset of the x reference at
+(adrc.py). The balance-point observer (balance_point.py, ``balance_point_observer``) estimates delta
+and the ADRC regulates theta - delta_hat, so the robot rests at x_ref. Either rest is what the detector
+needs: its q_base is the true balance pitch whatever the beta. ``rezero_x_on_balance`` (default off) reproduces the 2018 code's reset of the x reference at
 every mode change; off, the ADRC keeps the stand-up's reference and the handover does not move the
 robot a second time.
 """
@@ -114,7 +115,7 @@ class ControllerConfig:
     f_limit_theta: float = 0.0
     use_measured_rates: bool = True
     # balance-point observer (balance_point.py): reject the wrong CoM through the lean, so the robot rests at x_ref
-    balance_point_observer: bool = False
+    balance_point_observer: bool = True
     balance_point_time_constant_s: float = 1.0
     balance_point_limit_rad: float = 0.3
     balance_point_hold_s: float = 0.5   # delta_hat held this long after the joints stop (the ESO re-converges)
@@ -695,7 +696,7 @@ class BalanceController:
         fx = ft = trim = 0.0
         sat = False
         point = None
-        balance_point = self.balance_point if mode is Mode.BALANCE else None
+        balance_point = self.balance_point if mode is Mode.BALANCE and cfg.use_disturbance_rejection else None
         if mode is Mode.BALANCE:
             xr = x - self.x_ref
             # regulate about the balance point the observer found (theta_c = 0 there), not the model's

@@ -162,7 +162,8 @@ class AdrcControllerNode(Node):
         out = self.last_output
         level = 'ok' if out is not None and out.mode != 'safe_stop' else 'warn'
         values = {} if out is None else {'mode': out.mode, 'theta_rad': f'{out.theta:+.4f}', 'x_m': f'{out.x:+.3f}',
-                                         'f_hat_theta': f'{out.f_hat_theta:+.3f}', 'f_hat_x': f'{out.f_hat_x:+.3f}'}
+                                         'f_hat_theta': f'{out.f_hat_theta:+.3f}', 'f_hat_x': f'{out.f_hat_x:+.3f}',
+                                         'x_ref_m': f'{out.x_ref:+.3f}', 'balance_trim_rad': f'{out.balance_trim:+.4f}'}
         self.diag_pub.publish(messages.diagnostics(self.get_clock().now().to_msg(), 'adrc_controller', level,
                                                    f'mode {out.mode if out else "starting"}', values))
 

@@ -3,7 +3,7 @@ import math
 
 import numpy as np
 
-from krang_model.com import balance_pitch, com_frame0
+from krang_model.com import com_error, lateral_com_error
 from krang_ros.names import BALANCED_POSE, BETA, WHEEL_EFFORT_CMD
 
 from .reader import read_float_arrays, read_joint_states
@@ -16,34 +16,30 @@ def held_out_configurations(robot, n=2000, seed=12345):
     return rng.uniform(lo, hi, (n, len(lo)))
 
 
-def com_error(robot, beta, true_beta, joints):
-    """Mean horizontal distance (m) between the CoM beta predicts and the true CoM, at each configuration
-    held at the pitch where the true robot balances."""
-    q_base = balance_pitch(robot, joints, true_beta)
-    est = com_frame0(robot, q_base, joints, beta)
-    true = com_frame0(robot, q_base, joints, true_beta)
-    return float(np.mean(np.hypot(est[:, 0] - true[:, 0], est[:, 1] - true[:, 1])))
-
-
 def learning_curve(robot, betas, true_beta, n_configs=2000):
+    """Forward and lateral CoM errors (m) of each beta over the held-out configurations (krang_model.com)."""
     joints = held_out_configurations(robot, n_configs)
-    return np.array([com_error(robot, b, true_beta, joints) for b in betas])
+    forward = np.array([com_error(robot, b, true_beta, joints) for b in betas])
+    lateral = np.array([lateral_com_error(robot, b, true_beta, joints) for b in betas])
+    return forward, lateral
 
 
 def session_figures(bag, robot, true_beta, out_dir):
-    """learning_curve.png and session_timeline.png; returns (curve, paths)."""
+    """learning_curve.png and session_timeline.png; returns ((forward, lateral) curves, paths)."""
     import matplotlib
     matplotlib.use('Agg')
     import matplotlib.pyplot as plt
     betas = read_float_arrays(bag, BETA).rows
     betas = [b for b in betas if len(b) == robot.n_beta]
-    curve = learning_curve(robot, betas, true_beta)
+    curve, lateral = learning_curve(robot, betas, true_beta)
     paths = []
     fig, ax = plt.subplots(figsize=(6, 3.5))
-    ax.plot(np.arange(len(curve)), 1000 * curve, 'o-')
+    ax.plot(np.arange(len(curve)), 1000 * curve, 'o-', label='forward (x_com: what balancing observes)')
+    ax.plot(np.arange(len(lateral)), 1000 * lateral, 's--', color='grey', label='sideways (unobservable in pitch)')
     ax.set_xlabel('balanced poses learned')
-    ax.set_ylabel('mean horizontal CoM error (mm)')
+    ax.set_ylabel('mean CoM error (mm)')
     ax.set_title('Online learning against the hidden true model')
+    ax.legend(fontsize=8)
     ax.grid(True, alpha=0.3)
     fig.tight_layout()
     paths.append(out_dir / 'learning_curve.png')
@@ -66,4 +62,4 @@ def session_figures(bag, robot, true_beta, out_dir):
         paths.append(out_dir / 'session_timeline.png')
         fig.savefig(paths[-1], dpi=120)
         plt.close(fig)
-    return curve, paths
+    return (curve, lateral), paths

@@ -77,26 +77,29 @@ def run(args):
             rclpy.try_shutdown(context=context)
         nodes.stop(STOP_ORDER)
     wall = time.monotonic() - started
-    curve, figures = session_figures(bag, robot, true_beta, out)
+    (curve, lateral), figures = session_figures(bag, robot, true_beta, out)
     result = {'poses': learned, 'com_error_before_m': float(curve[0]), 'com_error_after_m': float(curve[-1]),
               'bag': str(bag)}
-    write_report(out, result, curve, figures, message_counts(bag), wall, args, failure)
-    print(f'{learned} poses learned in {wall:.0f} s: mean CoM error {1000 * curve[0]:.1f} mm -> '
+    write_report(out, result, curve, lateral, figures, message_counts(bag), wall, args, failure)
+    print(f'{learned} poses learned in {wall:.0f} s: mean forward CoM error {1000 * curve[0]:.1f} mm -> '
           f'{1000 * curve[-1]:.1f} mm; report {out / "report.md"}')
     print_json(result)
     return 0 if failure is None else 1
 
 
-def write_report(out, result, curve, figures, counts, wall, args, failure):
+def write_report(out, result, curve, lateral, figures, counts, wall, args, failure):
     lines = ['# krang demo: online CoM learning on the simulated Krang', '',
              f'- poses learned: {result["poses"]} of {args.poses} (estimator `{args.method}`), wall time {wall:.0f} s',
-             f'- mean horizontal CoM error against the hidden true model, over 2000 held-out configurations: '
-             f'**{1000 * result["com_error_before_m"]:.2f} mm before, {1000 * result["com_error_after_m"]:.2f} mm after**',
+             f'- mean forward CoM error (the paper\'s |x_com| at the true balance pitch) against the hidden true '
+             f'model, over 2000 held-out configurations: **{1000 * result["com_error_before_m"]:.2f} mm before, '
+             f'{1000 * result["com_error_after_m"]:.2f} mm after**',
+             f'- mean sideways CoM error: {1000 * lateral[0]:.2f} mm before, {1000 * lateral[-1]:.2f} mm after. A robot '
+             'that balances in pitch never observes it: it stays where the prior put it.',
              f'- learned beta: `beta.yaml`; bag: `{Path(result["bag"]).name}` ({sum(counts.values())} messages)', '']
     if failure:
         lines += [f'**The session stopped early:** {failure}. Node logs are in `logs/`.', '']
-    lines += ['| poses | CoM error (mm) |', '|---|---|']
-    lines += [f'| {k} | {1000 * e:.2f} |' for k, e in enumerate(curve)]
+    lines += ['| poses | forward CoM error (mm) | sideways (mm) |', '|---|---|---|']
+    lines += [f'| {k} | {1000 * e:.2f} | {1000 * y:.2f} |' for k, (e, y) in enumerate(zip(curve, lateral))]
     lines += ['', '| topic | messages |', '|---|---|'] + [f'| `{t}` | {n} |' for t, n in sorted(counts.items())]
     lines += [''] + [f'![{p.stem}]({p.name})' for p in figures]
     (out / 'report.md').write_text('\n'.join(lines) + '\n')

@@ -227,16 +227,21 @@ def _run_adrc(args):
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     wrong = shifted_beta(robot, true_beta, TABLE2_POSE, args.shift)
-    variants = [('ADRC (ESO 20 rad/s)', wrong, True, None), ('plain LQR', wrong, False, None),
-                ("ADRC (authors' ESO gains)", wrong, True, 0.0), ('plain LQR, TRUE beta', true_beta, False, None)]
+    paper = cfg.replace(balance_point_observer=False)
+    observer = cfg.replace(balance_point_observer=True)
+    variants = [('ADRC + balance-point observer (shipped)', wrong, True, None, observer),
+                ("ADRC, the paper's law (ESO 20 rad/s)", wrong, True, None, paper),
+                ('plain LQR', wrong, False, None, paper),
+                ("ADRC, the paper's law (authors' ESO gains)", wrong, True, 0.0, paper),
+                ('plain LQR, TRUE beta', true_beta, False, None, paper)]
     results = {}
     wall = time.perf_counter()
-    for name, beta, dr, omega in variants:
-        results[name] = adrc_vs_lqr_scenario(robot, true_beta, beta, dr, seed=args.seed, config=cfg,
+    for name, beta, dr, omega, variant_cfg in variants:
+        results[name] = adrc_vs_lqr_scenario(robot, true_beta, beta, dr, seed=args.seed, config=variant_cfg,
                                              eso_omega_o=omega)
     wall = time.perf_counter() - wall
     fig, ax = plt.subplots(3, 1, figsize=(11, 9), sharex=True)
-    styles = ['C0-', 'C1--', 'C2:', 'k-']
+    styles = ['C3-', 'C0-', 'C1--', 'C2:', 'k-']
     for (name, res), st in zip(results.items(), styles):
         lg = res['log']
         ax[0].plot(lg['t'], lg['x_true_m'], st, lw=1.2, label=name)
@@ -250,7 +255,8 @@ def _run_adrc(args):
     ax[2].set_ylabel('left current (A)')
     ax[2].set_xlabel('t (s): enable at 0.5 s, push at 25 s, waist 2.755 -> 2.3 rad at 45 s')
     ax[0].legend(loc='lower left', fontsize=8)
-    ax[0].set_title(f'Wrong CoM ({100 * args.shift:.1f} cm in the Table II pose): ADRC vs plain LQR')
+    ax[0].set_title(f'Wrong CoM ({100 * args.shift:.1f} cm in the Table II pose): ADRC (with and without the '
+                    f'balance-point observer) vs plain LQR')
     fig.tight_layout()
     fig.savefig(out / 'adrc_vs_lqr.png', dpi=110)
     plt.close(fig)
@@ -262,17 +268,20 @@ def _run_adrc(args):
              'Robot: simulated Krang, hidden truth `config/sim_true_beta.yaml`; the controller uses the truth with '
              f'the Base mass moment shifted so the paper\'s x_com is off by {100 * args.shift:.1f} cm in the Table II '
              'pose (theta error ' f'{results["plain LQR"]["phases"][0]["theta_error_rad"]:.3f} rad). Sensor noise on. '
-             'Stand-up uses the hardware stand PD in every variant; the compared law acts from BALANCE on.', '',
+             'Stand-up uses the hardware stand PD in every variant; the compared law acts from BALANCE on. '
+             'The balance-point observer (krang_adrc_controller/balance_point.py) estimates the CoM-angle error '
+             'delta from the theta-channel disturbance and the ADRC regulates about it; its estimate at the end of '
+             'each phase is the last column.', '',
              '![adrc vs lqr](adrc_vs_lqr.png)', '',
-             '| controller | phase | rest x (m) | predicted -F_th0 δ/F_x0 (m) | max excursion (m) | overshoot (m) | '
-             'settle 2 cm (s) | max tilt (rad) | peak I (A) | I std at rest (A) |',
-             '|---|---|---|---|---|---|---|---|---|---|']
+             '| controller | phase | rest x (m) | LQR offset -F_th0 δ/F_x0 (m) | max excursion (m) | overshoot (m) | '
+             'settle 2 cm (s) | max tilt (rad) | peak I (A) | I std at rest (A) | δ (rad) | observer δ̂ (rad) |',
+             '|---|---|---|---|---|---|---|---|---|---|---|---|']
     for name, r in results.items():
         for ph in r['phases']:
             lines.append(f"| {name} | {ph['name']} | {ph['x_rest_m']:.3f} | {ph['x_rest_predicted_m']:.3f} | "
                          f"{ph['max_excursion_m']:.3f} | {ph['overshoot_m']:.3f} | {ph['settle_time_s']:.1f} | "
                          f"{ph['max_tilt_from_balance_rad']:.3f} | {ph['peak_current_a']:.1f} | "
-                         f"{ph['rest_current_std_a']:.2f} |")
+                         f"{ph['rest_current_std_a']:.2f} | {ph['theta_error_rad']:.4f} | {ph['balance_trim_rad']:.4f} |")
     (out / 'report.md').write_text('\n'.join(lines) + '\n')
     (out / 'summary.json').write_text(json.dumps(summary, indent=1))
     print('\n'.join(lines))
@@ -372,9 +381,13 @@ def _run_table2(args):
     from krang_adrc_controller.metrics import compute_metrics
     from krang_model.beta import save_beta
     from krang_model.com import balance_pitch
-    from krang_sim.closed_loop import (TABLE2_POSE, PaperGradientDescent, com_error, run_balance,
-                                       run_online_session, stand_pose)
+    from krang_model.com import com_error
+    from krang_sim.closed_loop import (TABLE2_POSE, PaperGradientDescent, run_balance, run_online_session,
+                                       stand_pose)
     robot, true_beta, cfg = _setup(args)
+    # the paper's experiment: the authors' ADRC law, without our balance-point observer (with it every beta
+    # rests at its reference, and the Resting Pos column would measure nothing)
+    cfg = cfg.replace(balance_point_observer=False)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     kit = kit_dir(args.kit)
@@ -406,8 +419,8 @@ def _run_table2(args):
     delta_t2 = [float(bt - balance_pitch(robot, TABLE2_POSE[None], b)[0]) for b in betas]
     run_cfg = cfg.replace(**PAPER_ERA_PD) if args.paper_era_pd else cfg
     ctl_desc = ('the paper-era stand PD (250, 40, 4, 10) for the whole run, as the 2018 runs (`--paper-era-pd`)'
-                if args.paper_era_pd else 'stand up with the hardware stand PD, balance with ADRC '
-                '(config/controller.yaml)')
+                if args.paper_era_pd else "stand up with the hardware stand PD, balance with the paper's ADRC law "
+                '(config/controller.yaml with balance_point_observer off)')
     # --- 2. balancing runs
     rows = [('beta_0', betas[0])]
     rows += [(f'beta_{n}', betas[n - 1]) for n in BETA_ROWS if n - 1 < len(betas)]

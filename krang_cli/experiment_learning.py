@@ -78,19 +78,3 @@ def headline(res):
     if 'authors_pool' in res:
         out['authors_pool_6003_filtered_poses'] = res['authors_pool']['authors_pool_6003_filtered_poses']
     return out
-
-
-def main(argv=None):
-    """Stand-alone entry (python -m krang_cli.experiment_learning ...), the same as `krang ...`."""
-    import argparse
-    parser = argparse.ArgumentParser(prog='krang')
-    register(parser.add_subparsers(dest='command', metavar='<command>'))
-    args = parser.parse_args(argv)
-    if not getattr(args, 'func', None):
-        parser.print_help()
-        return 2
-    return args.func(args) or 0
-
-
-if __name__ == '__main__':
-    sys.exit(main())

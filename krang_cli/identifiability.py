@@ -1,5 +1,4 @@
 """krang identifiability: which parts of the mass model balanced poses can and cannot fix."""
-import sys
 
 from .common import print_json
 
@@ -35,19 +34,3 @@ def run(args):
     else:
         print('\n'.join(res['lines']))
     return 0
-
-
-def main(argv=None):
-    """Stand-alone entry (python -m krang_cli.identifiability ...), the same as `krang ...`."""
-    import argparse
-    parser = argparse.ArgumentParser(prog='krang')
-    register(parser.add_subparsers(dest='command', metavar='<command>'))
-    args = parser.parse_args(argv)
-    if not getattr(args, 'func', None):
-        parser.print_help()
-        return 2
-    return args.func(args) or 0
-
-
-if __name__ == '__main__':
-    sys.exit(main())

@@ -1,6 +1,5 @@
 """krang learn: learn the mass model beta from balanced poses (batch or in the online order)."""
 import math
-import sys
 
 import numpy as np
 
@@ -108,19 +107,3 @@ def _print_report(s, info):
         print(f'  {name:<10} {100 * moved:10.2f} {s["mass_change_kg"][name]:14.3f}')
     if info.get('inequality_qp'):
         print('  (the Gaussian MAP left the physical bounds; the bounded QP solution was used)')
-
-
-def main(argv=None):
-    """Stand-alone entry (python -m krang_cli.MODULE ...), the same as `krang ...`."""
-    import argparse
-    parser = argparse.ArgumentParser(prog='krang')
-    register(parser.add_subparsers(dest='command', metavar='<command>'))
-    args = parser.parse_args(argv)
-    if not getattr(args, 'func', None):
-        parser.print_help()
-        return 2
-    return args.func(args) or 0
-
-
-if __name__ == '__main__':
-    sys.exit(main())

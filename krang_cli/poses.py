@@ -137,19 +137,3 @@ def run_filter(args):
     print_json({'selected': int(len(sel)), 'seconds': round(seconds, 3), 'criterion': args.criterion,
                 'converged': bool(res.converged), 'learner': res.learner})
     return 0
-
-
-def main(argv=None):
-    """Stand-alone entry (python -m krang_cli.MODULE ...), the same as `krang ...`."""
-    import argparse
-    parser = argparse.ArgumentParser(prog='krang')
-    register(parser.add_subparsers(dest='command', metavar='<command>'))
-    args = parser.parse_args(argv)
-    if not getattr(args, 'func', None):
-        parser.print_help()
-        return 2
-    return args.func(args) or 0
-
-
-if __name__ == '__main__':
-    sys.exit(main())

@@ -72,3 +72,21 @@ def balance_pitch(robot, joints, beta):
     """
     moment = base_regressor(robot, joints) @ np.asarray(beta, dtype=float)
     return np.arctan2(moment[:, 2], moment[:, 1])
+
+
+# ---- how wrong a beta is, against a known truth (simulation) ----------------------------------------------
+def com_error(robot, beta, true_beta, joints):
+    """Mean |x_com| (m, the paper's phi(q)^T beta) that `beta` predicts at the TRUE balance pitch of each
+    pose (rows of `joints`): the forward CoM error, the one balancing observes; 0 for a perfect model."""
+    joints = np.atleast_2d(np.asarray(joints, float))
+    q_base = balance_pitch(robot, joints, true_beta)
+    return float(np.mean(np.abs(x_com(robot, q_base, joints, beta))))
+
+
+def lateral_com_error(robot, beta, true_beta, joints):
+    """Mean sideways (frame-0 y) distance (m) between the CoM of `beta` and the true CoM, each pose at its
+    true balance pitch. A robot balancing in pitch never observes it: learning leaves it at the prior."""
+    joints = np.atleast_2d(np.asarray(joints, float))
+    q_base = balance_pitch(robot, joints, true_beta)
+    return float(np.mean(np.abs(com_frame0(robot, q_base, joints, beta)[:, 1]
+                                - com_frame0(robot, q_base, joints, true_beta)[:, 1])))

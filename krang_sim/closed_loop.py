@@ -146,14 +146,6 @@ class PaperGradientDescent:
         return self.beta.copy()
 
 
-def com_error(robot, beta, true_beta, joints):
-    """Mean |x_com| (m, the paper's convention phi(q)^T beta) that `beta` predicts at the TRUE balance
-    pitch of each pose (rows of `joints`): 0 for a perfect model."""
-    joints = np.atleast_2d(np.asarray(joints, float))
-    qb = balance_pitch(robot, joints, true_beta)
-    return float(np.mean(np.abs(phi(robot, qb, joints) @ np.asarray(beta, float))))
-
-
 def shifted_beta(robot, beta, joints, shift_m, q_base=None):
     """`beta` with the Base body's mass moment changed so that, in pose `joints` at pitch `q_base`
     (default: the balance pitch of `beta`), the paper's x_com = phi^T beta moves by `shift_m` (m,

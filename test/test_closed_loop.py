@@ -12,11 +12,11 @@ from krang_adrc_controller.controller import (BalanceController, ControllerConfi
                                               load_controller_config, sample_from_sensors)
 from krang_adrc_controller.metrics import compute_metrics
 from krang_model.beta import load_beta
-from krang_model.com import balance_pitch, x_com
+from krang_model.com import balance_pitch, com_error, x_com
 from krang_model.config import config_path
 from krang_model.robot import load_krang
 from krang_sim.closed_loop import (TABLE2_POSE, ClosedLoop, Disturbance, FastKrangSim, PaperGradientDescent,
-                                   com_error, run_balance, run_online_session, shifted_beta)
+                                   run_balance, run_online_session, shifted_beta)
 from krang_sim.physics import KrangSim, SimConfig, SensorNoise
 
 QUIET = SensorNoise(imu_pitch_std_rad=0.0, gyro_std_rad_s=0.0, accel_std_m_s2=0.0, joint_std_rad=0.0)
@@ -40,9 +40,12 @@ def wrong_beta(robot, true_beta):
 
 @pytest.fixture(scope='module')
 def runs(robot, true_beta, wrong_beta):
-    """One 30 s stand-up-and-balance run per beta (shared by several tests)."""
-    return {name: run_balance(robot, true_beta, b, seconds=30.0, seed=3)
-            for name, b in (('true', true_beta), ('wrong', wrong_beta))}
+    """One 30 s stand-up-and-balance run per beta with the shipped controller, and the wrong beta under
+    the paper's law alone (no balance-point observer). Shared by several tests."""
+    paper = load_controller_config(overrides={'balance_point_observer': False})
+    return {name: run_balance(robot, true_beta, b, seconds=30.0, seed=3, controller_config=cfg)
+            for name, b, cfg in (('true', true_beta, None), ('wrong', wrong_beta, None),
+                                 ('wrong-paper', wrong_beta, paper))}
 
 
 # ----------------------------------------------------------------------------- configuration
@@ -134,7 +137,7 @@ def test_fast_controller_path_equals_the_reference_path(robot, true_beta, wrong_
 # ----------------------------------------------------------------------------- stand up and balance
 
 
-@pytest.mark.parametrize('name', ['true', 'wrong'])
+@pytest.mark.parametrize('name', ['true', 'wrong', 'wrong-paper'])
 def test_stands_up_from_the_caster_and_balances(runs, name):
     run = runs[name]
     ex = run.extra
@@ -149,18 +152,21 @@ def test_stands_up_from_the_caster_and_balances(runs, name):
 
 
 def test_rest_offset_is_the_lqr_offset_of_the_theta_error(runs):
-    """True beta: rest where it stood up. Wrong beta (+0.16 rad of theta): the robot drives back until
-    the position term cancels the CoM-angle error: x = -F_theta0 delta / F_x0 (m)."""
-    true, wrong = runs['true'].extra, runs['wrong'].extra
+    """True beta: rest where it stood up. Wrong beta (+0.16 rad of theta) under the paper's law: the robot
+    drives back until the position term cancels the CoM-angle error, x = -F_theta0 delta / F_x0 (m). With
+    the balance-point observer (shipped default) it rests where it stood up."""
+    true, wrong, paper = runs['true'].extra, runs['wrong'].extra, runs['wrong-paper'].extra
     assert abs(true['x_true_m'][-1]) < 0.02
-    assert wrong['theta_error_rad'] == pytest.approx(0.161, abs=2e-3)
-    assert wrong['expected_rest_offset_m'] == pytest.approx(-1.66, abs=0.02)
-    assert wrong['x_true_m'][-1] == pytest.approx(wrong['expected_rest_offset_m'], rel=0.02)
-    # the controller's own theta sits at the model error, not at 0
-    assert runs['wrong'].theta_rad[-30:].mean() == pytest.approx(wrong['theta_error_rad'], abs=3e-3)
+    assert paper['theta_error_rad'] == pytest.approx(0.161, abs=2e-3)
+    assert paper['expected_rest_offset_m'] == pytest.approx(-1.66, abs=0.02)
+    assert paper['x_true_m'][-1] == pytest.approx(paper['expected_rest_offset_m'], rel=0.02)
+    assert abs(wrong['x_true_m'][-1]) < 0.02
+    # either way the controller's own theta sits at the model error, not at 0: the true CoM is over the axle
+    for name in ('wrong', 'wrong-paper'):
+        assert runs[name].theta_rad[-30:].mean() == pytest.approx(paper['theta_error_rad'], abs=3e-3)
 
 
-@pytest.mark.parametrize('name', ['true', 'wrong'])
+@pytest.mark.parametrize('name', ['true', 'wrong', 'wrong-paper'])
 def test_detector_reports_the_true_balance_pitch(runs, name):
     ex = runs[name].extra
     pts = ex['points']
@@ -170,9 +176,11 @@ def test_detector_reports_the_true_balance_pitch(runs, name):
 
 
 def test_paper_metrics_on_a_simulated_run(runs):
-    m = compute_metrics(runs['wrong'], runs['wrong'].extra['loop'].controller.r)
+    m = compute_metrics(runs['wrong-paper'], runs['wrong-paper'].extra['loop'].controller.r)
     assert m['resting_position_m'] == pytest.approx(0.27 / 0.2667 * 1.66, rel=0.05)
     assert m['physical']['resting_displacement_m'] == pytest.approx(-1.66, rel=0.03)
+    m = compute_metrics(runs['wrong'], runs['wrong'].extra['loop'].controller.r)
+    assert abs(m['physical']['resting_displacement_m']) < 0.02
 
 
 def test_nominal_beta_is_refused_in_the_table2_pose(robot, true_beta):

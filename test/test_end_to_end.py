@@ -31,7 +31,9 @@ def demo(tmp_path_factory):
 def test_online_session_learns_and_reduces_the_com_error(demo):
     out, summary = demo
     assert summary['poses'] == 3
-    assert summary['com_error_after_m'] < summary['com_error_before_m']
+    # the forward CoM error (what balancing observes): with exact pitches these poses take it from 13.1 to
+    # 1.3 mm (an offline replay with the true balance pitches); the detector's 1-3 mrad leave it well below half
+    assert summary['com_error_after_m'] < 0.5 * summary['com_error_before_m']
     from krang_model.beta import load_beta
     from krang_model.robot import load_krang
     robot = load_krang()

@@ -3,7 +3,7 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
-from krang_model.com import balance_pitch, base_to_frame0, com_frame0, phi, x_com
+from krang_model.com import balance_pitch, base_to_frame0, com_error, com_frame0, lateral_com_error, phi, x_com
 from krang_model.kinematics import body_placements
 from krang_model.robot import load_krang, load_wip7
 
@@ -119,6 +119,24 @@ def test_balance_pitch_balances_with_com_above_the_axle(krang):
     qb = balance_pitch(krang, joints, beta)
     np.testing.assert_allclose(x_com(krang, qb, joints, beta), 0.0, atol=1e-12)
     assert np.all(com_frame0(krang, qb, joints, beta)[:, 2] > 0)
+
+
+def test_forward_and_lateral_com_errors_separate_the_two_directions(krang):
+    """Shift the Base's mass moment along its own x (sideways in frame 0) by 1% of the total mass times
+    1 m: the lateral error is 1 cm at every pose, the forward one stays 0."""
+    rng = np.random.default_rng(3)
+    joints = rng.uniform(np.maximum(krang.lower, -3), np.minimum(krang.upper, 3), (50, len(krang.lower)))
+    truth = krang.nominal_beta
+    sideways = truth.copy()
+    sideways[1] += 0.01 * truth[0::4].sum()
+    assert com_error(krang, sideways, truth, joints) == pytest.approx(0.0, abs=1e-12)
+    assert lateral_com_error(krang, sideways, truth, joints) == pytest.approx(0.01, rel=1e-9)
+    assert lateral_com_error(krang, truth, truth, joints) == 0.0
+    # a forward error is what x_com measures at the true balance pitch
+    forward = truth.copy()
+    forward[2:4] *= 1.05
+    expected = np.abs(x_com(krang, balance_pitch(krang, joints, truth), joints, forward)).mean()
+    assert com_error(krang, forward, truth, joints) == pytest.approx(expected, rel=1e-12) and expected > 1e-3
 
 
 def test_phi_is_fast_and_batched_consistently(krang):
