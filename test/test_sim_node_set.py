@@ -1,11 +1,14 @@
-"""Faults over the real node set: sim_krang, can_bridge and adrc_controller as processes, on udp_multicast buses.
+"""The balancing node set as processes: sim_krang, can_bridge and adrc_controller on udp_multicast buses.
 
-The robot stands up and balances; then sim_krang's fault injection silences a device (it stops transmitting,
+Unpaced (real_time_factor 0), the simulator runs as fast as the control loop keeps up, and the robot
+must keep balancing. Faults: the robot stands up and balances; then sim_krang's fault injection silences a device (it stops transmitting,
 as a broken TX line would). The bridge must cut the wheel current within the device's silence timeout
 (the drives, which still listen, apply zero), and the controller must go to safe stop within the silence
 timeout plus its own stale timeout.
 Times are the simulator's: the moment the fault took effect (sim_krang's `silent_since_s`), the ground truth
 of the applied currents, the controller's diagnostics stamp."""
+import contextlib
+
 import pytest
 
 pytestmark = pytest.mark.ros
@@ -41,17 +44,21 @@ def stale_timeout_s():
 
 
 class Observer:
-    """What the test needs to see, on the session client's node."""
+    """What the tests need to see, on the session client's node."""
 
     def __init__(self, client):
         self.truth = []                         # (t, current_left, current_right)
+        self.truth_rows = []                    # every ground-truth field by name
         self.fault_at = None
         self.safe_stop_at = None
-        i_t, i_l, i_r = (GROUND_TRUTH_FIELDS.index(f) for f in ('t', 'current_left_a', 'current_right_a'))
-        client.create_subscription(Float64MultiArray, GROUND_TRUTH,
-                                   lambda m: self.truth.append((m.data[i_t], m.data[i_l], m.data[i_r])), 50)
+        client.create_subscription(Float64MultiArray, GROUND_TRUTH, self.on_truth, 50)
         client.create_subscription(DiagnosticArray, topics.DIAGNOSTICS, self.on_diagnostics,
                                    topics.QOS[topics.DIAGNOSTICS])
+
+    def on_truth(self, msg):
+        row = dict(zip(GROUND_TRUTH_FIELDS, msg.data))
+        self.truth_rows.append(row)
+        self.truth.append((row['t'], row['current_left_a'], row['current_right_a']))
 
     def on_diagnostics(self, msg):
         for status in msg.status:
@@ -62,12 +69,14 @@ class Observer:
                 self.safe_stop_at = msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
 
 
-@pytest.fixture
-def balancing_robot(tmp_path):
-    devices = session_devices_file(tmp_path)
-    nodes = NodeSet(params_files(sim=True, extra=()), log_dir=tmp_path / 'logs')
-    for name in NODES:
-        nodes.start(name, {'devices_file': devices} if name in ('sim_krang', 'can_bridge') else None)
+@contextlib.contextmanager
+def balancing_node_set(directory, real_time_factor=1.0):
+    """The three nodes, enabled and balancing: (session client, Observer, device map)."""
+    devices = session_devices_file(directory)
+    nodes = NodeSet(params_files(sim=True, extra=()), log_dir=directory / 'logs')
+    nodes.start('sim_krang', {'devices_file': devices, 'real_time_factor': real_time_factor})
+    nodes.start('can_bridge', {'devices_file': devices})
+    nodes.start('adrc_controller')
     client, context = open_session_client()
     try:
         observer = Observer(client)
@@ -79,6 +88,29 @@ def balancing_robot(tmp_path):
         client.close()
         rclpy.try_shutdown(context=context)
         nodes.stop(NODES)
+
+
+@pytest.fixture
+def balancing_robot(tmp_path):
+    with balancing_node_set(tmp_path) as robot:
+        yield robot
+
+
+@pytest.mark.timeout(240)
+def test_unpaced_simulation_keeps_balancing(tmp_path):
+    """real_time_factor 0: no pacing, only the control-lag guard. The robot balances on: it stays in
+    BALANCE and its true pitch stays within 0.05 rad of the true balance pitch (bench_sim_speed.py gives
+    the speed: 1.6x real time on the 2-core machine)."""
+    with balancing_node_set(tmp_path, real_time_factor=0.0) as (client, observer, _):
+        start = len(observer.truth_rows)
+        observer.safe_stop_at = None            # the one before the enable does not count
+        client.pause(8.0)
+        truth = observer.truth_rows[start:]
+    assert len(truth) > 40
+    assert observer.safe_stop_at is None and client.mode == 'balance'
+    simulated = truth[-1]['t'] - truth[0]['t']
+    assert simulated > 4.0
+    assert max(abs(r['q_base'] - r['balance_pitch']) for r in truth) < 0.05
 
 
 def silence(client, device):
