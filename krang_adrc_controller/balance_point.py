@@ -30,7 +30,8 @@ class BalancePointObserver:
     def __init__(self, h: float, omega_o: float, time_constant_s: float = 1.0, limit_rad: float = 0.3):
         if time_constant_s <= 0 or limit_rad <= 0:
             raise ValueError('time_constant_s and limit_rad must be positive')
-        self.eso = ExtendedStateObserver(1.0, h, omega_o=omega_o)
+        self.eso = ExtendedStateObserver(1.0, h, omega_o=omega_o)      # its design; the state is ours:
+        self.z = [0.0, 0.0, 0.0]               # theta_hat, theta_dot_hat, f_hat as floats (a 500 Hz loop)
         self.h = float(h)
         self.time_constant = float(time_constant_s)
         self.limit = float(limit_rad)
@@ -52,7 +53,7 @@ class BalancePointObserver:
 
     def reset(self, theta: float, dtheta: float) -> None:
         """Start at BALANCE entry, assuming the model right (delta_hat = 0)."""
-        self.eso.reset(theta, dtheta, 0.0)
+        self.z = [float(theta), float(dtheta), 0.0]
         self.delta = 0.0
         self._u_prev = 0.0
 
@@ -60,7 +61,7 @@ class BalancePointObserver:
         """The model's theta offset moved by `delta_offset`: the measured theta jumps with no motion.
         A new beta at the same pose moves the error by as much (the true balance pitch stays); at a new
         pose the best guess is that the CoM-angle error stays what it was."""
-        z = self.eso.z
+        z = self.z
         z[0] += delta_offset
         if same_pose:
             z[2] -= self.a * delta_offset
@@ -70,14 +71,13 @@ class BalancePointObserver:
         """One step with the measurement now; returns delta_hat. `hold`: keep delta_hat (the joints move:
         their reaction torques are outside the model and would read as a disturbance)."""
         phi, gam_u, gam_y = self._discretisation(dt)
-        z0, z1, z2 = self.eso.z
+        z0, z1, z2 = self.z
         u, y = self._u_prev, theta
-        z = self.eso.z
-        z[0] = phi[0] * z0 + phi[1] * z1 + phi[2] * z2 + gam_u[0] * u + gam_y[0] * y
-        z[1] = phi[3] * z0 + phi[4] * z1 + phi[5] * z2 + gam_u[1] * u + gam_y[1] * y
-        z[2] = phi[6] * z0 + phi[7] * z1 + phi[8] * z2 + gam_u[2] * u + gam_y[2] * y
+        f = phi[6] * z0 + phi[7] * z1 + phi[8] * z2 + gam_u[2] * u + gam_y[2] * y
+        self.z = [phi[0] * z0 + phi[1] * z1 + phi[2] * z2 + gam_u[0] * u + gam_y[0] * y,
+                  phi[3] * z0 + phi[4] * z1 + phi[5] * z2 + gam_u[1] * u + gam_y[1] * y, f]
         if not hold:
-            target = -z[2] / self.a
+            target = -f / self.a
             self.delta += (1.0 - math.exp(-dt / self.time_constant)) * (target - self.delta)
             self.delta = max(-self.limit, min(self.limit, self.delta))
         return self.delta

@@ -332,6 +332,9 @@ def _table2_args(p):
                    help="the 2018 runs' controller instead of ours: the paper-era stand PD (250, 40, 4, 10) "
                         'for the whole run (on the hardware the switch to balance needed |theta| < 0.034 rad, '
                         'which the learned betas never met), no ADRC')
+    p.add_argument('--extended-model', default=None, metavar='YAML',
+                   help='simulate the robot with the effects `krang discrepancy` found (its extended_model.yaml, '
+                        'e.g. from the hardware Table II runs), to compare the simulated table with the hardware')
     p.add_argument('--json', action='store_true', help='print the table as JSON on the last stdout line')
 
 
@@ -385,6 +388,11 @@ def _run_table2(args):
     from krang_sim.closed_loop import (TABLE2_POSE, PaperGradientDescent, run_balance, run_online_session,
                                        stand_pose)
     robot, true_beta, cfg = _setup(args)
+    sim_config = None
+    if args.extended_model:
+        from krang_discrepancy.report import load_extended_model
+        from krang_sim.physics import SimConfig
+        sim_config = SimConfig(effects=load_extended_model(args.extended_model)[0])
     # the paper's experiment: the authors' ADRC law, without our balance-point observer (with it every beta
     # rests at its reference, and the Resting Pos column would measure nothing)
     cfg = cfg.replace(balance_point_observer=False)
@@ -403,7 +411,7 @@ def _run_table2(args):
     else:
         learner = PaperGradientDescent(robot, beta0)
         session = run_online_session(robot, true_beta, beta0, train, learner, seed=args.seed,
-                                     controller_config=cfg, progress=True)
+                                     controller_config=cfg, sim_config=sim_config, progress=True)
         betas = session.betas
         point_err = [p.q_base - tp for p, tp in zip(session.points, session.true_pitch)]
         learn_desc = (f'paper GD (eta 300) from beta_0 (URDF) on the simulated robot (hidden truth '
@@ -434,6 +442,7 @@ def _run_table2(args):
         traces[name] = []
         for seed in range(args.runs):
             run = run_balance(robot, true_beta, beta, seconds=args.seconds, seed=seed, controller_config=run_cfg,
+                              sim_config=sim_config,
                               name=f'{name}_seed{seed}')
             ex = run.extra
             entry = {'seed': seed, 'stood_up': ex['stood_up'], 'final_mode': ex['final_mode'],
@@ -545,8 +554,12 @@ def _run_table2(args):
     plt.close(fig)
     # --- 5. report
     cmd = (f'krang experiment table2 --out {args.out} --runs {args.runs} --poses {args.poses} --order {args.order}'
-           + (f' --betas {args.betas}' if args.betas else '') + (' --paper-era-pd' if args.paper_era_pd else ''))
+           + (f' --betas {args.betas}' if args.betas else '') + (' --paper-era-pd' if args.paper_era_pd else '')
+           + (f' --extended-model {args.extended_model}' if args.extended_model else ''))
+    robot_desc = ('the nominal drive train' if sim_config is None else
+                  f'the extended model of `{args.extended_model}` ({sim_config.effects})')
     lines = [f'# Table II in simulation', '', f'`{cmd}` ({wall / 60:.1f} min wall).', '',
+             f'* Simulated robot: hidden truth `config/sim_true_beta.yaml`, {robot_desc}.',
              f'* Learning: {learn_desc}',
              f'* CoM error (mean |x_com|, {len(held)} held-out poses): beta_0 {100 * curve[0]:.2f} cm -> '
              f'final {100 * curve[-1]:.2f} cm.',

@@ -361,6 +361,29 @@ def test_cli_table2_smoke(tmp_path, robot, true_beta, krang_data):
     assert table['beta_16']['theta_error_rad'] == pytest.approx(0.0645, abs=2e-3)   # 1 cm at l = 0.163 m
 
 
+def test_cli_table2_on_an_extended_model(tmp_path, robot, true_beta, krang_data):
+    """--extended-model simulates the robot with the effects of a `krang discrepancy` file. An IMU pitch bias
+    of 0.01 rad reads, to the controller, as a CoM-angle error of 0.01 rad: even the TRUE beta then rests at
+    the LQR offset, -F_theta0 / F_x0 x 0.01 (m per rad from the beta_16 row, whose error is its model's)."""
+    import json
+    import yaml
+    from krang_cli.main import main
+    from krang_discrepancy.report import FORMAT
+    betas = np.vstack([robot.nominal_beta] * 15 + [shifted_beta(robot, true_beta, TABLE2_POSE, 0.01)])
+    np.savetxt(tmp_path / 'betas.txt', betas)
+    model = tmp_path / 'extended_model.yaml'
+    model.write_text(yaml.safe_dump({'format': FORMAT, 'nominal': {}, 'effects': [],
+                                     'sim_effects': {'imu_pitch_bias_rad': 0.01}}))
+    out = tmp_path / 'out'
+    assert main(['experiment', 'table2', '--out', str(out), '--betas', str(tmp_path / 'betas.txt'), '--runs', '1',
+                 '--seconds', '25', '--poses', '16', '--kit', str(krang_data), '--extended-model', str(model)]) == 0
+    table = json.loads((out / 'table2.json').read_text())['table']
+    per_rad = table['beta_16']['expected_rest_offset_m'] / table['beta_16']['theta_error_rad']
+    rest = table['TRUE beta']['physical_resting_displacement_m'][0]
+    assert rest == pytest.approx(per_rad * 0.01, rel=0.05)
+    assert 'imu_pitch_bias_rad=0.01' in (out / 'report.md').read_text()
+
+
 @pytest.mark.slow
 def test_sixteen_pose_session_learns_like_the_hardware(robot, true_beta, krang_data):
     """15 online updates in the authors' order (= the hardware's beta_16) leave about the same CoM-angle
