@@ -69,7 +69,7 @@ def test_scale_is_not_fixed_by_the_total_mass(report):
 
 
 def test_cli_json():
-    out = subprocess.run([sys.executable, '-m', 'krang_cli.identifiability', 'identifiability', '--n', '600', '--json'],
+    out = subprocess.run([sys.executable, '-m', 'krang_cli.main', 'identifiability', '--n', '600', '--json'],
                          capture_output=True, text=True, check=True)
     doc = json.loads(out.stdout.strip().splitlines()[-1])
     assert doc['rank_balanced'] == doc['rank_arbitrary'] - 1

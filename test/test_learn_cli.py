@@ -17,7 +17,7 @@ def robot():
 
 
 def _learn(krang_data, out, *extra):
-    cmd = [sys.executable, '-m', 'krang_cli.learn', 'learn',
+    cmd = [sys.executable, '-m', 'krang_cli.main', 'learn',
            '--poses', str(krang_data / 'hardware_balanced_poses_train.csv'),
            '--beta0', str(krang_data / 'betas' / 'betaVectors1initialBetahardwareAll190Vectors.txt'), '--row', '0',
            '--out', str(out), '--json', *extra]
@@ -81,7 +81,7 @@ def test_map_online_in_file_order(krang_data, tmp_path, robot):
 
 
 def test_bad_input_is_a_clear_error(krang_data, tmp_path):
-    res = subprocess.run([sys.executable, '-m', 'krang_cli.learn', 'learn', '--poses', str(tmp_path / 'none.csv'),
+    res = subprocess.run([sys.executable, '-m', 'krang_cli.main', 'learn', '--poses', str(tmp_path / 'none.csv'),
                           '--beta0', str(krang_data / 'betas' / 'convergedBetaVector104PosesHardwareTrained.txt'),
                           '--out', str(tmp_path / 'x.txt')], capture_output=True, text=True)
     assert res.returncode != 0 and 'no such pose file' in res.stderr

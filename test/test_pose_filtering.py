@@ -127,10 +127,10 @@ def test_criteria_behave(robot, problem):
 
 def test_cli_filter(tmp_path):
     pool = tmp_path / 'pool.csv'
-    subprocess.run([sys.executable, '-m', 'krang_cli.poses', 'poses', 'pool', '--n', '600', '--seed', '1',
+    subprocess.run([sys.executable, '-m', 'krang_cli.main', 'poses', 'pool', '--n', '600', '--seed', '1',
                     '--out', str(pool), '--no-progress', '--json'], check=True, capture_output=True)
     out = tmp_path / 'filtered.csv'
-    res = subprocess.run([sys.executable, '-m', 'krang_cli.poses', 'poses', 'filter', '--pool', str(pool),
+    res = subprocess.run([sys.executable, '-m', 'krang_cli.main', 'poses', 'filter', '--pool', str(pool),
                           '--n-betas', '40', '--seed', '2', '--tol', '0.002', '--out', str(out), '--no-progress'],
                          capture_output=True, text=True, check=True)
     doc = json.loads(res.stdout.strip().splitlines()[-1])

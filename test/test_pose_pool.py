@@ -185,7 +185,7 @@ def test_agreement_on_random_candidates(robot, pool, checker):
 
 def test_cli_pool(tmp_path, robot):
     out = tmp_path / 'pool.csv'
-    res = subprocess.run([sys.executable, '-m', 'krang_cli.poses', 'poses', 'pool', '--n', '200', '--seed', '3',
+    res = subprocess.run([sys.executable, '-m', 'krang_cli.main', 'poses', 'pool', '--n', '200', '--seed', '3',
                           '--out', str(out), '--no-progress'], capture_output=True, text=True, check=True)
     doc = json.loads(res.stdout.strip().splitlines()[-1])
     assert doc['poses'] == 200 and doc['tries'] >= 200 and doc['seconds'] > 0
