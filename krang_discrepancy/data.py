@@ -967,8 +967,8 @@ def simulate_record(effects=None, *, seconds: float = 30.0, seed: int = 0, start
     sim = FastKrangSim(robot, truth, pose0, config=SimConfig(effects=effects or SimEffects(),
                                                               noise=noise or SensorNoise(), seed=seed))
     # the dataclass defaults, not config/controller.yaml: test data must not change when the
-    # deployed controller is retuned
-    ctl = BalanceController(robot, beta, controller_config or ControllerConfig())
+    # deployed controller is retuned. The paper's law, as on the hardware runs (no balance-point observer).
+    ctl = BalanceController(robot, beta, controller_config or ControllerConfig(balance_point_observer=False))
     n_sub = int(round(ctl.h / sim.config.dt))
     rng = np.random.default_rng(seed + 7919)
     k_motor = ctl.k_motor
