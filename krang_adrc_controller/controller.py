@@ -33,9 +33,9 @@ Notes. With the authors' ESO input alone the ADRC comes to rest where plain LQR 
 x - x_ref = -F_theta0 delta / F_x0 (delta = theta error of the beta), with the TRUE CoM over the axle
 (adrc.py). The balance-point observer (balance_point.py, ``balance_point_observer``) estimates delta
 and the ADRC regulates theta - delta_hat, so the robot rests at x_ref. Either rest is what the detector
-needs: its q_base is the true balance pitch whatever the beta. ``rezero_x_on_balance`` (default off) reproduces the 2018 code's reset of the x reference at
-every mode change; off, the ADRC keeps the stand-up's reference and the handover does not move the
-robot a second time.
+needs: its q_base is the true balance pitch whatever the beta. ``rezero_x_on_balance`` (default off)
+reproduces the 2018 code's reset of the x reference at every mode change; off, the ADRC keeps the
+stand-up's reference and the handover does not move the robot a second time.
 """
 from __future__ import annotations
 
@@ -196,8 +196,9 @@ class ControllerConfig:
             raise ValueError('detector_rate_hz must be in (0, rate_hz]')
         if self.current_limit_a <= 0 or self.stale_timeout_s <= 0:
             raise ValueError('current_limit_a and stale_timeout_s must be positive')
-        if self.balance_point_time_constant_s <= 0 or self.balance_point_limit_rad <= 0:
-            raise ValueError('balance_point_time_constant_s and balance_point_limit_rad must be positive')
+        if self.balance_point_time_constant_s <= 0 or self.balance_point_limit_rad <= 0 or self.balance_point_hold_s < 0:
+            raise ValueError('balance_point_time_constant_s and balance_point_limit_rad must be positive, '
+                             'balance_point_hold_s not negative')
 
 
 def default_config_path() -> Path:
@@ -557,16 +558,23 @@ class BalanceController:
 
     def _shift_offset(self, offset: float, same_pose: bool = False) -> None:
         """New theta offset. The theta-ESO's estimate moves with it (bumpless): a model change is a
-        step in the measured theta that no motion caused, and must not read as an acceleration."""
+        step in the measured theta that no motion caused, and must not read as an acceleration. With the
+        balance-point observer the ADRC sees theta - delta_hat: it moves by what delta_hat does not take."""
         delta = offset - self._offset
         self._offset = offset
-        if delta and self._fast is not None:
-            self._fast.zt[0] += delta
-            self._fast.yprev_t += delta
-            self.adrc.eso_theta.z[0] += delta
-            self.adrc.eso_theta._y_prev += delta
-        if delta and self.balance_point is not None:
+        if not delta:
+            return
+        step = delta
+        if self.balance_point is not None:
+            before = self.balance_point.delta
             self.balance_point.shift(delta, same_pose)
+            if self.config.use_disturbance_rejection:
+                step -= self.balance_point.delta - before
+        if self._fast is not None:
+            self._fast.zt[0] += step
+            self._fast.yprev_t += step
+            self.adrc.eso_theta.z[0] += step
+            self.adrc.eso_theta._y_prev += step
 
     def set_disturbance_rejection(self, enabled: bool) -> None:
         """ADRC (True) or plain LQR (False) in BALANCE."""

@@ -43,11 +43,10 @@ from krang_can_bridge.bridge import BridgeCore, BusFrame
 from krang_can_bridge.config import default_devices_file, load_devices
 from krang_can_bridge.imu_filter import pitch_axis, tilt_direction
 from krang_can_bridge.protocols import amc as amc_proto
+from krang_can_bridge.sample_clock import SampleClock
 from krang_ros.spin import run_node
 
 UNOBSERVED_VARIANCE = 1e6
-IMU_LAG_MAX_S = 0.04         # a DMU sample time is kept at most this far behind the clock (IMU silence: 0.05 s)
-IMU_LEAD_MAX_S = 1.0         # and re-anchored to the clock when this far ahead of it
 SIM_TIME_SLACK_S = 0.025     # with use_sim_time: checks run at most this far past the newest frame (5 samples)
 
 
@@ -113,14 +112,10 @@ class CanBridgeNode(Node):
             self._frame_time = self._device_time = time.monotonic
             self._newest_frame = self._frame_time()
         self.core = BridgeCore(self.config, clock=self._device_time)
-        # imu_sample_period_s > 0: the DMU streams at this fixed rate, and each sample is timed by its sequence
-        # counter (the DMU's own clock) instead of its arrival, so the filter integrates the gyro over the
-        # samples' true spacing. By arrival, a burst after a stall of this process integrated the last rate
-        # over the whole gap: 0.02 rad of IMU pitch error after one pose move at load 12 on 2 cores, which
-        # the slow accelerometer correction then walked off over ~30 s, the robot creeping after it so that
-        # no balanced pose was detected. The sample time is re-anchored to the clock if it drifts off it.
-        self._imu_period = float(p('imu_sample_period_s').value)
-        self._imu_sample = None                 # (sequence, time) of the last DMU sample
+        # imu_sample_period_s > 0: DMU samples are timed by their sequence counter (sample_clock.py); kept
+        # within 0.04 s of the clock, inside the IMU's 0.05 s silence timeout
+        period = float(p('imu_sample_period_s').value)
+        self._imu_clock = SampleClock(period, lag_max_s=0.04) if period > 0 else None
         self._lock = threading.Lock()
         self._send_timeout = float(p('send_timeout_s').value)
         self._stop = threading.Event()
@@ -170,7 +165,7 @@ class CanBridgeNode(Node):
             now = self._frame_time()
             if now > self._newest_frame:
                 self._newest_frame = now
-            if self._imu_period > 0 and bus == self.config.imu.bus and msg.arbitration_id in self.core.dmu.feedback_ids:
+            if self._imu_clock and bus == self.config.imu.bus and msg.arbitration_id in self.core.dmu.feedback_ids:
                 now = self._imu_sample_time(msg, now)
             self.core.on_frame(msg, now, bus)
         if bus == self.config.wheels.bus and not msg.is_error_frame:
@@ -182,16 +177,7 @@ class CanBridgeNode(Node):
             seq = self.core.dmu.decode(msg).sequence
         except Exception:  # noqa: BLE001 - the core counts the malformed frame
             return now
-        last = self._imu_sample
-        t = now
-        if last is not None:
-            t = last[1] + ((seq - last[0]) % 256) * self._imu_period    # rates and accelerations share seq
-            if t > now + IMU_LEAD_MAX_S:
-                t = now                         # far ahead of the clock: a restart, or track lost
-            elif t < now - IMU_LAG_MAX_S:
-                t = now - IMU_LAG_MAX_S         # anchored late, or the clock jumped past a queue of frames
-        self._imu_sample = (seq, t)
-        return t
+        return self._imu_clock.time_of(seq, now)
 
     def on_bus_error(self, bus: str, exc: Exception) -> None:
         self._receive_errors[bus] = f'{type(exc).__name__}: {exc}'

@@ -263,6 +263,26 @@ def test_set_beta_moves_the_com_reference_and_the_lqr(robot, true_beta, wrong_be
     assert ctl.com_offset == pytest.approx(-balance_pitch(robot, TABLE2_POSE[None], wrong_beta)[0], abs=1e-9)
 
 
+def test_new_beta_at_rest_is_bumpless_with_the_balance_point_observer(robot, true_beta):
+    """Balanced at rest with a 2 cm CoM error, the estimator sends the true beta: theta jumps by the offset
+    change and delta_hat takes all of it (same pose, same true balance pitch), so the ADRC's input does not
+    move and no current kick follows (a 49 A kick before this was handled)."""
+    wrong = shifted_beta(robot, true_beta, TABLE2_POSE, 0.02)
+    loop = ClosedLoop(robot, true_beta, wrong, TABLE2_POSE, sim_config=SimConfig(noise=QUIET), seed=0, log_rate_hz=0)
+    ctl = loop.controller
+    loop.run(0.5)
+    ctl.set_enabled(True)
+    loop.run(40.0)
+    assert ctl.mode.value == 'balance' and ctl.last_output.balance_trim > 0.1
+    ctl.set_beta(true_beta)
+    currents = []
+    for _ in range(500):
+        loop.run(loop.h)
+        currents.append(ctl.last_output.current_left)
+    assert np.abs(currents).max() < 0.5
+    assert abs(ctl.last_output.balance_trim) < 1e-3       # the true beta leaves nothing to trim
+
+
 # ----------------------------------------------------------------------------- ADRC vs plain LQR
 
 

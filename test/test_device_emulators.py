@@ -147,6 +147,41 @@ def test_commanded_current_arrives_with_value_and_sign():
         assert wait_for(lambda: abs(rig.devices.wheels['JRWheel'].commanded_current_a - 0.5 * expected) < lsb)
 
 
+def test_silent_drive_stops_transmitting_but_still_applies_commands():
+    """Fault injection: the silenced drive sends no TPDO and answers nothing, yet takes the current it is sent,
+    so the bridge's zero current after it notices the silence reaches the wheel."""
+    with Rig() as rig:
+        start_drives(rig)
+        assert wait_for(lambda: rig.core.motion_allowed())
+        with rig.lock:
+            rig.devices.set_silent(['JLWheel'])
+        assert wait_for(lambda: 'amc/JLWheel' in rig.core.silent_devices())
+        assert not rig.core.motion_allowed() and 'JLWheel' not in rig.core.joint_state().names
+        assert 'amc/JRWheel' not in rig.core.silent_devices()
+        rig.send_host(rig.core.wheel_current_frames(12.0, 12.0))      # motion disallowed: zero current
+        assert wait_for(lambda: rig.devices.wheel_currents() == {'JLWheel': 0.0, 'JRWheel': 0.0})
+        with rig.lock:
+            rig.devices.set_silent([])
+        assert wait_for(lambda: rig.core.motion_allowed())
+    devices = KrangCanDevices(CFG)
+    with pytest.raises(ValueError, match='unknown device'):
+        devices.set_silent(['JNoSuchJoint'])
+    waist_bus = CFG.powercube.joints[0].modules[0].bus
+    assert CFG.powercube.joints[0].joint == 'JWaist'
+    polls = [f.msg for f in BridgeCore(CFG).poll_frames() if f.bus == waist_bus]
+
+    def waist_bus_replies():
+        return {r.msg.arbitration_id for m in polls for r in devices.on_frame(waist_bus, m)}
+    talking = waist_bus_replies()
+    seq = devices.imu.sequence
+    devices.set_silent(['imu', 'JWaist'])
+    assert devices.imu_frames_from_pitch(-1.0, 0.0) == []
+    assert devices.imu.sequence == (seq + 1) & 0xFF                # the silent DMU keeps sampling
+    waist_ids = {0x0A0 + m.module_id for m in CFG.powercube.joints[0].modules}   # module -> host replies
+    assert waist_ids <= talking and not waist_ids & waist_bus_replies()
+    assert waist_bus_replies() == talking - waist_ids              # the torso module on that bus still answers
+
+
 def test_emulated_wheel_state_is_decoded_to_the_values_put_in():
     state = {'pos': {'JLWheel': 1.234, 'JRWheel': -0.5}, 'vel': {'JLWheel': 0.3, 'JRWheel': -2.0}}
     with Rig(wheel_state=state) as rig:
