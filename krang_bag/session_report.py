@@ -29,6 +29,7 @@ def session_figures(bag, robot, true_beta, out_dir):
     import matplotlib
     matplotlib.use('Agg')
     import matplotlib.pyplot as plt
+    from matplotlib.ticker import MaxNLocator
     betas = read_float_arrays(bag, BETA).rows
     betas = [b for b in betas if len(b) == robot.n_beta]
     curve, lateral = learning_curve(robot, betas, true_beta)
@@ -36,6 +37,7 @@ def session_figures(bag, robot, true_beta, out_dir):
     fig, ax = plt.subplots(figsize=(6, 3.5))
     ax.plot(np.arange(len(curve)), 1000 * curve, 'o-', label='forward (x_com: what balancing observes)')
     ax.plot(np.arange(len(lateral)), 1000 * lateral, 's--', color='grey', label='sideways (unobservable in pitch)')
+    ax.xaxis.set_major_locator(MaxNLocator(integer=True))
     ax.set_xlabel('balanced poses learned')
     ax.set_ylabel('mean CoM error (mm)')
     ax.set_title('Online learning against the hidden true model')
