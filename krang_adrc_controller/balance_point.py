@@ -4,8 +4,8 @@ A wrong CoM estimate is, to the controller, a constant disturbance torque about 
 The paper's law cancels the estimated disturbance in the wheel torque, but a static torque about the axle
 cannot be cancelled by the wheels of a pendulum: at rest the wheel torque must be zero and the true CoM
 must be over the axle. So that law, like plain LQR, comes to rest at theta = delta (the CoM-angle error)
-and pays for it with a position offset x - x_ref = -F_theta0 delta / F_x0 (metres per degree on Krang;
-docs/control.md). The one place to reject this disturbance is the balance point itself.
+and pays for it with a position offset x - x_ref = -F_theta0 delta / F_x0 (10.3 m per rad in the Table II
+pose; docs/control.md). The one place to reject this disturbance is the balance point itself.
 
 This observer is an ESO on the theta channel with the LQR(q) linear model as its known part,
 
@@ -32,7 +32,6 @@ class BalancePointObserver:
             raise ValueError('time_constant_s and limit_rad must be positive')
         self.eso = ExtendedStateObserver(1.0, h, omega_o=omega_o)      # its design; the state is ours:
         self.z = [0.0, 0.0, 0.0]               # theta_hat, theta_dot_hat, f_hat as floats (a 500 Hz loop)
-        self.h = float(h)
         self.time_constant = float(time_constant_s)
         self.limit = float(limit_rad)
         self.a = self.a_dx = self.a_dth = 0.0
