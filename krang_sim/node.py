@@ -29,6 +29,7 @@ from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rosgraph_msgs.msg import Clock
+from sensor_msgs.msg import Imu
 from std_msgs.msg import Float64MultiArray
 
 from krang_can_bridge.protocols import amc as amc_proto
@@ -88,8 +89,11 @@ class SimKrangNode(Node):
         self.slips = 0
         self.max_lag = p('max_lag_s', 0.02).value
         # Control-loop guard (0 = off): the simulated time does not run more than `max_control_lag_s` past
-        # the last wheel command of the control loop, i.e. past the newer of the controller's last
-        # /wheel_effort_cmd and the bridge's last current RPDO on the CAN bus, whichever is older. On a
+        # the last beat of the control loop: the bridge's last /imu/data (its stamp: when the bridge
+        # published it), the controller's last /wheel_effort_cmd and the bridge's last current RPDO on the
+        # CAN bus, whichever is oldest. The /imu/data beat catches a bridge whose executor is starved while
+        # its CAN threads still refresh the drives: its IMU rate fell to 16-25 Hz for seconds, the
+        # controller stepped on stale samples, and a pose move ended in a 49 A oscillation. On a
         # shared machine a node can be descheduled for a few hundred ms while this process keeps the CPU
         # (measured at load 11-15 on 2 cores: 200-360 ms without a controller step, and the robot fell);
         # the robot's own computer has no such stalls. Within the bound the loop's real latency stays in
@@ -98,7 +102,7 @@ class SimKrangNode(Node):
         # of wall time (the controller stopped).
         self.max_control_lag = p('max_control_lag_s', 0.0).value
         self.guard_timeout = p('control_guard_timeout_s', 1.0).value
-        self.controller_beat = self.bridge_beat = None      # (sim t, wall t) of the last command seen
+        self.controller_beat = self.bridge_beat = self.imu_beat = None    # (sim t, wall t) of the last beat
         self.guard_wait_s = 0.0
         self.rpdo_ids = {w.codec.ids[amc_proto.RPDO_CURRENT] for w in self.devices.wheels.values()}
         self.buses = {}
@@ -111,6 +115,7 @@ class SimKrangNode(Node):
         if self.max_control_lag > 0:
             self.create_subscription(Float64MultiArray, topics.WHEEL_EFFORT_CMD, self.on_effort_command,
                                      topics.QOS[topics.WHEEL_EFFORT_CMD])
+            self.create_subscription(Imu, topics.IMU, self.on_imu_published, topics.QOS[topics.IMU])
         self.truth_pub = self.create_publisher(Float64MultiArray, GROUND_TRUTH, 10)
         self.diag_pub = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, topics.QOS[topics.DIAGNOSTICS])
         self.create_timer(0.1, self.publish_truth)
@@ -161,9 +166,14 @@ class SimKrangNode(Node):
     def on_effort_command(self, msg):
         self.controller_beat = (self.sim.t, time.monotonic())
 
+    def on_imu_published(self, msg):
+        self.imu_beat = (msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9, time.monotonic())
+
     def control_loop_behind(self):
         """True while the guard holds the simulated time (see max_control_lag_s)."""
         beats = (self.controller_beat, self.bridge_beat)
+        if self.imu_beat is not None and 'imu' not in self.devices.silent:     # a silenced DMU: nothing to publish
+            beats += (self.imu_beat,)
         if self.max_control_lag <= 0 or None in beats:
             return False
         sim_t, wall_t = min(beats)
