@@ -7,7 +7,8 @@ import time
 import numpy as np
 
 from krang_model.robot import load_krang
-from krang_model.wip import WipDynamics, drivetrain, linearize, reduce_pose
+from krang_model.drivetrain import drivetrain
+from krang_model.wip import WipDynamics, linearize, reduce_pose
 import control
 
 

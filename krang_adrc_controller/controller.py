@@ -46,7 +46,8 @@ from pathlib import Path
 import numpy as np
 
 from krang_model.com import base_regressor
-from krang_model.wip import drivetrain, linearize, reduce_pose
+from krang_model.drivetrain import drivetrain
+from krang_model.wip import linearize, reduce_pose
 
 from .adrc import AdrcController
 from .balance_point import BalancePointObserver

@@ -21,7 +21,7 @@ from std_srvs.srv import SetBool
 
 from krang_model.beta import load_beta
 from krang_model.robot import load_krang
-from krang_ros import messages, topics
+from krang_ros import messages, names, topics
 from krang_ros.spin import run_node
 
 from .controller import BalanceController, ControllerConfig, ControlSample
@@ -56,7 +56,7 @@ class AdrcControllerNode(Node):
         self.create_subscription(JointState, topics.JOINT_STATES, self.on_joint_states, latest)
         self.create_subscription(Float64MultiArray, topics.BETA, self.on_beta, topics.QOS[topics.BETA])
         self.create_subscription(JointState, topics.POSE_TARGET, self.on_target, topics.QOS[topics.POSE_TARGET])
-        self.create_service(SetBool, '/adrc_controller/enable', self.on_enable)
+        self.create_service(SetBool, names.ENABLE, self.on_enable)
         self.period = 1.0 / self.config.rate_hz
         self.last_step = None
         self.last_sample_t = None

@@ -10,7 +10,7 @@ from std_srvs.srv import Trigger
 
 from krang_model.beta import load_beta, save_beta
 from krang_model.robot import load_krang
-from krang_ros import messages, topics
+from krang_ros import messages, names, topics
 from krang_ros.spin import run_node
 
 from .online import OnlineLearner
@@ -30,8 +30,8 @@ class ComEstimatorNode(Node):
         self.com_pub = self.create_publisher(PointStamped, topics.COM, topics.QOS[topics.COM])
         self.diag_pub = self.create_publisher(messages.DiagnosticArray, topics.DIAGNOSTICS, topics.QOS[topics.DIAGNOSTICS])
         self.create_subscription(JointState, topics.BALANCED_POSE, self.on_balanced_pose, topics.QOS[topics.BALANCED_POSE])
-        self.create_service(Trigger, '/com_estimator/save', self.on_save)
-        self.create_service(Trigger, '/com_estimator/reset', self.on_reset)
+        self.create_service(Trigger, names.SAVE, self.on_save)
+        self.create_service(Trigger, names.ESTIMATOR_RESET, self.on_reset)
         self.create_timer(1.0, self.publish_diagnostics)
         self.rejected = 0
         self.publish_beta()

@@ -418,7 +418,7 @@ class NominalModel:
         from krang_model.beta import load_beta
         from krang_model.config import config_path
         from krang_model.robot import load_krang
-        from krang_model.wip import drivetrain
+        from krang_model.drivetrain import drivetrain
         robot = load_krang()
         path = Path(beta_path) if beta_path else Path(config_path('sim_true_beta.yaml'))
         return cls(robot, load_beta(path, robot), drivetrain(robot, **drive_overrides), str(path))

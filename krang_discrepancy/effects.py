@@ -76,7 +76,7 @@ class ModelTerms:
     """The scalar terms of the predicted model that effects may change (SI units).
 
     Defaults are "nominal": call ``ModelTerms.nominal(drive)`` to take them from a
-    ``krang_model.wip.Drivetrain``.
+    ``krang_model.drivetrain.Drivetrain``.
     """
 
     wheel_radius: float = 0.2667            # m

@@ -6,7 +6,7 @@ from std_srvs.srv import Trigger
 
 from krang_model.config import config_path
 from krang_model.robot import KRANG_POSE_COLUMNS, load_krang
-from krang_ros import messages, topics
+from krang_ros import messages, names, topics
 from krang_ros.spin import run_node
 
 from .sequence import PoseSequence, StraightLineMove
@@ -23,8 +23,8 @@ class PoseServer(Node):
                                              topics.QOS[topics.JOINT_POSITION_CMD])
         self.target_pub = self.create_publisher(messages.JointState, topics.POSE_TARGET, topics.QOS[topics.POSE_TARGET])
         self.diag_pub = self.create_publisher(messages.DiagnosticArray, topics.DIAGNOSTICS, topics.QOS[topics.DIAGNOSTICS])
-        self.create_service(Trigger, '/pose_server/next_pose', self.on_next_pose)
-        self.create_service(Trigger, '/pose_server/reset', self.on_reset)
+        self.create_service(Trigger, names.NEXT_POSE, self.on_next_pose)
+        self.create_service(Trigger, names.POSE_RESET, self.on_reset)
         self.create_subscription(messages.JointState, topics.JOINT_STATES, self.on_joint_states,
                                  topics.QOS[topics.JOINT_STATES])
         self.stream_rate = self.declare_parameter('stream_rate_hz', 20.0).value

@@ -11,3 +11,11 @@ DIAGNOSTICS = '/diagnostics'
 
 BASE_PITCH = 'base_pitch'    # the extra "joint" of /balanced_pose
 WHEEL_JOINTS = ('JLWheel', 'JRWheel')
+
+# Services (DESIGN.md §5): the node that serves each and the name it is served under, so nodes and
+# clients spell them once.
+ENABLE = '/adrc_controller/enable'
+NEXT_POSE = '/pose_server/next_pose'
+POSE_RESET = '/pose_server/reset'
+SAVE = '/com_estimator/save'
+ESTIMATOR_RESET = '/com_estimator/reset'

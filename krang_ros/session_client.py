@@ -8,7 +8,7 @@ from rclpy.node import Node
 from std_msgs.msg import Float64MultiArray
 from std_srvs.srv import SetBool, Trigger
 
-from . import topics
+from . import names, topics
 
 
 class SessionError(RuntimeError):
@@ -22,9 +22,9 @@ class SessionClient(Node):
         self.betas = []
         self.create_subscription(DiagnosticArray, topics.DIAGNOSTICS, self.on_diagnostics, topics.QOS[topics.DIAGNOSTICS])
         self.create_subscription(Float64MultiArray, topics.BETA, self.on_beta, topics.QOS[topics.BETA])
-        self.next_pose = self.create_client(Trigger, '/pose_server/next_pose')
-        self.save = self.create_client(Trigger, '/com_estimator/save')
-        self.enable = self.create_client(SetBool, '/adrc_controller/enable')
+        self.next_pose = self.create_client(Trigger, names.NEXT_POSE)
+        self.save = self.create_client(Trigger, names.SAVE)
+        self.enable = self.create_client(SetBool, names.ENABLE)
         self.spinner = SingleThreadedExecutor(context=context)
         self.spinner.add_node(self)
 

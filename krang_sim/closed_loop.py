@@ -370,7 +370,7 @@ def stand_pose(robot, beta_est, base=TABLE2_POSE, target_theta_rad=-6.0 * math.p
     predicts is `target_theta_rad` (the middle of the stand window): a pose the controller agrees to
     stand up in. Uses only the estimate (as an operator would). Bisection; theta on the caster
     decreases as the waist opens."""
-    from krang_model.wip import drivetrain
+    from krang_model.drivetrain import drivetrain
     caster = drivetrain(robot).caster_pitch if caster_pitch is None else caster_pitch
     base = np.array(base, dtype=float)
 

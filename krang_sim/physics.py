@@ -15,7 +15,8 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from krang_model.com import com_frame0
-from krang_model.wip import WipDynamics, drivetrain, reduce_pose
+from krang_model.drivetrain import drivetrain
+from krang_model.wip import WipDynamics, reduce_pose
 
 
 @dataclass

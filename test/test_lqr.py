@@ -4,6 +4,9 @@ import numpy as np
 import pytest
 from scipy.linalg import solve_continuous_are
 
+from krang_model.drivetrain import drivetrain
+from krang_model.robot import load_krang
+from krang_model.wip import linearize, reduce_pose
 from krang_adrc_controller.lqr import (AUTHORS_Q_DIAG, AUTHORS_R, GainCache, LqrDesigner,
                                        channel_input_gains, lqr_gain, split_gains)
 
@@ -117,16 +120,11 @@ def test_gain_cache_recomputes_only_on_change():
 
 
 def test_with_project_wip_model():
-    """The lead's krang_model.wip.linearize (x in metres) at the zero pose: stable design, and the
+    """krang_model.wip.linearize (x in metres) at the zero pose: stable design, and the
     metres/radians bookkeeping gives |K_x| = 13.8564 / r."""
-    wip = pytest.importorskip('krang_model.wip')
-    robot_mod = pytest.importorskip('krang_model.robot')
-    try:
-        robot = robot_mod.load_krang()
-        body = wip.reduce_pose(robot, np.zeros(16), robot.nominal_beta)
-        A, B = wip.linearize(body, wip.drivetrain(robot))
-    except Exception as exc:        # the model is another team's work in progress
-        pytest.skip(f'krang_model.wip not usable here: {exc}')
+    robot = load_krang()
+    body = reduce_pose(robot, np.zeros(16), robot.nominal_beta)
+    A, B = linearize(body, drivetrain(robot))
     r = robot.wheel_radius
     K = LqrDesigner(position_unit='m', wheel_radius_m=r).gain(A, B)
     assert np.all(np.linalg.eigvals(A - np.outer(np.ravel(B), K)).real < 0)

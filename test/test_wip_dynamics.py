@@ -8,7 +8,8 @@ import pytest
 
 from krang_model.com import balance_pitch, com_frame0
 from krang_model.robot import load_krang, load_wip7
-from krang_model.wip import WipDynamics, drivetrain, linearize, reduce_pose
+from krang_model.drivetrain import drivetrain
+from krang_model.wip import WipDynamics, linearize, reduce_pose
 
 POSE = np.array([2.65, 1.17, -1.6, 1.58, 1.68, -1.13, 3.13, -1.19, 0.03, 1.26, -1.67, 2.10, -0.70, -1.19, 1.43, -1.67])
 # the upper-body pose of the Table II stand-up runs (waist 2.755 rad; balancing_runs/table2, first row)

@@ -1,0 +1,59 @@
+"""The one drive-train description: wheels from the URDF, motors, gearbox and contacts from
+config/robot.yaml. Every user of a motor constant (controller, simulator, bridge, metrics,
+discrepancy) reads it from here."""
+from dataclasses import dataclass, replace
+
+from .config import robot_config
+
+
+@dataclass(frozen=True)
+class Drivetrain:
+    wheel_radius: float           # m
+    track_width: float            # m
+    wheel_mass: float             # kg, both wheels
+    wheel_inertia: float          # kg m^2, both wheels about the axle
+    gear_ratio: float
+    torque_constant: float        # N m / A, motor side
+    rotor_inertia: float          # kg m^2, one motor
+    current_limit: float          # A
+    viscous_friction: float       # N m s, wheel relative to body, both wheels
+    ground_viscous: float         # N m s, wheel relative to ground
+    coulomb_friction: float       # N m per wheel
+    yaw_friction: float           # N m s
+    caster_pitch: float           # rad, base pitch where the caster touches
+    caster_stiffness: float
+    caster_damping: float
+    gravity: float = 9.81
+    floor_slope: float = 0.0
+
+    @property
+    def reflected_rotor_inertia(self):
+        return 2.0 * self.gear_ratio ** 2 * self.rotor_inertia
+
+
+def drivetrain(robot, **overrides):
+    """The drive train from the URDF (wheels) and config/robot.yaml (motors, contacts)."""
+    cfg = robot_config()
+    d, c = cfg['drivetrain'], cfg['caster']
+    wheel_ids = robot.wheel_body_ids
+    nominal = robot.nominal_beta
+    params = Drivetrain(
+        wheel_radius=robot.wheel_radius,
+        track_width=robot.track_width,
+        wheel_mass=float(sum(nominal[4 * i] for i in wheel_ids)),
+        wheel_inertia=float(sum(robot.body_inertias[i][0, 0] for i in wheel_ids)),
+        gear_ratio=d['gear_ratio'],
+        torque_constant=d['torque_constant_Nm_per_A'],
+        rotor_inertia=d['rotor_inertia_kgm2'],
+        current_limit=d['current_limit_A'],
+        viscous_friction=d['viscous_friction_Nm_s'],
+        ground_viscous=d['ground_viscous_Nm_s'],
+        coulomb_friction=d['coulomb_friction_Nm'],
+        yaw_friction=cfg['yaw']['viscous_friction_Nm_s'],
+        caster_pitch=c['contact_pitch_rad'],
+        caster_stiffness=c['stiffness_Nm_per_rad'],
+        caster_damping=c['damping_Nm_s_per_rad'],
+        gravity=cfg['environment']['gravity_m_s2'],
+        floor_slope=cfg['environment']['floor_slope_rad'],
+    )
+    return replace(params, **overrides)
