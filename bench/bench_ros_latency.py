@@ -23,7 +23,7 @@ from std_msgs.msg import Float64MultiArray
 from krang_can_bridge.config import load_devices
 from krang_can_bridge.protocols.amc import AmcDriveCodec
 from krang_can_bridge.protocols import load_dbc
-from krang_cli.bringup import params_files
+from krang_cli.node_set import params_files
 from krang_cli.processes import NodeSet
 from krang_model.robot import load_krang
 from krang_ros import topics

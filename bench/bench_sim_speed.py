@@ -13,7 +13,7 @@ import time
 import rclpy
 from rosgraph_msgs.msg import Clock
 
-from krang_cli.bringup import params_files
+from krang_cli.node_set import params_files
 from krang_cli.processes import NodeSet
 from krang_ros.session_client import open_session_client
 from krang_sim.session_config import session_devices_file

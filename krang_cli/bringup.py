@@ -3,12 +3,10 @@ import logging
 
 from krang_model.config import config_path
 
+from .node_set import RECORDER, STOP_ORDER, node_set, params_files
 from .processes import NodeSet, wait_forever
 
 log = logging.getLogger('krang.bringup')
-
-ROBOT_NODES = ('can_bridge', 'adrc_controller', 'pose_server', 'com_estimator')
-STOP_ORDER = ('pose_server', 'adrc_controller', 'com_estimator', 'can_bridge', 'sim_krang', 'mcap_recorder')
 
 
 def register(subparsers):
@@ -27,23 +25,14 @@ def register(subparsers):
     p.set_defaults(func=run)
 
 
-def params_files(sim, extra):
-    files = [config_path('controller.yaml'), config_path('krang_params.yaml')]  # later files win
-    if sim:
-        files.append(config_path('sim_params.yaml'))
-    return files + list(extra)
-
-
 def start_node_set(sim, extra_params=(), record=None, log_dir=None, env=None, overrides=None):
     """Start the nodes; `overrides` maps node -> {param: value} given on the command line."""
-    overrides = overrides or {}
-    nodes = NodeSet(params_files(sim, extra_params), log_dir=log_dir, env=env)
+    overrides = dict(overrides or {})
     if record:
-        nodes.start('mcap_recorder', {'output': record, **overrides.get('mcap_recorder', {})})
-    if sim:
-        nodes.start('sim_krang', overrides.get('sim_krang'))
-    for name in ROBOT_NODES:
-        nodes.start(name, overrides.get(name))
+        overrides[RECORDER] = {'output': record, **overrides.get(RECORDER, {})}
+    nodes = NodeSet(params_files(sim, extra_params), log_dir=log_dir, env=env)
+    for spec in node_set(sim, bool(record), extra_params):
+        nodes.start(spec.executable, overrides.get(spec.executable))
     return nodes
 
 

@@ -11,7 +11,8 @@ from krang_model.beta import load_beta
 from krang_model.robot import load_krang
 from krang_sim.session_config import session_devices_file, sim_truth_file
 
-from .bringup import STOP_ORDER, start_node_set
+from .bringup import start_node_set
+from .node_set import STOP_ORDER
 from .common import print_json
 
 log = logging.getLogger('krang.demo')

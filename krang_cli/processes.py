@@ -51,7 +51,7 @@ class NodeSet:
         """SIGINT in order (recorder last, so it sees everything), then SIGTERM, then SIGKILL."""
         names = list(order or self.procs)
         names += [n for n in self.procs if n not in names]
-        for name in names:
+        for name in (n for n in names if n in self.procs):
             proc, out = self.procs[name]
             if proc.poll() is None:
                 proc.send_signal(signal.SIGINT)

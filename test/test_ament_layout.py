@@ -1,36 +1,213 @@
-"""`colcon build` puts every executable where `ros2 run krang_com <exe>` looks (DESIGN.md §2)."""
+"""The package as a ROS user gets it: `colcon build` puts every executable where `ros2 run krang_com
+<exe>` looks and every configuration and launch file under share/ (DESIGN.md §2); each installed
+executable comes up from install/ with the installed configuration; package.xml names a rosdep key
+for every import; the launch files start what `krang bringup` starts."""
+import ast
+import os
 import shutil
 import subprocess
 import sys
+import time
+import types
+import xml.etree.ElementTree as ET
 from pathlib import Path
 
 import pytest
 
 from conftest import REPO
+from krang_cli.node_set import node_set, params_files
 
-EXECUTABLES = ('krang', 'can_bridge', 'adrc_controller', 'pose_server', 'com_estimator', 'mcap_recorder', 'sim_krang')
+EXECUTABLES = ('krang', 'can_bridge', 'adrc_controller', 'pose_server', 'com_estimator',
+               'mcap_recorder', 'sim_krang')
+NODES = EXECUTABLES[1:]
+COLCON = Path(sys.executable).parent / 'colcon'
+
+#: Import name -> rosdep key of package.xml, for every third-party module the package imports.
+ROSDEP_KEYS = {
+    'rclpy': 'rclpy', 'ament_index_python': 'ament_index_python',
+    'builtin_interfaces': 'builtin_interfaces', 'std_msgs': 'std_msgs',
+    'sensor_msgs': 'sensor_msgs', 'geometry_msgs': 'geometry_msgs', 'std_srvs': 'std_srvs',
+    'diagnostic_msgs': 'diagnostic_msgs', 'rcl_interfaces': 'rcl_interfaces',
+    'rosgraph_msgs': 'rosgraph_msgs', 'launch': 'launch', 'launch_ros': 'launch_ros',
+    'pinocchio': 'pinocchio', 'coal': 'pinocchio',      # coal comes with pinocchio
+    'numpy': 'python3-numpy', 'scipy': 'python3-scipy', 'yaml': 'python3-yaml',
+    'matplotlib': 'python3-matplotlib', 'tqdm': 'python3-tqdm', 'can': 'python3-can',
+    'msgpack': 'python3-msgpack', 'canopen': 'python3-canopen', 'cantools': 'python3-cantools',
+    'control': 'python3-control', 'mcap': 'python3-mcap', 'mcap_ros2': 'python3-mcap-ros2-support',
+    'tf2_msgs': 'tf2_msgs', 'foxglove': 'python3-foxglove-sdk',
+}
+OWN_PACKAGES = {p.name for p in REPO.iterdir() if (p / '__init__.py').exists()}
+
+
+def package_xml():
+    return ET.parse(REPO / 'package.xml').getroot()
 
 
 def test_package_xml_is_format_3_ament_python():
-    import xml.etree.ElementTree as ET
-    root = ET.parse(REPO / 'package.xml').getroot()
+    root = package_xml()
     assert root.get('format') == '3'
     assert root.findtext('name') == 'krang_com'
     assert root.find('export/build_type').text == 'ament_python'
     assert (REPO / 'resource' / 'krang_com').exists()
 
 
-@pytest.mark.skipif(shutil.which('colcon', path=str(Path(sys.executable).parent)) is None, reason='colcon not installed')
-def test_colcon_install_layout(tmp_path):
-    colcon = str(Path(sys.executable).parent / 'colcon')
+def imported_modules():
+    """Top-level names of every module the installed packages and launch files import."""
+    found = {}
+    files = [f for pkg in OWN_PACKAGES for f in (REPO / pkg).rglob('*.py')]
+    for path in files + list((REPO / 'launch').glob('*.py')):
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            if isinstance(node, ast.Import):
+                names = [a.name for a in node.names]
+            elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+                names = [node.module]
+            else:
+                continue
+            for name in names:
+                found.setdefault(name.split('.')[0], path.relative_to(REPO))
+    return found
+
+
+def test_every_import_has_a_rosdep_key():
+    keys = {e.text for e in package_xml().findall('exec_depend')}
+    stdlib = set(sys.stdlib_module_names)
+    missing = []
+    for module, where in sorted(imported_modules().items()):
+        if module in stdlib or module in OWN_PACKAGES or module == '__future__':
+            continue
+        key = ROSDEP_KEYS.get(module)
+        if key is None or key not in keys:
+            missing.append(f'{module} (imported in {where}; key {key})')
+    assert not missing, 'imports without an exec_depend in package.xml: ' + ', '.join(missing)
+
+
+def fake_launch_modules():
+    """Stand-ins for launch and launch_ros (not installable here) that record what a launch file
+    builds, so the launch files can be compared with `krang bringup`."""
+    launch = types.ModuleType('launch')
+    launch_ros = types.ModuleType('launch_ros')
+    actions = types.ModuleType('launch_ros.actions')
+
+    class LaunchDescription(list):
+        pass
+
+    class Node(dict):
+        def __init__(self, **kwargs):
+            super().__init__(kwargs)
+    launch.LaunchDescription = LaunchDescription
+    actions.Node = Node
+    launch_ros.actions = actions
+    return {'launch': launch, 'launch_ros': launch_ros, 'launch_ros.actions': actions}
+
+
+@pytest.mark.parametrize('launch_file, sim', [('robot.launch.py', False), ('sim.launch.py', True)])
+def test_launch_files_start_what_bringup_starts(launch_file, sim, monkeypatch):
+    for name, module in fake_launch_modules().items():
+        monkeypatch.setitem(sys.modules, name, module)
+    namespace = {'__file__': str(REPO / 'launch' / launch_file)}
+    exec(compile((REPO / 'launch' / launch_file).read_text(), launch_file, 'exec'), namespace)
+    actions = namespace['generate_launch_description']()
+    launched = [(a['executable'], tuple(a['parameters'])) for a in actions]
+    assert all(a['package'] == 'krang_com' for a in actions)
+    assert launched == [(s.executable, s.params_files) for s in node_set(sim)]
+    # the parameter files are the ones krang bringup passes, and they exist
+    assert all(p == params_files(sim) for _, p in launched)
+    assert all(Path(f).is_file() for f in params_files(sim))
+    expected = {'can_bridge', 'adrc_controller', 'pose_server', 'com_estimator'}
+    assert {e for e, _ in launched} == expected | ({'sim_krang'} if sim else set())
+
+
+@pytest.fixture(scope='module')
+def colcon_install(tmp_path_factory):
+    if not COLCON.exists():
+        pytest.skip('colcon is not installed in this environment (pip: colcon-common-extensions)')
+    work = tmp_path_factory.mktemp('colcon')
     result = subprocess.run(
-        [colcon, 'build', '--base-paths', str(REPO), '--build-base', str(tmp_path / 'build'),
-         '--install-base', str(tmp_path / 'install'), '--event-handlers', 'console_direct-'],
-        cwd=tmp_path, capture_output=True, text=True, timeout=300)
+        [str(COLCON), 'build', '--base-paths', str(REPO), '--build-base', str(work / 'build'),
+         '--install-base', str(work / 'install'), '--event-handlers', 'console_direct-'],
+        cwd=work, capture_output=True, text=True, timeout=300)
     assert result.returncode == 0, result.stdout[-2000:] + result.stderr[-2000:]
-    prefix = tmp_path / 'install' / 'krang_com'
+    return work / 'install' / 'krang_com'
+
+
+def test_colcon_install_layout(colcon_install):
+    prefix = colcon_install
     for exe in EXECUTABLES:
         assert (prefix / 'lib' / 'krang_com' / exe).is_file(), exe
     assert (prefix / 'share' / 'ament_index' / 'resource_index' / 'packages' / 'krang_com').exists()
-    assert (prefix / 'share' / 'krang_com' / 'package.xml').exists()
-    assert (prefix / 'share' / 'krang_com' / 'config' / 'robot.yaml').exists()
+    share = prefix / 'share' / 'krang_com'
+    assert (share / 'package.xml').exists()
+    for source in sorted((REPO / 'config').iterdir()):
+        assert (share / 'config' / source.name).is_file(), f'config/{source.name} is not installed'
+    for source in sorted((REPO / 'launch').glob('*.launch.py')):
+        assert (share / 'launch' / source.name).is_file(), f'launch/{source.name} is not installed'
+
+
+def installed_env(prefix):
+    """The environment `source install/setup.bash` gives: the installed packages first, the
+    installed share/ found through AMENT_PREFIX_PATH, and the source tree nowhere on the path."""
+    site = next((prefix / 'lib').glob('python3*/site-packages'))
+    env = dict(os.environ)
+    env['PYTHONPATH'] = str(site)
+    env['AMENT_PREFIX_PATH'] = os.pathsep.join(
+        [str(prefix)] + [p for p in env.get('AMENT_PREFIX_PATH', '').split(os.pathsep) if p])
+    return env
+
+
+@pytest.mark.ros
+def test_installed_executables_come_up(colcon_install, tmp_path):
+    """Every installed node starts from install/ with the installed configuration (the simulated
+    robot's, as no SocketCAN is here) and joins the ROS graph; `krang --help` answers."""
+    import rclpy
+    from rclpy.node import Node
+
+    prefix = colcon_install
+    env = installed_env(prefix)
+    lib, share = prefix / 'lib' / 'krang_com', prefix / 'share' / 'krang_com' / 'config'
+    out = subprocess.run([str(lib / 'krang'), '--help'], env=env, cwd=tmp_path,
+                         capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0 and 'demo' in out.stdout, out.stderr[-2000:]
+    probe = ("import krang_model.config as c, krang_cli; "
+             "print(c.config_dir()); print(krang_cli.__file__)")
+    where = subprocess.run([sys.executable, '-c', probe], env=env, cwd=tmp_path,
+                           capture_output=True, text=True, timeout=60).stdout.split()
+    assert Path(where[0]).resolve() == share.resolve()
+    assert Path(where[1]).resolve().is_relative_to(prefix.resolve())
+
+    from krang_sim.session_config import session_devices_file
+    devices = session_devices_file(tmp_path)
+    files = [share / n for n in ('controller.yaml', 'krang_params.yaml', 'sim_params.yaml')]
+    extra = {'can_bridge': {'devices_file': devices}, 'sim_krang': {'devices_file': devices},
+             'mcap_recorder': {'output': tmp_path / 'x.mcap'},
+             'com_estimator': {'output': tmp_path / 'beta.yaml'}}
+    procs = {}
+    rclpy.init()
+    probe_node = Node('layout_probe')
+    try:
+        for exe in NODES:
+            cmd = [str(lib / exe), '--ros-args'] + [a for f in files for a in ('--params-file', str(f))]
+            for key, value in extra.get(exe, {}).items():
+                cmd += ['-p', f'{key}:={value}']
+            log = open(tmp_path / f'{exe}.log', 'w')
+            procs[exe] = (subprocess.Popen(cmd, env=env, cwd=tmp_path, stdout=log,
+                                           stderr=subprocess.STDOUT), log)
+        deadline = time.monotonic() + 60.0
+        seen = set()
+        while time.monotonic() < deadline and seen != set(NODES):
+            rclpy.spin_once(probe_node, timeout_sec=0.2)
+            seen = set(probe_node.get_node_names()) & set(NODES)
+            dead = {e: p.poll() for e, (p, _) in procs.items() if p.poll() is not None}
+            assert not dead, f'installed nodes exited: {dead}: ' + ' | '.join(
+                (tmp_path / f'{e}.log').read_text()[-800:] for e in dead)
+        assert seen == set(NODES), f'not in the graph after 60 s: {set(NODES) - seen}'
+    finally:
+        probe_node.destroy_node()
+        rclpy.shutdown()
+        for proc, log in procs.values():
+            proc.send_signal(2)
+        for proc, log in procs.values():
+            try:
+                proc.wait(15)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+            log.close()

@@ -22,7 +22,7 @@ from rclpy.parameter import Parameter  # noqa: E402
 from std_msgs.msg import Float64MultiArray  # noqa: E402
 
 from krang_can_bridge.config import load_devices  # noqa: E402
-from krang_cli.bringup import params_files  # noqa: E402
+from krang_cli.node_set import params_files  # noqa: E402
 from krang_cli.processes import NodeSet  # noqa: E402
 from krang_model.config import load_config  # noqa: E402
 from krang_ros import topics  # noqa: E402

@@ -1,0 +1,57 @@
+"""The node set, described once.
+
+`krang bringup` starts it as processes and `launch/*.launch.py` turn it into `ros2 launch` actions,
+so the two can never start different executables or load different parameter files. No rclpy or
+launch import here: the launch files import this module on a real ROS install.
+"""
+from dataclasses import dataclass
+
+from krang_model.config import config_path
+
+#: The robot's own nodes, in start order (the bridge first: it owns the drives).
+ROBOT_NODES = ('can_bridge', 'adrc_controller', 'pose_server', 'com_estimator')
+SIM_NODE = 'sim_krang'
+RECORDER = 'mcap_recorder'
+#: Stop order: commands first, the bridge (which sends zero current on exit) after the controller,
+#: the simulator after the bridge, the recorder last so that it sees everything.
+STOP_ORDER = ('pose_server', 'adrc_controller', 'com_estimator', 'can_bridge', SIM_NODE, RECORDER)
+
+#: Parameter files of config/, later files win. sim_params.yaml holds every setting of the
+#: simulated node set that differs from the robot's, with the reason.
+ROBOT_PARAMS = ('controller.yaml', 'krang_params.yaml')
+SIM_PARAMS = ('sim_params.yaml',)
+
+
+@dataclass(frozen=True)
+class NodeSpec:
+    """One node of the set: the executable (also the node name) and its parameter files."""
+
+    executable: str
+    params_files: tuple
+
+
+def params_files(sim, extra=()):
+    """The parameter files every node of the set loads, in order (later files win)."""
+    names = ROBOT_PARAMS + (SIM_PARAMS if sim else ())
+    return tuple(str(config_path(n)) for n in names) + tuple(str(p) for p in extra)
+
+
+def node_set(sim, record=False, extra_params=()):
+    """The nodes to start, in start order: the recorder first (so it sees the start-up), the
+    simulated robot before the bridge, then the robot's nodes."""
+    files = params_files(sim, extra_params)
+    names = ((RECORDER,) if record else ()) + ((SIM_NODE,) if sim else ()) + ROBOT_NODES
+    return tuple(NodeSpec(name, files) for name in names)
+
+
+def launch_description(sim):
+    """The set as a `ros2 launch` LaunchDescription (launch/robot.launch.py, launch/sim.launch.py).
+
+    launch and launch_ros are imported here, not at the top, because they exist only on a full ROS
+    install; `krang bringup` runs without them."""
+    from launch import LaunchDescription
+    from launch_ros.actions import Node
+    return LaunchDescription([
+        Node(package='krang_com', executable=spec.executable, name=spec.executable,
+             parameters=list(spec.params_files), output='screen', emulate_tty=True)
+        for spec in node_set(sim)])
