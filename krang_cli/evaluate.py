@@ -27,7 +27,7 @@ def run(args):
     from krang_model.robot import load_krang
     robot = load_krang()
     beta = load_beta(args.beta, robot, row=args.row)
-    q_base, joints, _ = load_poses(args.poses, KRANG_POSE_COLUMNS)
+    q_base, joints, _ = load_poses(args.poses, KRANG_POSE_COLUMNS, (robot.lower, robot.upper))
     if len(q_base) == 0:
         raise ValueError(f'{args.poses}: no poses')
     xc = x_com(robot, q_base, joints, beta)

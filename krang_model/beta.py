@@ -5,14 +5,16 @@ from pathlib import Path
 import numpy as np
 import yaml
 
+from .files import write_text
+
 
 class BetaFileError(ValueError):
     """A beta file that cannot be read as the robot's parameter vector."""
 
 
 def load_beta(path, robot, row=None):
-    """One beta vector from a .txt (authors' rows; `row` picks line K from 0, default the last line
-    for a multi-row file... no: default 0), .yaml or .json file; validated against the robot."""
+    """One beta vector from a .txt (the authors' rows; `row` picks line K from 0, default 0), .yaml
+    or .json file; validated against the robot."""
     path = Path(path)
     if not path.exists():
         raise BetaFileError(f'{path}: no such beta file')
@@ -26,7 +28,7 @@ def load_beta(path, robot, row=None):
         except ValueError as err:
             raise BetaFileError(f'{path}: not a whitespace-separated numeric file ({err})') from None
         k = 0 if row is None else int(row)
-        if not -rows.shape[0] <= k < rows.shape[0]:
+        if not 0 <= k < rows.shape[0]:
             raise BetaFileError(f'{path}: --row {k} out of range, the file has {rows.shape[0]} rows')
         beta = rows[k]
     beta = np.asarray(beta, dtype=float)
@@ -74,12 +76,11 @@ def beta_document(beta, robot, **meta):
 def save_beta(path, beta, robot, **meta):
     """Write beta: .txt = the authors' one-line format, .json = JSON, anything else = YAML."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     beta = np.asarray(beta, dtype=float)
     if path.suffix == '.txt':
-        path.write_text(' '.join(f'{v:.9g}' for v in beta) + '\n')
+        text = ' '.join(f'{v:.9g}' for v in beta) + '\n'
     elif path.suffix == '.json':
-        path.write_text(json.dumps(beta_document(beta, robot, **meta), indent=1))
+        text = json.dumps(beta_document(beta, robot, **meta), indent=1)
     else:
-        path.write_text(yaml.safe_dump(beta_document(beta, robot, **meta), sort_keys=False))
-    return path
+        text = yaml.safe_dump(beta_document(beta, robot, **meta), sort_keys=False)
+    return write_text(path, text)
