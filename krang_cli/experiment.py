@@ -385,8 +385,8 @@ def _run_table2(args):
     from krang_model.beta import save_beta
     from krang_model.com import balance_pitch
     from krang_model.com import com_error
-    from krang_sim.closed_loop import (TABLE2_POSE, PaperGradientDescent, run_balance, run_online_session,
-                                       stand_pose)
+    from krang_com_estimator.estimators import make_estimator
+    from krang_sim.closed_loop import TABLE2_POSE, run_balance, run_online_session, stand_pose
     robot, true_beta, cfg = _setup(args)
     sim_config = None
     if args.extended_model:
@@ -409,7 +409,7 @@ def _run_table2(args):
         point_err = []
         learn_desc = f'betas read from `{args.betas}` ({len(betas) - 1} updates; no learning in this run)'
     else:
-        learner = PaperGradientDescent(robot, beta0)
+        learner = make_estimator('paper-gd', robot, beta0)
         session = run_online_session(robot, true_beta, beta0, train, learner, seed=args.seed,
                                      controller_config=cfg, sim_config=sim_config, progress=True)
         betas = session.betas

@@ -3,9 +3,13 @@ import math
 
 import numpy as np
 
-from .common import print_json
+from krang_com_estimator import estimators as est
+from krang_model.beta import load_beta, save_beta
+from krang_model.com import x_com
+from krang_model.poses import load_poses
+from krang_model.robot import KRANG_POSE_COLUMNS, load_krang
 
-METHODS = ('paper-gd', 'paper-gd-mass', 'map', 'map-online')
+from .common import print_json
 
 
 def register(subparsers):
@@ -19,17 +23,21 @@ def register(subparsers):
             'a physical prior around beta0 (masses +-10 percent, CoMs +-3 cm), the known total mass and wheel '
             'CoMs on the axle as hard constraints, the IMU/hand-balancing pitch noise, and the positive-mass '
             'and CoM-inside-the-link bounds enforced (batch); map-online = the same MAP, recursive, in file '
-            'order (the com_estimator node\'s update). Reports the k-fold cross-validated |x_com| on held-out '
-            'records, and how far each body\'s CoM and mass moved from beta0.'),
-        epilog='Example: krang learn --poses ../shared/krang_data/hardware_balanced_poses_train.csv '
-               '--beta0 ../shared/krang_data/betas/betaVectors1initialBetahardwareAll190Vectors.txt --row 0 '
+            'order (the com_estimator node\'s update); estimators registered by plug-ins are '
+            'offered too (krang_com_estimator.estimators.register_estimator). Reports the k-fold '
+            'cross-validated |x_com| on held-out records, and how far each body\'s CoM and mass '
+            'moved from beta0.'),
+        epilog='Example (KIT = the real-data kit): krang learn '
+               '--poses KIT/hardware_balanced_poses_train.csv '
+               '--beta0 KIT/betas/betaVectors1initialBetahardwareAll190Vectors.txt --row 0 '
                '--out learned.yaml --method map')
     p.add_argument('--poses', required=True, help='pose CSV (q_base, q_waist, q_torso, q_left_1..7, q_right_1..7)')
     p.add_argument('--beta0', required=True, help='start/prior beta: authors\' .txt (use --row) or our .yaml/.json')
     p.add_argument('--row', type=int, default=None, help='row K (from 0) of a multi-row .txt --beta0 (default 0)')
     p.add_argument('--out', required=True, help='learned beta: .txt = the authors\' one-line format, '
                                                 '.json = JSON, otherwise labelled YAML')
-    p.add_argument('--method', choices=METHODS, default='map', help='estimator (default: map)')
+    p.add_argument('--method', choices=est.estimator_names(), default='map',
+                   help='estimator (default: map)')
     p.add_argument('--eta', type=float, default=300.0, help='GD step of paper-gd* (default 300)')
     p.add_argument('--sigma-imu-deg', type=float, default=0.1, help='IMU pitch noise, deg (default 0.1)')
     p.add_argument('--sigma-hand-rad', type=float, default=0.008,
@@ -46,12 +54,6 @@ def register(subparsers):
 
 
 def run(args):
-    from krang_com_estimator import estimators as est
-    from krang_model.beta import load_beta, save_beta
-    from krang_model.com import x_com
-    from krang_model.poses import load_poses
-    from krang_model.robot import KRANG_POSE_COLUMNS, load_krang
-
     robot = load_krang()
     beta0 = load_beta(args.beta0, robot, row=args.row)
     q_base, joints, _ = load_poses(args.poses, KRANG_POSE_COLUMNS)
@@ -60,7 +62,7 @@ def run(args):
     noise = est.NoiseModel(sigma_imu_rad=math.radians(args.sigma_imu_deg), sigma_hand_rad=args.sigma_hand_rad)
     kw = dict(noise=noise, mass_frac=args.mass_frac, com_std=args.com_std, total_mass=args.total_mass,
               eta=args.eta)
-    beta, info = est.fit(args.method, robot, q_base, joints, beta0, **kw)
+    beta, info = est.make_estimator(args.method, robot, beta0, **kw).fit(q_base, joints)
     xc0 = x_com(robot, q_base, joints, beta0)
     xc = x_com(robot, q_base, joints, beta)
     cons = est.physical_consistency(robot, beta, total_mass=args.total_mass)

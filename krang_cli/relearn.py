@@ -2,6 +2,7 @@
 import numpy as np
 
 from krang_bag.relearn import relearn
+from krang_com_estimator.estimators import estimator_names
 from krang_model.beta import load_beta, save_beta
 from krang_model.robot import load_krang
 
@@ -24,7 +25,8 @@ def register(subparsers):
                     'choose --method to try another estimator on the same data.')
     p.add_argument('bag', help='MCAP bag recorded by mcap_recorder (e.g. a krang demo session.mcap)')
     p.add_argument('--out', required=True, help='beta file to write (.txt: authors\' one-line format; .yaml/.json)')
-    p.add_argument('--method', default='map-online', help='paper-gd, paper-gd-mass, map or map-online')
+    p.add_argument('--method', default='map-online', choices=estimator_names(),
+                   help='a registered estimator (default map-online, the online one)')
     p.add_argument('--beta0', default=None, help='initial beta file instead of the bag\'s first published beta')
     p.add_argument('--row', type=int, default=None, help='row of a multi-row .txt --beta0')
     p.add_argument('--json', action='store_true', help='print a JSON summary as the last line')

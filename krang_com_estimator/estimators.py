@@ -8,45 +8,50 @@ is q_base from the IMU, off by a pitch error dq (IMU noise, hand-balancing repea
 a pitch error dq shows up as phi(q_meas)^T beta = z_com dq (+ O(dq^2)), z_com the CoM height above
 the axle (frame 0): the x_com noise is sigma_pitch * z_com.
 
-Balanced poses give only phi^T beta = 0, a homogeneous system: beta and c*beta fit equally well, and
-the Base and wheel masses (phi = 0) can absorb any change of total mass, so even the known total
-mass does not fix the scale of the mass moments (notes §0.2; identifiability.py). The scale comes
-from the prior. Worse, with a noisy pitch the regressor itself is noisy (errors in variables): the
-paper's residual phi(q_meas)^T beta = z_beta dq is smaller for a smaller beta, so least squares on it
-shrinks the whole moment vector, and nothing in the data resists (-8 cm of CoM height after 400
-noisy poses, docs/learning.md). The MAP estimator therefore uses the scale-free CoM angle at the
-measured pitch, h(beta) = phi^T beta / psi^T beta = tan(CoM angle from vertical), with h(beta_true) =
-tan(-dq): linearised at beta_lin it is the linear row g = phi - h_lin psi (g^T beta_lin = 0: no pull
-along the scale), and Gauss-Newton re-linearises (balanced_pose_rows, map_gauss_newton).
+Balanced poses give only phi^T beta = 0, a homogeneous system: beta and c*beta fit equally well,
+and the Base and wheel masses (phi = 0) can absorb any change of total mass, so even the known
+total mass does not fix the scale of the mass moments (docs/learning.md, "What balanced poses can
+and cannot tell"; identifiability.py). The scale comes from the prior. Worse, with a noisy pitch
+the regressor itself is noisy (errors in variables): the paper's residual phi(q_meas)^T beta =
+z_beta dq is smaller for a smaller beta, so least squares on it shrinks the whole moment vector,
+and nothing in the data resists (-8 cm of CoM height after 400 noisy poses, docs/learning.md). The
+MAP estimator therefore uses the scale-free CoM angle at the measured pitch, h(beta) = phi^T beta
+/ psi^T beta = tan(CoM angle from vertical), with h(beta_true) = tan(-dq): linearised at beta_lin
+it is the linear row g = phi - h_lin psi (g^T beta_lin = 0: no pull along the scale), and Gauss-
+Newton re-linearises (balanced_pose_rows, map_gauss_newton).
 
-Estimators (common interface: `update_pose(robot, q_meas, joints, noise)` learns from one balanced
-pose with the estimator's own measurement model (use this one); `update(row, y=0.0, noise_var=None)`
-a linear update with a given row; both return the paper's x_com error before the update; `beta`,
-`covariance`, `n_updates`, `reset()`; `make_estimator(name, ...)`):
+Estimators: one registry (ESTIMATORS, filled by @register_estimator; make_estimator(name, robot,
+beta0, **options)) and one protocol (Estimator: `update(q_base, joints)` learns from one balanced
+pose with the estimator's own measurement model and returns the paper's x_com error before the
+update; `beta`, `covariance`, `n_updates`, `reset(beta0=None)`, and the batch `fit(q_base,
+joints)`):
 - `paper-gd`: the paper's GD, beta <- beta - eta (phi^T beta - y) phi (eta = 300), with the stop rule
   |phi^T beta| < x_tol for the last `window` poses, and the authors' unused mass penalty u.
 - `paper-gd-mass`: the same step followed by the Lagrange-multiplier projection that keeps the total
   mass at M_known (the constraint the paper describes and the authors left off).
-- `map` / `map-online`: Bayesian MAP with a Gaussian prior N(beta0, diag(s^2)) from physical
+- `map-online` / `map`: Bayesian MAP with a Gaussian prior N(beta0, diag(s^2)) from physical
   plausibility and hard linear equality constraints (known total mass, wheel CoMs on the axle)
-  imposed by conditioning the prior on them. `MAPEstimator` is the linear-Gaussian core: a Kalman /
-  recursive least-squares rank-one update of (mean, covariance); `map_batch` solves the same problem
-  in one go (null-space form) with the same result. `MAPOnline` feeds it the CoM-angle rows and
-  re-linearises (a batch Gauss-Newton pass over the poses so far) when the estimate has moved enough
-  to matter; `map_gauss_newton` is the batch form; `MAPOnline.finalize()` equals it.
+  imposed by conditioning the prior on them. `MAPEstimator` is the linear-Gaussian core: a Kalman
+  / recursive least-squares rank-one update of (mean, covariance) from given rows; `map_batch`
+  solves the same problem in one go (null-space form) with the same result. `MAPOnline` feeds it
+  the CoM-angle rows and re-linearises (a batch Gauss-Newton pass over the poses so far) when the
+  estimate has moved enough to matter; `map_gauss_newton` is the batch form, which `MAP.fit` uses
+  and `MAPOnline.finalize()` equals.
+The paper estimators and MAPEstimator also take linear rows (`update_row`, `update_rows`).
 `map_constrained` adds the inequality constraints of physical consistency (positive masses, every
 CoM inside the inflated collision box of its link) as a QP, used when the Gaussian MAP violates them.
 """
+import importlib.metadata
+import inspect
 import math
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.linalg import cho_solve
+from scipy.optimize import minimize
 
 from krang_model.com import base_regressor, phi as phi_fn
-
-ESTIMATORS = ('paper-gd', 'paper-gd-mass', 'map', 'map-online')
-
 
 # ---------------------------------------------------------------- measurement model
 def pitch_sensitivity(robot, q_base, joints, beta):
@@ -273,185 +278,7 @@ def physical_consistency(robot, beta, total_mass=None, bounds=None, tol=1e-6):
     return {'ok': not violations, 'violations': violations, 'total_mass': mass, 'bodies': bodies}
 
 
-# ---------------------------------------------------------------- estimators
-class Estimator:
-    """Common interface. Subclasses implement `_update(phi_row, y, noise_var)`."""
-
-    name = 'estimator'
-
-    def __init__(self, beta0):
-        self.beta0 = np.array(beta0, dtype=float)
-        self.reset()
-
-    def reset(self):
-        self._beta = self.beta0.copy()
-        self.n_updates = 0
-        self.errors = []          # prediction error phi^T beta - y before each update
-
-    @property
-    def beta(self):
-        return self._beta.copy()
-
-    @property
-    def covariance(self):
-        return None
-
-    def predict(self, phi_rows):
-        return np.atleast_2d(phi_rows) @ self._beta
-
-    def update(self, phi_row, y=0.0, noise_var=None):
-        """Learn from one balanced pose; returns the prediction error phi^T beta - y before the update."""
-        phi_row = np.asarray(phi_row, dtype=float)
-        err = float(phi_row @ self._beta - y)
-        self._update(phi_row, float(y), noise_var, err)
-        self.n_updates += 1
-        self.errors.append(err)
-        return err
-
-    def update_pose(self, robot, q_meas, joints, noise=None):
-        """Learn from one balanced pose given as (measured base pitch, joints in pose order): the paper
-        estimators use phi(q) with y = 0; MAP overrides this with its errors-in-variables rows."""
-        return self.update(phi_fn(robot, [q_meas], np.atleast_2d(joints))[0], 0.0)
-
-    def update_many(self, phi_rows, y=None, noise_var=None):
-        """Sequential updates over rows (the online order)."""
-        phi_rows = np.atleast_2d(phi_rows)
-        y = np.zeros(len(phi_rows)) if y is None else np.broadcast_to(y, (len(phi_rows),))
-        nv = [None] * len(phi_rows) if noise_var is None else np.broadcast_to(noise_var, (len(phi_rows),))
-        return np.array([self.update(p, yy, v) for p, yy, v in zip(phi_rows, y, nv)])
-
-
-class PaperGD(Estimator):
-    """beta <- beta - eta (phi^T beta - y) phi, the paper's eq. (update), eta = 300 (18c train_beta.cpp).
-
-    mass_regularization u: the authors' optional penalty (u = 0 in all their runs), which adds
-    u (sum m - M) to the error and u * [mass indicator] to the direction.
-    """
-
-    name = 'paper-gd'
-
-    def __init__(self, beta0, eta=300.0, x_tol=2e-3, window=10, mass_regularization=0.0, total_mass=None):
-        self.eta = float(eta)
-        self.x_tol = float(x_tol)
-        self.window = int(window)
-        self.u = float(mass_regularization)
-        self.mass_indicator = np.zeros(len(beta0))
-        self.mass_indicator[0::4] = 1.0
-        self.total_mass = float(np.sum(np.asarray(beta0)[0::4]) if total_mass is None else total_mass)
-        super().__init__(beta0)
-
-    def _step(self, phi_row, y, err):
-        if self.u:
-            err_u = err + self.u * (self.mass_indicator @ self._beta - self.total_mass)
-            return -self.eta * err_u * (phi_row + self.u * self.mass_indicator)
-        return -self.eta * err * phi_row
-
-    def _update(self, phi_row, y, noise_var, err):
-        self._beta += self._step(phi_row, y, err)
-
-    @property
-    def converged(self):
-        """The paper's stop rule: |phi^T beta| < x_tol for the last `window` poses."""
-        return len(self.errors) >= self.window and max(abs(e) for e in self.errors[-self.window:]) < self.x_tol
-
-
-class PaperGDMass(PaperGD):
-    """Paper GD with the total-mass constraint sum(m) = M_known, by a Lagrange multiplier: each step is
-    followed by the projection min (beta'-b)^T W^-1 (beta'-b) s.t. a^T beta' = M, i.e.
-    beta' = b + W a (M - a^T b) / (a^T W a). W weights which masses absorb the correction; by default
-    proportional to the CAD masses (W = diag(m0) on mass entries), so the Base takes most of it.
-    `weights='euclidean'` spreads it evenly (the plain Euclidean projection)."""
-
-    name = 'paper-gd-mass'
-
-    def __init__(self, beta0, eta=300.0, x_tol=2e-3, window=10, total_mass=None, weights='mass'):
-        beta0 = np.asarray(beta0, dtype=float)
-        a = np.zeros(len(beta0))
-        a[0::4] = 1.0
-        if isinstance(weights, str):
-            if weights == 'mass':
-                w = np.abs(beta0) * a
-            elif weights == 'euclidean':
-                w = a.copy()
-            else:
-                raise ValueError(f'weights must be "mass", "euclidean" or an array, not {weights!r}')
-        else:
-            w = np.asarray(weights, dtype=float) * a
-        self._wa = w
-        super().__init__(beta0, eta=eta, x_tol=x_tol, window=window, total_mass=total_mass)
-
-    def _project(self, b):
-        a = self.mass_indicator
-        return b + self._wa * (self.total_mass - a @ b) / (a @ self._wa)
-
-    def reset(self):
-        super().reset()
-        self._beta = self._project(self._beta)
-
-    def _update(self, phi_row, y, noise_var, err):
-        self._beta = self._project(self._beta + self._step(phi_row, y, err))
-
-
-class MAPEstimator(Estimator):
-    """Bayesian linear regression, recursive form.
-
-    Prior beta ~ N(beta0, diag(prior_std^2)), conditioned on the equality constraints A beta = b
-    (exact: the posterior covariance has A Sigma = 0, so every later update keeps them). Each row
-    adds y = phi^T beta + e, e ~ N(0, noise_var):
-        k = Sigma phi / (phi^T Sigma phi + r),  beta += k (y - phi^T beta),  Sigma -= k phi^T Sigma.
-    A negative noise_var removes information (the errors-in-variables correction of
-    balanced_pose_rows); it must leave Sigma positive definite (phi^T Sigma phi + r < 0).
-    """
-
-    name = 'map'
-
-    def __init__(self, beta0, prior_std, noise_var=1e-6, A=None, b=None):
-        self.prior_std = np.asarray(prior_std, dtype=float)
-        if np.any(self.prior_std <= 0):
-            raise ValueError('prior_std must be positive (fix entries with equality constraints instead)')
-        self.default_noise_var = float(noise_var)
-        n = len(beta0)
-        self.A = np.zeros((0, n)) if A is None else np.atleast_2d(np.asarray(A, dtype=float))
-        self.b = np.zeros(0) if b is None else np.atleast_1d(np.asarray(b, dtype=float))
-        super().__init__(beta0)
-
-    def reset(self):
-        super().reset()
-        self._sigma = np.diag(self.prior_std ** 2)
-        if len(self.A):
-            self._beta, self._sigma = condition_on_constraints(self._beta, self._sigma, self.A, self.b)
-        self.prior_mean = self._beta.copy()
-
-    @property
-    def covariance(self):
-        return self._sigma.copy()
-
-    def _update(self, phi_row, y, noise_var, err):
-        r = self.default_noise_var if noise_var is None else float(noise_var)
-        u = self._sigma @ phi_row
-        s = float(phi_row @ u) + r
-        k = u / s
-        self._beta -= k * err
-        self._sigma -= np.outer(k, u)
-        self._sigma = 0.5 * (self._sigma + self._sigma.T)
-
-    def update_pose(self, robot, q_meas, joints, noise=None, beta_lin=None, model='angle'):
-        """Linear update from one balanced pose with the rows of balanced_pose_rows linearised at
-        beta_lin (default: the prior mean; fixed, so the result equals map_batch on the same rows).
-        For re-linearisation use MAPOnline."""
-        rows, y, var = balanced_pose_rows(robot, [q_meas], np.atleast_2d(joints),
-                                          self.prior_mean if beta_lin is None else beta_lin, noise, model)
-        x_err = float(phi_fn(robot, [q_meas], np.atleast_2d(joints))[0] @ self._beta)
-        for k in range(len(rows)):
-            self._update(rows[k], float(y[k]), float(var[k]), float(rows[k] @ self._beta - y[k]))
-        self.n_updates += 1
-        self.errors.append(x_err)
-        return x_err
-
-    def constraint_residual(self):
-        return self.A @ self._beta - self.b if len(self.A) else np.zeros(0)
-
-
+# ---------------------------------------------------------------- linear MAP, batch forms
 def condition_on_constraints(mean, cov, A, b):
     """Gaussian N(mean, cov) conditioned on A beta = b (noise-free linear observations)."""
     S = A @ cov @ A.T
@@ -514,7 +341,6 @@ def _prior_information(p0inv, Z):
 
 
 def _chol_solve(L, g):
-    from scipy.linalg import cho_solve
     return cho_solve((L, True), g)
 
 
@@ -570,90 +396,10 @@ def map_gauss_newton_rows(P, Psi, beta0, prior_std, noise=None, A=None, b=None, 
     return beta, cov, lin
 
 
-class MAPOnline(Estimator):
-    """MAP on the CoM-angle model, online: one rank-one update per pose (rows linearised at the current
-    linearisation point beta_lin), and a re-linearisation (a Gauss-Newton pass over every pose so far,
-    from the prior) whenever the linear model is off by more than `relinearize_tol` radians of CoM
-    angle at any stored pose. relinearize_tol=None never re-linearises (then it equals map_batch on
-    the rows at the prior mean). finalize() iterates to the batch MAP (= map_gauss_newton)."""
-
-    name = 'map-online'
-
-    def __init__(self, robot, beta0, prior_std, noise=None, A=None, b=None, relinearize_tol=1e-4):
-        self.robot = robot
-        self.noise = noise or NoiseModel()
-        self.prior_std = np.asarray(prior_std, dtype=float)
-        self.A, self.b = A, b
-        self.relinearize_tol = relinearize_tol
-        super().__init__(beta0)
-
-    def reset(self):
-        super().reset()
-        self._map = MAPEstimator(self.beta0, self.prior_std, A=self.A, b=self.b)
-        self.prior_mean = self._map.prior_mean
-        self._beta = self._map.beta
-        self.beta_lin = self.prior_mean.copy()
-        self.q, self.joints = [], []
-        self.relinearizations = 0
-
-    @property
-    def covariance(self):
-        return self._map.covariance
-
-    def _update(self, row, y, noise_var, err):          # plain linear update (given rows)
-        self._map.update(row, y, self._map.default_noise_var if noise_var is None else noise_var)
-        self._beta = self._map.beta
-
-    def update_pose(self, robot, q_meas, joints, noise=None):
-        noise = noise or self.noise
-        self.noise = noise
-        joints = np.asarray(joints, dtype=float).reshape(-1)
-        x_err = float(phi_fn(robot, [q_meas], joints[None])[0] @ self._beta)
-        self.q.append(float(q_meas))
-        self.joints.append(joints.copy())
-        rows, y, var = balanced_pose_rows(robot, [q_meas], joints[None], self.beta_lin, noise)
-        self._map.update(rows[0], float(y[0]), float(var[0]))
-        self._beta = self._map.beta
-        if self.relinearize_tol is not None and self._linearisation_error() > self.relinearize_tol:
-            self._relinearize(iterations=1)
-        self.n_updates += 1
-        self.errors.append(x_err)
-        return x_err
-
-    def _linearisation_error(self):
-        """max over stored poses of |h(beta) - h_lin(beta)| (rad of CoM angle) at the current estimate."""
-        q, j = np.array(self.q), np.array(self.joints)
-        P, Psi = phi_fn(self.robot, q, j), pitch_rows(self.robot, q, j)
-        x_l, z_l = P @ self.beta_lin, Psi @ self.beta_lin
-        h_lin = x_l / z_l + ((P - (x_l / z_l)[:, None] * Psi) @ (self._beta - self.beta_lin)) / z_l
-        h = (P @ self._beta) / (Psi @ self._beta)
-        return float(np.abs(h - h_lin).max())
-
-    def _relinearize(self, iterations=1):
-        beta, cov, lin = map_gauss_newton(self.robot, np.array(self.q), np.array(self.joints), self.beta0,
-                                          self.prior_std, self.noise, self.A, self.b, iterations=iterations,
-                                          beta_start=self._beta)
-        self.beta_lin = lin
-        self._map._beta, self._map._sigma = beta.copy(), cov.copy()
-        self._beta = beta.copy()
-        self.relinearizations += 1
-
-    def constraint_residual(self):
-        return self._map.A @ self._beta - self._map.b if len(self._map.A) else np.zeros(0)
-
-    def finalize(self, iterations=20):
-        """Iterate the Gauss-Newton passes to convergence: the batch MAP of all poses so far."""
-        if self.q:
-            self._relinearize(iterations)
-        return self.beta
-
-
 def map_constrained(beta0, prior_std, phi_rows, y=None, noise_var=1e-6, A=None, b=None, G=None, h=None,
                     beta_start=None):
     """MAP with the equality constraints A beta = b AND the inequalities G beta >= h (a convex QP;
     solved on the null space of A by scipy's SLSQP with exact gradients). Returns beta."""
-    from scipy.optimize import minimize
-
     beta0 = np.asarray(beta0, dtype=float)
     n = len(beta0)
     Phi = np.atleast_2d(np.asarray(phi_rows, dtype=float)).reshape(-1, n)
@@ -680,86 +426,390 @@ def map_constrained(beta0, prior_std, phi_rows, y=None, noise_var=1e-6, A=None, 
     return beta
 
 
-def make_estimator(name, beta0, robot=None, **kw):
-    """An estimator by name (for the ROS node and the CLI): paper-gd, paper-gd-mass, map, map-online.
+# ---------------------------------------------------------------- the estimator registry
+#: name -> Estimator subclass; filled by @register_estimator (built-ins, plug-ins)
+ESTIMATORS = {}
+ENTRY_POINT_GROUP = 'krang_com.estimators'
+_plugins_loaded = False
 
-    map / map-online with a robot: MAPOnline (CoM-angle model, re-linearising) with the physical prior
-    of `robot` (options mass_frac, com_std, or prior_std), the known total mass (total_mass, default
-    robot.nominal_mass) and the wheel constraints, noise (a NoiseModel) and relinearize_tol. Without a
-    robot: the linear MAPEstimator (needs prior_std; feed it rows with update())."""
-    if name == 'paper-gd':
-        kw.pop('total_mass', None)
-        return PaperGD(beta0, **kw)
-    if name == 'paper-gd-mass':
-        if kw.get('total_mass') is None:
-            kw['total_mass'] = None if robot is None else robot.nominal_mass
-        return PaperGDMass(beta0, **kw)
-    if name in ('map', 'map-online'):
-        if robot is None:
-            if 'prior_std' not in kw:
-                raise ValueError('map without a robot needs prior_std')
-            est = MAPEstimator(beta0, **kw)
-            est.name = name
-            return est
-        prior_kw = {k: kw.pop(k) for k in ('mass_frac', 'com_std') if k in kw}
-        total_mass = kw.pop('total_mass', None)
-        total_mass = robot.nominal_mass if total_mass is None else total_mass
-        prior_std = kw.pop('prior_std', None)
+
+def register_estimator(name):
+    """Class decorator: make an Estimator subclass available by `name` to make_estimator, and so to
+    the com_estimator node's `method` parameter, `krang learn/relearn --method`, the closed loop
+    and the experiments. Register your own the same way, in a module imported before the CLI is
+    built or named in the `krang_com.estimators` entry-point group of your package."""
+    def add(cls):
+        if ESTIMATORS.get(name, cls) is not cls:
+            raise ValueError(f'estimator {name!r} is already registered '
+                             f'({ESTIMATORS[name].__name__})')
+        cls.name = name
+        ESTIMATORS[name] = cls
+        return cls
+    return add
+
+
+def _load_plugins():
+    """Import the modules of the entry-point group once (each registers its estimators)."""
+    global _plugins_loaded
+    if not _plugins_loaded:
+        _plugins_loaded = True
+        for ep in importlib.metadata.entry_points(group=ENTRY_POINT_GROUP):
+            ep.load()
+
+
+def estimator_names():
+    """The registered names, built-in ones first (the CLI's --method choices)."""
+    _load_plugins()
+    return tuple(ESTIMATORS)
+
+
+def make_estimator(name, robot, beta0, **options):
+    """A registered estimator: ESTIMATORS[name](robot, beta0, **options). Options its constructor
+    does not take are dropped (unless it takes **kwargs), so one set of options, e.g. the CLI's,
+    serves every method."""
+    _load_plugins()
+    if name not in ESTIMATORS:
+        raise ValueError(f'unknown estimator {name!r}; choose one of {tuple(ESTIMATORS)}')
+    cls = ESTIMATORS[name]
+    params = inspect.signature(cls).parameters
+    if not any(p.kind is p.VAR_KEYWORD for p in params.values()):
+        options = {k: v for k, v in options.items() if k in params}
+    return cls(robot, beta0, **options)
+
+
+class Estimator:
+    """The update protocol of every registered estimator.
+
+    `cls(robot, beta0, **options)`; `update(q_base, joints)` learns from one balanced pose
+    (measured base pitch in rad, joints in pose order) with the estimator's own measurement model
+    and returns the paper's x_com error before the update; `beta`, `covariance` (None if it has
+    none), `n_updates`, `errors` (x_com error before each update); `reset(beta0=None)` starts over
+    (from a new beta0 if given; options derived from beta0 at construction are kept); `fit(q_base,
+    joints)` learns from a batch and returns (beta, info): by default one update per pose in the
+    given order, overridden where a closed form exists (map)."""
+
+    name = 'estimator'
+
+    def __init__(self, robot, beta0):
+        self.robot = robot
+        self.beta0 = np.array(beta0, dtype=float)
+        self.reset()
+
+    def reset(self, beta0=None):
+        if beta0 is not None:
+            self.beta0 = np.array(beta0, dtype=float)
+        self._beta = self.beta0.copy()
+        self.n_updates = 0
+        self.errors = []
+
+    @property
+    def beta(self):
+        return self._beta.copy()
+
+    @property
+    def covariance(self):
+        return None
+
+    def update(self, q_base, joints):
+        raise NotImplementedError
+
+    def fit(self, q_base, joints):
+        """Learn from the poses (rows of joints, measured q_base), from beta0: (beta, info)."""
+        q_base = np.atleast_1d(np.asarray(q_base, dtype=float))
+        joints = np.atleast_2d(joints)
+        self.reset()
+        for qb, jt in zip(q_base, joints):
+            self.update(qb, jt)
+        return self.beta, {'method': self.name, 'poses': int(len(q_base)), **self.fit_info()}
+
+    def fit_info(self):
+        """Extra facts for fit()'s info dict."""
+        return {}
+
+
+class RowUpdates:
+    """Linear updates with given rows, y = phi^T beta + e (the paper's rows, or MAP's): for
+    experiments that precompute phi. Needs `_beta`, `n_updates`, `errors` and
+    `_update(row, y, noise_var, err)`."""
+
+    def update_row(self, phi_row, y=0.0, noise_var=None):
+        """One row; returns the prediction error phi^T beta - y before the update."""
+        phi_row = np.asarray(phi_row, dtype=float)
+        err = float(phi_row @ self._beta - y)
+        self._update(phi_row, float(y), noise_var, err)
+        self.n_updates += 1
+        self.errors.append(err)
+        return err
+
+    def update_rows(self, phi_rows, y=None, noise_var=None):
+        """Sequential updates over rows (the online order)."""
+        phi_rows = np.atleast_2d(phi_rows)
+        y = np.zeros(len(phi_rows)) if y is None else np.broadcast_to(y, (len(phi_rows),))
+        nv = [None] * len(phi_rows) if noise_var is None else np.broadcast_to(noise_var, (len(phi_rows),))
+        return np.array([self.update_row(p, yy, v) for p, yy, v in zip(phi_rows, y, nv)])
+
+
+@register_estimator('paper-gd')
+class PaperGD(RowUpdates, Estimator):
+    """beta <- beta - eta (phi^T beta - y) phi, the paper's eq. (update), eta = 300 (18c train_beta.cpp).
+
+    mass_regularization u: the authors' optional penalty (u = 0 in all their runs), which adds
+    u (sum m - M) to the error and u * [mass indicator] to the direction. `robot` may be None for
+    row updates only.
+    """
+
+    def __init__(self, robot, beta0, eta=300.0, x_tol=2e-3, window=10, mass_regularization=0.0,
+                 total_mass=None):
+        self.eta = float(eta)
+        self.x_tol = float(x_tol)
+        self.window = int(window)
+        self.u = float(mass_regularization)
+        self.mass_indicator = np.zeros(len(beta0))
+        self.mass_indicator[0::4] = 1.0
+        self.total_mass = float(np.sum(np.asarray(beta0)[0::4]) if total_mass is None else total_mass)
+        super().__init__(robot, beta0)
+
+    def update(self, q_base, joints):
+        """phi at the measured pitch, y = 0."""
+        return self.update_row(phi_fn(self.robot, [q_base], np.atleast_2d(joints))[0], 0.0)
+
+    def _step(self, phi_row, y, err):
+        if self.u:
+            err_u = err + self.u * (self.mass_indicator @ self._beta - self.total_mass)
+            return -self.eta * err_u * (phi_row + self.u * self.mass_indicator)
+        return -self.eta * err * phi_row
+
+    def _update(self, phi_row, y, noise_var, err):
+        self._beta += self._step(phi_row, y, err)
+
+    @property
+    def converged(self):
+        """The paper's stop rule: |phi^T beta| < x_tol for the last `window` poses."""
+        return len(self.errors) >= self.window and max(abs(e) for e in self.errors[-self.window:]) < self.x_tol
+
+    def fit_info(self):
+        return {'converged_paper_rule': bool(self.converged)}
+
+
+@register_estimator('paper-gd-mass')
+class PaperGDMass(PaperGD):
+    """Paper GD with the total-mass constraint sum(m) = M_known, by a Lagrange multiplier: each step is
+    followed by the projection min (beta'-b)^T W^-1 (beta'-b) s.t. a^T beta' = M, i.e.
+    beta' = b + W a (M - a^T b) / (a^T W a). W weights which masses absorb the correction; by default
+    proportional to the CAD masses (W = diag(m0) on mass entries), so the Base takes most of it.
+    `weights='euclidean'` spreads it evenly (the plain Euclidean projection). M_known: total_mass,
+    else the robot's nominal mass, else beta0's."""
+
+    def __init__(self, robot, beta0, eta=300.0, x_tol=2e-3, window=10, total_mass=None,
+                 weights='mass'):
+        beta0 = np.asarray(beta0, dtype=float)
+        a = np.zeros(len(beta0))
+        a[0::4] = 1.0
+        if isinstance(weights, str):
+            if weights == 'mass':
+                w = np.abs(beta0) * a
+            elif weights == 'euclidean':
+                w = a.copy()
+            else:
+                raise ValueError(f'weights must be "mass", "euclidean" or an array, not {weights!r}')
+        else:
+            w = np.asarray(weights, dtype=float) * a
+        self._wa = w
+        if total_mass is None and robot is not None:
+            total_mass = robot.nominal_mass
+        super().__init__(robot, beta0, eta=eta, x_tol=x_tol, window=window, total_mass=total_mass)
+
+    def _project(self, b):
+        a = self.mass_indicator
+        return b + self._wa * (self.total_mass - a @ b) / (a @ self._wa)
+
+    def reset(self, beta0=None):
+        super().reset(beta0)
+        self._beta = self._project(self._beta)
+
+    def _update(self, phi_row, y, noise_var, err):
+        self._beta = self._project(self._beta + self._step(phi_row, y, err))
+
+
+class MAPEstimator(RowUpdates):
+    """Bayesian linear regression, recursive form: the linear-Gaussian core of MAPOnline (rows in).
+
+    Prior beta ~ N(beta0, diag(prior_std^2)), conditioned on the equality constraints A beta = b
+    (exact: the posterior covariance has A Sigma = 0, so every later update keeps them). Each row
+    adds y = phi^T beta + e, e ~ N(0, noise_var):
+        k = Sigma phi / (phi^T Sigma phi + r),  beta += k (y - phi^T beta),  Sigma -= k phi^T Sigma.
+    A negative noise_var removes information (the errors-in-variables correction of
+    balanced_pose_rows); it must leave Sigma positive definite (phi^T Sigma phi + r < 0).
+    """
+
+    def __init__(self, beta0, prior_std, noise_var=1e-6, A=None, b=None):
+        self.prior_std = np.asarray(prior_std, dtype=float)
+        if np.any(self.prior_std <= 0):
+            raise ValueError('prior_std must be positive (fix entries with equality constraints instead)')
+        self.default_noise_var = float(noise_var)
+        self.beta0 = np.array(beta0, dtype=float)
+        n = len(self.beta0)
+        self.A = np.zeros((0, n)) if A is None else np.atleast_2d(np.asarray(A, dtype=float))
+        self.b = np.zeros(0) if b is None else np.atleast_1d(np.asarray(b, dtype=float))
+        self.reset()
+
+    def reset(self):
+        self._beta = self.beta0.copy()
+        self._sigma = np.diag(self.prior_std ** 2)
+        if len(self.A):
+            self._beta, self._sigma = condition_on_constraints(self._beta, self._sigma, self.A, self.b)
+        self.prior_mean = self._beta.copy()
+        self.n_updates = 0
+        self.errors = []
+
+    @property
+    def beta(self):
+        return self._beta.copy()
+
+    @property
+    def covariance(self):
+        return self._sigma.copy()
+
+    def _update(self, phi_row, y, noise_var, err):
+        r = self.default_noise_var if noise_var is None else float(noise_var)
+        u = self._sigma @ phi_row
+        s = float(phi_row @ u) + r
+        k = u / s
+        self._beta -= k * err
+        self._sigma -= np.outer(k, u)
+        self._sigma = 0.5 * (self._sigma + self._sigma.T)
+
+    def constraint_residual(self):
+        return self.A @ self._beta - self.b if len(self.A) else np.zeros(0)
+
+
+@register_estimator('map-online')
+class MAPOnline(Estimator):
+    """MAP on the CoM-angle model, online: one rank-one update per pose (rows linearised at the current
+    linearisation point beta_lin), and a re-linearisation (a Gauss-Newton pass over every pose so far,
+    from the prior) whenever the linear model is off by more than `relinearize_tol` radians of CoM
+    angle at any stored pose. relinearize_tol=None never re-linearises (then it equals map_batch on
+    the rows at the prior mean). finalize() iterates to the batch MAP (= map_gauss_newton).
+
+    Defaults from the robot: prior_std = physical_prior_std(robot, beta0, mass_frac, com_std);
+    (A, b) = equality_constraints(robot, total_mass or the nominal mass): the known total mass and
+    the wheel CoMs on the axle (pass A of shape (0, n) for none)."""
+
+    def __init__(self, robot, beta0, prior_std=None, noise=None, A=None, b=None,
+                 relinearize_tol=1e-4, mass_frac=0.1, com_std=0.03, total_mass=None):
+        self.noise = noise or NoiseModel()
         if prior_std is None:
-            prior_std = physical_prior_std(robot, beta0, **prior_kw)
-        if 'A' not in kw:
-            kw['A'], kw['b'] = equality_constraints(robot, total_mass)
-        est = MAPOnline(robot, beta0, prior_std, **kw)
-        est.name = name
-        return est
-    raise ValueError(f'unknown estimator {name!r}; choose one of {ESTIMATORS}')
+            prior_std = physical_prior_std(robot, beta0, mass_frac=mass_frac, com_std=com_std)
+        self.prior_std = np.asarray(prior_std, dtype=float)
+        if A is None:
+            total_mass = robot.nominal_mass if total_mass is None else total_mass
+            A, b = equality_constraints(robot, total_mass)
+        self.A, self.b = A, b
+        self.relinearize_tol = relinearize_tol
+        super().__init__(robot, beta0)
+
+    def reset(self, beta0=None):
+        super().reset(beta0)
+        self._map = MAPEstimator(self.beta0, self.prior_std, A=self.A, b=self.b)
+        self.prior_mean = self._map.prior_mean
+        self._beta = self._map.beta
+        self.beta_lin = self.prior_mean.copy()
+        self.q, self.joints = [], []
+        self.relinearizations = 0
+
+    @property
+    def covariance(self):
+        return self._map.covariance
+
+    def update(self, q_base, joints):
+        joints = np.asarray(joints, dtype=float).reshape(-1)
+        x_err = float(phi_fn(self.robot, [q_base], joints[None])[0] @ self._beta)
+        self.q.append(float(q_base))
+        self.joints.append(joints.copy())
+        rows, y, var = balanced_pose_rows(self.robot, [q_base], joints[None], self.beta_lin,
+                                          self.noise)
+        self._map.update_row(rows[0], float(y[0]), float(var[0]))
+        self._beta = self._map.beta
+        if self.relinearize_tol is not None and self._linearisation_error() > self.relinearize_tol:
+            self._relinearize(iterations=1)
+        self.n_updates += 1
+        self.errors.append(x_err)
+        return x_err
+
+    def _linearisation_error(self):
+        """max over stored poses of |h(beta) - h_lin(beta)| (rad of CoM angle) at the current estimate."""
+        q, j = np.array(self.q), np.array(self.joints)
+        P, Psi = phi_fn(self.robot, q, j), pitch_rows(self.robot, q, j)
+        x_l, z_l = P @ self.beta_lin, Psi @ self.beta_lin
+        h_lin = x_l / z_l + ((P - (x_l / z_l)[:, None] * Psi) @ (self._beta - self.beta_lin)) / z_l
+        h = (P @ self._beta) / (Psi @ self._beta)
+        return float(np.abs(h - h_lin).max())
+
+    def _relinearize(self, iterations=1):
+        beta, cov, lin = map_gauss_newton(self.robot, np.array(self.q), np.array(self.joints), self.beta0,
+                                          self.prior_std, self.noise, self.A, self.b, iterations=iterations,
+                                          beta_start=self._beta)
+        self._set_posterior(beta, cov, lin)
+        self.relinearizations += 1
+
+    def _set_posterior(self, beta, cov, lin):
+        self.beta_lin = lin
+        self._map._beta, self._map._sigma = beta.copy(), cov.copy()
+        self._beta = beta.copy()
+
+    def constraint_residual(self):
+        return self._map.constraint_residual()
+
+    def finalize(self, iterations=20):
+        """Iterate the Gauss-Newton passes to convergence: the batch MAP of all poses so far."""
+        if self.q:
+            self._relinearize(iterations)
+        return self.beta
+
+    def fit_info(self):
+        return {'covariance_trace': float(np.trace(self.covariance)),
+                'relinearizations': self.relinearizations}
 
 
-def fit(method, robot, q_base, joints, beta0, noise=None, mass_frac=0.1, com_std=0.03, total_mass=None,
-        eta=300.0, physical=True):
-    """Learn beta from balanced poses (measured q_base, joints) with one method; returns (beta, info).
+@register_estimator('map')
+class MAP(MAPOnline):
+    """map: the posterior of map-online, with fit() in closed form: the batch Gauss-Newton MAP of
+    all poses (map_gauss_newton), then, with physical=True, the inequality-constrained QP if the
+    Gaussian MAP leaves the physically consistent region (map_constrained). Online: map-online."""
 
-    paper-gd / paper-gd-mass / map-online: one pass in the given (online) order. map: the batch MAP
-    (same posterior as map-online), then, with physical=True, the inequality-constrained QP if the
-    Gaussian MAP leaves the physically consistent region (map_constrained)."""
-    beta0 = np.asarray(beta0, dtype=float)
-    q_base = np.atleast_1d(np.asarray(q_base, dtype=float))
-    joints = np.atleast_2d(joints)
-    total_mass = robot.nominal_mass if total_mass is None else float(total_mass)
-    noise = noise or NoiseModel()
-    info = {'method': method, 'poses': int(len(q_base))}
-    if method in ('paper-gd', 'paper-gd-mass'):
-        e = make_estimator(method, beta0, robot=robot, eta=eta) if method == 'paper-gd' else \
-            make_estimator(method, beta0, robot=robot, eta=eta, total_mass=total_mass)
-        for qb, jt in zip(q_base, joints):
-            e.update_pose(robot, qb, jt)
-        info['converged_paper_rule'] = bool(e.converged)
-        return e.beta, info
-    if method not in ('map', 'map-online'):
-        raise ValueError(f'unknown method {method!r}; choose one of {ESTIMATORS}')
-    prior = physical_prior_std(robot, beta0, mass_frac=mass_frac, com_std=com_std)
-    A, b = equality_constraints(robot, total_mass)
-    if method == 'map-online':
-        e = MAPOnline(robot, beta0, prior, noise, A, b)
-        for qb, jt in zip(q_base, joints):
-            e.update_pose(robot, qb, jt)
-        info['covariance_trace'] = float(np.trace(e.covariance))
-        info['relinearizations'] = e.relinearizations
-        return e.beta, info
-    beta, cov, lin = map_gauss_newton(robot, q_base, joints, beta0, prior, noise, A, b)
-    info['covariance_trace'] = float(np.trace(cov))
-    if physical:
-        G, h = inequality_constraints(robot)
-        info['inequality_qp'] = bool(np.any(G @ beta < h - 1e-12))
-        if info['inequality_qp']:
-            rows, y, var = balanced_pose_rows(robot, q_base, joints, lin, noise)
-            beta = map_constrained(beta0, prior, rows, y, var, A, b, G, h, beta_start=beta)
-    return beta, info
+    def __init__(self, robot, beta0, prior_std=None, noise=None, A=None, b=None,
+                 relinearize_tol=1e-4, mass_frac=0.1, com_std=0.03, total_mass=None,
+                 physical=True):
+        self.physical = physical
+        super().__init__(robot, beta0, prior_std, noise, A, b, relinearize_tol, mass_frac, com_std,
+                         total_mass)
+
+    def fit(self, q_base, joints):
+        q_base = np.atleast_1d(np.asarray(q_base, dtype=float))
+        joints = np.atleast_2d(joints)
+        self.reset()
+        beta, cov, lin = map_gauss_newton(self.robot, q_base, joints, self.beta0, self.prior_std,
+                                          self.noise, self.A, self.b)
+        info = {'method': self.name, 'poses': int(len(q_base)),
+                'covariance_trace': float(np.trace(cov))}
+        if self.physical:
+            G, h = inequality_constraints(self.robot)
+            info['inequality_qp'] = bool(np.any(G @ beta < h - 1e-12))
+            if info['inequality_qp']:
+                rows, y, var = balanced_pose_rows(self.robot, q_base, joints, lin, self.noise)
+                beta = map_constrained(self.beta0, self.prior_std, rows, y, var, self.A, self.b,
+                                       G, h, beta_start=beta)
+        self.q = [float(v) for v in q_base]
+        self.joints = [j.copy() for j in np.asarray(joints, dtype=float)]
+        self.n_updates = len(q_base)
+        self._set_posterior(beta, cov, lin)
+        return self.beta, info
 
 
 def cross_validate(method, robot, q_base, joints, beta0, folds=10, seed=0, **kw):
-    """k-fold CV of `fit` on balanced poses: predictions x_com = phi^T beta on each held-out record
-    and the pitch error atan2(x_com, psi^T beta). Training records keep their order."""
+    """k-fold CV of the estimator's `fit` (options `kw`) on balanced poses: predictions
+    x_com = phi^T beta on each held-out record and the pitch error atan2(x_com, psi^T beta).
+    Training records keep their order."""
     q_base = np.atleast_1d(np.asarray(q_base, dtype=float))
     joints = np.atleast_2d(joints)
     n = len(q_base)
@@ -771,7 +821,7 @@ def cross_validate(method, robot, q_base, joints, beta0, folds=10, seed=0, **kw)
     pitch = np.empty(n)
     for f in parts:
         tr = np.setdiff1d(np.arange(n), f)
-        beta, _ = fit(method, robot, q_base[tr], joints[tr], beta0, **kw)
+        beta, _ = make_estimator(method, robot, beta0, **kw).fit(q_base[tr], joints[tr])
         pred[f] = P[f] @ beta
         pitch[f] = np.arctan2(pred[f], Psi[f] @ beta)
     return pred, pitch

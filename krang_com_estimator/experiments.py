@@ -386,7 +386,7 @@ def real_data(robot=None, data_dir=None, k_folds=10, seed=0, sigma_hand=0.008, s
     kw = dict(noise=noise, mass_frac=mass_frac, com_std=com_std, total_mass=robot.nominal_mass)
 
     def fit_map(tr):
-        return est.fit('map', robot, q[tr], j[tr], b0, **kw)[0]
+        return est.make_estimator('map', robot, b0, **kw).fit(q[tr], j[tr])[0]
 
     def fit_map_rows(model):            # the linear MAP on the paper's rows (phi) or with the EIV correction
         def f(tr):
@@ -395,13 +395,13 @@ def real_data(robot=None, data_dir=None, k_folds=10, seed=0, sigma_hand=0.008, s
         return f
 
     def fit_gd(tr):
-        g = est.PaperGD(b0)
-        g.update_many(P[np.sort(tr)])
+        g = est.PaperGD(robot, b0)
+        g.update_rows(P[np.sort(tr)])
         return g.beta
 
     def fit_gd_mass(tr):
-        g = est.PaperGDMass(b0, total_mass=robot.nominal_mass)
-        g.update_many(P[np.sort(tr)])
+        g = est.PaperGDMass(robot, b0, total_mass=robot.nominal_mass)
+        g.update_rows(P[np.sort(tr)])
         return g.beta
 
     res = {'n_records': n, 'k_folds': k_folds,
@@ -441,14 +441,14 @@ def real_data(robot=None, data_dir=None, k_folds=10, seed=0, sigma_hand=0.008, s
     counts = np.zeros(n + 1)
     for f in folds:
         tr = np.setdiff1d(order, f)
-        g = est.PaperGD(b0)
+        g = est.PaperGD(robot, b0)
         m = est.MAPOnline(robot, b0, prior, noise, A, b)
         curve['paper-gd'][0] += np.abs(P[f] @ g.beta).sum()
         curve['map'][0] += np.abs(P[f] @ m.beta).sum()
         counts[0] += len(f)
         for k, i in enumerate(tr, start=1):
-            g.update(P[i])
-            m.update_pose(robot, q[i], j[i], noise)
+            g.update_row(P[i])
+            m.update(q[i], j[i])
             curve['paper-gd'][k] += np.abs(P[f] @ g.beta).sum()
             curve['map'][k] += np.abs(P[f] @ m.beta).sum()
             counts[k] += len(f)

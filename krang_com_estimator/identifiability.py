@@ -1,9 +1,10 @@
 """What balanced poses can and cannot tell about beta: rank and base parameters of the regressor.
 
-Method (Gautier & Khalil 1990; notes §1): stack phi(q)^T for many random configurations into
-Phi (N x 92) and run a QR decomposition with column pivoting, Phi P = Q R. The numerical rank r
-is the number of base parameters. With R = [[R11, R12], [0, 0]] the first r pivoted columns are
-independent and every other parameter only acts through the base combination
+Method (Gautier & Khalil 1990; docs/learning.md, "What balanced poses can and cannot tell"): stack
+phi(q)^T for many random configurations into Phi (N x 92) and run a QR decomposition with column
+pivoting, Phi P = Q R. The numerical rank r is the number of base parameters. With
+R = [[R11, R12], [0, 0]] the first r pivoted columns are independent and every other parameter only
+acts through the base combination
     beta_base = beta_1 + R11^-1 R12 beta_2,
 so beta_2 (the dependent parameters) can be moved freely along the null space of Phi.
 
@@ -104,12 +105,6 @@ def preferred_order(robot):
     for i in range(robot.n_bodies):
         order.append(4 * i)
     return order
-
-
-def null_space_basis(Phi, rank):
-    """Orthonormal basis (n, n - rank) of the null space of Phi."""
-    _, _, vt = np.linalg.svd(Phi, full_matrices=True)
-    return vt[rank:].T
 
 
 def analyse(robot=None, n=2000, seed=0, beta_real=None, pool=None, coef_tol=1e-6):

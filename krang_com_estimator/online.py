@@ -1,5 +1,6 @@
 """One balanced pose in, one beta out: the glue shared by the com_estimator node and `krang relearn`,
-so that replaying a bag runs exactly the computation the robot ran."""
+so that replaying a bag runs exactly the computation the robot ran. `method` is any name of the
+estimator registry (estimators.make_estimator)."""
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -18,7 +19,7 @@ class OnlineLearner:
 
     def __post_init__(self):
         self.beta0 = np.asarray(self.beta0, dtype=float)
-        self.estimator = make_estimator(self.method, self.beta0, robot=self.robot)
+        self.estimator = make_estimator(self.method, self.robot, self.beta0, noise=self.noise)
         self.history = [self.beta0.copy()]
         self.poses = []
 
@@ -33,7 +34,7 @@ class OnlineLearner:
                 or not np.isfinite(q_base):
             raise ValueError(f'balanced pose needs {len(self.robot.pose_joints)} finite joints and a finite q_base')
         # the estimator's own measurement model (MAP: errors in the measured pitch, not in x_com)
-        self.estimator.update_pose(self.robot, float(q_base), joints, self.noise)
+        self.estimator.update(float(q_base), joints)
         self.poses.append((float(q_base), joints.copy()))
         self.history.append(self.estimator.beta)
         return self.estimator.beta

@@ -9,8 +9,8 @@ controller at its own rate (500 Hz) and the physics at 1 kHz.
 * ``run_online_session``: the online learning loop: command a pose, keep balancing while the
   joints move, wait for the detector's point, update beta with the learner, push it into the
   controller, repeat.
-* ``PaperGradientDescent``: the paper's update beta <- beta - eta phi phi^T beta as a learner
-  (any object with ``update(q_base, joints) -> beta`` and a ``beta`` attribute works).
+  The learner is any estimator of the registry (krang_com_estimator.estimators.make_estimator;
+  default the paper's GD, ``paper-gd``): ``update(q_base, joints)``, then ``beta``.
 
 Speed. ``FastKrangSim`` is a ``KrangSim`` whose hot path (joints still, no actuation delay) calls
 ``WipDynamics.step`` directly and draws the sensor noise in blocks, and ``control_sample()`` builds the
@@ -32,7 +32,8 @@ import numpy as np
 from krang_adrc_controller.controller import (BalanceController, ControlSample, ControllerConfig,
                                               load_controller_config)
 from krang_adrc_controller.metrics import BalancingRun
-from krang_model.com import balance_pitch, phi
+from krang_com_estimator.estimators import make_estimator
+from krang_model.com import balance_pitch
 
 from .physics import KrangSim, SimConfig
 
@@ -126,24 +127,7 @@ class FastKrangSim(KrangSim):
             self._moving)
 
 
-# ----------------------------------------------------------------------------- learners
-
-
-class PaperGradientDescent:
-    """The paper's online update (eq. update): beta <- beta - eta phi(q) phi(q)^T beta, with phi from
-    krang_model.com.phi (divided by the nominal mass) at the measured (q_base, joints)."""
-
-    def __init__(self, robot, beta0, eta: float = 300.0):
-        self.robot = robot
-        self.eta = float(eta)
-        self.beta = np.array(beta0, dtype=float)
-        self.n_updates = 0
-
-    def update(self, q_base, joints):
-        p = phi(self.robot, [float(q_base)], np.asarray(joints, float)[None])[0]
-        self.beta = self.beta - self.eta * p * float(p @ self.beta)
-        self.n_updates += 1
-        return self.beta.copy()
+# ----------------------------------------------------------------------------- wrong betas
 
 
 def shifted_beta(robot, beta, joints, shift_m, q_base=None):
@@ -400,12 +384,12 @@ def run_online_session(robot, true_beta, beta0, poses, learner=None, *, start_po
                        log_rate_hz: float = 0.0) -> SessionResult:
     """Stand up in `start_pose` (default: ``stand_pose(robot, beta0)``, the Table II pose with the waist
     set so that beta0 agrees to stand up), then for each pose (rows of joints, pose order): command it, balance
-    while the joints move, wait for the detector's point, ``beta = learner.update(q_base, joints)``,
-    ``controller.set_beta(beta)``. `learner` defaults to PaperGradientDescent(robot, beta0). A pose
-    without a point within `pose_timeout_s` is skipped (listed in failures); if the robot leaves
-    BALANCE the session ends there."""
+    while the joints move, wait for the detector's point, ``learner.update(q_base, joints)``,
+    ``controller.set_beta(learner.beta)``. `learner`: an estimator of the registry, by default
+    ``make_estimator('paper-gd', robot, beta0)``. A pose without a point within `pose_timeout_s`
+    is skipped (listed in failures); if the robot leaves BALANCE the session ends there."""
     poses = np.atleast_2d(np.asarray(poses, float))
-    learner = learner if learner is not None else PaperGradientDescent(robot, beta0)
+    learner = learner if learner is not None else make_estimator('paper-gd', robot, beta0)
     if start_pose is None:
         start_pose = stand_pose(robot, learner.beta)
     loop = ClosedLoop(robot, true_beta, beta0, start_pose, controller_config=controller_config,
@@ -450,7 +434,8 @@ def run_online_session(robot, true_beta, beta0, poses, learner=None, *, start_po
                 continue
             p = out.balanced_point
             true_pitch.append(loop.sim.balance_pitch())
-            beta = learner.update(p.q_base, p.joints)
+            learner.update(p.q_base, p.joints)
+            beta = learner.beta
             ctl.set_beta(beta)
             betas.append(np.array(beta, float))
             points.append(p)

@@ -15,8 +15,9 @@ from krang_model.beta import load_beta
 from krang_model.com import balance_pitch, com_error, x_com
 from krang_model.config import config_path
 from krang_model.robot import load_krang
-from krang_sim.closed_loop import (TABLE2_POSE, ClosedLoop, Disturbance, FastKrangSim, PaperGradientDescent,
-                                   run_balance, run_online_session, shifted_beta)
+from krang_com_estimator.estimators import make_estimator
+from krang_sim.closed_loop import (TABLE2_POSE, ClosedLoop, Disturbance, FastKrangSim, run_balance,
+                                   run_online_session, shifted_beta)
 from krang_sim.physics import KrangSim, SimConfig, SensorNoise
 
 QUIET = SensorNoise(imu_pitch_std_rad=0.0, gyro_std_rad_s=0.0, accel_std_m_s2=0.0, joint_std_rad=0.0)
@@ -336,7 +337,7 @@ def test_short_online_session_reduces_the_com_error(robot, true_beta, krang_data
     poses, order, _ = load_filtered_poses(krang_data)
     train = poses[order[:4]]
     held_out = np.delete(poses, order, axis=0)[:200]
-    learner = PaperGradientDescent(robot, robot.nominal_beta)
+    learner = make_estimator('paper-gd', robot, robot.nominal_beta)
     res = run_online_session(robot, true_beta, robot.nominal_beta, train, learner, seed=0, progress=False)
     assert not res.failures and len(res.points) == 4
     assert res.betas.shape == (5, robot.n_beta)

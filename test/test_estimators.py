@@ -32,27 +32,27 @@ def random_poses(robot, n, seed):
 
 def test_paper_gd_replays_the_authors_trajectory(robot, hardware):
     q, j, traj = hardware
-    gd = est.PaperGD(traj[0], eta=300.0)
+    gd = est.PaperGD(robot, traj[0], eta=300.0)
     rows = [gd.beta]
     for qb, jt in zip(q, j):
-        gd.update_pose(robot, qb, jt)
+        gd.update(qb, jt)
         rows.append(gd.beta)
     err = np.abs(np.array(rows) - traj).max()
     # The kit's figure "to 2e-4" is 2.02e-4 measured (6-digit printing of the authors' file plus the
-    # 5e-4 median relative residual of the recovered kinematics, krang_data FACTS §10).
+    # 5e-4 median relative residual of the recovered kinematics; docs/learning.md, "Tests").
     assert err <= 2.05e-4, err
     assert len(rows) == 190
 
 
 def test_paper_gd_stop_rule():
     beta = np.array([1e-4, 0, 0, 0])
-    gd = est.PaperGD(beta, eta=0.0, x_tol=1e-3, window=3)
+    gd = est.PaperGD(None, beta, eta=0.0, x_tol=1e-3, window=3)    # rows only: no robot
     big, small = np.array([100.0, 0, 0, 0]), np.array([1.0, 0, 0, 0])
-    gd.update(big)           # error 1e-2
-    gd.update(small)
-    gd.update(small)
+    gd.update_row(big)           # error 1e-2
+    gd.update_row(small)
+    gd.update_row(small)
     assert not gd.converged   # the big one is still in the window
-    gd.update(small)
+    gd.update_row(small)
     assert gd.converged
 
 
@@ -62,20 +62,20 @@ def test_total_mass_constraint_holds_exactly(robot):
     beta0 = robot.nominal_beta.copy()
     beta0[0::4] *= 1.02            # start off the constraint: the projection puts it back
     for weights in ('mass', 'euclidean'):
-        gd = est.PaperGDMass(beta0, total_mass=robot.nominal_mass, weights=weights)
+        gd = est.PaperGDMass(robot, beta0, total_mass=robot.nominal_mass, weights=weights)
         assert gd.beta[0::4].sum() == pytest.approx(robot.nominal_mass, abs=1e-9)
         rng = np.random.default_rng(0)
         for p in P:
-            gd.update(p, y=0.01 * rng.standard_normal())
+            gd.update_row(p, y=0.01 * rng.standard_normal())
             assert gd.beta[0::4].sum() == pytest.approx(robot.nominal_mass, abs=1e-9)
     # plain GD drifts
-    gd = est.PaperGD(robot.nominal_beta)
-    gd.update_many(P, y=np.full(len(P), 0.01))
+    gd = est.PaperGD(robot, robot.nominal_beta)
+    gd.update_rows(P, y=np.full(len(P), 0.01))
     assert abs(gd.beta[0::4].sum() - robot.nominal_mass) > 1e-3
     # MAP keeps it through any number of updates, EIV rows included
-    m = est.make_estimator('map-online', robot.nominal_beta, robot=robot)
+    m = est.make_estimator('map-online', robot, robot.nominal_beta)
     for qb, jt in zip(q, j):
-        m.update_pose(robot, qb, jt)
+        m.update(qb, jt)
     assert np.abs(m.constraint_residual()).max() < 1e-9
 
 
@@ -94,7 +94,7 @@ def test_map_batch_equals_online(robot, model):
     rows, y, var, prior, A, b, beta0 = _problem(robot, model=model)
     assert np.any(var < 0) == (model == 'eiv')    # the errors-in-variables rows remove information
     online = est.MAPEstimator(beta0, prior, A=A, b=b)
-    online.update_many(rows, y, var)
+    online.update_rows(rows, y, var)
     beta_b, cov_b = est.map_batch(beta0, prior, rows, y, var, A, b)
     scale = np.abs(beta_b).max()
     assert np.abs(online.beta - beta_b).max() < 1e-9 * scale
@@ -111,17 +111,17 @@ def test_map_online_pose_updates_equal_the_batch(robot):
     m = est.MAPEstimator(beta0, prior, A=A, b=b)
     fixed = est.MAPOnline(robot, beta0, prior, noise, A, b, relinearize_tol=None)
     for qb, jt in zip(q, j):
-        m.update_pose(robot, qb, jt, noise)
-        fixed.update_pose(robot, qb, jt)
+        m.update_rows(*est.balanced_pose_rows(robot, [qb], jt[None], m.prior_mean, noise))
+        fixed.update(qb, jt)
     rows, y, var = est.balanced_pose_rows(robot, q, j, m.prior_mean, noise)
     beta_b, cov_b = est.map_batch(beta0, prior, rows, y, var, A, b)
     for e in (m, fixed):
         assert np.abs(e.beta - beta_b).max() < 1e-9 * np.abs(beta_b).max()
         assert np.abs(e.covariance - cov_b).max() < 1e-9 * np.abs(cov_b).max()
     # re-linearising online estimator: finalize() == batch Gauss-Newton
-    online = est.make_estimator('map-online', beta0, robot=robot, noise=noise)
+    online = est.make_estimator('map-online', robot, beta0, noise=noise)
     for qb, jt in zip(q, j):
-        online.update_pose(robot, qb, jt)
+        online.update(qb, jt)
     online.finalize()
     beta_gn, cov_gn, _ = est.map_gauss_newton(robot, q, j, beta0, prior, noise, A, b)
     assert np.abs(online.beta - beta_gn).max() < 1e-8 * np.abs(beta_gn).max()
@@ -205,17 +205,6 @@ def test_physical_consistency_flags_the_authors_learned_beta(robot, hardware):
     assert 'lgPlate1: mass' in text and 'not positive' in text
     assert 'LWheel: CoM off the axle' in text
     assert 'total mass 157.1' in text
-
-
-def test_make_estimator_by_name(robot):
-    for name in est.ESTIMATORS:
-        e = est.make_estimator(name, robot.nominal_beta, robot=robot)
-        assert e.name == name
-        e.update(phi(robot, [-0.5], np.zeros((1, 16)))[0])
-        assert e.beta.shape == (robot.n_beta,)
-        assert (e.covariance is None) == name.startswith('paper')
-    with pytest.raises(ValueError):
-        est.make_estimator('nope', robot.nominal_beta, robot=robot)
 
 
 def test_map_constrained_enforces_the_bounds(robot):
