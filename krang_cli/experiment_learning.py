@@ -1,5 +1,5 @@
 """krang experiment learning (mounted by krang_cli/experiment.py; standalone: experiment-learning): the paper's
-simulation redone, learning curves and the real data."""
+simulation redone, learning curves and the real data (krang_experiments.learning)."""
 import sys
 
 from .common import print_json
@@ -42,12 +42,13 @@ def register_experiment(experiment_subparsers):
 
 
 def run(args):
-    from krang_com_estimator import experiments
+    from krang_experiments import learning     # at run time: it loads the pose pool and matplotlib
 
-    res = experiments.run(args.out, data_dir=args.data, n_pool=args.pool, n_betas=args.n_betas, n_runs=args.runs,
-                          n_test=args.test, sigma_deg=args.sigma_deg, seed=args.seed,
-                          progress=(lambda m: print(m, file=sys.stderr)) if args.json else print)
-    head = headline(res)
+    params = learning.Params(data_dir=args.data, n_pool=args.pool, n_betas=args.n_betas, n_runs=args.runs,
+                             n_test=args.test, sigma_deg=args.sigma_deg, seed=args.seed)
+    result = learning.run(params, progress=(lambda m: print(m, file=sys.stderr)) if args.json else print)
+    learning.report(result, args.out)
+    head = headline(result['results'])
     if not args.json:
         for k, v in head.items():
             print(f'{k}: {v}')

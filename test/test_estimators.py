@@ -150,7 +150,7 @@ def test_map_recovers_a_hidden_com_from_noisy_balanced_poses(robot):
     """Hidden physical beta (CoMs +-5 cm, masses +-15 %), start at the URDF beta; 60 balanced poses with
     0.1 deg IMU noise. The horizontal CoM error at held-out poses (at their true balance pitch) must fall
     below 1 mm from a >= 2 cm start."""
-    from krang_com_estimator.experiments import HeldOut, physical_truths
+    from krang_experiments.learning import HeldOut, physical_truths
     from krang_pose_server.pool import PosePool
 
     pool = PosePool(robot)

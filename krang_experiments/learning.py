@@ -1,4 +1,5 @@
 """Learning experiments: the paper's simulation redone, learning curves, and the real hardware data.
+`run(Params(...)) -> result`, `report(result, out_dir)`.
 
 Three parts (`krang experiment learning`, docs/learning.md):
 1. Algorithm 1 at the paper's scale: a pool of 20,000 safe balanced poses, 500 erroneous betas
@@ -30,15 +31,20 @@ Three parts (`krang experiment learning`, docs/learning.md):
 import json
 import math
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from krang_com_estimator import estimators as est
 from krang_model.com import balance_pitch, base_regressor, phi as phi_fn
 from krang_model.poses import load_poses
 from krang_model.robot import KRANG_POSE_COLUMNS, load_krang
+from krang_pose_server.erroneous_betas import authors_betas
+from krang_pose_server.filtering import filter_poses
+from krang_pose_server.pool import PosePool
 
-from . import estimators as est
+from .common import subplots
 
 CHECKPOINTS = (0, 1, 2, 3, 5, 7, 10, 12, 15, 20, 25, 30, 35, 40, 45, 50, 60, 70, 80, 100, 150, 200, 300, 400, 500,
                600, 800,
@@ -120,7 +126,12 @@ def pool_wide_comparison(Phi, betas, filtered, random_order, eta=300.0, step=250
 
 # ------------------------------------------------------------------ part 2: simulated learning
 class HeldOut:
-    """Held-out poses (joints) for scoring estimates against truths."""
+    """Held-out poses (joints) for scoring estimates against truths.
+
+    Not krang_model.com.com_error: that scores one beta against one truth by the paper's x_com
+    (divided by the nominal mass); this scores K estimates against K truths at once (one matrix
+    product per pose set, the learning curves' hot path), divides by each beta's own mass and also
+    gives the sagittal position error."""
 
     def __init__(self, robot, joints):
         self.robot = robot
@@ -235,10 +246,6 @@ def learning_curves(robot=None, n_pool=20000, n_betas=500, n_runs=50, n_test=100
                     x_tol=2e-3, window=10, eta=300.0, n_random=5000, n_map=200, progress=print,
                     pool=None, filter_result=None):
     """Part 1 and 2. Returns a JSON-friendly dict (numbers) and the raw curves for plotting."""
-    from krang_pose_server.erroneous_betas import authors_betas
-    from krang_pose_server.filtering import filter_poses
-    from krang_pose_server.pool import PosePool
-
     robot = robot or load_krang()
     b0 = robot.nominal_beta
     rng = np.random.default_rng(seed)
@@ -337,9 +344,6 @@ def _first_below(curve, level):
 def authors_pool_check(robot=None, data_dir=None, n_betas=500, seed=0, x_tol=2e-3, window=10, eta=300.0):
     """Algorithm 1 on the authors' own 6003-pose pool, and the authors' 528 filtered poses replayed
     with GD on erroneous betas of the same recipe (each set's first pose used for the 2 cm rule)."""
-    from krang_pose_server.erroneous_betas import authors_betas
-    from krang_pose_server.filtering import filter_poses
-
     robot = robot or load_krang()
     data_dir = Path(data_dir)
     b0 = robot.nominal_beta
@@ -496,11 +500,7 @@ def _first_index_below(curve, level):
 
 # ------------------------------------------------------------------ plots and the report
 def plot_curves(curves, path):
-    import matplotlib
-    matplotlib.use('Agg')
-    import matplotlib.pyplot as plt
-
-    fig, axes = plt.subplots(2, 2, figsize=(12, 8.5), sharex=True)
+    fig, axes = subplots(2, 2, figsize=(12, 8.5), sharex=True)
     titles = {'paper': "paper's simulation (truth = URDF beta, start = authors' erroneous beta)",
               'physical': 'physical setting (truth = plausible perturbation, start = URDF beta)'}
     for col, setting in enumerate(('paper', 'physical')):
@@ -525,15 +525,10 @@ def plot_curves(curves, path):
     fig.suptitle('Learning curves, 0.1 deg IMU noise on q_base, mean over runs and 1000 held-out poses')
     fig.tight_layout()
     fig.savefig(path, dpi=110)
-    plt.close(fig)
 
 
 def plot_real(curve, path):
-    import matplotlib
-    matplotlib.use('Agg')
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(7, 4.5))
+    fig, ax = subplots(figsize=(7, 4.5))
     for name, c in curve.items():
         ax.plot(np.arange(len(c)), 100 * c, label=name)
     ax.axhline(0.46, color='gray', ls=':', label="authors' row 189, in-sample mean (0.46 cm)")
@@ -546,27 +541,48 @@ def plot_real(curve, path):
     ax.set_title('Real Krang data: 10-fold CV on the 189 hand-balanced records')
     fig.tight_layout()
     fig.savefig(path, dpi=110)
-    plt.close(fig)
 
 
-def run(out_dir, data_dir=None, parts=('filter', 'curves', 'real'), progress=print, **kw):
-    """Everything: writes out_dir/learning_results.json, learning_curves.png, real_data.png and report.md."""
+@dataclass
+class Params:
+    data_dir: str | None = None     # the real-data kit: the hardware part and the authors' pool check
+    parts: tuple = ('filter', 'curves', 'real')
+    n_pool: int = 20000
+    n_betas: int = 500
+    n_runs: int = 50
+    n_test: int = 1000
+    sigma_deg: float = 0.1
+    seed: int = 0
+
+
+def run(params: Params, progress=print):
+    """Everything the parts ask for: {'results' (JSON-friendly), 'curves', 'real_curve'}."""
+    robot = load_krang()
+    results, curves, real_curve = {}, None, None
+    if 'filter' in params.parts or 'curves' in params.parts:
+        res, curves = learning_curves(robot, n_pool=params.n_pool, n_betas=params.n_betas,
+                                      n_runs=params.n_runs, n_test=params.n_test, seed=params.seed,
+                                      sigma_deg=params.sigma_deg, progress=progress)
+        results.update(res)
+    if params.data_dir is not None and 'real' in params.parts:
+        results['authors_pool'] = authors_pool_check(robot, params.data_dir, seed=params.seed)
+        progress(f'authors\' pool check: {results["authors_pool"]}')
+        real, raw = real_data(robot, params.data_dir, progress=progress)
+        results['real_data'] = real
+        real_curve = raw['curve']
+    return {'results': results, 'curves': curves, 'real_curve': real_curve}
+
+
+def report(result, out_dir):
+    """Writes out_dir/learning_results.json, learning_curves.png and real_data.png (the parts run)."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    robot = load_krang()
-    results = {}
-    if 'filter' in parts or 'curves' in parts:
-        res, curves = learning_curves(robot, progress=progress, **kw)
-        results.update(res)
-        plot_curves(curves, out_dir / 'learning_curves.png')
-    if data_dir is not None and 'real' in parts:
-        results['authors_pool'] = authors_pool_check(robot, data_dir, seed=kw.get('seed', 0))
-        progress(f'authors\' pool check: {results["authors_pool"]}')
-        real, raw = real_data(robot, data_dir, progress=progress)
-        results['real_data'] = real
-        plot_real(raw['curve'], out_dir / 'real_data.png')
-    (out_dir / 'learning_results.json').write_text(json.dumps(results, indent=1, default=_jsonable))
-    return results
+    if result['curves'] is not None:
+        plot_curves(result['curves'], out_dir / 'learning_curves.png')
+    if result['real_curve'] is not None:
+        plot_real(result['real_curve'], out_dir / 'real_data.png')
+    (out_dir / 'learning_results.json').write_text(json.dumps(result['results'], indent=1,
+                                                              default=_jsonable))
 
 
 def _jsonable(o):
