@@ -1,116 +1,58 @@
-"""mcap_recorder: record every topic discovered at run time into one MCAP bag (our `ros2 bag record -a`).
+"""mcap_recorder: record every topic discovered at run time into one MCAP bag
+(our `ros2 bag record -a`).
 
 Parameters:
-  output         bag file, or a directory (trailing '/' or existing) to put krang_<timestamp>.mcap in;
+  output         bag file, or a directory (trailing '/' or existing) to put krang_<timestamp>.mcap
+  in;
                  default ./krang_<timestamp>.mcap. An existing file is never overwritten.
   topics         include list of topic names or shell globs (empty = every topic)
   exclude        topic names or globs never recorded
   include_hidden record hidden topics (a name token starting with '_') too
   poll_period_s  how often the graph is polled for new topics and the file is flushed
   queue_depth    minimum subscription depth (keep_last), raised to the publishers' depth
-  chunk_size     bytes per MCAP chunk: the most a SIGKILL can lose (`krang bag recover` keeps the rest)
-  compression    zstd | lz4 | none
+  chunk_size     bytes per MCAP chunk: the most a SIGKILL can lose (`krang bag recover` keeps the
+  rest) compression    zstd | lz4 | none
 
-The subscription QoS follows rosbag2's rule: reliable only if every publisher offers reliable,
-transient_local only if every publisher does; otherwise the subscription would not match some of them.
-A topic is subscribed once it has a publisher, so the offers are known.
+A topic is subscribed once it has a publisher, so the offers are known; the QoS request and the
+topic selection are the plain functions of krang_bag/recording.py.
 
 SIGINT and SIGTERM only set a flag: the writer is never interrupted half-way through a message. The
 loop then drains the messages already received and finishes the bag (summary and statistics).
-The decisions (QoS, topic selection, output name) are plain functions below, tested without ROS.
 """
 from __future__ import annotations
 
-import fnmatch
 import importlib
 import signal
 import sys
 import threading
 import time
-from dataclasses import dataclass
 from datetime import datetime
-from pathlib import Path
-from typing import Iterable, Sequence
+
+import rclpy
+from rcl_interfaces.msg import ParameterDescriptor
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.qos import (DurabilityPolicy, HistoryPolicy, LivelinessPolicy, QoSProfile,
+                       ReliabilityPolicy)
+from rclpy.signals import SignalHandlerOptions
 
 from krang_bag import schemas
+from krang_bag.recording import (
+    RequestQos,
+    choose_request_qos,
+    plan_new_topics,
+    resolve_output_path,
+)
 from krang_bag.writer import DEFAULT_CHUNK_SIZE, BagWriter, OfferedQos
 
 NODE_NAME = 'mcap_recorder'
 
 
-# ---------------------------------------------------------------- plain decisions (no ROS calls)
-
-@dataclass(frozen=True)
-class RequestQos:
-    """What the recorder requests: compatible with every current publisher of a topic."""
-
-    reliable: bool
-    transient_local: bool
-    depth: int
-
-
-def choose_request_qos(offers: Sequence[OfferedQos], min_depth: int = 100) -> RequestQos:
-    """rosbag2's adapt_request_to_offers: the strongest request that still matches all offers.
-
-    A reliable request does not match a best-effort publisher, and a transient_local request does not
-    match a volatile one, so each is requested only when every publisher offers it.
-    """
-    if not offers:   # rosbag2's default request: reliable, volatile
-        return RequestQos(True, False, min_depth)
-    reliable = all(qos.reliability == 'reliable' for qos in offers)
-    transient_local = all(qos.durability == 'transient_local' for qos in offers)
-    depth = max([min_depth, *(qos.depth for qos in offers if qos.history == 'keep_last')])
-    return RequestQos(reliable, transient_local, depth)
-
-
-def is_hidden(topic: str) -> bool:
-    return any(token.startswith('_') for token in topic.split('/'))
-
-
-def topic_selected(topic: str, include: Iterable[str] = (), exclude: Iterable[str] = (),
-                   include_hidden: bool = False) -> bool:
-    """Include list empty = everything; entries are exact names or fnmatch globs ('/imu/*')."""
-    include, exclude = list(include), list(exclude)
-    if not include_hidden and is_hidden(topic) and topic not in include:
-        return False
-    if include and not any(fnmatch.fnmatchcase(topic, pattern) for pattern in include):
-        return False
-    return not any(fnmatch.fnmatchcase(topic, pattern) for pattern in exclude)
-
-
-def plan_new_topics(discovered: Iterable[tuple[str, Sequence[str]]], recorded: Iterable[str],
-                    include=(), exclude=(), include_hidden: bool = False):
-    """Split the discovered graph into ([(topic, type)] to subscribe now, {topic: why skipped})."""
-    recorded = set(recorded)
-    to_add, skipped = [], {}
-    for topic, types in sorted(discovered):
-        if topic in recorded or not topic_selected(topic, include, exclude, include_hidden):
-            continue
-        if len(types) != 1:
-            skipped[topic] = f'{len(types)} types on one topic ({", ".join(types)})'
-            continue
-        to_add.append((topic, schemas.normalize_type_name(types[0])))
-    return to_add, skipped
-
-
-def default_bag_name(now: datetime) -> str:
-    return now.strftime('krang_%Y_%m_%d-%H_%M_%S.mcap')
-
-
-def resolve_output_path(output: str, now: datetime) -> Path:
-    """The bag file for the `output` parameter: empty -> cwd, a directory -> inside it, else as given."""
-    if not output:
-        return Path(default_bag_name(now))
-    path = Path(output).expanduser()
-    if output.endswith(('/', '\\')) or path.is_dir():
-        return path / default_bag_name(now)
-    return path
-
+# ---------------------------------------------------------------- rclpy conversions
 
 def offered_qos_from_profile(profile) -> OfferedQos:
     """OfferedQos from an rclpy QoSProfile as returned in publisher endpoint info."""
-    from rclpy.qos import DurabilityPolicy, HistoryPolicy, LivelinessPolicy, ReliabilityPolicy
-
     def name(policy_enum, value) -> str:
         try:
             return policy_enum(int(value)).name.lower()
@@ -127,12 +69,17 @@ def offered_qos_from_profile(profile) -> OfferedQos:
         avoid_ros_namespace_conventions=bool(profile.avoid_ros_namespace_conventions))
 
 
-def to_rclpy_qos(request: RequestQos):
-    from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+def to_rclpy_qos(request: RequestQos) -> QoSProfile:
     return QoSProfile(
-        history=HistoryPolicy.KEEP_LAST, depth=request.depth,
-        reliability=ReliabilityPolicy.RELIABLE if request.reliable else ReliabilityPolicy.BEST_EFFORT,
-        durability=DurabilityPolicy.TRANSIENT_LOCAL if request.transient_local else DurabilityPolicy.VOLATILE)
+        history=HistoryPolicy.KEEP_LAST,
+        depth=request.depth,
+        reliability=ReliabilityPolicy.RELIABLE
+        if request.reliable
+        else ReliabilityPolicy.BEST_EFFORT,
+        durability=DurabilityPolicy.TRANSIENT_LOCAL
+        if request.transient_local
+        else DurabilityPolicy.VOLATILE,
+    )
 
 
 def message_class(type_name: str):
@@ -142,110 +89,112 @@ def message_class(type_name: str):
 
 # ---------------------------------------------------------------- thin ROS shell
 
-def _make_node_class():
-    from rcl_interfaces.msg import ParameterDescriptor
-    from rclpy.node import Node
-    from rclpy.parameter import Parameter
+class McapRecorder(Node):
+    """Subscribes (raw CDR) to each selected topic as it appears and appends it to the bag."""
 
-    class McapRecorder(Node):
-        """Subscribes (raw CDR) to each selected topic as it appears and appends it to the bag."""
+    def __init__(self, **kwargs):
+        super().__init__(NODE_NAME, **kwargs)
 
-        def __init__(self, **kwargs):
-            super().__init__(NODE_NAME, **kwargs)
+        def param(name, default, description):
+            return self.declare_parameter(name, default,
+                                          ParameterDescriptor(description=description)).value
 
-            def param(name, default, description):
-                return self.declare_parameter(name, default, ParameterDescriptor(description=description)).value
+        output = param('output', '', 'bag file, or directory for krang_<timestamp>.mcap')
+        string_list = Parameter.Type.STRING_ARRAY
+        self.include = list(param('topics', string_list,
+                                  'topics/globs to record; empty = all') or [])
+        self.exclude = list(param('exclude', string_list, 'topics/globs never recorded') or [])
+        self.include_hidden = bool(param('include_hidden', False, 'also record hidden topics'))
+        poll_period_s = float(param('poll_period_s', 0.5,
+                                    'graph polling and file flush period [s]'))
+        self.queue_depth = int(param('queue_depth', 100, 'minimum subscription keep_last depth'))
+        chunk_size = int(param('chunk_size', DEFAULT_CHUNK_SIZE, 'bytes per MCAP chunk'))
+        compression = str(param('compression', 'zstd', 'zstd | lz4 | none'))
 
-            output = param('output', '', 'bag file, or directory for krang_<timestamp>.mcap')
-            string_list = Parameter.Type.STRING_ARRAY
-            self.include = list(param('topics', string_list, 'topics/globs to record; empty = all') or [])
-            self.exclude = list(param('exclude', string_list, 'topics/globs never recorded') or [])
-            self.include_hidden = bool(param('include_hidden', False, 'also record hidden topics'))
-            poll_period_s = float(param('poll_period_s', 0.5, 'graph polling and file flush period [s]'))
-            self.queue_depth = int(param('queue_depth', 100, 'minimum subscription keep_last depth'))
-            chunk_size = int(param('chunk_size', DEFAULT_CHUNK_SIZE, 'bytes per MCAP chunk'))
-            compression = str(param('compression', 'zstd', 'zstd | lz4 | none'))
-
-            self.bag = BagWriter(resolve_output_path(output, datetime.now()),
-                                 chunk_size=chunk_size, compression=compression)
-            self._subscriptions_by_topic = {}
-            self._reported_skips: dict[str, str] = {}
-            self.get_logger().info(
-                f'recording to {self.bag.path.resolve()} (topics: {self.include or "all"}, '
-                f'exclude: {self.exclude or "none"}, chunk {chunk_size} B, {compression})')
-            try:
-                self.poll_topics()
-                self.create_timer(poll_period_s, self._on_poll_timer)
-            except BaseException:
-                self.bag.close()   # main() never sees this node: leave a finished (empty) bag behind
-                raise
-
-        @property
-        def messages_written(self) -> int:
-            return sum(self.bag.message_counts.values())
-
-        def _on_poll_timer(self):
+        self.bag = BagWriter(resolve_output_path(output, datetime.now()),
+                             chunk_size=chunk_size, compression=compression)
+        self._subscriptions_by_topic = {}
+        self._reported_skips: dict[str, str] = {}
+        self.get_logger().info(
+            f'recording to {self.bag.path.resolve()} (topics: {self.include or "all"}, exclude: '
+            f'{self.exclude or "none"}, chunk {chunk_size} B, {compression})')
+        try:
             self.poll_topics()
-            self.bag.flush()
+            self.create_timer(poll_period_s, self._on_poll_timer)
+        except BaseException:
+            self.bag.close()   # main() never sees this node: leave a finished (empty) bag behind
+            raise
 
-        def poll_topics(self):
-            to_add, skipped = plan_new_topics(self.get_topic_names_and_types(), self._subscriptions_by_topic,
-                                              self.include, self.exclude, self.include_hidden)
-            for topic, reason in skipped.items():
-                self._skip_once(topic, reason)
-            for topic, type_name in to_add:
-                publishers = self.get_publishers_info_by_topic(topic)
-                if publishers:   # else wait for one, so that its QoS offer is known
-                    self._subscribe(topic, type_name, publishers)
+    @property
+    def messages_written(self) -> int:
+        return sum(self.bag.message_counts.values())
 
-        def _skip_once(self, topic, reason):
-            if self._reported_skips.get(topic) != reason:
-                self._reported_skips[topic] = reason
-                self.get_logger().warning(f'not recording {topic}: {reason}')
+    def _on_poll_timer(self):
+        self.poll_topics()
+        self.bag.flush()
 
-        def _subscribe(self, topic, type_name, publishers):
-            try:
-                cls = message_class(type_name)
-                definition = schemas.message_definition(type_name)
-                installed_hash = schemas.type_hash(type_name)
-            except (ImportError, AttributeError, LookupError, ValueError, OSError) as err:
-                self._skip_once(topic, f'type {type_name} is not installed here ({err})')
-                return
-            offers = [offered_qos_from_profile(info.qos_profile) for info in publishers]
-            offered_hashes = {str(info.topic_type_hash) for info in publishers if info.topic_type_hash.version == 1}
-            if offered_hashes - {installed_hash}:
-                self.get_logger().warning(
-                    f'{topic}: publishers use {type_name} with hash(es) {sorted(offered_hashes)}, but the '
-                    f'installed definition has {installed_hash}; recording it with the installed schema')
-            type_hash = offered_hashes.pop() if len(offered_hashes) == 1 else installed_hash
-            request = choose_request_qos(offers, self.queue_depth)
-            self.bag.add_topic(topic, type_name, offered_qos=offers, type_hash=type_hash, definition=definition)
-            self._subscriptions_by_topic[topic] = self.create_subscription(
-                cls, topic, self._writer_for(topic), to_rclpy_qos(request), raw=True)
-            self.get_logger().info(
-                f'recording {topic} [{type_name}] from {len(publishers)} publisher(s), '
-                f'{"reliable" if request.reliable else "best_effort"}, '
-                f'{"transient_local" if request.transient_local else "volatile"}, depth {request.depth}')
+    def poll_topics(self):
+        to_add, skipped = plan_new_topics(self.get_topic_names_and_types(),
+                                          self._subscriptions_by_topic,
+                                          self.include, self.exclude, self.include_hidden)
+        for topic, reason in skipped.items():
+            self._skip_once(topic, reason)
+        for topic, type_name in to_add:
+            publishers = self.get_publishers_info_by_topic(topic)
+            if publishers:   # else wait for one, so that its QoS offer is known
+                self._subscribe(topic, type_name, publishers)
 
-        def _writer_for(self, topic):
-            write, clock = self.bag.write, self.get_clock()
+    def _skip_once(self, topic, reason):
+        if self._reported_skips.get(topic) != reason:
+            self._reported_skips[topic] = reason
+            self.get_logger().warning(f'not recording {topic}: {reason}')
 
-            def on_message(data: bytes, info: dict):
-                write(topic, data, clock.now().nanoseconds, info.get('source_timestamp') or None,
-                      info.get('publication_sequence_number'))
-            return on_message
+    def _subscribe(self, topic, type_name, publishers):
+        try:
+            cls = message_class(type_name)
+            definition = schemas.message_definition(type_name)
+            installed_hash = schemas.type_hash(type_name)
+        except (ImportError, AttributeError, LookupError, ValueError, OSError) as err:
+            self._skip_once(topic, f'type {type_name} is not installed here ({err})')
+            return
+        offers = [offered_qos_from_profile(info.qos_profile) for info in publishers]
+        offered_hashes = {
+            str(info.topic_type_hash) for info in publishers if info.topic_type_hash.version == 1
+        }
+        if offered_hashes - {installed_hash}:
+            self.get_logger().warning(
+                f'{topic}: publishers use {type_name} with hash(es) {sorted(offered_hashes)}, but '
+                f'the installed definition has {installed_hash}; recording it with the installed '
+                'schema')
+        type_hash = offered_hashes.pop() if len(offered_hashes) == 1 else installed_hash
+        request = choose_request_qos(offers, self.queue_depth)
+        self.bag.add_topic(topic, type_name, offered_qos=offers, type_hash=type_hash,
+                           definition=definition)
+        self._subscriptions_by_topic[topic] = self.create_subscription(
+            cls, topic, self._writer_for(topic), to_rclpy_qos(request), raw=True)
+        self.get_logger().info(
+            f'recording {topic} [{type_name}] from {len(publishers)} publisher(s), '
+            f'{"reliable" if request.reliable else "best_effort"}, '
+            f'{"transient_local" if request.transient_local else "volatile"}, depth '
+            f'{request.depth}')
 
-        def close(self):
-            """Finish the bag and report what it holds. Safe to call twice."""
-            if self.bag.closed:
-                return
-            counts = self.bag.message_counts
-            self.bag.close()
-            lines = ''.join(f'\n  {topic}: {count}' for topic, count in sorted(counts.items()))
-            self.get_logger().info(f'finished {self.bag.path} with {sum(counts.values())} messages on '
-                                   f'{len(counts)} topics:{lines}')
+    def _writer_for(self, topic):
+        write, clock = self.bag.write, self.get_clock()
 
-    return McapRecorder
+        def on_message(data: bytes, info: dict):
+            write(topic, data, clock.now().nanoseconds, info.get('source_timestamp') or None,
+                  info.get('publication_sequence_number'))
+        return on_message
+
+    def close(self):
+        """Finish the bag and report what it holds. Safe to call twice."""
+        if self.bag.closed:
+            return
+        counts = self.bag.message_counts
+        self.bag.close()
+        lines = ''.join(f'\n  {topic}: {count}' for topic, count in sorted(counts.items()))
+        self.get_logger().info(f'finished {self.bag.path} with {sum(counts.values())} messages on '
+                               f'{len(counts)} topics:{lines}')
 
 
 def _install_stop_handlers() -> threading.Event:
@@ -274,18 +223,15 @@ def _drain(executor, node, max_seconds: float = 1.0) -> None:
 
 
 def main(args=None) -> int:
-    import rclpy
-    from rclpy.executors import SingleThreadedExecutor
-    from rclpy.signals import SignalHandlerOptions
-
     stop = _install_stop_handlers()
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     node = None
     try:
         try:
-            node = _make_node_class()()
+            node = McapRecorder()
         except FileExistsError as err:
-            print(f'mcap_recorder: refusing to overwrite an existing bag: {err.filename}', file=sys.stderr)
+            print(f'mcap_recorder: refusing to overwrite an existing bag: {err.filename}',
+                  file=sys.stderr)
             return 1
         executor = SingleThreadedExecutor()
         executor.add_node(node)

@@ -1,8 +1,9 @@
 """Read MCAP bags back into typed messages, plus the array helpers the analysis tools use.
 
-Messages become the same rclpy classes the nodes use (rclpy deserialization) when the type is installed
-and its hash matches the one recorded; otherwise they are decoded from the schema embedded in the bag
-by mcap_ros2, so old or foreign bags stay readable. Both kinds have the same field names.
+Messages become the same rclpy classes the nodes use (rclpy deserialization) when the type is
+installed and its hash matches the one recorded; otherwise they are decoded from the schema
+embedded in the bag by mcap_ros2, so old or foreign bags stay readable. Both kinds have the same
+field names.
 
 Times are MCAP log times: when the recorder received the message, in ns of the recorder's clock
 (sim time if it ran with use_sim_time). The helpers return them in seconds.
@@ -21,6 +22,7 @@ from mcap.exceptions import McapError
 from mcap.reader import make_reader
 
 from krang_bag import schemas
+from krang_ros.names import JOINT_STATES
 
 RECOVER_HINT = 'it was probably never finished (recorder killed?); try `krang bag recover {path}`'
 
@@ -65,7 +67,8 @@ class BagInfo:
 
 
 class JointStateSeries(NamedTuple):
-    """JointState samples: t (N,) [s]; names (J,); positions, velocities (N, J), NaN where absent."""
+    """JointState samples: t (N,) [s]; names (J,); positions, velocities (N, J), NaN where
+    absent."""
 
     t: np.ndarray
     names: list[str]
@@ -93,12 +96,15 @@ def _open_bag(path):
             reader = make_reader(stream)
             header = reader.get_header()
         except (McapError, ValueError, EOFError) as err:
-            raise BagCorruptError(f'{path} is not an MCAP file ({type(err).__name__}: {err})') from None
+            raise BagCorruptError(
+                f'{path} is not an MCAP file ({type(err).__name__}: {err})'
+            ) from None
         try:
             summary = reader.get_summary()
         except Exception as err:  # mcap raises struct/EOF/magic errors on a torn tail
             raise BagCorruptError(f'{path} has no valid footer/summary: '
-                                  + RECOVER_HINT.format(path=path) + f' ({type(err).__name__}: {err})') from None
+                                  + RECOVER_HINT.format(path=path) + f' ({type(err).__name__}: '
+                                                                     f'{err})') from None
         yield reader, header, summary
 
 
@@ -121,7 +127,8 @@ class _Decoders:
     @staticmethod
     def _make(schema, channel) -> Callable[[bytes], object]:
         if schema is None or channel.message_encoding != 'cdr':
-            raise BagError(f'{channel.topic}: cannot decode {channel.message_encoding!r} messages without a schema')
+            raise BagError(f'{channel.topic}: cannot decode {channel.message_encoding!r} messages '
+                           'without a schema')
         rclpy_class = _installed_class(schema.name, _channel_type_hash(channel))
         if rclpy_class is not None:
             from rclpy.serialization import deserialize_message
@@ -158,7 +165,8 @@ def _iter_records(path, topics: Iterable[str] | str | None):
             raise BagCorruptError(f'{path}: damaged data ({type(err).__name__}: {err})') from None
 
 
-def iter_messages(path, topics: Iterable[str] | str | None = None) -> Iterator[tuple[str, int, object]]:
+def iter_messages(path, topics: Iterable[str] | str | None = None) -> Iterator[tuple[str, int,
+                                                                                     object]]:
     """(topic, log_time_ns, message) for every message, in log-time order; `topics` filters."""
     decoders = _Decoders()
     for schema, channel, message in _iter_records(path, topics):
@@ -167,20 +175,26 @@ def iter_messages(path, topics: Iterable[str] | str | None = None) -> Iterator[t
         except BagError:
             raise
         except Exception as err:
-            raise BagCorruptError(f'{path}: cannot decode a {schema.name if schema else "?"} message on '
-                                  f'{channel.topic} at {message.log_time} ns ({type(err).__name__}: {err})') from None
+            raise BagCorruptError(f'{path}: cannot decode a {schema.name if schema else "?"} '
+                                  f'message on {channel.topic} at {message.log_time} ns '
+                                  f'({type(err).__name__}: {err})') from None
         yield channel.topic, message.log_time, msg
 
 
 def bag_info(path) -> BagInfo:
-    """Topics, types, counts, QoS and time range, from the summary (scans the file if it has none)."""
+    """Topics, types, counts, QoS and time range, from the summary (scans the file if it has
+    none)."""
     path = Path(path)
     with _open_bag(path) as (reader, header, summary):
         if summary is not None and summary.statistics is not None:
             stats = summary.statistics
             channels, schemas_by_id = summary.channels, summary.schemas
             counts_by_channel = dict(stats.channel_message_counts)
-            total, start, end = stats.message_count, stats.message_start_time, stats.message_end_time
+            total, start, end = (
+                stats.message_count,
+                stats.message_start_time,
+                stats.message_end_time,
+            )
             chunk_count = stats.chunk_count
             compression = {index.compression or 'none' for index in summary.chunk_indexes}
         else:  # valid but summary-less file (other writers): count by reading it through
@@ -201,13 +215,16 @@ def bag_info(path) -> BagInfo:
             if previous is not None:  # several channels on one topic (e.g. merged bags): sum them
                 count += previous.message_count
             try:
-                qos = yaml.safe_load(channel.metadata.get('offered_qos_profiles', '') or '[]') or []
+                qos = yaml.safe_load(channel.metadata.get('offered_qos_profiles',
+                                                          '') or '[]') or []
             except yaml.YAMLError:
                 qos = []
             topics[channel.topic] = TopicInfo(
-                channel.topic, schema.name if schema else '', count, qos, _channel_type_hash(channel))
+                channel.topic, schema.name if schema else '', count, qos,
+                _channel_type_hash(channel))
         return BagInfo(
-            path=path, size_bytes=path.stat().st_size, profile=header.profile, library=header.library,
+            path=path, size_bytes=path.stat().st_size, profile=header.profile,
+            library=header.library,
             message_count=total, start_ns=start, end_ns=end, chunk_count=chunk_count,
             compression=tuple(sorted(compression)), topics=dict(sorted(topics.items())))
 
@@ -220,12 +237,14 @@ def message_counts(path) -> dict[str, int]:
 def _require_topic(path, topic: str, type_names: tuple[str, ...]) -> None:
     topics = bag_info(path).topics
     if topic not in topics:
-        raise BagError(f'topic {topic} is not in {path}; it has: {", ".join(topics) or "no topics"}')
+        raise BagError(f'topic {topic} is not in {path}; it has: '
+                       f'{", ".join(topics) or "no topics"}')
     if topics[topic].type_name not in type_names:
-        raise BagError(f'{topic} in {path} is {topics[topic].type_name}, expected {" or ".join(type_names)}')
+        raise BagError(f'{topic} in {path} is {topics[topic].type_name}, expected '
+                       f'{" or ".join(type_names)}')
 
 
-def read_joint_states(path, topic: str = '/joint_states') -> JointStateSeries:
+def read_joint_states(path, topic: str = JOINT_STATES) -> JointStateSeries:
     """All JointState messages of a topic as arrays, joints in first-seen order."""
     _require_topic(path, topic, ('sensor_msgs/msg/JointState',))
     times, samples, column = [], [], {}

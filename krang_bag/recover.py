@@ -3,8 +3,8 @@
 Such a file has no summary or footer, so seeking readers and rosbags refuse it. Its data section is
 still a valid stream of records up to the point where writing stopped: every completed chunk holds
 schemas, channels and messages that can be read sequentially. We stream through it with
-`mcap.stream_reader.StreamReader`, keep every chunk that is complete and passes its CRC, stop at the
-torn tail, and write the contents to a new, finished bag (summary, statistics, indexes).
+`mcap.stream_reader.StreamReader`, keep every chunk that is complete and passes its CRC, stop at
+the torn tail, and write the contents to a new, finished bag (summary, statistics, indexes).
 Schemas, channel metadata (QoS, type hash) and message timestamps are copied unchanged.
 """
 from __future__ import annotations
@@ -39,8 +39,8 @@ class RecoveryReport:
         else:
             tail = f'tail truncated ({self.stop_reason}); the unfinished last chunk is lost'
         skipped = f', {self.bad_chunks} damaged chunk(s) skipped' if self.bad_chunks else ''
-        return (f'recovered {self.messages} messages on {len(self.topics)} topics from {self.chunks} '
-                f'chunk(s) of {self.source} into {self.output}; {tail}{skipped}')
+        return (f'recovered {self.messages} messages on {len(self.topics)} topics from '
+                f'{self.chunks} chunk(s) of {self.source} into {self.output}; {tail}{skipped}')
 
 
 def default_output(source) -> Path:
@@ -83,7 +83,8 @@ class _Copier:
             self.new_channel_ids[channel.id] = self.writer.register_channel(
                 topic=channel.topic, message_encoding=channel.message_encoding,
                 schema_id=schema_id, metadata=dict(channel.metadata))
-        self.writer.add_message(channel_id=self.new_channel_ids[channel.id], log_time=message.log_time,
+        self.writer.add_message(channel_id=self.new_channel_ids[channel.id],
+                                log_time=message.log_time,
                                 data=message.data, publish_time=message.publish_time,
                                 sequence=message.sequence)
         self.report.messages += 1
@@ -104,11 +105,13 @@ def recover(source, output=None, *, overwrite: bool = False) -> RecoveryReport:
         raise ValueError('the recovered bag must not overwrite its source')
     report = RecoveryReport(source=source, output=output)
     with open(source, 'rb') as stream:
-        records = StreamReader(stream, emit_chunks=True, record_size_limit=source.stat().st_size).records
+        records = StreamReader(stream, emit_chunks=True,
+                               record_size_limit=source.stat().st_size).records
         header = _first_header(records, source)
         output.parent.mkdir(parents=True, exist_ok=True)
         with open(output, 'wb' if overwrite else 'xb') as out:
-            writer = start_mcap_writer(out, library=f'{LIBRARY} recover (from {header.library or "?"})')
+            writer = start_mcap_writer(out,
+                                       library=f'{LIBRARY} recover (from {header.library or "?"})')
             copier = _Copier(writer, report)
             try:
                 _copy_records(records, copier, report, stream)
@@ -121,14 +124,17 @@ def _first_header(records, source: Path) -> Header:
     try:
         header = next(records)
     except Exception as err:
-        raise BagCorruptError(f'{source} is not an MCAP file ({type(err).__name__}: {err})') from None
+        raise BagCorruptError(
+            f'{source} is not an MCAP file ({type(err).__name__}: {err})'
+        ) from None
     if not isinstance(header, Header):
         raise BagCorruptError(f'{source} does not start with an MCAP header')
     return header
 
 
 def _copy_records(records, copier: _Copier, report: RecoveryReport, stream) -> None:
-    """Copy records until the footer or the torn tail; `records` stops being usable after an error."""
+    """Copy records until the footer or the torn tail; `records` stops being usable after an
+    error."""
     report.truncated, report.stop_reason = True, 'no footer record'
     intact_until = stream.tell()
     try:

@@ -18,7 +18,8 @@ class RelearnResult:
 
     @property
     def max_deviation(self):
-        """Largest |ours - online| over the betas published after each pose (nan if none recorded)."""
+        """Largest |ours - online| over the betas published after each pose (nan if none
+        recorded)."""
         n = min(len(self.recorded), len(self.betas))
         if n == 0:
             return float('nan')
@@ -26,7 +27,8 @@ class RelearnResult:
 
     @property
     def relative_deviation(self):
-        """max_deviation over the largest |beta| element: the significant digits the replay shares."""
+        """max_deviation over the largest |beta| element: the significant digits the replay
+        shares."""
         return self.max_deviation / float(np.abs(self.betas).max())
 
 

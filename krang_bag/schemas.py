@@ -2,8 +2,8 @@
 
 rosbag2 (Jazzy) embeds a `ros2msg` schema per topic type: the root `.msg` text, then for every
 dependency a line of 80 '=' and `MSG: pkg/Type` followed by that type's text. Foxglove, mcap_ros2
-and rosbags all rebuild their decoders from that text, so it must be complete and exact. We read the
-same `share/<pkg>/msg/*.msg` files that rosbag2 reads, mirroring its dependency walk
+and rosbags all rebuild their decoders from that text, so it must be complete and exact. We read
+the same `share/<pkg>/msg/*.msg` files that rosbag2 reads, mirroring its dependency walk
 (`rosbag2_cpp/message_definitions/local_message_definition_source.cpp`).
 
 The PyPI wheels install `share/` next to `lib/` without setting AMENT_PREFIX_PATH, so the share
@@ -61,7 +61,8 @@ def type_name_of(msg_or_class) -> str:
 
 @functools.lru_cache(maxsize=None)
 def package_share_directory(package: str) -> Path:
-    """share/<package> of an installed interface package: ament index first, then beside the wheel."""
+    """share/<package> of an installed interface package: ament index first, then beside the
+    wheel."""
     candidates: list[Path] = []
     if os.environ.get('AMENT_PREFIX_PATH'):
         try:
@@ -72,13 +73,16 @@ def package_share_directory(package: str) -> Path:
     spec = importlib.util.find_spec(package)
     if spec is not None and spec.origin:
         # <prefix>/lib/pythonX.Y/site-packages/<pkg>/__init__.py -> <prefix>/share/<pkg>
-        candidates += [parent / 'share' / package for parent in Path(spec.origin).resolve().parents]
+        candidates += [
+            parent / 'share' / package for parent in Path(spec.origin).resolve().parents
+        ]
     candidates += [Path(prefix) / 'share' / package for prefix in (sys.prefix, sys.base_prefix)]
     for candidate in candidates:
         if candidate.is_dir():
             return candidate
-    raise SchemaNotFoundError(f'share directory of ROS package {package!r} not found '
-                              f'(is it installed? AMENT_PREFIX_PATH={os.environ.get("AMENT_PREFIX_PATH")!r})')
+    raise SchemaNotFoundError(f'share directory of ROS package {package!r} not found (is it '
+                              'installed? '
+                              f'AMENT_PREFIX_PATH={os.environ.get("AMENT_PREFIX_PATH")!r})')
 
 
 def interface_file(type_name: str, suffix: str) -> Path:
@@ -117,7 +121,8 @@ def message_definition(type_name: str) -> str:
             key = normalize_type_name(dependency)
             if key not in seen:
                 seen.add(key)
-                text += f'\n{SEPARATOR}\nMSG: {dependency}\n' + text_with_dependencies(dependency, depth - 1)
+                text += f'\n{SEPARATOR}\nMSG: {dependency}\n' + text_with_dependencies(dependency,
+                                                                                       depth - 1)
         return text
 
     return text_with_dependencies(normalize_type_name(type_name), 50)

@@ -5,8 +5,8 @@ so no message is ever decoded and re-encoded on the recording path (numpy-array 
 Each topic gets a channel with the metadata rosbag2 writes: `offered_qos_profiles` (YAML, v9 string
 form, so replay restores latching and best-effort) and `topic_type_hash` (RIHS01).
 
-Crash behaviour: messages live in an in-memory chunk until it reaches `chunk_size`, then the chunk is
-written out. A process killed with SIGKILL loses the open chunk and never writes the summary;
+Crash behaviour: messages live in an in-memory chunk until it reaches `chunk_size`, then the chunk
+is written out. A process killed with SIGKILL loses the open chunk and never writes the summary;
 `krang_bag.recover` restores every completed chunk. A clean `close()` loses nothing.
 """
 from __future__ import annotations
@@ -24,14 +24,17 @@ PROFILE = 'ros2'
 MESSAGE_ENCODING = 'cdr'
 LIBRARY = 'krang_bag'
 DEFAULT_CHUNK_SIZE = 1024 * 1024
-# RMW_DURATION_INFINITE: what rclpy reports for an unset deadline/lifespan/lease, as rosbag2 stores it.
+# RMW_DURATION_INFINITE: what rclpy reports for an unset deadline/lifespan/lease, as rosbag2 stores
+# it.
 DURATION_INFINITE_NS = 9223372036854775807
-_COMPRESSION = {'zstd': CompressionType.ZSTD, 'lz4': CompressionType.LZ4, 'none': CompressionType.NONE}
+_COMPRESSION = {'zstd': CompressionType.ZSTD, 'lz4': CompressionType.LZ4,
+                'none': CompressionType.NONE}
 
 
 @dataclass(frozen=True)
 class OfferedQos:
-    """One publisher's offered QoS, in rosbag2's words (lower-case policy names, durations in ns)."""
+    """One publisher's offered QoS, in rosbag2's words (lower-case policy names, durations in
+    ns)."""
 
     history: str = 'keep_last'
     depth: int = 10
@@ -76,7 +79,8 @@ def offered_qos_yaml(offers: list[OfferedQos] | tuple[OfferedQos, ...]) -> str:
 
 def start_mcap_writer(stream, *, chunk_size: int = DEFAULT_CHUNK_SIZE, compression: str = 'zstd',
                       library: str = LIBRARY) -> Writer:
-    """An mcap Writer already started with the ros2 profile; shared by the recorder and recovery."""
+    """An mcap Writer already started with the ros2 profile; shared by the recorder and
+    recovery."""
     if compression not in _COMPRESSION:
         raise ValueError(f'compression must be one of {sorted(_COMPRESSION)}, not {compression!r}')
     writer = Writer(stream, chunk_size=chunk_size, compression=_COMPRESSION[compression])
@@ -130,10 +134,8 @@ class BagWriter:
         """Messages written per topic (for logging; readers must count the file, not this)."""
         return {topic: channel.message_count for topic, channel in self._channels.items()}
 
-    def has_topic(self, topic: str) -> bool:
-        return topic in self._channels
-
-    def add_topic(self, topic: str, type_name: str, *, offered_qos=None, type_hash: str | None = None,
+    def add_topic(self, topic: str, type_name: str, *, offered_qos=None,
+                  type_hash: str | None = None,
                   definition: str | None = None) -> int:
         """Register a topic's channel (and its type's schema once); returns the channel id.
 
@@ -145,7 +147,8 @@ class BagWriter:
         if topic in self._channels:
             known = self._channels[topic]
             if known.type_name != type_name:
-                raise ValueError(f'{topic} is already recorded as {known.type_name}, not {type_name}')
+                raise ValueError(f'{topic} is already recorded as {known.type_name}, not '
+                                 f'{type_name}')
             return known.channel_id
         if type_name not in self._schema_ids:
             text = definition if definition is not None else schemas.message_definition(type_name)
@@ -177,7 +180,8 @@ class BagWriter:
 
     def write_message(self, topic: str, msg, log_time_ns: int, publish_time_ns: int | None = None,
                       offered_qos=None) -> None:
-        """Serialize an rclpy message and write it, adding its topic on first use (offline tools)."""
+        """Serialize an rclpy message and write it, adding its topic on first use (offline
+        tools)."""
         from rclpy.serialization import serialize_message
         if topic not in self._channels:
             self.add_topic(topic, schemas.type_name_of(msg), offered_qos=offered_qos)

@@ -1,21 +1,23 @@
 """The CAN bridge core: frames in, robot state out; commands in, clamped frames out. No ROS here.
 
-Feed every received frame to `on_frame(msg, now, bus)`. The core keeps the latest wheel states (AMC TPDOs), body
-joint states (PowerCube replies) and IMU samples (paired by sequence number, filtered to base pitch), counts
-malformed and unknown frames, and watches each device for silence.
+Feed every received frame to `on_frame(msg, now, bus)`. The core keeps the latest wheel states (AMC
+TPDOs), body joint states (PowerCube replies) and IMU samples (paired by sequence number, filtered
+to base pitch), counts malformed and unknown frames, and watches each device for silence.
 
 Safety rules, all enforced here so the ROS shell cannot get them wrong:
-- a command beyond the configured limits never reaches the bus: wheel currents are clamped to the configured
-  limit and the drive's peak, joint targets to the joint limits (in module coordinates, after float32 rounding),
-  module speeds and accelerations to the module's datasheet limits;
-- NaN/inf commands are rejected with a logged reason: zero current for a wheel, no frame for a joint;
-- `motion_allowed(now)` is False while any required device is silent, the IMU filter is not initialised, or
-  an `inhibit` is set (e.g. by the node until the AMC start-up succeeded); then wheel commands are zero current
-  and joint commands produce no frames;
-- an effort command older than `wheels.command_timeout_s` is replaced by zero current (`wheel_command_frames`),
-  because an AMC drive holds its last current forever.
+- a command beyond the configured limits never reaches the bus: wheel currents are clamped to the
+  configured limit and the drive's peak, joint targets to the joint limits (in module coordinates,
+  after float32 rounding), module speeds and accelerations to the module's datasheet limits;
+- NaN/inf commands are rejected with a logged reason: zero current for a wheel, no frame for a
+  joint;
+- `motion_allowed(now)` is False while any required device is silent, the IMU filter is not
+  initialised, or an `inhibit` is set (e.g. by the node until the AMC start-up succeeded); then
+  wheel commands are zero current and joint commands produce no frames;
+- an effort command older than `wheels.command_timeout_s` is replaced by zero current
+  (`wheel_command_frames`), because an AMC drive holds its last current forever.
 
-Every produced frame is a `BusFrame(bus, msg)`: the same ids are used on several buses (left and right arm).
+Every produced frame is a `BusFrame(bus, msg)`: the same ids are used on several buses (left and
+right arm).
 """
 from __future__ import annotations
 
@@ -150,12 +152,14 @@ class BridgeCore:
         self._canopen_ids: set[int] = set()
         for drive in w.drives:
             codec = amc_proto.AmcDriveCodec(drive, w, dbc)
-            state = _WheelState(codec, _Device(f'amc/{drive.joint}', w.required, w.silence_timeout_s))
+            state = _WheelState(codec, _Device(f'amc/{drive.joint}', w.required,
+                                               w.silence_timeout_s))
             self._wheels[drive.joint] = state
             for fid in codec.feedback_ids:
                 self._wheel_by_id[fid] = state
             self._wheel_echo_ids |= set(codec.command_ids) | {SDO_REQUEST_BASE + drive.node_id}
-            self._canopen_ids |= {SDO_RESPONSE_BASE + drive.node_id, HEARTBEAT_BASE + drive.node_id}
+            self._canopen_ids |= {SDO_RESPONSE_BASE + drive.node_id,
+                                  HEARTBEAT_BASE + drive.node_id}
         self._emcy_ids = {EMCY_BASE + s.codec.drive.node_id: s for s in self._wheels.values()}
         self._wheel_command: tuple[float, float, float] | None = None   # (left, right, time)
 
@@ -170,14 +174,16 @@ class BridgeCore:
         self._modules: dict[tuple[str, int], _ModuleState] = {}
         for joint in pcfg.joints:
             for m in joint.modules:
-                dev = _Device(f'powercube/{joint.joint}/{m.bus}:{m.module_id}', pcfg.required, pcfg.silence_timeout_s)
+                dev = _Device(f'powercube/{joint.joint}/{m.bus}:{m.module_id}', pcfg.required,
+                              pcfg.silence_timeout_s)
                 self._modules[(m.bus, m.module_id)] = _ModuleState(joint, m, dev)
 
-    # ---- helpers ---------------------------------------------------------------------------------------
+    # ---- helpers --------------------------------------------------------------------------------
     def _now(self, now: float | None) -> float:
         return self.clock() if now is None else now
 
-    def _log(self, key: str, text: str, level: int = logging.WARNING, period_s: float = 1.0) -> None:
+    def _log(self, key: str, text: str, level: int = logging.WARNING,
+             period_s: float = 1.0) -> None:
         """Log at most once per `period_s` per key (a 500 Hz NaN stream must not flood the log)."""
         t = self.clock()
         if t - self._log_times.get(key, -math.inf) >= period_s:
@@ -194,7 +200,7 @@ class BridgeCore:
             return bus
         return self.config.bus_for_channel(msg.channel) if msg.channel is not None else None
 
-    # ---- receive -----------------------------------------------------------------------------------------
+    # ---- receive --------------------------------------------------------------------------------
     def on_frame(self, msg: can.Message, now: float | None = None, bus: str | None = None) -> None:
         """Consume one received frame. Never raises on bad input: it is counted instead."""
         now = self._now(now)
@@ -216,7 +222,8 @@ class BridgeCore:
             elif bus == self.config.wheels.bus and aid in self._emcy_ids:
                 state = self._emcy_ids[aid]
                 state.emcy = bytes(msg.data).hex()
-                self._log(f'emcy{aid}', f'{state.codec.drive.joint}: EMCY {state.emcy}', logging.ERROR)
+                self._log(f'emcy{aid}', f'{state.codec.drive.joint}: EMCY {state.emcy}',
+                          logging.ERROR)
             elif self._is_echo(bus, aid):
                 c.echoes += 1
             elif bus == self.config.wheels.bus and aid in self._canopen_ids:
@@ -275,7 +282,8 @@ class BridgeCore:
         self._imu_rates = self._imu_accel = None          # one filter update per paired sample
         est: PitchEstimate = self._imu_estimator.update((r.x, r.y, r.z), (a.x, a.y, a.z), now)
         w = self._imu_estimator.corrected_rates((r.x, r.y, r.z))
-        self._imu_snapshot = ImuSnapshot(est.pitch, est.pitch_rate, (float(w[0]), float(w[1]), float(w[2])),
+        self._imu_snapshot = ImuSnapshot(est.pitch, est.pitch_rate, (float(w[0]), float(w[1]),
+                                                                     float(w[2])),
                                          (a.x, a.y, a.z), est.ready, est.variance, now)
 
     def _on_module(self, state: _ModuleState, msg: can.Message, now: float) -> None:
@@ -293,14 +301,15 @@ class BridgeCore:
             state.short_state = reply.short_state
         state.device.last_seen = now
 
-    # ---- health ------------------------------------------------------------------------------------------
+    # ---- health ---------------------------------------------------------------------------------
     def silent_devices(self, now: float | None = None) -> list[str]:
         """Names of devices (required or not) not heard from within their timeout."""
         now = self._now(now)
         return [d.name for d in self.devices if d.silent(now)]
 
     def inhibit(self, key: str, reason: str | None) -> None:
-        """Block motion for a reason outside the frames (e.g. an AMC start-up that failed); None clears it."""
+        """Block motion for a reason outside the frames (e.g. an AMC start-up that failed); None
+        clears it."""
         if reason is None:
             self._inhibits.pop(key, None)
         else:
@@ -312,22 +321,22 @@ class BridgeCore:
             return False
         if any(d.required and d.silent(now) for d in self.devices):
             return False
-        if self.config.imu.required and (self._imu_snapshot is None or not self._imu_snapshot.ready):
+        if self.config.imu.required and (
+            self._imu_snapshot is None or not self._imu_snapshot.ready
+        ):
             return False
         return True
 
-    # ---- wheel commands ----------------------------------------------------------------------------------
+    # ---- wheel commands -------------------------------------------------------------------------
     def wheel_current_limit_a(self, joint: str) -> float:
-        return min(self.config.wheels.current_limit_a, self._wheels[joint].codec.drive.peak_current_a)
-
-    def wheel_effort_to_current(self, effort_nm: float) -> float:
-        """Motor current for a torque at the wheel: tau = Kt * gear * I (no clamping)."""
-        w = self.config.wheels
-        return effort_nm / (w.torque_constant_nm_per_a * w.gear_ratio)
+        """The drive train's current limit, or the drive's peak if lower."""
+        return min(self.config.wheels.drivetrain.current_limit,
+                   self._wheels[joint].codec.drive.peak_current_a)
 
     def wheel_current_frames(self, effort_left_Nm: float, effort_right_Nm: float,
                              now: float | None = None) -> list[BusFrame]:
-        """RPDO current frames for efforts at the wheels [N m], clamped; zero current when motion is not allowed."""
+        """RPDO current frames for efforts at the wheels [N m], clamped; zero current when motion
+        is not allowed."""
         now = self._now(now)
         allowed = self.motion_allowed(now)
         frames = []
@@ -340,52 +349,62 @@ class BridgeCore:
             if not math.isfinite(effort):
                 self.counters.rejected_commands += 1
                 self.counters.last_rejection = f'{joint}: non-finite effort {effort!r} -> 0 A'
-                self._log(f'reject{joint}', f'rejected wheel command: {self.counters.last_rejection}')
+                self._log(f'reject{joint}',
+                          f'rejected wheel command: {self.counters.last_rejection}')
             elif allowed:
-                requested = self.wheel_effort_to_current(effort)
+                requested = self.config.wheels.effort_to_current(effort)
                 limit = self.wheel_current_limit_a(joint)
                 amps = min(limit, max(-limit, requested))
                 if amps != requested:
                     self.counters.clamped_commands += 1
-                    self._log(f'clamp{joint}', f'{joint}: {requested:.2f} A clamped to {amps:.2f} A', logging.INFO)
-            frames.append(BusFrame(self.config.wheels.bus, self._wheels[joint].codec.encode_current_command(amps)))
+                    self._log(f'clamp{joint}',
+                              f'{joint}: {requested:.2f} A clamped to {amps:.2f} A', logging.INFO)
+            frames.append(BusFrame(self.config.wheels.bus,
+                                   self._wheels[joint].codec.encode_current_command(amps)))
         return frames
 
     def set_wheel_effort_command(self, effort_left_Nm: float, effort_right_Nm: float,
                                  now: float | None = None) -> None:
-        """Remember the latest effort command (sent by `wheel_command_frames` while it is fresh)."""
+        """Remember the latest effort command (sent by `wheel_command_frames` while it is
+        fresh)."""
         self._wheel_command = (effort_left_Nm, effort_right_Nm, self._now(now))
 
     def wheel_command_frames(self, now: float | None = None) -> list[BusFrame]:
-        """Periodic refresh: the latest command if younger than command_timeout_s, else zero current."""
+        """Periodic refresh: the latest command if younger than command_timeout_s, else zero
+        current."""
         now = self._now(now)
         cmd = self._wheel_command
         if cmd is None or now - cmd[2] > self.config.wheels.command_timeout_s:
             return self.wheel_current_frames(0.0, 0.0, now)
         return self.wheel_current_frames(cmd[0], cmd[1], now)
 
-    # ---- joint commands ----------------------------------------------------------------------------------
-    def _module_target(self, joint: BodyJointConfig, module: PowerCubeModuleConfig, q: float) -> float:
+    # ---- joint commands -------------------------------------------------------------------------
+    def _module_target(self, joint: BodyJointConfig, module: PowerCubeModuleConfig,
+                       q: float) -> float:
         lower, upper = joint.module_limits(module)
         return _float32_within(module.sign * q, lower, upper)
 
-    def joint_position_frames(self, targets: Mapping[str, float], now: float | None = None) -> list[BusFrame]:
+    def joint_position_frames(self, targets: Mapping[str, float],
+                              now: float | None = None) -> list[BusFrame]:
         """FRAMP moves to joint targets [rad] (URDF names), clamped; [] when motion is not allowed.
 
-        Each commanded module gets TARGET_VEL and TARGET_ACC (the module type's limits) then SET_MOTION FRAMP,
-        like pcio_group_setpos. Unknown names (e.g. the wheels) and non-finite targets are skipped and logged.
+        Each commanded module gets TARGET_VEL and TARGET_ACC (the module type's limits) then
+        SET_MOTION FRAMP, like pcio_group_setpos. Unknown names (e.g. the wheels) and non-finite
+        targets are skipped and logged.
         """
         now = self._now(now)
         if not self.motion_allowed(now):
             if targets:
-                self._log('joints_blocked', 'joint command dropped: motion not allowed (silent device)')
+                self._log('joints_blocked',
+                          'joint command dropped: motion not allowed (silent device)')
             return []
         frames = []
         for name, q in targets.items():
             try:
                 joint = self.config.powercube.joint(name)
             except KeyError:
-                self._log(f'unknown{name}', f'joint command for unknown joint {name!r} ignored', logging.INFO, 10.0)
+                self._log(f'unknown{name}', f'joint command for unknown joint {name!r} ignored',
+                          logging.INFO, 10.0)
                 continue
             try:
                 q = float(q)
@@ -394,14 +413,17 @@ class BridgeCore:
             if not math.isfinite(q):
                 self.counters.rejected_commands += 1
                 self.counters.last_rejection = f'{name}: non-finite target {q!r} -> no motion'
-                self._log(f'reject{name}', f'rejected joint command: {self.counters.last_rejection}')
+                self._log(f'reject{name}',
+                          f'rejected joint command: {self.counters.last_rejection}')
                 continue
             if joint.clamp(q) != q:
                 self.counters.clamped_commands += 1
-                self._log(f'clamp{name}', f'{name}: target {q:.4f} clamped to [{joint.lower}, {joint.upper}]',
+                self._log(f'clamp{name}',
+                          f'{name}: target {q:.4f} clamped to [{joint.lower}, {joint.upper}]',
                           logging.INFO)
             vel = _float32_within(joint.max_velocity_rad_s, 0.0, joint.max_velocity_rad_s)
-            acc = _float32_within(joint.max_acceleration_rad_s2, 0.0, joint.max_acceleration_rad_s2)
+            acc = _float32_within(joint.max_acceleration_rad_s2, 0.0,
+                                  joint.max_acceleration_rad_s2)
             for m in joint.modules:
                 frames += [BusFrame(m.bus, pc.set_param(m.module_id, pc.TARGET_VEL, vel)),
                            BusFrame(m.bus, pc.set_param(m.module_id, pc.TARGET_ACC, acc)),
@@ -418,36 +440,43 @@ class BridgeCore:
         return frames
 
     def startup_frames(self) -> list[BusFrame]:
-        """PowerCube start-up: RESET (clears HALT), soft limits MIN/MAX_FPOS in module coordinates (as the robot's
-        init script set them), TARGET_VEL/TARGET_ACC. The AMC start-up needs SDO replies: see amc.run_startup."""
+        """PowerCube start-up: RESET (clears HALT), soft limits MIN/MAX_FPOS in module coordinates
+        (as the robot's init script set them), TARGET_VEL/TARGET_ACC. The AMC start-up needs SDO
+        replies: see amc.run_startup."""
         frames = []
         for st in self._modules.values():
             lower, upper = st.joint.module_limits(st.module)
             b, i = st.module.bus, st.module.module_id
             frames += [BusFrame(b, pc.simple_command(i, pc.RESET)),
-                       BusFrame(b, pc.set_param(i, pc.MIN_FPOS, _float32_within(lower, lower, upper))),
-                       BusFrame(b, pc.set_param(i, pc.MAX_FPOS, _float32_within(upper, lower, upper))),
+                       BusFrame(b, pc.set_param(i, pc.MIN_FPOS, _float32_within(lower, lower,
+                                                                                upper))),
+                       BusFrame(b, pc.set_param(i, pc.MAX_FPOS, _float32_within(upper, lower,
+                                                                                upper))),
                        BusFrame(b, pc.set_param(i, pc.TARGET_VEL, _float32_within(
                            st.joint.max_velocity_rad_s, 0.0, st.joint.max_velocity_rad_s))),
                        BusFrame(b, pc.set_param(i, pc.TARGET_ACC, _float32_within(
-                           st.joint.max_acceleration_rad_s2, 0.0, st.joint.max_acceleration_rad_s2)))]
+                           st.joint.max_acceleration_rad_s2, 0.0,
+                           st.joint.max_acceleration_rad_s2)))]
         return frames
 
     def imu_stream_frames(self, now: float | None = None) -> list[BusFrame]:
-        """The DMU stream toggle, only after the IMU has been silent for stream_toggle_retry_s (it is a toggle:
-        sending it to a streaming DMU would stop it)."""
+        """The DMU stream toggle, only after the IMU has been silent for stream_toggle_retry_s (it
+        is a toggle: sending it to a streaming DMU would stop it)."""
         now = self._now(now)
-        quiet_since = max(self._started_at,
-                          self._imu_device.last_seen if self._imu_device.last_seen is not None else -math.inf,
-                          self._last_stream_toggle if self._last_stream_toggle is not None else -math.inf)
+        quiet_since = max(
+            self._started_at,
+            self._imu_device.last_seen if self._imu_device.last_seen is not None else -math.inf,
+            self._last_stream_toggle if self._last_stream_toggle is not None else -math.inf,
+        )
         if now - quiet_since < self.config.imu.stream_toggle_retry_s:
             return []
         self._last_stream_toggle = now
         return [BusFrame(self.config.imu.bus, self.dmu.stream_toggle())]
 
-    # ---- state -------------------------------------------------------------------------------------------
-    # A silent device's last reading is left out of the state, not republished under a fresh stamp: the
-    # controller then sees its input go stale and stops (its own stale_timeout_s), as the bridge does.
+    # ---- state ----------------------------------------------------------------------------------
+    # A silent device's last reading is left out of the state, not republished under a fresh stamp:
+    # the controller then sees its input go stale and stops (its own stale_timeout_s), as the
+    # bridge does.
     def joint_state(self, now: float | None = None) -> JointStateSnapshot:
         """Joints whose devices have all been heard from within their silence timeouts."""
         now = self._now(now)
@@ -475,49 +504,80 @@ class BridgeCore:
         """The filtered IMU, or None while the DMU is silent."""
         return None if self._imu_device.silent(self._now(now)) else self._imu_snapshot
 
-    # ---- diagnostics -------------------------------------------------------------------------------------
+    # ---- diagnostics ----------------------------------------------------------------------------
     def diagnostics(self, now: float | None = None) -> list[DiagnosticReport]:
         now = self._now(now)
         c = self.counters
         silent = [d for d in self.devices if d.silent(now)]
         allowed = self.motion_allowed(now)
-        reports = [DiagnosticReport(
-            'can_bridge: motion', OK if allowed else ERROR,
-            'motion allowed' if allowed else
-            'motion disabled (zero wheel current, no joint motion): '
-            + ('; '.join(list(self._inhibits.values()) + [f'{d.name} silent' for d in silent if d.required])
-               or 'IMU filter not initialised'),
-            {'silent_devices': ', '.join(d.name for d in silent), 'inhibits': '; '.join(self._inhibits.values())})]
+        reports = [
+            DiagnosticReport(
+                'can_bridge: motion',
+                OK if allowed else ERROR,
+                'motion allowed'
+                if allowed
+                else 'motion disabled (zero wheel current, no joint motion): '
+                + (
+                    '; '.join(
+                        list(self._inhibits.values())
+                        + [f'{d.name} silent' for d in silent if d.required]
+                    )
+                    or 'IMU filter not initialised'
+                ),
+                {
+                    'silent_devices': ', '.join(d.name for d in silent),
+                    'inhibits': '; '.join(self._inhibits.values()),
+                },
+            )
+        ]
         reports.append(DiagnosticReport(
             'can_bridge: frames', WARN if c.malformed or c.unknown else OK,
             f'{c.malformed} malformed, {c.unknown} unknown of {c.frames}',
             {'frames': str(c.frames), 'malformed': str(c.malformed), 'unknown': str(c.unknown),
-             'echoes': str(c.echoes), 'canopen': str(c.canopen), 'rejected_commands': str(c.rejected_commands),
+             'echoes': str(c.echoes), 'canopen': str(c.canopen),
+             'rejected_commands': str(c.rejected_commands),
              'clamped_commands': str(c.clamped_commands), 'last_malformed': c.last_malformed,
              'last_unknown': c.last_unknown, 'last_rejection': c.last_rejection}))
         for bus in self.config.buses_in_use():
             n = c.error_frames.get(bus, 0)
-            reports.append(DiagnosticReport(f'can_bridge: bus {bus}', WARN if n else OK, f'{n} error frames',
+            reports.append(DiagnosticReport(f'can_bridge: bus {bus}', WARN if n else OK,
+                                            f'{n} error frames',
                                             {'error_frames': str(n)}))
         for joint, w in self._wheels.items():
             state = amc_proto.drive_state(w.statusword) if w.statusword is not None else 'unknown'
-            level = STALE if w.device.silent(now) else (OK if state == 'OPERATION_ENABLED' else WARN)
-            reports.append(DiagnosticReport(f'can_bridge: {w.device.name}', level, f'drive {state}',
-                                            {'position_rad': str(w.position), 'velocity_rad_s': str(w.velocity),
+            level = (
+                STALE if w.device.silent(now) else (OK if state == 'OPERATION_ENABLED' else WARN)
+            )
+            reports.append(DiagnosticReport(f'can_bridge: {w.device.name}', level,
+                                            f'drive {state}',
+                                            {'position_rad': str(w.position),
+                                             'velocity_rad_s': str(w.velocity),
                                              'current_a': str(w.current), 'emcy': str(w.emcy),
                                              'malformed': str(w.device.malformed)}))
         imu = self._imu_snapshot
-        level = STALE if self._imu_device.silent(now) else (OK if imu is not None and imu.ready else WARN)
-        reports.append(DiagnosticReport('can_bridge: imu', level,
-                                        'silent' if level == STALE else ('ok' if level == OK else 'initialising'),
-                                        {'pitch_rad': str(imu.pitch if imu else None),
-                                         'malformed': str(self._imu_device.malformed)}))
+        level = (
+            STALE
+            if self._imu_device.silent(now)
+            else (OK if imu is not None and imu.ready else WARN)
+        )
+        reports.append(
+            DiagnosticReport(
+                'can_bridge: imu',
+                level,
+                'silent' if level == STALE else ('ok' if level == OK else 'initialising'),
+                {
+                    'pitch_rad': str(imu.pitch if imu else None),
+                    'malformed': str(self._imu_device.malformed),
+                },
+            )
+        )
         for st in self._modules.values():
             not_ok = st.short_state is not None and st.short_state & pc.SHORT_NOT_OK
             level = STALE if st.device.silent(now) else (WARN if not_ok else OK)
             reports.append(DiagnosticReport(
                 f'can_bridge: {st.device.name}', level,
-                'silent' if level == STALE else ('module reports NOT_OK (error, not homed or halted)' if not_ok
+                'silent' if level == STALE else ('module reports NOT_OK (error, not homed or '
+                                                 'halted)' if not_ok
                                                  else 'ok'),
                 {'position': str(st.position), 'short_state': str(st.short_state),
                  'malformed': str(st.device.malformed)}))

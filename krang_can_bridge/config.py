@@ -1,8 +1,12 @@
-"""Typed view of config/can_devices.yaml: buses, devices, drive constants and command limits.
+"""Typed view of config/can_devices.yaml: buses, devices, device constants and command limits.
 
-Everything the bridge, the codecs and the emulators need to know about the robot's CAN side comes from here,
-so a number lives in exactly one place (the YAML, or the DBC for the IMU's LSB scales). The loader validates
-the file so that a typo fails at start-up, not as a wrong current on the bus.
+Everything the bridge, the codecs and the emulators need to know about the robot's CAN side comes
+from here: what is specific to the devices from the YAML (or the DBC for the IMU's LSB scales), the
+drive train (torque constant, gear ratio, current limit) from krang_model.drivetrain, the one
+description every user of a motor constant reads. A device map may still state a drive-train value
+(`wheels.torque_constant_nm_per_a`, `gear_ratio`, `current_limit_a`); it is then checked against
+the drive train at load. The loader validates the file so that a typo or a disagreeing constant
+fails at start-up, not as a wrong current on the bus. docs/can.md describes the devices.
 """
 from __future__ import annotations
 
@@ -12,6 +16,9 @@ from pathlib import Path
 from typing import Any, Mapping
 
 import yaml
+
+from krang_model.drivetrain import Drivetrain, drivetrain
+from krang_model.robot import load_krang
 
 PACKAGE_NAME = 'krang_com'
 DEVICES_FILE_NAME = 'can_devices.yaml'
@@ -23,7 +30,8 @@ class ConfigError(ValueError):
 
 @dataclass(frozen=True)
 class BusConfig:
-    """One CAN bus: python-can `interface` and `channel`, plus any extra `can.Bus` keyword arguments."""
+    """One CAN bus: python-can `interface` and `channel`, plus any extra `can.Bus` keyword
+    arguments."""
 
     name: str
     interface: str
@@ -53,20 +61,28 @@ class WheelDriveConfig:
 
 @dataclass(frozen=True)
 class WheelsConfig:
+    """The AMC drives; `drivetrain` is the robot's (krang_model.drivetrain), not the YAML's."""
+
     bus: str
-    encoder_counts_per_rev: float
-    gear_ratio: float
-    torque_constant_nm_per_a: float
-    current_limit_a: float
+    encoder_counts_per_rev: float    # motor encoder, read by the drive
     silence_timeout_s: float
     command_timeout_s: float
     command_rate_hz: float
     required: bool
     drives: tuple[WheelDriveConfig, ...]
+    drivetrain: Drivetrain
 
     @property
     def counts_per_wheel_rad(self) -> float:
-        return self.encoder_counts_per_rev * self.gear_ratio / (2.0 * math.pi)
+        return self.encoder_counts_per_rev * self.drivetrain.gear_ratio / (2.0 * math.pi)
+
+    def effort_to_current(self, effort_nm: float) -> float:
+        """Motor current for a torque at the wheel: tau = Kt * gear * I (no clamping)."""
+        return effort_nm / (self.drivetrain.torque_constant * self.drivetrain.gear_ratio)
+
+    def current_to_effort(self, current_a: float) -> float:
+        """Torque at the wheel for a motor current (the inverse of effort_to_current)."""
+        return current_a * self.drivetrain.torque_constant * self.drivetrain.gear_ratio
 
     def drive(self, joint: str) -> WheelDriveConfig:
         for d in self.drives:
@@ -82,6 +98,12 @@ class KalmanConfig:
     measurement_noise_angle: float   # accelerometer pitch (corrupted by linear acceleration)
     measurement_noise_rate: float    # gyro pitch rate
     init_samples: int
+    # gyro-bias random walk [(rad/s)^2/s]: how fast the bias is tracked
+    bias_process_noise: float
+    # start-up: still = the accelerometer pitch turns slower than this,
+    still_rate_rad_s: float
+    still_rate_change_rad_s: float   # and the gyro mean changes less than this across the window;
+    still_wait_s: float              # no still window within this long: start without the bias
 
 
 @dataclass(frozen=True)
@@ -167,7 +189,8 @@ class CanDevicesConfig:
         return [name for name in self.buses if name in used]
 
     def bus_for_channel(self, channel: Any) -> str | None:
-        """Bus name whose configured channel equals `channel` (for frames that carry only msg.channel)."""
+        """Bus name whose configured channel equals `channel` (for frames that carry only
+        msg.channel)."""
         for name, bus in self.buses.items():
             if str(bus.channel) == str(channel) or name == channel:
                 return name
@@ -181,13 +204,15 @@ def default_devices_file() -> Path:
         installed = Path(get_package_share_directory(PACKAGE_NAME)) / 'config' / DEVICES_FILE_NAME
         if installed.exists():
             return installed
-    except Exception:  # noqa: BLE001 - no ament index (plain pip install / source tree): fall through
+    # noqa: BLE001 - no ament index (plain pip install / source tree): fall through
+    except Exception:
         pass
     return Path(__file__).resolve().parents[1] / 'config' / DEVICES_FILE_NAME
 
 
-def _read_yaml(path: Path, seen: tuple[Path, ...] = ()) -> dict:
-    """Read a device map; `extends: other.yaml` inherits every top-level key the file does not set."""
+def _read_yaml(path: Path, seen: tuple[Path, ...] = ()) -> tuple[dict, dict]:
+    """Read a device map; `extends: other.yaml` inherits every top-level key the file does not set.
+    Returns (data, {top-level key: the file it came from})."""
     path = path.resolve()
     if path in seen:
         raise ConfigError(f'circular extends: {path}')
@@ -196,11 +221,13 @@ def _read_yaml(path: Path, seen: tuple[Path, ...] = ()) -> dict:
     if not isinstance(data, dict):
         raise ConfigError(f'{path}: top level must be a mapping')
     parent = data.pop('extends', None)
+    sources = {key: path for key in data}
     if parent is None:
-        return data
-    merged = _read_yaml(path.parent / parent, seen + (path,))
+        return data, sources
+    merged, merged_sources = _read_yaml(path.parent / parent, seen + (path,))
     merged.update(data)
-    return merged
+    merged_sources.update(sources)
+    return merged, merged_sources
 
 
 def _req(d: Mapping, key: str, where: str) -> Any:
@@ -222,8 +249,27 @@ def _sign(value: Any, where: str) -> int:
     return int(value)
 
 
-def _parse_wheels(d: Mapping, buses: Mapping) -> WheelsConfig:
+# Drive-train values a device map may still state, and the Drivetrain field each must equal.
+DRIVETRAIN_KEYS = {'torque_constant_nm_per_a': 'torque_constant', 'gear_ratio': 'gear_ratio',
+                   'current_limit_a': 'current_limit'}
+
+
+def _check_drivetrain(d: Mapping, drive: Drivetrain, source: Path) -> None:
+    """A drive-train value in the device map must be the drive train's (config/robot.yaml)."""
+    for key, attr in DRIVETRAIN_KEYS.items():
+        if key not in d:
+            continue
+        stated, expected = float(d[key]), float(getattr(drive, attr))
+        if not math.isclose(stated, expected, rel_tol=1e-12, abs_tol=0.0):
+            raise ConfigError(
+                f'{source}: wheels.{key} = {d[key]!r} disagrees with the drive train ({attr} = '
+                f'{expected!r}, config/robot.yaml via krang_model.drivetrain); remove the key '
+                'from the device map or make the two agree')
+
+
+def _parse_wheels(d: Mapping, buses: Mapping, drive: Drivetrain, source: Path) -> WheelsConfig:
     where = 'wheels'
+    _check_drivetrain(d, drive, source)
     drives = []
     for i, dd in enumerate(_req(d, 'drives', where)):
         w = f'{where}.drives[{i}]'
@@ -233,19 +279,22 @@ def _parse_wheels(d: Mapping, buses: Mapping) -> WheelsConfig:
         drives.append(WheelDriveConfig(
             joint=str(_req(dd, 'joint', w)), node_id=node_id, sign=_sign(_req(dd, 'sign', w), w),
             peak_current_kp=_positive(_req(dd, 'peak_current_kp', w), f'{w}.peak_current_kp'),
-            k_i=_positive(_req(dd, 'k_i', w), f'{w}.k_i'), k_s=_positive(_req(dd, 'k_s', w), f'{w}.k_s')))
-    if len({x.node_id for x in drives}) != len(drives) or len({x.joint for x in drives}) != len(drives):
+            k_i=_positive(_req(dd, 'k_i', w), f'{w}.k_i'), k_s=_positive(_req(dd, 'k_s', w),
+                                                                         f'{w}.k_s')))
+    if len({x.node_id for x in drives}) != len(drives) or len({x.joint for x in drives}) != len(
+        drives
+    ):
         raise ConfigError(f'{where}: duplicate node id or joint')
     cfg = WheelsConfig(
         bus=str(_req(d, 'bus', where)),
-        encoder_counts_per_rev=_positive(_req(d, 'encoder_counts_per_rev', where), 'encoder_counts_per_rev'),
-        gear_ratio=_positive(_req(d, 'gear_ratio', where), 'gear_ratio'),
-        torque_constant_nm_per_a=_positive(_req(d, 'torque_constant_nm_per_a', where), 'torque_constant'),
-        current_limit_a=_positive(_req(d, 'current_limit_a', where), 'current_limit_a'),
-        silence_timeout_s=_positive(_req(d, 'silence_timeout_s', where), 'wheels.silence_timeout_s'),
-        command_timeout_s=_positive(_req(d, 'command_timeout_s', where), 'wheels.command_timeout_s'),
+        encoder_counts_per_rev=_positive(_req(d, 'encoder_counts_per_rev', where),
+                                         'encoder_counts_per_rev'),
+        silence_timeout_s=_positive(_req(d, 'silence_timeout_s', where),
+                                    'wheels.silence_timeout_s'),
+        command_timeout_s=_positive(_req(d, 'command_timeout_s', where),
+                                    'wheels.command_timeout_s'),
         command_rate_hz=_positive(_req(d, 'command_rate_hz', where), 'wheels.command_rate_hz'),
-        required=bool(d.get('required', True)), drives=tuple(drives))
+        required=bool(d.get('required', True)), drives=tuple(drives), drivetrain=drive)
     if cfg.bus not in buses:
         raise ConfigError(f'{where}: unknown bus {cfg.bus!r}')
     return cfg
@@ -258,18 +307,39 @@ def _parse_imu(d: Mapping, buses: Mapping) -> ImuConfig:
     cfg = ImuConfig(
         bus=str(_req(d, 'bus', where)),
         mount_angle_rad=float(_req(d, 'mount_angle_rad', where)),
-        gyro_bias_rad_s=(float(_req(bias, 'x', 'imu.gyro_bias_rad_s')), float(_req(bias, 'y', 'imu.gyro_bias_rad_s')),
-                         float(_req(bias, 'z', 'imu.gyro_bias_rad_s'))),
+        gyro_bias_rad_s=(
+            float(_req(bias, 'x', 'imu.gyro_bias_rad_s')),
+            float(_req(bias, 'y', 'imu.gyro_bias_rad_s')),
+            float(_req(bias, 'z', 'imu.gyro_bias_rad_s')),
+        ),
         silence_timeout_s=_positive(_req(d, 'silence_timeout_s', where), 'imu.silence_timeout_s'),
-        stream_toggle_retry_s=_positive(_req(d, 'stream_toggle_retry_s', where), 'imu.stream_toggle_retry_s'),
-        required=bool(d.get('required', True)), frame_id=str(d.get('frame_id', 'imu_link')),
+        stream_toggle_retry_s=_positive(
+            _req(d, 'stream_toggle_retry_s', where), 'imu.stream_toggle_retry_s'
+        ),
+        required=bool(d.get('required', True)),
+        frame_id=str(d.get('frame_id', 'imu_link')),
         kalman=KalmanConfig(
             process_k1=_positive(_req(k, 'process_k1', 'imu.kalman'), 'process_k1'),
             process_k1b=_positive(_req(k, 'process_k1b', 'imu.kalman'), 'process_k1b'),
-            measurement_noise_angle=_positive(_req(k, 'measurement_noise_angle', 'imu.kalman'),
-                                              'measurement_noise_angle'),
-            measurement_noise_rate=_positive(_req(k, 'measurement_noise_rate', 'imu.kalman'), 'measurement_noise_rate'),
-            init_samples=int(_req(k, 'init_samples', 'imu.kalman'))))
+            measurement_noise_angle=_positive(
+                _req(k, 'measurement_noise_angle', 'imu.kalman'), 'measurement_noise_angle'
+            ),
+            measurement_noise_rate=_positive(
+                _req(k, 'measurement_noise_rate', 'imu.kalman'), 'measurement_noise_rate'
+            ),
+            init_samples=int(_req(k, 'init_samples', 'imu.kalman')),
+            bias_process_noise=_positive(
+                _req(k, 'bias_process_noise', 'imu.kalman'), 'bias_process_noise'
+            ),
+            still_rate_rad_s=_positive(
+                _req(k, 'still_rate_rad_s', 'imu.kalman'), 'still_rate_rad_s'
+            ),
+            still_rate_change_rad_s=_positive(
+                _req(k, 'still_rate_change_rad_s', 'imu.kalman'), 'still_rate_change_rad_s'
+            ),
+            still_wait_s=_positive(_req(k, 'still_wait_s', 'imu.kalman'), 'still_wait_s'),
+        ),
+    )
     if cfg.bus not in buses:
         raise ConfigError(f'{where}: unknown bus {cfg.bus!r}')
     return cfg
@@ -290,7 +360,8 @@ def _parse_powercube(d: Mapping, buses: Mapping) -> PowerCubeConfig:
         modules = []
         for i, md in enumerate(_req(jd, 'modules', w)):
             mw = f'{w}.modules[{i}]'
-            m = PowerCubeModuleConfig(bus=str(_req(md, 'bus', mw)), module_id=int(_req(md, 'id', mw)),
+            m = PowerCubeModuleConfig(bus=str(_req(md, 'bus', mw)), module_id=int(_req(md, 'id',
+                                                                                       mw)),
                                       sign=_sign(md.get('sign', 1), mw))
             if m.bus not in buses:
                 raise ConfigError(f'{mw}: unknown bus {m.bus!r}')
@@ -304,29 +375,38 @@ def _parse_powercube(d: Mapping, buses: Mapping) -> PowerCubeConfig:
             raise ConfigError(f'{w}: no modules')
         joints.append(BodyJointConfig(
             joint=str(name), lower=lower, upper=upper, module_type=tname,
-            max_velocity_rad_s=math.radians(_positive(_req(t, 'max_velocity_deg_s', tname), f'{tname} velocity')),
+            max_velocity_rad_s=math.radians(_positive(_req(t, 'max_velocity_deg_s', tname),
+                                                      f'{tname} velocity')),
             max_acceleration_rad_s2=math.radians(
                 _positive(_req(t, 'max_acceleration_deg_s2', tname), f'{tname} acceleration')),
             modules=tuple(modules)))
     return PowerCubeConfig(
         poll_rate_hz=_positive(_req(d, 'poll_rate_hz', where), 'poll_rate_hz'),
-        silence_timeout_s=_positive(_req(d, 'silence_timeout_s', where), 'powercube.silence_timeout_s'),
+        silence_timeout_s=_positive(_req(d, 'silence_timeout_s', where),
+                                    'powercube.silence_timeout_s'),
         required=bool(d.get('required', True)), joints=tuple(joints))
 
 
-def load_devices(path: str | Path | None = None) -> CanDevicesConfig:
-    """Load and validate a device map (default: `default_devices_file()`)."""
+def load_devices(path: str | Path | None = None,
+                 drive: Drivetrain | None = None) -> CanDevicesConfig:
+    """Load and validate a device map (default: `default_devices_file()`) for the drive train
+    `drive` (default: the robot's, `drivetrain(load_krang())`)."""
     path = Path(path) if path is not None else default_devices_file()
-    data = _read_yaml(path)
+    drive = drive if drive is not None else drivetrain(load_krang())
+    data, sources = _read_yaml(path)
     buses = {}
     for name, bd in _req(data, 'buses', str(path)).items():
         bd = dict(bd)
-        buses[str(name)] = BusConfig(name=str(name), interface=str(_req(bd, 'interface', f'buses.{name}')),
+        buses[str(name)] = BusConfig(name=str(name), interface=str(_req(bd, 'interface',
+                                                                        f'buses.{name}')),
                                      channel=str(_req(bd, 'channel', f'buses.{name}')),
                                      options=dict(bd.get('options', {}) or {}))
     cfg = CanDevicesConfig(
-        path=path.resolve(), dbc_path=(path.resolve().parent / str(_req(data, 'dbc_file', str(path)))).resolve(),
-        buses=buses, wheels=_parse_wheels(_req(data, 'wheels', str(path)), buses),
+        path=path.resolve(), dbc_path=(path.resolve().parent / str(_req(data, 'dbc_file',
+                                                                        str(path)))).resolve(),
+        buses=buses,
+        wheels=_parse_wheels(_req(data, 'wheels', str(path)), buses, drive, sources.get('wheels',
+                                                                                        path)),
         imu=_parse_imu(_req(data, 'imu', str(path)), buses),
         powercube=_parse_powercube(_req(data, 'powercube', str(path)), buses))
     names = cfg.joint_names

@@ -1,28 +1,31 @@
 """can_bridge: the thin rclpy shell around krang_can_bridge.bridge.BridgeCore.
 
-Buses come from the device map (parameter `devices_file`, default the installed config/can_devices.yaml). Each
-bus has a python-can Notifier thread that feeds frames to the core (under a lock), so the executor never blocks
-on CAN; the AMC start-up (blocking SDO transfers through canopen) runs in its own thread.
+Buses come from the device map (parameter `devices_file`, default the installed
+config/can_devices.yaml). Each bus has a python-can Notifier thread that feeds frames to the core
+(under a lock), so the executor never blocks on CAN; the AMC start-up (blocking SDO transfers
+through canopen) runs in its own thread.
 
 Topics:
-- publishes /joint_states (sensor_msgs/JointState: body joints + JLWheel/JRWheel, URDF names; only joints with
-  data), /imu/data (sensor_msgs/Imu, sensor-data QoS), /diagnostics (1 Hz);
-- subscribes /wheel_effort_cmd (std_msgs/Float64MultiArray [left, right] N m at the wheel, reliable) and
-  /joint_position_cmd (sensor_msgs/JointState, positions by name).
+- publishes /joint_states (sensor_msgs/JointState: body joints + JLWheel/JRWheel, URDF names; only
+  joints with data), /imu/data (sensor_msgs/Imu, sensor-data QoS), /diagnostics (1 Hz);
+- subscribes /wheel_effort_cmd (std_msgs/Float64MultiArray [left, right] N m at the wheel,
+  reliable) and /joint_position_cmd (sensor_msgs/JointState, positions by name).
 
-/imu/data: orientation = rotation by q_base (hardware IMU pitch, positive = top tilting forward) about +y, the
-axle pointing left; angular_velocity.y = the filtered pitch rate; the other components and linear_acceleration
-(specific force, m/s^2) are the bias-corrected DMU readings turned by the mount angle into x forward, y left,
-z up (at zero pitch). Roll and yaw are not observed: their orientation variances are set to 1e6.
+/imu/data: orientation = rotation by q_base (hardware IMU pitch, positive = top tilting forward)
+about +y, the axle pointing left; angular_velocity.y = the filtered pitch rate; the other
+components and linear_acceleration (specific force, m/s^2) are the bias-corrected DMU readings
+turned by the mount angle into x forward, y left, z up (at zero pitch). Roll and yaw are not
+observed: their orientation variances are set to 1e6.
 
-Wheel currents are refreshed at wheels.command_rate_hz from the latest command; a command older than
-wheels.command_timeout_s, a malformed one, a silent device, or an AMC start-up not (yet) done or whose drive
-constants disagree with the config gives zero current (see BridgeCore).
+Wheel currents are refreshed at wheels.command_rate_hz from the latest command; a command older
+than wheels.command_timeout_s, a malformed one, a silent device, or an AMC start-up not (yet) done
+or whose drive constants disagree with the config gives zero current (see BridgeCore).
 
-Parameters: devices_file, publish_rate_hz (200), amc_startup (True: configure the drives through SDO, as
-amciod did), sdo_timeout_s (0.3), startup_retry_s (2.0), send_timeout_s (0.002), imu_sample_period_s (0:
-DMU samples timed by arrival; > 0: by their sequence counter at this period). With use_sim_time every time
-of the core (IMU filter steps, silence and command timeouts) is the simulator's /clock, not wall time.
+Parameters: devices_file, publish_rate_hz (200), amc_startup (True: configure the drives through
+SDO, as amciod did), sdo_timeout_s (0.3), startup_retry_s (2.0), send_timeout_s (0.002),
+imu_sample_period_s (0: DMU samples timed by arrival; > 0: by their sequence counter at this
+period). With use_sim_time every time of the core (IMU filter steps, silence and command timeouts)
+is the simulator's /clock, not wall time.
 """
 from __future__ import annotations
 
@@ -33,9 +36,8 @@ import time
 
 import can
 import canopen
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.node import Node
-from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from sensor_msgs.msg import Imu, JointState
 from std_msgs.msg import Float64MultiArray
 
@@ -44,10 +46,11 @@ from krang_can_bridge.config import default_devices_file, load_devices
 from krang_can_bridge.imu_filter import pitch_axis, tilt_direction
 from krang_can_bridge.protocols import amc as amc_proto
 from krang_can_bridge.sample_clock import SampleClock
+from krang_ros import messages, names, topics
 from krang_ros.spin import run_node
 
-UNOBSERVED_VARIANCE = 1e6
-SIM_TIME_SLACK_S = 0.025     # with use_sim_time: checks run at most this far past the newest frame (5 samples)
+SIM_TIME_SLACK_S = 0.025     # with use_sim_time: checks run at most this far past the newest frame
+HARDWARE_ID = 'krang_can'
 
 
 class _RosLogHandler(logging.Handler):
@@ -90,30 +93,33 @@ class CanBridgeNode(Node):
         self.declare_parameter('imu_sample_period_s', 0.0)
         p = self.get_parameter
         self.config = load_devices(p('devices_file').value)
-        # The core's time base (IMU filter dt, silence and command timeouts) is the time of the devices:
-        # wall time (monotonic) on the robot; with use_sim_time the simulator's /clock, because a simulated
-        # DMU samples in simulated time. A simulator starved of CPU runs slower than the wall clock (sim_krang
-        # slips, max_lag_s): integrating its gyro over wall-clock gaps overstated every pitch change by the
-        # slow-down (0.57x real time measured under load: +0.10 rad IMU error within 0.5 s of the stand-up),
-        # and the gyro-dominant filter (accelerometer time constant ~80 s) never took it back.
-        # /clock reaches this process on another path (DDS, the executor) than the frames (UDP, the Notifier
-        # threads): after a stall of the process the executor could take a /clock 50+ ms ahead of frames
-        # still queued in the sockets, and the next wheel refresh found every device "silent" and sent zero
-        # current (seen as 0 A on both wheels during a pose move, and a fall). So received frames are
-        # stamped with /clock, but the checks (silence, command age) run at most SIM_TIME_SLACK_S past the
-        # newest frame stamped: a device silent while others talk is still caught, and when the simulator
-        # stops, its /clock stops too.
+        # The core's time base (IMU filter dt, silence and command timeouts) is the time of the
+        # devices: wall time (monotonic) on the robot; with use_sim_time the simulator's /clock,
+        # because a simulated DMU samples in simulated time. A simulator starved of CPU runs slower
+        # than the wall clock (sim_krang slips, max_lag_s): integrating its gyro over wall-clock
+        # gaps overstated every pitch change by the slow-down (0.57x real time measured under load:
+        # +0.10 rad IMU error within 0.5 s of the stand-up), and the gyro-dominant filter
+        # (accelerometer time constant ~80 s) never took it back. /clock reaches this process on
+        # another path (DDS, the executor) than the frames (UDP, the Notifier threads): after a
+        # stall of the process the executor could take a /clock 50+ ms ahead of frames still queued
+        # in the sockets, and the next wheel refresh found every device "silent" and sent zero
+        # current (seen as 0 A on both wheels during a pose move, and a fall). So received frames
+        # are stamped with /clock, but the checks (silence, command age) run at most
+        # SIM_TIME_SLACK_S past the newest frame stamped: a device silent while others talk is
+        # still caught, and when the simulator stops, its /clock stops too.
         if p('use_sim_time').value:
             clock = self.get_clock()
             self._frame_time = lambda: clock.now().nanoseconds * 1e-9
             self._newest_frame = self._frame_time()
-            self._device_time = lambda: min(self._frame_time(), self._newest_frame + SIM_TIME_SLACK_S)
+            self._device_time = lambda: min(self._frame_time(),
+                                            self._newest_frame + SIM_TIME_SLACK_S)
         else:
             self._frame_time = self._device_time = time.monotonic
             self._newest_frame = self._frame_time()
         self.core = BridgeCore(self.config, clock=self._device_time)
-        # imu_sample_period_s > 0: DMU samples are timed by their sequence counter (sample_clock.py); kept
-        # within 0.04 s of the clock, inside the IMU's 0.05 s silence timeout
+        # imu_sample_period_s > 0: DMU samples are timed by their sequence counter
+        # (sample_clock.py); kept within 0.04 s of the clock, inside the IMU's 0.05 s silence
+        # timeout
         period = float(p('imu_sample_period_s').value)
         self._imu_clock = SampleClock(period, lag_max_s=0.04) if period > 0 else None
         self._lock = threading.Lock()
@@ -135,12 +141,16 @@ class CanBridgeNode(Node):
         for name, bus in self.buses.items():
             self.notifiers.append(can.Notifier(bus, [_BusListener(self, name)], timeout=0.1))
 
-        self.joint_pub = self.create_publisher(JointState, '/joint_states', 10)
-        self.imu_pub = self.create_publisher(Imu, '/imu/data', qos_profile_sensor_data)
-        self.diag_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
-        reliable = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
-        self.create_subscription(Float64MultiArray, '/wheel_effort_cmd', self.on_wheel_effort, reliable)
-        self.create_subscription(JointState, '/joint_position_cmd', self.on_joint_position, 10)
+        qos = topics.QOS
+        self.joint_pub = self.create_publisher(JointState, names.JOINT_STATES,
+                                               qos[names.JOINT_STATES])
+        self.imu_pub = self.create_publisher(Imu, names.IMU, qos[names.IMU])
+        self.diag_pub = self.create_publisher(DiagnosticArray, names.DIAGNOSTICS,
+                                              qos[names.DIAGNOSTICS])
+        self.create_subscription(Float64MultiArray, names.WHEEL_EFFORT_CMD, self.on_wheel_effort,
+                                 qos[names.WHEEL_EFFORT_CMD])
+        self.create_subscription(JointState, names.JOINT_POSITION_CMD, self.on_joint_position,
+                                 qos[names.JOINT_POSITION_CMD])
 
         self.create_timer(1.0 / float(p('publish_rate_hz').value), self.publish_state)
         self.create_timer(1.0 / self.config.wheels.command_rate_hz, self.send_wheel_commands)
@@ -151,28 +161,41 @@ class CanBridgeNode(Node):
         for drive in self.config.wheels.drives:
             self._startup_status[drive.joint] = 'pending'
             if p('amc_startup').value:
-                self.core.inhibit(f'startup/{drive.joint}', f'{drive.joint}: AMC start-up not done')
+                self.core.inhibit(f'startup/{drive.joint}',
+                                  f'{drive.joint}: AMC start-up not done')
         self._startup_thread = threading.Thread(
-            target=self._startup_worker, args=(bool(p('amc_startup').value), float(p('sdo_timeout_s').value),
+            target=self._startup_worker, args=(bool(p('amc_startup').value),
+                                               float(p('sdo_timeout_s').value),
                                                float(p('startup_retry_s').value)), daemon=True)
         self._startup_thread.start()
-        self.get_logger().info('can_bridge on ' + ', '.join(
-            f'{n}={self.config.buses[n].interface}:{self.config.buses[n].channel}' for n in self.buses))
+        self.get_logger().info(
+            'can_bridge on '
+            + ', '.join(
+                f'{n}={self.config.buses[n].interface}:{self.config.buses[n].channel}'
+                for n in self.buses
+            )
+        )
 
-    # ---- CAN I/O ---------------------------------------------------------------------------------------
+    # ---- CAN I/O --------------------------------------------------------------------------------
     def on_received(self, bus: str, msg: can.Message) -> None:
         with self._lock:
             now = self._frame_time()
             if now > self._newest_frame:
                 self._newest_frame = now
-            if self._imu_clock and bus == self.config.imu.bus and msg.arbitration_id in self.core.dmu.feedback_ids:
+            if (
+                self._imu_clock
+                and bus == self.config.imu.bus
+                and msg.arbitration_id in self.core.dmu.feedback_ids
+            ):
                 now = self._imu_sample_time(msg, now)
             self.core.on_frame(msg, now, bus)
         if bus == self.config.wheels.bus and not msg.is_error_frame:
-            self.canopen.notify(msg.arbitration_id, msg.data, msg.timestamp)   # SDO responses for the start-up
+            # SDO responses for the start-up
+            self.canopen.notify(msg.arbitration_id, msg.data, msg.timestamp)
 
     def _imu_sample_time(self, msg: can.Message, now: float) -> float:
-        """Time of a DMU frame from its sequence counter (see imu_sample_period_s); `now` if undecodable."""
+        """Time of a DMU frame from its sequence counter (see imu_sample_period_s); `now` if
+        undecodable."""
         try:
             seq = self.core.dmu.decode(msg).sequence
         except Exception:  # noqa: BLE001 - the core counts the malformed frame
@@ -189,7 +212,8 @@ class CanBridgeNode(Node):
                 self.buses[bus].send(msg, timeout=self._send_timeout)
             except can.CanError as exc:
                 self._send_errors[bus] = self._send_errors.get(bus, 0) + 1
-                self.get_logger().warning(f'send on {bus} failed: {exc}', throttle_duration_sec=1.0)
+                self.get_logger().warning(f'send on {bus} failed: {exc}',
+                                          throttle_duration_sec=1.0)
 
     def _startup_worker(self, amc_startup: bool, sdo_timeout: float, retry_s: float) -> None:
         with self._lock:
@@ -210,7 +234,9 @@ class CanBridgeNode(Node):
                     continue
                 with self._lock:
                     if mismatches:
-                        self._startup_status[drive.joint] = 'constants mismatch: ' + '; '.join(mismatches)
+                        self._startup_status[drive.joint] = 'constants mismatch: ' + '; '.join(
+                            mismatches
+                        )
                         self.core.inhibit(key, '; '.join(mismatches))
                         self.get_logger().error(self._startup_status[drive.joint])
                     else:
@@ -218,13 +244,15 @@ class CanBridgeNode(Node):
                         self.core.inhibit(key, None)
                 break
 
-    # ---- commands --------------------------------------------------------------------------------------
+    # ---- commands -------------------------------------------------------------------------------
     def on_wheel_effort(self, msg: Float64MultiArray) -> None:
         data = list(msg.data)
         left, right = (data[0], data[1]) if len(data) == 2 else (math.nan, math.nan)
         if len(data) != 2:
-            self.get_logger().warning(f'/wheel_effort_cmd needs [left, right], got {len(data)} values: zero current',
-                                      throttle_duration_sec=1.0)
+            self.get_logger().warning(
+                f'{names.WHEEL_EFFORT_CMD} needs [left, right], got {len(data)} values: zero '
+                'current',
+                throttle_duration_sec=1.0)
         with self._lock:
             self.core.set_wheel_effort_command(left, right, self._device_time())
             frames = self.core.wheel_command_frames(self._device_time())
@@ -232,11 +260,13 @@ class CanBridgeNode(Node):
 
     def on_joint_position(self, msg: JointState) -> None:
         if len(msg.position) != len(msg.name):
-            self.get_logger().warning('/joint_position_cmd: name and position lengths differ; ignored',
-                                      throttle_duration_sec=1.0)
+            self.get_logger().warning(
+                f'{names.JOINT_POSITION_CMD}: name and position lengths differ; ignored',
+                throttle_duration_sec=1.0)
             return
         with self._lock:
-            frames = self.core.joint_position_frames(dict(zip(msg.name, msg.position)), self._device_time())
+            frames = self.core.joint_position_frames(dict(zip(msg.name, msg.position)),
+                                                     self._device_time())
         self.send(frames)
 
     def send_wheel_commands(self) -> None:
@@ -256,63 +286,48 @@ class CanBridgeNode(Node):
             self.get_logger().info('DMU silent: sending the stream toggle')
         self.send(frames)
 
-    # ---- state out -------------------------------------------------------------------------------------
+    # ---- state out ------------------------------------------------------------------------------
     def publish_state(self) -> None:
         with self._lock:
             joints = self.core.joint_state()
             imu = self.core.imu_state()
         stamp = self.get_clock().now().to_msg()
         if joints.names:
-            js = JointState()
-            js.header.stamp = stamp
-            js.name, js.position, js.velocity = joints.names, joints.positions, joints.velocities
-            self.joint_pub.publish(js)
+            self.joint_pub.publish(messages.joint_state(stamp, joints.names, joints.positions,
+                                                        joints.velocities))
         if imu is not None:
             self.imu_pub.publish(self._imu_message(imu, stamp))
 
     def _imu_message(self, imu, stamp) -> Imu:
-        m = Imu()
-        m.header.stamp = stamp
-        m.header.frame_id = self.config.imu.frame_id
-        m.orientation.y = math.sin(imu.pitch / 2.0)
-        m.orientation.w = math.cos(imu.pitch / 2.0)
-        m.orientation_covariance = [UNOBSERVED_VARIANCE, 0.0, 0.0, 0.0, imu.pitch_variance, 0.0,
-                                    0.0, 0.0, UNOBSERVED_VARIANCE]
-        e, d = pitch_axis(self.config.imu.mount_angle_rad), tilt_direction(self.config.imu.mount_angle_rad)
+        """The DMU's rates and specific force turned by the mount angle into x forward, y left,
+        z up (at zero pitch); the pitch rate is the filtered one."""
+        mount = self.config.imu.mount_angle_rad
+        e, d = pitch_axis(mount), tilt_direction(mount)
         w, f = imu.rates, imu.specific_force
-        m.angular_velocity.x = -float(d @ w)
-        m.angular_velocity.y = imu.pitch_rate
-        m.angular_velocity.z = w[2]
-        m.linear_acceleration.x = -float(d @ f)
-        m.linear_acceleration.y = float(e @ f)
-        m.linear_acceleration.z = f[2]
-        return m
+        return messages.imu(stamp, self.config.imu.frame_id, imu.pitch, imu.pitch_variance,
+                            (-float(d @ w), imu.pitch_rate, w[2]),
+                            (-float(d @ f), float(e @ f), f[2]))
 
     def publish_diagnostics(self) -> None:
         with self._lock:
             reports = self.core.diagnostics(self._device_time())
-        arr = DiagnosticArray()
-        arr.header.stamp = self.get_clock().now().to_msg()
-        for r in reports:
-            arr.status.append(DiagnosticStatus(level=bytes([r.level]), name=r.name, message=r.message,
-                                               hardware_id='krang_can',
-                                               values=[KeyValue(key=k, value=str(v)) for k, v in r.values.items()]))
+        statuses = [messages.diagnostic_status(r.name, messages.LEVEL_NAMES[r.level], r.message,
+                                               r.values, HARDWARE_ID) for r in reports]
         for bus in self.buses:
             sent_err, recv_err = self._send_errors.get(bus, 0), self._receive_errors.get(bus)
             if sent_err or recv_err:
-                arr.status.append(DiagnosticStatus(
-                    level=DiagnosticStatus.ERROR if recv_err else DiagnosticStatus.WARN,
-                    name=f'can_bridge: bus {bus} I/O', hardware_id='krang_can',
-                    message=recv_err or f'{sent_err} send errors',
-                    values=[KeyValue(key='send_errors', value=str(sent_err)),
-                            KeyValue(key='receive_error', value=str(recv_err))]))
+                statuses.append(messages.diagnostic_status(
+                    f'can_bridge: bus {bus} I/O', 'error' if recv_err else 'warn',
+                    recv_err or f'{sent_err} send errors',
+                    {'send_errors': sent_err, 'receive_error': recv_err}, HARDWARE_ID))
         for joint, status in self._startup_status.items():
-            arr.status.append(DiagnosticStatus(
-                level=DiagnosticStatus.OK if status == 'enabled' else DiagnosticStatus.WARN,
-                name=f'can_bridge: amc/{joint} start-up', hardware_id='krang_can', message=status))
-        self.diag_pub.publish(arr)
+            statuses.append(messages.diagnostic_status(
+                f'can_bridge: amc/{joint} start-up', 'ok' if status == 'enabled' else 'warn',
+                status,
+                hardware_id=HARDWARE_ID))
+        self.diag_pub.publish(messages.diagnostic_array(self.get_clock().now().to_msg(), statuses))
 
-    # ---- shutdown --------------------------------------------------------------------------------------
+    # ---- shutdown -------------------------------------------------------------------------------
     def close(self) -> None:
         """Zero the wheel currents, stop the threads, release the buses."""
         self._stop.set()

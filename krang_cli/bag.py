@@ -13,15 +13,16 @@ from datetime import datetime, timezone
 from krang_bag.reader import BagError, bag_info
 from krang_bag.recover import default_output, recover
 
-_INFO_HELP = """Print what a bag holds: topics, message types, message counts, the QoS the publishers
-offered (reliability/durability) and the recorded time span. Only the summary is read, so this is fast
-on large bags. A bag whose recorder was killed has no summary: `krang bag recover` rescues it."""
+_INFO_HELP = """Print what a bag holds: topics, message types, message counts, the QoS the
+publishers offered (reliability/durability) and the recorded time span. Only the summary is read,
+so this is fast on large bags. A bag whose recorder was killed has no summary: `krang bag recover`
+rescues it."""
 
-_RECOVER_HELP = """Rescue a bag that was never finished (recorder killed with SIGKILL, power cut, full
-disk). Every message in its completed chunks is copied, with its schema, QoS metadata and timestamps,
-into a new finished bag that rosbag2, Foxglove, rosbags and mcap_ros2 can read. The unfinished last
-chunk (at most the recorder's chunk_size of data) is lost. The source file is never modified. Also
-works on a finished bag, as a validating copy."""
+_RECOVER_HELP = """Rescue a bag that was never finished (recorder killed with SIGKILL, power cut,
+full disk). Every message in its completed chunks is copied, with its schema, QoS metadata and
+timestamps, into a new finished bag that rosbag2, Foxglove, rosbags and mcap_ros2 can read. The
+unfinished last chunk (at most the recorder's chunk_size of data) is lost. The source file is never
+modified. Also works on a finished bag, as a validating copy."""
 
 
 def register(subparsers) -> argparse.ArgumentParser:
@@ -37,14 +38,16 @@ def register(subparsers) -> argparse.ArgumentParser:
     info.add_argument('--json', action='store_true', help='print the information as one JSON line')
     info.set_defaults(func=run_info)
 
-    rescue = commands.add_parser('recover', help='rescue the messages of an unfinished (killed) bag',
+    rescue = commands.add_parser('recover',
+                                 help='rescue the messages of an unfinished (killed) bag',
                                  description=_RECOVER_HELP)
     rescue.add_argument('bag', metavar='BAG', help='the unfinished .mcap file')
     rescue.add_argument('--out', metavar='FILE', default=None,
                         help='where to write the rescued bag (default: BAG with .recovered.mcap); '
                              'an existing file is not overwritten unless --force')
     rescue.add_argument('--force', action='store_true', help='overwrite --out if it exists')
-    rescue.add_argument('--json', action='store_true', help='print the recovery report as one JSON line')
+    rescue.add_argument('--json', action='store_true',
+                        help='print the recovery report as one JSON line')
     rescue.set_defaults(func=run_recover)
     return parser
 
@@ -72,11 +75,12 @@ def run_info(args) -> int:
             'messages': info.message_count, 'duration_s': info.duration_s,
             'start_ns': info.start_ns, 'end_ns': info.end_ns, 'chunks': info.chunk_count,
             'compression': list(info.compression),
-            'topics': {t.topic: {'type': t.type_name, 'count': t.message_count, 'type_hash': t.type_hash,
+            'topics': {t.topic: {'type': t.type_name, 'count': t.message_count,
+                                 'type_hash': t.type_hash,
                                  'offered_qos': t.offered_qos} for t in info.topics.values()}}))
         return 0
-    print(f'Bag:         {info.path}  ({info.size_bytes / 1e6:.2f} MB, profile {info.profile or "-"}, '
-          f'written by {info.library or "?"})')
+    print(f'Bag:         {info.path}  ({info.size_bytes / 1e6:.2f} MB, profile '
+          f'{info.profile or "-"}, written by {info.library or "?"})')
     print(f'Messages:    {info.message_count} in {info.chunk_count} chunk(s), '
           f'compression {", ".join(info.compression) or "none"}')
     print(f'Duration:    {info.duration_s:.3f} s')
@@ -97,7 +101,8 @@ def run_recover(args) -> int:
     try:
         report = recover(args.bag, out, overwrite=getattr(args, 'force', False))
     except FileExistsError:
-        print(f'krang bag recover: {out} exists; choose another --out or pass --force', file=sys.stderr)
+        print(f'krang bag recover: {out} exists; choose another --out or pass --force',
+              file=sys.stderr)
         return 1
     except (BagError, ValueError) as err:
         print(f'krang bag recover: {err}', file=sys.stderr)

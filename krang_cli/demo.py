@@ -21,18 +21,25 @@ log = logging.getLogger('krang.demo')
 def register(subparsers):
     p = subparsers.add_parser(
         'demo', help='THE MAIN JOB: simulated Krang, whole node set, online learning, report',
-        description='Starts sim_krang (a simulated Krang with a hidden true mass model: a physically consistent '
-                    'fit to the real robot\'s balanced poses) and the node set over simulated CAN buses, records '
-                    'every topic to DIR/session.mcap, lets the robot stand up, then walks through the meta-learned '
-                    'poses over /pose_server/next_pose while com_estimator learns beta online from each balanced '
-                    'pose. Writes DIR/beta.yaml, DIR/report.md with PNG figures, and prints a JSON summary.')
-    p.add_argument('--poses', type=int, default=3, help='number of poses to learn from (default 3; see the README '
-                   'on longer sessions)')
+        description='Starts sim_krang (a simulated Krang with a hidden true mass model: a '
+                    'physically consistent fit to the real robot\'s balanced poses) and the node '
+                    'set over simulated CAN buses, records every topic to DIR/session.mcap, lets '
+                    'the robot stand up, then walks through the meta-learned poses over '
+                    '/pose_server/next_pose while com_estimator learns beta online from each '
+                    'balanced pose. Writes DIR/beta.yaml, DIR/report.md with PNG figures, and '
+                    'prints a JSON summary.')
+    p.add_argument('--poses', type=int, default=3,
+                   help='number of poses to learn from (default 3; see the README on longer '
+                        'sessions)')
     p.add_argument('--out', default='demo_out', help='output directory (default demo_out)')
-    p.add_argument('--method', default='map-online', help='estimator of com_estimator (default map-online)')
-    p.add_argument('--stand-timeout', type=float, default=120.0, help='s to wait for the robot to balance')
-    p.add_argument('--pose-timeout', type=float, default=90.0, help='s to wait for each balanced pose')
-    p.add_argument('--keep-logs', action='store_true', help='keep node logs in DIR/logs (always kept on failure)')
+    p.add_argument('--method', default='map-online',
+                   help='estimator of com_estimator (default map-online)')
+    p.add_argument('--stand-timeout', type=float, default=120.0,
+                   help='s to wait for the robot to balance')
+    p.add_argument('--pose-timeout', type=float, default=90.0,
+                   help='s to wait for each balanced pose')
+    p.add_argument('--keep-logs', action='store_true',
+                   help='keep node logs in DIR/logs (always kept on failure)')
     p.set_defaults(func=run)
 
 
@@ -60,7 +67,10 @@ def run(args):
     try:
         client, context = open_session_client()
         message = client.enable_controller(timeout=60.0)
-        log.info('adrc_controller: %s; waiting for the simulated robot to stand up and balance ...', message)
+        log.info(
+            'adrc_controller: %s; waiting for the simulated robot to stand up and balance ...',
+            message,
+        )
         client.wait_for_balance(args.stand_timeout)
         with tqdm(total=args.poses, desc='online session', unit='pose') as bar:
             for _ in range(args.poses):
@@ -79,28 +89,37 @@ def run(args):
         nodes.stop(STOP_ORDER)
     wall = time.monotonic() - started
     (curve, lateral), figures = session_figures(bag, robot, true_beta, out)
-    result = {'poses': learned, 'com_error_before_m': float(curve[0]), 'com_error_after_m': float(curve[-1]),
+    result = {'poses': learned, 'com_error_before_m': float(curve[0]),
+              'com_error_after_m': float(curve[-1]),
               'bag': str(bag)}
     write_report(out, result, curve, lateral, figures, message_counts(bag), wall, args, failure)
-    print(f'{learned} poses learned in {wall:.0f} s: mean forward CoM error {1000 * curve[0]:.1f} mm -> '
-          f'{1000 * curve[-1]:.1f} mm; report {out / "report.md"}')
+    print(f'{learned} poses learned in {wall:.0f} s: mean forward CoM error {1000 * curve[0]:.1f} '
+          f'mm -> {1000 * curve[-1]:.1f} mm; report {out / "report.md"}')
     print_json(result)
     return 0 if failure is None else 1
 
 
 def write_report(out, result, curve, lateral, figures, counts, wall, args, failure):
     lines = ['# krang demo: online CoM learning on the simulated Krang', '',
-             f'- poses learned: {result["poses"]} of {args.poses} (estimator `{args.method}`), wall time {wall:.0f} s',
-             f'- mean forward CoM error (the paper\'s |x_com| at the true balance pitch) against the hidden true '
-             f'model, over 2000 held-out configurations: **{1000 * result["com_error_before_m"]:.2f} mm before, '
+             f'- poses learned: {result["poses"]} of {args.poses} (estimator `{args.method}`), '
+             f'wall time {wall:.0f} s',
+             '- mean forward CoM error (the paper\'s |x_com| at the true balance pitch) against '
+             'the hidden true model, over 2000 held-out configurations: '
+             f'**{1000 * result["com_error_before_m"]:.2f} mm before, '
              f'{1000 * result["com_error_after_m"]:.2f} mm after**',
-             f'- mean sideways CoM error: {1000 * lateral[0]:.2f} mm before, {1000 * lateral[-1]:.2f} mm after. A robot '
-             'that balances in pitch never observes it: it stays where the prior put it.',
-             f'- learned beta: `beta.yaml`; bag: `{Path(result["bag"]).name}` ({sum(counts.values())} messages)', '']
+             f'- mean sideways CoM error: {1000 * lateral[0]:.2f} mm before, '
+             f'{1000 * lateral[-1]:.2f} mm after. A robot that balances in pitch never observes '
+             'it: it stays where the prior put it.',
+             f'- learned beta: `beta.yaml`; bag: `{Path(result["bag"]).name}` '
+             f'({sum(counts.values())} messages)', '']
     if failure:
         lines += [f'**The session stopped early:** {failure}. Node logs are in `logs/`.', '']
     lines += ['| poses | forward CoM error (mm) | sideways (mm) |', '|---|---|---|']
-    lines += [f'| {k} | {1000 * e:.2f} | {1000 * y:.2f} |' for k, (e, y) in enumerate(zip(curve, lateral))]
-    lines += ['', '| topic | messages |', '|---|---|'] + [f'| `{t}` | {n} |' for t, n in sorted(counts.items())]
+    lines += [
+        f'| {k} | {1000 * e:.2f} | {1000 * y:.2f} |'
+        for k, (e, y) in enumerate(zip(curve, lateral))
+    ]
+    lines += ['', '| topic | messages |', '|---|---|']
+    lines += [f'| `{t}` | {n} |' for t, n in sorted(counts.items())]
     lines += [''] + [f'![{p.stem}]({p.name})' for p in figures]
     (out / 'report.md').write_text('\n'.join(lines) + '\n')

@@ -2,6 +2,7 @@
 import sys
 from pathlib import Path
 
+from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PointStamped
 from rclpy.node import Node
 from sensor_msgs.msg import JointState
@@ -26,10 +27,13 @@ class ComEstimatorNode(Node):
         beta0 = load_beta(beta_file, self.robot) if beta_file else self.robot.nominal_beta
         self.learner = OnlineLearner(self.robot, beta0, method)
         self.labels = self.robot.beta_labels()
-        self.beta_pub = self.create_publisher(Float64MultiArray, topics.BETA, topics.QOS[topics.BETA])
-        self.com_pub = self.create_publisher(PointStamped, topics.COM, topics.QOS[topics.COM])
-        self.diag_pub = self.create_publisher(messages.DiagnosticArray, topics.DIAGNOSTICS, topics.QOS[topics.DIAGNOSTICS])
-        self.create_subscription(JointState, topics.BALANCED_POSE, self.on_balanced_pose, topics.QOS[topics.BALANCED_POSE])
+        qos = topics.QOS
+        self.beta_pub = self.create_publisher(Float64MultiArray, names.BETA, qos[names.BETA])
+        self.com_pub = self.create_publisher(PointStamped, names.COM, qos[names.COM])
+        self.diag_pub = self.create_publisher(DiagnosticArray, names.DIAGNOSTICS,
+                                              qos[names.DIAGNOSTICS])
+        self.create_subscription(JointState, names.BALANCED_POSE, self.on_balanced_pose,
+                                 qos[names.BALANCED_POSE])
         self.create_service(Trigger, names.SAVE, self.on_save)
         self.create_service(Trigger, names.ESTIMATOR_RESET, self.on_reset)
         self.create_timer(1.0, self.publish_diagnostics)
@@ -39,10 +43,10 @@ class ComEstimatorNode(Node):
 
     def on_balanced_pose(self, msg):
         joints = messages.joints_from_state(msg, self.robot.pose_joints)
-        pitch = messages.joints_from_state(msg, [messages.BASE_PITCH])
+        pitch = messages.joints_from_state(msg, [names.BASE_PITCH])
         if joints is None or pitch is None:
             self.rejected += 1
-            self.get_logger().error(f'rejected balanced pose: needs all body joints and {messages.BASE_PITCH}, '
+            self.get_logger().error(f'rejected balanced pose: needs all body joints and {names.BASE_PITCH}, '
                                     f'finite (got {list(msg.name)})')
             return
         try:

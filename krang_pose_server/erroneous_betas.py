@@ -1,9 +1,11 @@
-"""Erroneous betas: the hypotheses the pose filter learns on, and the start points of simulated learning.
+"""Erroneous betas: the hypotheses the pose filter learns on, and the start points of simulated
+learning.
 
 Two recipes, both vectorised (a whole batch is drawn at once, the rejects are redrawn):
-- `authors_betas` (FACTS §8, 18c filter_training_set.cpp createPriorBeta): masses unchanged; every m*x,
-  m*y, m*z entry v becomes v + U(-dev, dev) v + U(-off, off) [kg m] (dev = off = 0.5); a beta is
-  redrawn until |x_com| = |phi(first pose)^T beta| > min_xcom (2 cm) at the first pose of the pool.
+- `authors_betas` (docs/learning.md; 18c filter_training_set.cpp createPriorBeta): masses
+  unchanged; every m*x, m*y, m*z entry v becomes v + U(-dev, dev) v + U(-off, off) [kg m] (dev =
+  off = 0.5); a beta is redrawn until |x_com| = |phi(first pose)^T beta| > min_xcom (2 cm) at the
+  first pose of the pool.
 - `paper_betas` (paper §III-A, the Matlab 7-link study): 20 % noise on m, m*x and m*y, i.e.
   v := v (1 + U(-f, f)) with f = 0.2 for those entries (m*z untouched), optionally with the same
   minimum-error rejection.
@@ -32,7 +34,8 @@ def _rejection_sample(draw, n, first_phi, min_xcom, rng, max_rounds=1000):
                        'is the first pose degenerate?')
 
 
-def authors_betas(beta, n, rng, first_phi=None, min_xcom=None, max_deviation=None, max_offset=None):
+def authors_betas(beta, n, rng, first_phi=None, min_xcom=None, max_deviation=None,
+                  max_offset=None):
     """(n, len(beta)) erroneous betas by the authors' recipe around `beta` (the "real" one).
 
     first_phi: phi of the first pool pose (normalised by the nominal mass); min_xcom in m.
@@ -57,7 +60,8 @@ def authors_betas(beta, n, rng, first_phi=None, min_xcom=None, max_deviation=Non
 
 
 def paper_betas(beta, n, rng, fraction=None, first_phi=None, min_xcom=0.0, quantities=(0, 1, 2)):
-    """(n, len(beta)) betas with relative noise U(-f, f) on the quantities (0 = m, 1 = m*x, 2 = m*y,
+    """(n, len(beta)) betas with relative noise U(-f, f) on the quantities (0 = m, 1 = m*x, 2 =
+    m*y,
     3 = m*z) of every body: the paper's "20 % from the real values of m_i, m_i x_i and m_i y_i"."""
     f = erroneous_config()['paper_fraction'] if fraction is None else fraction
     beta = np.asarray(beta, dtype=float)

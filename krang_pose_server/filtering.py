@@ -14,22 +14,27 @@ completes the window is part of the output.
 Speed. Recomputing E = Phi^T B (n_poses x n_betas) each iteration costs n_poses*n_betas*92 flops
 (1e9 at the paper's scale, 22,000 x 500 x 92) and even keeping E and correcting it by the rank-one
 update E <- E - (Phi k)(phi*^T B) still touches all n_poses*n_betas entries (11e6) per iteration.
-Here only the betas B (92 x n_betas) are updated and a pose's score s_i = ||B^T phi_i||_1 is evaluated
-exactly when it can still be the maximum, judged by two upper bounds that cost O(n_poses) per step:
-- the squared row norm q_i = ||B^T phi_i||_2^2 = phi_i^T C phi_i with C = B B^T, kept exactly by the
-  rank-one algebra (B' = B - k e*^T, e* = B^T phi*, g = Phi k, w = C phi*, h = Phi w, c = phi*^T w):
+Here only the betas B (92 x n_betas) are updated and a pose's score s_i = ||B^T phi_i||_1 is
+evaluated exactly when it can still be the maximum, judged by two upper bounds that cost O(n_poses)
+per step:
+- the squared row norm q_i = ||B^T phi_i||_2^2 = phi_i^T C phi_i with C = B B^T, kept exactly by
+  the rank-one algebra (B' = B - k e*^T, e* = B^T phi*, g = Phi k, w = C phi*, h = Phi w, c =
+  phi*^T w):
       q_i' = q_i - 2 g_i h_i + g_i^2 c,     C' = C - k w^T - w k^T + c k k^T
   and s_i <= sqrt(n_betas q_i);
-- since row i changed by -g_i e* at each step, s_i <= s_i(last exact evaluation) + sum |g_i| ||e*||_1.
+- since row i changed by -g_i e* at each step, s_i <= s_i(last exact evaluation) + sum |g_i|
+  ||e*||_1.
 Poses are evaluated in decreasing bound order until the best exact score beats every remaining
 bound (ties included), so the argmax is the one of the straightforward algorithm. Per step this is
 two matvecs with Phi plus a few hundred exact rows instead of 11e6 entries.
 
 Other criteria (same loop, same stop rule):
-- `squared`: i* = argmax_i sum_k (Phi_i^T beta_k)^2 = q_i, which the rank-one algebra keeps exactly.
+- `squared`: i* = argmax_i sum_k (Phi_i^T beta_k)^2 = q_i, which the rank-one algebra keeps
+  exactly.
 - `d-optimal`: greedy D-optimal design, i* = argmax_i log det(A + phi_i phi_i^T / r_i) - log det A
   = argmax_i log(1 + phi_i^T A^-1 phi_i / r_i), with A the information matrix (prior precision plus
-  the chosen poses). A^-1 is updated by Sherman-Morrison and v_i = phi_i^T A^-1 phi_i by one matvec:
+  the chosen poses). A^-1 is updated by Sherman-Morrison and v_i = phi_i^T A^-1 phi_i by one
+  matvec:
       u = A^-1 phi*, v_i' = v_i - (phi_i^T u)^2 / (r* + v*).
   log det is submodular, so greedy is within (1 - 1/e) of the best design (notes §3).
 
@@ -69,7 +74,8 @@ class FilterResult:
 
 
 class _Setup:
-    """Argument checking and defaults shared by the fast and the straightforward implementations."""
+    """Argument checking and defaults shared by the fast and the straightforward
+    implementations."""
 
     def __init__(self, phi, betas, criterion, eta, x_tol, window, max_poses, learner, prior_cov,
                  noise_var):
@@ -160,7 +166,9 @@ def filter_poses(phi, betas, criterion=None, eta=None, x_tol=None, window=None, 
                 ub = np.minimum(score + tri, np.sqrt(nb * np.maximum(q, 0.0)))
             else:
                 ub = q.copy()
-            ub = ub * (1.0 + 1e-9) + 1e-12 * (q_scale if s.criterion == 'squared' else np.sqrt(nb * q_scale))
+            ub = ub * (1.0 + 1e-9) + 1e-12 * (
+                q_scale if s.criterion == 'squared' else np.sqrt(nb * q_scale)
+            )
             ub[~active] = -np.inf
             i, evals = _lazy_argmax(P, B, ub, score, q, tri, s.criterion)
             evaluations += evals
@@ -192,14 +200,16 @@ def filter_poses(phi, betas, criterion=None, eta=None, x_tol=None, window=None, 
         if _stop(max_err, s.x_tol, s.window):
             converged = True
             break
-    return FilterResult(np.array(selected, dtype=int), np.array(max_err), np.array(mean_err), converged,
+    return FilterResult(np.array(selected, dtype=int), np.array(max_err), np.array(mean_err),
+                        converged,
                         time.perf_counter() - t0, s.criterion, s.learner, B.T.copy(), evaluations)
 
 
 def _lazy_argmax(P, B, ub, score, q, tri, criterion, first=16):
-    """Exact argmax of the criterion over the active rows, evaluating rows in decreasing upper-bound
-    order (in chunks of doubling size) until no remaining bound can reach the best exact score (ties
-    included). Updates score/q/tri in place for every evaluated row. Returns (index, rows evaluated)."""
+    """Exact argmax of the criterion over the active rows, evaluating rows in decreasing
+    upper-bound order (in chunks of doubling size) until no remaining bound can reach the best
+    exact score (ties included). Updates score/q/tri in place for every evaluated row. Returns
+    (index, rows evaluated)."""
     n_active = int(np.isfinite(ub).sum())
     k = min(first, n_active)
     cand = np.argpartition(-ub, k - 1)[:k] if k < len(ub) else np.flatnonzero(np.isfinite(ub))
@@ -219,8 +229,8 @@ def _lazy_argmax(P, B, ub, score, q, tri, criterion, first=16):
         i, b = _pick_last(exact, cand)
         if b > best or (b == best and i > best_i):
             best_i, best = i, b
-        # every row whose bound can still reach (or tie) the best must be evaluated exactly; take them
-        # best bound first, in growing chunks, since a better best prunes the rest
+        # every row whose bound can still reach (or tie) the best must be evaluated exactly; take
+        # them best bound first, in growing chunks, since a better best prunes the rest
         rest = np.flatnonzero((ub >= best) & ~evaluated)
         chunk *= 2
         if len(rest) > chunk:
@@ -229,7 +239,8 @@ def _lazy_argmax(P, B, ub, score, q, tri, criterion, first=16):
     return best_i, evals
 
 
-def filter_straightforward(phi, betas, criterion=None, eta=None, x_tol=None, window=None, max_poses=None,
+def filter_straightforward(phi, betas, criterion=None, eta=None, x_tol=None, window=None,
+                           max_poses=None,
                            learner=None, prior_cov=None, noise_var=None, progress=None):
     """Reference implementation (tests and benchmark only): Algorithm 1 as written, recomputing
     Phi^T beta_k for all remaining poses and removing the chosen pose from Phi every iteration."""
@@ -267,5 +278,6 @@ def filter_straightforward(phi, betas, criterion=None, eta=None, x_tol=None, win
         if _stop(max_err, s.x_tol, s.window):
             converged = True
             break
-    return FilterResult(np.array(selected, dtype=int), np.array(max_err), np.array(mean_err), converged,
+    return FilterResult(np.array(selected, dtype=int), np.array(max_err), np.array(mean_err),
+                        converged,
                         time.perf_counter() - t0, s.criterion, s.learner, B.T.copy())

@@ -1,12 +1,13 @@
 """The pool of random safe and balanced poses the pose filter chooses from (paper §II-B).
 
 A pose of the pool is
-- within the sampling box of the authors' pose generator (config/poses.yaml, FACTS §3), which lies
+- within the sampling box of the authors' pose generator (config/poses.yaml), which lies
   inside the hardware joint limits;
-- balanced under the "real" beta: q_base is the closed-form balance pitch (krang_model.com.balance_pitch),
-  so x_com = 0 exactly, with the CoM above the axle; and q_base lies within the floor limits;
-- safe: no self-collision between the URDF collision shapes (adjacent links, which always touch, and
-  pairs touching at the neutral pose are excluded) and no shape below the floor, the plane
+- balanced under the "real" beta: q_base is the closed-form balance pitch
+  (krang_model.com.balance_pitch), so x_com = 0 exactly, with the CoM above the axle; and q_base
+  lies within the floor limits;
+- safe: no self-collision between the URDF collision shapes (adjacent links, which always touch,
+  and pairs touching at the neutral pose are excluded) and no shape below the floor, the plane
   z = -wheel_radius of frame 0 (the wheels themselves rest on it and are excluded).
 
 Sampling is vectorised: joints are drawn in batches, the balance pitch and the floor limits are
@@ -40,10 +41,12 @@ class PoolResult:
 
 
 class CollisionChecker:
-    """Self- and floor-collision of a pose, with pinocchio's geometry model of the URDF's collision shapes.
+    """Self- and floor-collision of a pose, with pinocchio's geometry model of the URDF's collision
+    shapes.
 
-    The geometry lives in the base frame (the model is fixed at Base); the floor is a coal.Halfspace
-    whose placement in the base frame is R0(q_base)^T (rotation from frame 0), set per configuration.
+    The geometry lives in the base frame (the model is fixed at Base); the floor is a
+    coal.Halfspace whose placement in the base frame is R0(q_base)^T (rotation from frame 0), set
+    per configuration.
     """
 
     def __init__(self, robot=None, margin=0.0, check_floor=True):
@@ -76,9 +79,11 @@ class CollisionChecker:
         self.n_self_pairs = len(gm.collisionPairs)
         self.floor_id = None
         if check_floor:
-            # Halfspace {x : n.x <= d}: the solid below the plane z = -r (frame 0), margin grows it upwards.
+            # Halfspace {x : n.x <= d}: the solid below the plane z = -r (frame 0), margin grows it
+            # upwards.
             floor = coal.Halfspace(np.array([0.0, 0.0, 1.0]), -self.robot.wheel_radius + margin)
-            self.floor_id = gm.addGeometryObject(pin.GeometryObject('floor', 0, 0, pin.SE3.Identity(), floor))
+            self.floor_id = gm.addGeometryObject(pin.GeometryObject('floor', 0, 0,
+                                                                    pin.SE3.Identity(), floor))
             for i in range(len(self.robot_geoms)):
                 if i not in self.wheel_geoms:
                     gm.addCollisionPair(pin.CollisionPair(i, self.floor_id))
@@ -94,15 +99,18 @@ class CollisionChecker:
             self._floor_object.placement = pin.SE3(base_to_frame0(q_base)[0].T, np.zeros(3))
 
     def is_free(self, q_base, joints):
-        """True when the pose (base pitch, 16 joints) collides with neither itself nor the floor."""
+        """True when the pose (base pitch, 16 joints) collides with neither itself nor the
+        floor."""
         self._set(q_base, joints)
-        return not pin.computeCollisions(self.robot.model, self.data, self.geom_model, self.geom_data,
+        return not pin.computeCollisions(self.robot.model, self.data, self.geom_model,
+                                         self.geom_data,
                                          self._q, True)
 
     def colliding_pairs(self, q_base, joints):
         """Names of every colliding pair (for diagnostics and tests)."""
         self._set(q_base, joints)
-        pin.computeCollisions(self.robot.model, self.data, self.geom_model, self.geom_data, self._q, False)
+        pin.computeCollisions(self.robot.model, self.data, self.geom_model, self.geom_data,
+                              self._q, False)
         out = []
         for k, cp in enumerate(self.geom_model.collisionPairs):
             if self.geom_data.collisionResults[k].isCollision():
@@ -120,7 +128,8 @@ def _inflate(shape, margin):
 
 
 class PosePool:
-    """Draws random safe and balanced poses. `real_beta` is the beta the poses are balanced under."""
+    """Draws random safe and balanced poses. `real_beta` is the beta the poses are balanced
+    under."""
 
     def __init__(self, robot=None, real_beta=None, config=None):
         self.robot = robot or load_krang()
@@ -132,11 +141,15 @@ class PosePool:
                              f'{KRANG_POSE_COLUMNS}')
         self.lower = np.asarray(cfg['sampling_lower'], dtype=float)
         self.upper = np.asarray(cfg['sampling_upper'], dtype=float)
-        if np.any(self.lower < self.robot.lower - 1e-12) or np.any(self.upper > self.robot.upper + 1e-12):
+        if np.any(self.lower < self.robot.lower - 1e-12) or np.any(
+            self.upper > self.robot.upper + 1e-12
+        ):
             raise ValueError('config/poses.yaml: the sampling box leaves the URDF joint limits')
         self.q_base_limits = tuple(float(v) for v in cfg['q_base_limits'])
-        self.real_beta = self.robot.nominal_beta if real_beta is None else np.asarray(real_beta, float)
-        self.checker = CollisionChecker(self.robot, margin=float(cfg.get('collision_margin_m', 0.0)),
+        self.real_beta = self.robot.nominal_beta if real_beta is None else np.asarray(real_beta,
+                                                                                      float)
+        self.checker = CollisionChecker(self.robot, margin=float(cfg.get('collision_margin_m',
+                                                                         0.0)),
                                         check_floor=bool(cfg.get('check_floor', True)))
         self.batch_size = int(cfg.get('batch_size', 4096))
 
@@ -153,10 +166,15 @@ class PosePool:
 
     def is_safe(self, q_base, joints):
         lo, hi = self.q_base_limits
-        return bool(lo <= q_base <= hi and self.within_limits(joints)[0] and self.checker.is_free(q_base, joints))
+        return bool(
+            lo <= q_base <= hi
+            and self.within_limits(joints)[0]
+            and self.checker.is_free(q_base, joints)
+        )
 
     def generate(self, n, seed=0, progress=None, max_tries=None):
-        """n poses (q_base (n,), joints (n, 16)). `progress(k)` is called with the number of new poses."""
+        """n poses (q_base (n,), joints (n, 16)). `progress(k)` is called with the number of new
+        poses."""
         rng = np.random.default_rng(seed)
         t0 = time.perf_counter()
         max_tries = max_tries or 1000 * n + 10000
@@ -169,8 +187,8 @@ class PosePool:
                 raise RuntimeError(f'pose pool: only {got} of {n} poses after {tries} tries')
             joints = rng.uniform(self.lower, self.upper, size=(self.batch_size, len(self.lower)))
             q_base, ok = self.balanced_candidates(joints)
-            # Samples are consumed in order, so the pool does not depend on the batch size ... up to the
-            # last batch, where the tries beyond the n-th accepted pose are not counted.
+            # Samples are consumed in order, so the pool does not depend on the batch size ... up
+            # to the last batch, where the tries beyond the n-th accepted pose are not counted.
             new = 0
             for i in range(self.batch_size):
                 tries += 1

@@ -26,7 +26,8 @@ class PoseSequence:
     def __init__(self, joints, robot):
         joints = np.atleast_2d(np.asarray(joints, dtype=float))
         if joints.shape[1] != len(robot.pose_joints):
-            raise ValueError(f'poses have {joints.shape[1]} joints, {robot.name} has {len(robot.pose_joints)}')
+            raise ValueError(f'poses have {joints.shape[1]} joints, {robot.name} has '
+                             f'{len(robot.pose_joints)}')
         if not np.all(np.isfinite(joints)):
             raise ValueError('poses contain NaN or inf')
         outside = np.flatnonzero(np.any((joints < robot.lower) | (joints > robot.upper), axis=1))

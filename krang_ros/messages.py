@@ -3,13 +3,16 @@ import math
 
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-from sensor_msgs.msg import JointState
+from sensor_msgs.msg import Imu, JointState
 from std_msgs.msg import Float64MultiArray, MultiArrayDimension
 
+# Re-exported only for krang_adrc_controller/node.py, which still spells it messages.BASE_PITCH.
 from .names import BASE_PITCH  # noqa: F401
 
 LEVEL = {'ok': DiagnosticStatus.OK, 'warn': DiagnosticStatus.WARN, 'error': DiagnosticStatus.ERROR,
          'stale': DiagnosticStatus.STALE}
+LEVEL_NAMES = ('ok', 'warn', 'error', 'stale')     # by DiagnosticStatus level number
+UNOBSERVED_VARIANCE = 1e6      # REP-145: a large variance for an orientation axis not measured
 
 
 def joint_state(stamp, names, positions, velocities=None):
@@ -23,7 +26,8 @@ def joint_state(stamp, names, positions, velocities=None):
 
 
 def joints_from_state(msg, names):
-    """Positions of `names` (in that order) from a JointState; None if any is missing or not finite."""
+    """Positions of `names` (in that order) from a JointState; None if any is missing or not
+    finite."""
     index = {n: i for i, n in enumerate(msg.name)}
     if any(n not in index or index[n] >= len(msg.position) for n in names):
         return None
@@ -40,9 +44,11 @@ def velocities_from_state(msg, names):
 
 
 def labelled_array(values, labels, label='beta'):
-    """Float64MultiArray whose layout names every entry ('Body.quantity'), as DESIGN §5 asks."""
+    """Float64MultiArray whose layout names every entry ('Body.quantity'), so a bag is readable
+    without this package."""
     msg = Float64MultiArray()
-    msg.layout.dim = [MultiArrayDimension(label=label + ':' + ','.join(labels), size=len(values), stride=len(values))]
+    msg.layout.dim = [MultiArrayDimension(label=label + ':' + ','.join(labels), size=len(values),
+                                          stride=len(values))]
     msg.data = [float(v) for v in values]
     return msg
 
@@ -64,10 +70,38 @@ def pitch_from_quaternion(x, y, z, w):
     return 2.0 * math.atan2(y, w)
 
 
-def diagnostics(stamp, name, level, message, values=None, hardware_id=''):
+def imu(stamp, frame_id, pitch, pitch_variance, angular_velocity, linear_acceleration):
+    """sensor_msgs/Imu of a pitch-only orientation (pitch_quaternion); roll and yaw are not
+    observed, so their variances are UNOBSERVED_VARIANCE. Vectors are (x, y, z)."""
+    m = Imu()
+    m.header.stamp = stamp
+    m.header.frame_id = frame_id
+    m.orientation.x, m.orientation.y, m.orientation.z, m.orientation.w = pitch_quaternion(pitch)
+    m.orientation_covariance = [UNOBSERVED_VARIANCE, 0.0, 0.0, 0.0, float(pitch_variance), 0.0,
+                                0.0, 0.0, UNOBSERVED_VARIANCE]
+    w, f = angular_velocity, linear_acceleration
+    m.angular_velocity.x, m.angular_velocity.y, m.angular_velocity.z = (float(v) for v in w)
+    m.linear_acceleration.x, m.linear_acceleration.y, m.linear_acceleration.z = (
+        float(v) for v in f
+    )
+    return m
+
+
+def diagnostic_status(name, level, message, values=None, hardware_id=''):
+    """One DiagnosticStatus; `level` is a name of LEVEL ('ok', 'warn', 'error', 'stale')."""
+    status = DiagnosticStatus(level=LEVEL[level], name=name, message=message,
+                              hardware_id=hardware_id)
+    status.values = [KeyValue(key=str(k), value=str(v)) for k, v in (values or {}).items()]
+    return status
+
+
+def diagnostic_array(stamp, statuses):
     array = DiagnosticArray()
     array.header.stamp = stamp
-    status = DiagnosticStatus(level=LEVEL[level], name=name, message=message, hardware_id=hardware_id)
-    status.values = [KeyValue(key=str(k), value=str(v)) for k, v in (values or {}).items()]
-    array.status = [status]
+    array.status = list(statuses)
     return array
+
+
+def diagnostics(stamp, name, level, message, values=None, hardware_id=''):
+    """A DiagnosticArray of one status (diagnostic_status)."""
+    return diagnostic_array(stamp, [diagnostic_status(name, level, message, values, hardware_id)])

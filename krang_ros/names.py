@@ -1,4 +1,5 @@
-"""Topic names of DESIGN.md §5 (no rclpy import, so offline tools can use them too)."""
+"""Topic and service names of the node graph (README.md, Architecture), spelled once for every
+node, client, recorder and test (no rclpy import, so offline tools can use them too)."""
 JOINT_STATES = '/joint_states'
 IMU = '/imu/data'
 WHEEL_EFFORT_CMD = '/wheel_effort_cmd'
@@ -8,12 +9,13 @@ BETA = '/com_estimator/beta'
 COM = '/com_estimator/com'
 POSE_TARGET = '/pose_server/target'
 DIAGNOSTICS = '/diagnostics'
+CLOCK = '/clock'                                 # ROS simulated time, published by sim_krang
+GROUND_TRUTH = '/sim_krang/ground_truth'         # the simulator's truth, for evaluation only
 
 BASE_PITCH = 'base_pitch'    # the extra "joint" of /balanced_pose
 WHEEL_JOINTS = ('JLWheel', 'JRWheel')
 
-# Services (DESIGN.md §5): the node that serves each and the name it is served under, so nodes and
-# clients spell them once.
+# Services: the node that serves each and the name it is served under.
 ENABLE = '/adrc_controller/enable'
 NEXT_POSE = '/pose_server/next_pose'
 POSE_RESET = '/pose_server/reset'

@@ -1,4 +1,5 @@
-"""Drives an online learning session over the node set's services (used by `krang demo` and the tests)."""
+"""Drives an online learning session over the node set's services (used by `krang demo` and the
+tests)."""
 import time
 
 import rclpy
@@ -20,8 +21,10 @@ class SessionClient(Node):
         super().__init__('krang_session', context=context)
         self.modes = []
         self.betas = []
-        self.create_subscription(DiagnosticArray, topics.DIAGNOSTICS, self.on_diagnostics, topics.QOS[topics.DIAGNOSTICS])
-        self.create_subscription(Float64MultiArray, topics.BETA, self.on_beta, topics.QOS[topics.BETA])
+        qos = topics.QOS
+        self.create_subscription(DiagnosticArray, names.DIAGNOSTICS, self.on_diagnostics,
+                                 qos[names.DIAGNOSTICS])
+        self.create_subscription(Float64MultiArray, names.BETA, self.on_beta, qos[names.BETA])
         self.next_pose = self.create_client(Trigger, names.NEXT_POSE)
         self.save = self.create_client(Trigger, names.SAVE)
         self.enable = self.create_client(SetBool, names.ENABLE)
@@ -62,10 +65,12 @@ class SessionClient(Node):
         return future.result()
 
     def enable_controller(self, timeout):
-        """Enable the balance controller as soon as it accepts (it refuses until sensor data flow)."""
+        """Enable the balance controller as soon as it accepts (it refuses until sensor data
+        flow)."""
         deadline = time.monotonic() + timeout
         while True:
-            reply = self.call(self.enable, SetBool.Request(data=True), timeout=max(1.0, deadline - time.monotonic()))
+            reply = self.call(self.enable, SetBool.Request(data=True),
+                              timeout=max(1.0, deadline - time.monotonic()))
             if reply.success:
                 return reply.message
             if time.monotonic() > deadline:
@@ -77,7 +82,8 @@ class SessionClient(Node):
                         'the robot to stand up and balance (adrc_controller mode)')
 
     def learn_next_pose(self, timeout):
-        """Command the next pose and wait until the estimator has learned from it; returns the reply text."""
+        """Command the next pose and wait until the estimator has learned from it; returns the
+        reply text."""
         before = len(self.betas)
         reply = self.call(self.next_pose, Trigger.Request())
         if not reply.success:

@@ -1,10 +1,12 @@
-"""The one way our nodes run: init, spin until Ctrl-C or shutdown, then close and shut down cleanly."""
+"""The one way our nodes run: init, spin until Ctrl-C or shutdown, then close and shut down
+cleanly."""
 import rclpy
 from rclpy.executors import ExternalShutdownException
 
 
 def run_node(node_class, args=None):
-    """Spin one node; `node.close()` (if the node has one) releases its hardware before destruction."""
+    """Spin one node; `node.close()` (if the node has one) releases its hardware before
+    destruction."""
     rclpy.init(args=args)
     node = node_class()
     try:

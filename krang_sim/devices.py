@@ -117,7 +117,7 @@ class AmcDriveEmulator:
     @property
     def wheel_torque_nm(self) -> float:
         """Torque at the wheel for the applied current (Kt * gear * I, the drive constants of the config)."""
-        return self.commanded_current_a * self.wheels.torque_constant_nm_per_a * self.wheels.gear_ratio
+        return self.wheels.current_to_effort(self.commanded_current_a)
 
     def fault(self) -> None:
         """Inject a drive fault: current drops to zero until a fault reset and re-enable."""

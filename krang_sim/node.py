@@ -1,20 +1,21 @@
 """sim_krang: the simulated Krang behind the same CAN frames as the real robot.
 
-A physics thread steps `KrangSim` at `physics_rate_hz` and paces itself at `real_time_factor` times wall
-time (1 = real time, 0 = as fast as the CPU allows). When the CPU cannot keep up it falls behind by
-at most `max_lag_s` and then slows down, instead of catching up in bursts the controller cannot see. The device emulators of devices.py answer the
-bridge on the buses of the device map: AMC drives (current commands in, TPDO feedback out), the DMU
-IMU and the PowerCube modules, which move the body joints at their speed limits. With
-`publish_clock` the node publishes /clock (at `clock_rate_hz`, right after the sensor frames of that
-step), so nodes running with use_sim_time follow the simulated time whether it runs faster or slower than
-real time: `krang demo` runs the node set that way, because a simulator starved of CPU slows down. With
-`max_control_lag_s` it also waits for the control loop (see there). Ground truth for evaluation goes to
+A physics thread steps `KrangSim` at `physics_rate_hz` and paces itself at `real_time_factor` times
+wall time (1 = real time, 0 = as fast as the CPU allows). When the CPU cannot keep up it falls
+behind by at most `max_lag_s` and then slows down, instead of catching up in bursts the controller
+cannot see. The device emulators of devices.py answer the bridge on the buses of the device map:
+AMC drives (current commands in, TPDO feedback out), the DMU IMU and the PowerCube modules, which
+move the body joints at their speed limits. With `publish_clock` the node publishes /clock (at
+`clock_rate_hz`, right after the sensor frames of that step), so nodes running with use_sim_time
+follow the simulated time whether it runs faster or slower than real time: `krang demo` runs the
+node set that way, because a simulator starved of CPU slows down. With `max_control_lag_s` it also
+waits for the control loop (see there). Ground truth for evaluation goes to
 /sim_krang/ground_truth.
 
 Fault injection: `silent_devices` (string array, settable at run time, e.g. through
-/sim_krang/set_parameters) silences devices as devices.py describes: 'imu', a wheel joint for its AMC drive,
-or a body joint for its PowerCube modules; [] restores them. The change is logged and reported at once on
-/diagnostics with the simulated time it took effect (`silent_since_s`).
+/sim_krang/set_parameters) silences devices as devices.py describes: 'imu', a wheel joint for its
+AMC drive, or a body joint for its PowerCube modules; [] restores them. The change is logged and
+reported at once on /diagnostics with the simulated time it took effect (`silent_since_s`).
 """
 import dataclasses
 import math
@@ -37,14 +38,13 @@ from krang_can_bridge.protocols import amc as amc_proto
 from krang_can_bridge.config import default_devices_file, load_devices
 from krang_model.beta import load_beta
 from krang_model.robot import load_krang
-from krang_ros import messages, topics
+from krang_ros import messages, names, topics
 from krang_ros.spin import run_node
 
 from .devices import KrangCanDevices
 from .physics import KrangSim, SensorNoise, SimConfig, SimEffects
 from .session_config import resolve_config_file
 
-GROUND_TRUTH = '/sim_krang/ground_truth'
 GROUND_TRUTH_FIELDS = ('t', 'q_base', 'x_m', 'balance_pitch', 'current_left_a', 'current_right_a')
 
 
@@ -69,40 +69,48 @@ class SimKrangNode(Node):
         self.feedback_every = max(1, round(self.rate / p('feedback_rate_hz', 250.0).value))
         self.factor = p('real_time_factor', 1.0).value
         self.publish_clock = p('publish_clock', False).value
-        # /clock every `clock_every` physics steps (default: with each sensor feedback). Every node on
-        # use_sim_time pays for each /clock message (rclpy re-evaluates its timers), so the rate is the
-        # coarsest the nodes' timers need.
-        self.clock_every = max(1, round(self.rate / p('clock_rate_hz', self.rate / self.feedback_every).value))
+        # /clock every `clock_every` physics steps (default: with each sensor feedback). Every node
+        # on use_sim_time pays for each /clock message (rclpy re-evaluates its timers), so the rate
+        # is the coarsest the nodes' timers need.
+        self.clock_every = max(1, round(self.rate / p('clock_rate_hz',
+                                                      self.rate / self.feedback_every).value))
         seed = p('seed', 0).value
         effects = SimEffects(**{f.name: p(f'effects.{f.name}', f.default).value
-                                for f in dataclasses.fields(SimEffects) if isinstance(f.default, (float, str))})
+                                for f in dataclasses.fields(SimEffects) if isinstance(f.default,
+                                                                                      (float,
+                                                                                       str))})
         self.config = load_devices(devices_file)
         true_beta = load_beta(truth_file, self.robot)
-        self.sim = KrangSim(self.robot, true_beta, np.array(pose), None if math.isnan(q_base) else q_base,
+        self.sim = KrangSim(self.robot, true_beta, np.array(pose),
+                            None if math.isnan(q_base) else q_base,
                             SimConfig(dt=1.0 / self.rate, effects=effects, seed=seed,
-                                      noise=SensorNoise(imu_pitch_std_rad=0.0)))  # IMU noise: in the emulator
+                                      # IMU noise: in the emulator
+                                      noise=SensorNoise(imu_pitch_std_rad=0.0)))
         self.devices = KrangCanDevices(self.config, seed=seed, imu_rate_noise_std_rad_s=0.002,
                                        imu_accel_noise_std_m_s2=0.02,
-                                       initial_joint_positions=dict(zip(self.robot.pose_joints, pose)))
+                                       initial_joint_positions=dict(zip(self.robot.pose_joints,
+                                                                        pose)))
         self.lock = threading.Lock()
         self.sent_frames = 0
         self.slips = 0
         self.max_lag = p('max_lag_s', 0.02).value
-        # Control-loop guard (0 = off): the simulated time does not run more than `max_control_lag_s` past
-        # the last beat of the control loop: the bridge's last /imu/data (its stamp: when the bridge
-        # published it), the controller's last /wheel_effort_cmd and the bridge's last current RPDO on the
-        # CAN bus, whichever is oldest. The /imu/data beat catches a bridge whose executor is starved while
-        # its CAN threads still refresh the drives: its IMU rate fell to 16-25 Hz for seconds, the
-        # controller stepped on stale samples, and a pose move ended in a 49 A oscillation. On a
-        # shared machine a node can be descheduled for a few hundred ms while this process keeps the CPU
-        # (measured at load 11-15 on 2 cores: 200-360 ms without a controller step, and the robot fell);
-        # the robot's own computer has no such stalls. Within the bound the loop's real latency stays in
-        # the simulation; beyond it the simulator waits (and so slips, as when it is starved itself). The
-        # guard arms at the first command and lets go when no command comes for `control_guard_timeout_s`
-        # of wall time (the controller stopped).
+        # Control-loop guard (0 = off): the simulated time does not run more than
+        # `max_control_lag_s` past the last beat of the control loop: the bridge's last /imu/data
+        # (its stamp: when the bridge published it), the controller's last /wheel_effort_cmd and
+        # the bridge's last current RPDO on the CAN bus, whichever is oldest. The /imu/data beat
+        # catches a bridge whose executor is starved while its CAN threads still refresh the
+        # drives: its IMU rate fell to 16-25 Hz for seconds, the controller stepped on stale
+        # samples, and a pose move ended in a 49 A oscillation. On a shared machine a node can be
+        # descheduled for a few hundred ms while this process keeps the CPU (measured at load 11-15
+        # on 2 cores: 200-360 ms without a controller step, and the robot fell); the robot's own
+        # computer has no such stalls. Within the bound the loop's real latency stays in the
+        # simulation; beyond it the simulator waits (and so slips, as when it is starved itself).
+        # The guard arms at the first command and lets go when no command comes for
+        # `control_guard_timeout_s` of wall time (the controller stopped).
         self.max_control_lag = p('max_control_lag_s', 0.0).value
         self.guard_timeout = p('control_guard_timeout_s', 1.0).value
-        self.controller_beat = self.bridge_beat = self.imu_beat = None    # (sim t, wall t) of the last beat
+        # (sim t, wall t) of the last beat
+        self.controller_beat = self.bridge_beat = self.imu_beat = None
         self.guard_wait_s = 0.0
         self.rpdo_ids = {w.codec.ids[amc_proto.RPDO_CURRENT] for w in self.devices.wheels.values()}
         self.buses = {}
@@ -111,21 +119,25 @@ class SimKrangNode(Node):
             bus = can.Bus(**self.config.buses[name].bus_kwargs())
             self.buses[name] = bus
             self.notifiers.append(can.Notifier(bus, [_Inbox(self, name)], timeout=0.05))
-        self.clock_pub = self.create_publisher(Clock, '/clock', 10)
+        qos = topics.QOS
+        self.clock_pub = self.create_publisher(Clock, names.CLOCK, qos[names.CLOCK])
         if self.max_control_lag > 0:
-            self.create_subscription(Float64MultiArray, topics.WHEEL_EFFORT_CMD, self.on_effort_command,
-                                     topics.QOS[topics.WHEEL_EFFORT_CMD])
-            self.create_subscription(Imu, topics.IMU, self.on_imu_published, topics.QOS[topics.IMU])
-        self.truth_pub = self.create_publisher(Float64MultiArray, GROUND_TRUTH, 10)
-        self.diag_pub = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, topics.QOS[topics.DIAGNOSTICS])
+            self.create_subscription(Float64MultiArray, names.WHEEL_EFFORT_CMD,
+                                     self.on_effort_command, qos[names.WHEEL_EFFORT_CMD])
+            self.create_subscription(Imu, names.IMU, self.on_imu_published, qos[names.IMU])
+        self.truth_pub = self.create_publisher(Float64MultiArray, names.GROUND_TRUTH,
+                                               qos[names.GROUND_TRUTH])
+        self.diag_pub = self.create_publisher(DiagnosticArray, names.DIAGNOSTICS,
+                                              qos[names.DIAGNOSTICS])
         self.create_timer(0.1, self.publish_truth)
         self.create_timer(1.0, self.publish_diagnostics)
         self.running = True
         # When behind real time the physics loop does not sleep, and it would keep the GIL for the
-        # interpreter's 5 ms switch interval at a time; the nine bus threads then get it in turn and a
-        # wheel current command waited tens of simulated ms before it reached the drive. 1 ms slices bound
-        # that to about a millisecond per waiting thread.
-        sys.setswitchinterval(min(sys.getswitchinterval(), p('gil_switch_interval_s', 0.001).value))
+        # interpreter's 5 ms switch interval at a time; the nine bus threads then get it in turn
+        # and a wheel current command waited tens of simulated ms before it reached the drive. 1 ms
+        # slices bound that to about a millisecond per waiting thread.
+        sys.setswitchinterval(min(sys.getswitchinterval(), p('gil_switch_interval_s',
+                                                             0.001).value))
         self.silent_since = None
         silent = p('silent_devices', Parameter.Type.STRING_ARRAY).value
         if silent:
@@ -133,9 +145,10 @@ class SimKrangNode(Node):
         self.add_on_set_parameters_callback(self.on_parameters)
         self.thread = threading.Thread(target=self.physics_loop, name='physics', daemon=True)
         self.thread.start()
-        self.get_logger().info(f'simulated Krang: truth {truth_file}, sitting at q_base {self.sim.q_base:+.3f} rad, '
-                               f'true balance {self.sim.balance_pitch():+.3f} rad, {self.rate:.0f} Hz physics at '
-                               f'{self.factor:g}x real time, buses {sorted(self.buses)}')
+        self.get_logger().info(f'simulated Krang: truth {truth_file}, sitting at q_base '
+                               f'{self.sim.q_base:+.3f} rad, true balance '
+                               f'{self.sim.balance_pitch():+.3f} rad, {self.rate:.0f} Hz physics '
+                               f'at {self.factor:g}x real time, buses {sorted(self.buses)}')
 
     def on_host_frame(self, bus_name, msg):
         with self.lock:
@@ -158,7 +171,8 @@ class SimKrangNode(Node):
             self.devices.set_silent(names)
             self.silent_since = self.sim.t if names else None
         if names:
-            self.get_logger().warn(f'fault injection: {", ".join(names)} silent from t = {self.silent_since:.3f} s')
+            self.get_logger().warn(f'fault injection: {", ".join(names)} silent from t = '
+                                   f'{self.silent_since:.3f} s')
         else:
             self.get_logger().info('fault injection: every device transmits again')
         self.publish_diagnostics()
@@ -172,12 +186,16 @@ class SimKrangNode(Node):
     def control_loop_behind(self):
         """True while the guard holds the simulated time (see max_control_lag_s)."""
         beats = (self.controller_beat, self.bridge_beat)
-        if self.imu_beat is not None and 'imu' not in self.devices.silent:     # a silenced DMU: nothing to publish
+        # a silenced DMU: nothing to publish
+        if self.imu_beat is not None and 'imu' not in self.devices.silent:
             beats += (self.imu_beat,)
         if self.max_control_lag <= 0 or None in beats:
             return False
         sim_t, wall_t = min(beats)
-        return self.sim.t - sim_t > self.max_control_lag and time.monotonic() - wall_t < self.guard_timeout
+        return (
+            self.sim.t - sim_t > self.max_control_lag
+            and time.monotonic() - wall_t < self.guard_timeout
+        )
 
     def send(self, frames):
         for frame in frames:
@@ -185,7 +203,8 @@ class SimKrangNode(Node):
                 self.buses[frame.bus].send(frame.msg, timeout=0.01)
                 self.sent_frames += 1
             except can.CanError as err:
-                self.get_logger().warn(f'send on {frame.bus} failed: {err}', throttle_duration_sec=5)
+                self.get_logger().warn(f'send on {frame.bus} failed: {err}',
+                                       throttle_duration_sec=5)
 
     def physics_loop(self):
         dt = 1.0 / self.rate
@@ -213,11 +232,13 @@ class SimKrangNode(Node):
                         {'JLWheel': read.wheel_left, 'JRWheel': read.wheel_right},
                         {'JLWheel': read.wheel_left_rate, 'JRWheel': read.wheel_right_rate})
                     frames += self.devices.imu_frames_from_pitch(
-                        self.sim.q_base + self.sim.config.effects.imu_pitch_bias_rad, self.sim.state[3],
+                        self.sim.q_base + self.sim.config.effects.imu_pitch_bias_rad,
+                        self.sim.state[3],
                         forward_specific_force=self.sim.axle_acceleration)
             self.send(frames)
             if self.publish_clock and k % self.clock_every == 0:
-                # right after the samples of this step: a node's timer that fires on this time finds them
+                # right after the samples of this step: a node's timer that fires on this time
+                # finds them
                 clock = Clock()
                 clock.clock.sec, nanosec = divmod(int(round(self.sim.t * 1e9)), 1_000_000_000)
                 clock.clock.nanosec = nanosec
@@ -235,7 +256,8 @@ class SimKrangNode(Node):
 
     def publish_truth(self):
         with self.lock:
-            values = [self.sim.t, self.sim.q_base, self.sim.x, self.sim.balance_pitch(), *self.sim.applied_current]
+            values = [self.sim.t, self.sim.q_base, self.sim.x, self.sim.balance_pitch(),
+                      *self.sim.applied_current]
         msg = messages.labelled_array(values, GROUND_TRUTH_FIELDS, label='truth')
         self.truth_pub.publish(msg)
 
@@ -243,13 +265,22 @@ class SimKrangNode(Node):
         with self.lock:
             t, qb, bal = self.sim.t, self.sim.q_base, self.sim.balance_pitch()
             silent, since = sorted(self.devices.silent), self.silent_since
-        values = {'q_base': f'{qb:+.4f}', 'true_balance_pitch': f'{bal:+.4f}', 'frames_sent': self.sent_frames,
-                  'real_time_slips': self.slips, 'control_guard_wait_s': f'{self.guard_wait_s:.1f}'}
+        values = {'q_base': f'{qb:+.4f}', 'true_balance_pitch': f'{bal:+.4f}',
+                  'frames_sent': self.sent_frames,
+                  'real_time_slips': self.slips,
+                  'control_guard_wait_s': f'{self.guard_wait_s:.1f}'}
         if silent:
             values.update(silent_devices=', '.join(silent), silent_since_s=f'{since:.4f}')
-        self.diag_pub.publish(messages.diagnostics(
-            self.get_clock().now().to_msg(), 'sim_krang', 'warn' if silent else 'ok',
-            f'simulated t = {t:.1f} s' + (f'; fault injection: {", ".join(silent)} silent' if silent else ''), values))
+        self.diag_pub.publish(
+            messages.diagnostics(
+                self.get_clock().now().to_msg(),
+                'sim_krang',
+                'warn' if silent else 'ok',
+                f'simulated t = {t:.1f} s'
+                + (f'; fault injection: {", ".join(silent)} silent' if silent else ''),
+                values,
+            )
+        )
 
     def close(self):
         self.running = False

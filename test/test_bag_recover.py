@@ -1,4 +1,5 @@
-"""Recovery of bags that were never finished: torn copies of a finished bag, and a writer killed -9.
+"""Recovery of bags that were never finished: torn copies of a finished bag, and a writer
+killed -9.
 
 What "should" be recovered is computed from the intact original's chunk index (messages of every
 chunk that lies wholly before the cut), and payloads are compared byte for byte with the original.
@@ -62,7 +63,8 @@ def rosbags_counts(path):
 def original(tmp_path_factory):
     path = tmp_path_factory.mktemp('orig') / 'finished.mcap'
     with BagWriter(path, chunk_size=2048) as writer:
-        writer.add_topic('/com_estimator/beta', 'std_msgs/msg/Float64MultiArray', offered_qos=[OfferedQos.latched()])
+        writer.add_topic('/com_estimator/beta', 'std_msgs/msg/Float64MultiArray',
+                         offered_qos=[OfferedQos.latched()])
         for i in range(N):
             writer.write_message('/wheel_effort_cmd' if i % 4 else '/com_estimator/beta',
                                  Float64MultiArray(data=[float(i), -float(i), 0.5]), T0 + 1000 * i)
@@ -86,12 +88,17 @@ def cut_points(summary, data_end):
 
 def expected_prefix(messages, summary, cut):
     """Messages of the chunks that end before the cut (log times increase with file order here)."""
-    complete = [c.message_end_time for c in summary.chunk_indexes if c.chunk_start_offset + c.chunk_length <= cut]
+    complete = [
+        c.message_end_time
+        for c in summary.chunk_indexes
+        if c.chunk_start_offset + c.chunk_length <= cut
+    ]
     last = max(complete, default=-1)
     return [m for m in messages if m[1] <= last]
 
 
-@pytest.mark.parametrize('where', ['mid_chunk', 'inside_chunk_header', 'right_after_a_chunk', 'one_chunk_in',
+@pytest.mark.parametrize('where', ['mid_chunk', 'inside_chunk_header', 'right_after_a_chunk',
+                                   'one_chunk_in',
                                    'nothing_complete', 'ninety_percent_of_data'])
 def test_torn_bag_is_recovered_up_to_the_last_complete_chunk(original, tmp_path, where):
     path, messages, summary = original
@@ -141,7 +148,8 @@ def test_finished_bag_round_trips_unchanged(original, tmp_path):
     path, messages, _ = original
     report = recover(path, tmp_path / 'copy.mcap')
     assert not report.truncated and report.data_complete and report.bad_chunks == 0
-    assert report.messages == N and report.topics == {'/com_estimator/beta': 100, '/wheel_effort_cmd': 300}
+    assert report.messages == N and report.topics == {'/com_estimator/beta': 100,
+                                                      '/wheel_effort_cmd': 300}
     assert read_all(report.output)[0] == messages
 
 
@@ -149,7 +157,8 @@ def test_corrupted_chunk_in_the_middle_is_skipped_not_fatal(original, tmp_path):
     path, messages, summary = original
     data = bytearray(path.read_bytes())
     chunk = sorted(summary.chunk_indexes, key=lambda c: c.chunk_start_offset)[3]
-    data[chunk.chunk_start_offset + chunk.chunk_length - 10] ^= 0xFF    # flip bits in its compressed data
+    # flip bits in its compressed data
+    data[chunk.chunk_start_offset + chunk.chunk_length - 10] ^= 0xFF
     damaged = tmp_path / 'damaged.mcap'
     damaged.write_bytes(bytes(data))
     report = recover(damaged, tmp_path / 'rescued.mcap')
@@ -158,17 +167,18 @@ def test_corrupted_chunk_in_the_middle_is_skipped_not_fatal(original, tmp_path):
     assert read_all(report.output)[0] == [m for m in messages if m not in lost]
 
 
-KILLED_WRITER = textwrap.dedent('''
+KILLED_WRITER = textwrap.dedent("""
     import sys, time
     from std_msgs.msg import Float64MultiArray
     from krang_bag.writer import BagWriter
     writer = BagWriter(sys.argv[1], chunk_size=2048)
     for i in range(int(sys.argv[2])):
-        writer.write_message('/wheel_effort_cmd', Float64MultiArray(data=[float(i), 1.0, 2.0]), 10**18 + i)
+        msg = Float64MultiArray(data=[float(i), 1.0, 2.0])
+        writer.write_message('/wheel_effort_cmd', msg, 10**18 + i)
         writer.flush()
     print('written', flush=True)
     time.sleep(60)
-''')
+""")
 
 
 def test_writer_killed_with_sigkill_is_recovered(tmp_path):
@@ -187,12 +197,15 @@ def test_writer_killed_with_sigkill_is_recovered(tmp_path):
     got, _ = read_all(report.output)
     kept = len(got)
     assert report.truncated and report.messages == kept
-    # Exactly the first `kept` messages, in order and intact; only the open chunk (< 2048 B) is lost.
+    # Exactly the first `kept` messages, in order and intact; only the open chunk (< 2048 B) is
+    # lost.
     for i, (topic, log_time, data) in enumerate(got):
         assert (topic, log_time) == ('/wheel_effort_cmd', 10**18 + i)
     from rclpy.serialization import deserialize_message
-    assert [deserialize_message(d, Float64MultiArray).data[0] for _, _, d in got] == list(range(kept))
-    per_message = len(got[0][2]) + 31          # message record: opcode, length, header fields, data
+    assert [deserialize_message(d, Float64MultiArray).data[0] for _, _,
+            d in got] == list(range(kept))
+    # message record: opcode, length, header fields, data
+    per_message = len(got[0][2]) + 31
     assert 0 < kept and sent - kept <= 2048 // per_message + 1
     assert rosbags_counts(report.output) == {'/wheel_effort_cmd': kept}
 
@@ -221,11 +234,13 @@ def test_cli_recover(original, tmp_path, capsys):
     assert bag_cli.main(['recover', str(torn), '--out', str(out), '--json']) == 0
     report = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert report['truncated'] and report['messages'] == len(read_all(out)[0]) > 0
-    assert bag_cli.main(['recover', str(torn), '--out', str(out)]) == 1          # no silent overwrite
+    # no silent overwrite
+    assert bag_cli.main(['recover', str(torn), '--out', str(out)]) == 1
     assert 'exists' in capsys.readouterr().err
     assert bag_cli.main(['recover', str(torn), '--out', str(out), '--force']) == 0
     assert 'tail truncated' in capsys.readouterr().out
-    assert bag_cli.main(['recover', str(torn)]) == 0                              # default name beside it
+    # default name beside it
+    assert bag_cli.main(['recover', str(torn)]) == 0
     assert (tmp_path / 'torn.recovered.mcap').exists()
     assert bag_cli.main(['info', str(torn)]) == 1
     assert 'krang bag recover' in capsys.readouterr().err

@@ -1,5 +1,5 @@
-"""The bag writer produces files that independent readers (rosbags, mcap_ros2, mcap) accept, with the
-values, counts, QoS metadata and type hashes we put in; our reader agrees with them.
+"""The bag writer produces files that independent readers (rosbags, mcap_ros2, mcap) accept, with
+the values, counts, QoS metadata and type hashes we put in; our reader agrees with them.
 
 Expected values come from the test's own source data, never from the writer's bookkeeping.
 """
@@ -67,7 +67,8 @@ def imu(i):
 def float_array(values, labels=None):
     msg = Float64MultiArray(data=list(values))
     if labels:
-        msg.layout.dim = [MultiArrayDimension(label=','.join(labels), size=len(values), stride=len(values))]
+        msg.layout.dim = [MultiArrayDimension(label=','.join(labels), size=len(values),
+                                              stride=len(values))]
     return msg
 
 
@@ -80,19 +81,22 @@ def point(i):
 
 def diagnostics(i):
     status = DiagnosticStatus(level=DiagnosticStatus.WARN, name='can_bridge', message=f'tick {i}',
-                              hardware_id='can0', values=[KeyValue(key='frames', value=str(100 * i))])
+                              hardware_id='can0', values=[KeyValue(key='frames',
+                                                                   value=str(100 * i))])
     return DiagnosticArray(status=[status])
 
 
 def source_messages():
     """(topic, log_time_ns, message) in time order, interleaving all topics."""
     makers = {
-        '/joint_states': joint_state, '/imu/data': imu, '/com_estimator/com': point, '/diagnostics': diagnostics,
+        '/joint_states': joint_state, '/imu/data': imu, '/com_estimator/com': point,
+        '/diagnostics': diagnostics,
         '/wheel_effort_cmd': lambda i: float_array([0.1 * i, -0.1 * i]),
         '/com_estimator/beta': lambda i: float_array(np.arange(8) + 10.0 * i, BETA_LABELS),
     }
     slots = sorted((k / COUNTS[topic], topic, k) for topic in COUNTS for k in range(COUNTS[topic]))
-    return [(topic, T0 + 1_000_000 * n, k, makers[topic](k)) for n, (_, topic, k) in enumerate(slots)]
+    return [(topic, T0 + 1_000_000 * n, k, makers[topic](k)) for n, (_, topic,
+                                                                     k) in enumerate(slots)]
 
 
 @pytest.fixture(scope='module')
@@ -129,7 +133,9 @@ def check_values(topic, got):
             assert (msg.point.x, msg.point.z) == pytest.approx((0.001 * k, 0.5))
         elif topic == '/diagnostics':
             (status,) = msg.status
-            assert (status.name, status.message, status.values[0].value) == ('can_bridge', f'tick {k}', str(100 * k))
+            assert (status.name, status.message, status.values[0].value) == ('can_bridge',
+                                                                             f'tick {k}',
+                                                                             str(100 * k))
             assert status.level in (DiagnosticStatus.WARN, DiagnosticStatus.WARN[0])
 
 
@@ -148,8 +154,14 @@ def test_rosbags_reads_bare_mcap_with_same_counts_values_and_qos(bag):
         check_values(topic, messages)
     assert beta_qos.durability == QosDurability.TRANSIENT_LOCAL and beta_qos.depth == 1
     assert beta_qos.reliability == QosReliability.RELIABLE
-    assert imu_qos.reliability == QosReliability.BEST_EFFORT and imu_qos.durability == QosDurability.VOLATILE
-    assert joint_qos.reliability == QosReliability.RELIABLE and joint_qos.durability == QosDurability.VOLATILE
+    assert (
+        imu_qos.reliability == QosReliability.BEST_EFFORT
+        and imu_qos.durability == QosDurability.VOLATILE
+    )
+    assert (
+        joint_qos.reliability == QosReliability.RELIABLE
+        and joint_qos.durability == QosDurability.VOLATILE
+    )
 
 
 def test_mcap_ros2_decodes_every_message_from_the_embedded_schemas(bag):
@@ -178,24 +190,32 @@ def test_file_follows_the_rosbag2_mcap_contract(bag):
     assert {t: stats.channel_message_counts[c.id] for t, c in by_topic.items()} == COUNTS
     for topic, channel in by_topic.items():
         schema = summary.schemas[channel.schema_id]
-        assert (schema.name, schema.encoding, channel.message_encoding) == (TYPES[topic], 'ros2msg', 'cdr')
+        assert (schema.name, schema.encoding, channel.message_encoding) == (TYPES[topic],
+                                                                            'ros2msg', 'cdr')
         profiles = yaml.safe_load(channel.metadata['offered_qos_profiles'])
-        assert set(profiles[0]) == {'history', 'depth', 'reliability', 'durability', 'deadline', 'lifespan',
-                                    'liveliness', 'liveliness_lease_duration', 'avoid_ros_namespace_conventions'}
+        assert set(profiles[0]) == {'history', 'depth', 'reliability', 'durability', 'deadline',
+                                    'lifespan',
+                                    'liveliness', 'liveliness_lease_duration',
+                                    'avoid_ros_namespace_conventions'}
         assert profiles[0]['deadline'] == {'sec': 9223372036, 'nsec': 854775807}
         assert profiles[0]['history'] == 'keep_last' and profiles[0]['liveliness'] == 'automatic'
         # The type hash must be the one rosbags computes from the schema text we embedded.
         typestore = get_typestore(Stores.EMPTY)
         typestore.register(get_types_from_msg(schema.data.decode(), schema.name))
         assert channel.metadata['topic_type_hash'] == typestore.hash_rihs01(schema.name)
-    assert yaml.safe_load(by_topic['/com_estimator/beta'].metadata['offered_qos_profiles'])[0]['durability'] \
+    assert (
+        yaml.safe_load(by_topic['/com_estimator/beta'].metadata['offered_qos_profiles'])[0][
+            'durability'
+        ]
         == 'transient_local'
+    )
 
 
 def test_schema_text_and_hash_match_rosidl():
     text = schemas.message_definition('sensor_msgs/Imu')
     sections = text.split('\n' + '=' * 80 + '\n')
-    assert sections[0].strip().endswith('float64[9] linear_acceleration_covariance # Row major x, y z')
+    assert sections[0].strip().endswith('float64[9] linear_acceleration_covariance # Row major x, '
+                                        'y z')
     assert [s.splitlines()[0] for s in sections[1:]] == [
         'MSG: geometry_msgs/Quaternion', 'MSG: geometry_msgs/Vector3', 'MSG: std_msgs/Header',
         'MSG: builtin_interfaces/Time']
@@ -246,7 +266,8 @@ def test_array_helpers(bag):
 def test_joint_states_with_changing_names_are_aligned(tmp_path):
     path = tmp_path / 'js.mcap'
     with BagWriter(path) as writer:
-        writer.write_message('/joint_states', JointState(name=['a', 'b'], position=[1.0, 2.0], velocity=[]), T0)
+        writer.write_message('/joint_states', JointState(name=['a', 'b'], position=[1.0, 2.0],
+                                                         velocity=[]), T0)
         writer.write_message('/joint_states', JointState(name=['b', 'c'], position=[3.0, 4.0],
                                                          velocity=[0.3, 0.4]), T0 + 1)
     series = bag_reader.read_joint_states(path)
@@ -284,7 +305,11 @@ def test_writer_refuses_to_clobber_and_to_write_unknown_topics(tmp_path, bag):
 def test_cli_info(bag, capsys):
     assert bag_cli.main(['info', str(bag)]) == 0
     out = capsys.readouterr().out
-    assert 'Messages:    153' in out and 'best_effort/volatile' in out and 'reliable/transient_local' in out
+    assert (
+        'Messages:    153' in out
+        and 'best_effort/volatile' in out
+        and 'reliable/transient_local' in out
+    )
     for topic in TYPES:
         line = next(line for line in out.splitlines() if line.split()[:1] == [topic])
         assert line.split()[1:3] == [TYPES[topic], str(COUNTS[topic])]
@@ -312,8 +337,11 @@ def test_bag_without_statistics_is_counted_by_scanning(tmp_path):
     with open(path, 'wb') as stream:
         writer = Writer(stream, use_statistics=False)
         writer.start(profile='ros2', library='test')
-        schema = writer.register_schema('std_msgs/msg/Float64MultiArray', 'ros2msg',
-                                        schemas.message_definition('std_msgs/msg/Float64MultiArray').encode())
+        schema = writer.register_schema(
+            'std_msgs/msg/Float64MultiArray',
+            'ros2msg',
+            schemas.message_definition('std_msgs/msg/Float64MultiArray').encode(),
+        )
         channel = writer.register_channel('/wheel_effort_cmd', 'cdr', schema)
         for i in range(7):
             writer.add_message(channel, T0 + i, serialize_message(float_array([i, -i])), T0 + i)

@@ -1,7 +1,9 @@
-"""BridgeCore: clamping, NaN rejection, silence -> zero current, malformed frames counted, state decoding.
+"""BridgeCore: clamping, NaN rejection, silence -> zero current, malformed frames counted, state
+decoding.
 
-Device traffic is built by hand with struct from FACTS §9 (not with the codecs under test), and every command
-frame the core produces is decoded by hand and checked against the limits of config/can_devices.yaml.
+Device traffic is built by hand with struct from docs/can.md (not with the codecs under test), and
+every command frame the core produces is decoded by hand and checked against the limits of
+config/can_devices.yaml.
 """
 import math
 import random
@@ -12,9 +14,12 @@ import pytest
 
 from krang_can_bridge.bridge import BridgeCore
 from krang_can_bridge.config import load_devices
+from krang_model.drivetrain import drivetrain
+from krang_model.robot import load_krang
 
 CFG = load_devices()
-ADVERSARIAL = [math.nan, math.inf, -math.inf, 1e308, -1e308, 1e6, -1e6, 0.0, -0.0, 5e-324, 'nan', None, '12']
+ADVERSARIAL = [math.nan, math.inf, -math.inf, 1e308, -1e308, 1e6, -1e6, 0.0, -0.0, 5e-324, 'nan',
+               None, '12']
 
 
 def msg(aid, data):
@@ -22,11 +27,13 @@ def msg(aid, data):
 
 
 class HandDevices:
-    """Hand-built device frames: the AMC TPDOs, DMU samples and PowerCube replies of a healthy robot."""
+    """Hand-built device frames: the AMC TPDOs, DMU samples and PowerCube replies of a healthy
+    robot."""
 
     def __init__(self, core, pitch=-0.9):
         self.core, self.pitch, self.seq = core, pitch, 0
-        self.module_pos = {(m.bus, m.module_id): 0.0 for j in CFG.powercube.joints for m in j.modules}
+        self.module_pos = {(m.bus,
+                            m.module_id): 0.0 for j in CFG.powercube.joints for m in j.modules}
 
     def feed(self, t, wheels=True, imu=True, modules=True, wheel_counts=(0, 0)):
         c = self.core
@@ -39,12 +46,14 @@ class HandDevices:
         if imu:
             m = CFG.imu.mount_angle_rad
             g_lsb = 9.80665 * 0.0003
-            f = (9.81 * math.sin(self.pitch) * math.cos(m), -9.81 * math.sin(self.pitch) * math.sin(m),
+            f = (9.81 * math.sin(self.pitch) * math.cos(m),
+                 -9.81 * math.sin(self.pitch) * math.sin(m),
                  9.81 * math.cos(self.pitch))
             b = CFG.imu.gyro_bias_rad_s
             rates = [round(x / math.radians(0.008)) for x in b]
             c.on_frame(msg(0x40, struct.pack('<hhhBB', *rates, 0, self.seq)), t, 'can3')
-            c.on_frame(msg(0x50, struct.pack('<hhhBB', *[round(x / g_lsb) for x in f], 0, self.seq)), t, 'can3')
+            c.on_frame(msg(0x50, struct.pack('<hhhBB', *[round(x / g_lsb) for x in f], 0,
+                                             self.seq)), t, 'can3')
             self.seq = (self.seq + 1) & 0xFF
         if modules:
             for (bus, mid), pos in self.module_pos.items():
@@ -64,7 +73,8 @@ def healthy_core():
 
 
 def wheel_amps_by_hand(frame):
-    """Physical current at the joint from an RPDO frame, decoded by hand (DC2, sign from the node id)."""
+    """Physical current at the joint from an RPDO frame, decoded by hand (DC2, sign from the node
+    id)."""
     assert frame.msg.arbitration_id in (0x2E2, 0x2E9) and frame.bus == 'can3'
     cw, dc2 = struct.unpack('<Hh', bytes(frame.msg.data))
     assert cw == 0x008F and len(frame.msg.data) == 4
@@ -97,7 +107,8 @@ def check_joint_frames_within_limits(frames):
 def test_wheel_effort_to_current_value_and_sign():
     core, _, t = healthy_core()
     effort = 5.0
-    expected = effort / (CFG.wheels.torque_constant_nm_per_a * CFG.wheels.gear_ratio)
+    drive = drivetrain(load_krang())
+    expected = effort / (drive.torque_constant * drive.gear_ratio)
     frames = core.wheel_current_frames(effort, -effort, t)
     assert [f.msg.arbitration_id for f in frames] == [0x2E2, 0x2E9]
     left, right = (wheel_amps_by_hand(f) for f in frames)
@@ -105,14 +116,22 @@ def test_wheel_effort_to_current_value_and_sign():
     assert left == pytest.approx(expected, abs=lsb) and right == pytest.approx(-expected, abs=lsb)
     # the right drive sees the opposite raw sign for the same joint-direction current
     same = core.wheel_current_frames(effort, effort, t)
-    assert struct.unpack('<Hh', bytes(same[0].msg.data))[1] > 0 > struct.unpack('<Hh', bytes(same[1].msg.data))[1]
+    assert (
+        struct.unpack('<Hh', bytes(same[0].msg.data))[1]
+        > 0
+        > struct.unpack('<Hh', bytes(same[1].msg.data))[1]
+    )
 
 
 def test_wheel_commands_never_exceed_the_limit():
     core, _, t = healthy_core()
     rng = random.Random(1)
-    values = ADVERSARIAL + [rng.uniform(-500, 500) for _ in range(300)] + [rng.gauss(0, 30) for _ in range(300)]
-    limit = CFG.wheels.current_limit_a
+    values = (
+        ADVERSARIAL
+        + [rng.uniform(-500, 500) for _ in range(300)]
+        + [rng.gauss(0, 30) for _ in range(300)]
+    )
+    limit = drivetrain(load_krang()).current_limit
     for left in values:
         right = rng.choice(values)
         frames = core.wheel_current_frames(left, right, t)
@@ -136,16 +155,19 @@ def test_joint_commands_stay_inside_limits():
     rng = random.Random(2)
     names = CFG.body_joint_names
     for _ in range(200):
-        targets = {n: rng.choice([rng.uniform(-20, 20), rng.choice(ADVERSARIAL)]) for n in rng.sample(names, 6)}
+        targets = {n: rng.choice([rng.uniform(-20, 20),
+                                  rng.choice(ADVERSARIAL)]) for n in rng.sample(names, 6)}
         targets['JLWheel'] = 1.0                                        # not a body joint: ignored
         check_joint_frames_within_limits(core.joint_position_frames(targets, t))
     frames = core.joint_position_frames({'JWaist': 1.5, 'LJ2': math.nan, 'JTorso': 99.0}, t)
     targets = check_joint_frames_within_limits(frames)
-    assert ('JWaist', 1, pytest.approx(1.5)) in targets and ('JWaist', -1, pytest.approx(-1.5)) in targets
+    assert ('JWaist', 1, pytest.approx(1.5)) in targets and ('JWaist', -1,
+                                                             pytest.approx(-1.5)) in targets
     assert ('JTorso', 1, pytest.approx(1.57)) in targets
     assert not any(j == 'LJ2' for j, _, _ in targets)                   # NaN -> no motion
     assert 'LJ2' in core.counters.last_rejection or core.counters.rejected_commands >= 1
-    edge = check_joint_frames_within_limits(core.joint_position_frames({'JWaist': 2.88, 'LJ1': -math.pi}, t))
+    edge = check_joint_frames_within_limits(core.joint_position_frames({'JWaist': 2.88,
+                                                                        'LJ1': -math.pi}, t))
     assert all(abs(v) <= 2.88 for j, _, v in edge if j == 'JWaist')
 
 
@@ -162,7 +184,8 @@ def test_silent_device_gives_zero_current_within_the_timeout():
     assert 'imu' in core.silent_devices(t) and not core.motion_allowed(t)
     assert [wheel_amps_by_hand(f) for f in core.wheel_current_frames(20.0, -20.0, t)] == [0.0, 0.0]
     assert core.joint_position_frames({'JTorso': 0.5}, t) == []
-    # the silent IMU's last pitch is not passed on as if it were current; the talking devices still are
+    # the silent IMU's last pitch is not passed on as if it were current; the talking devices still
+    # are
     assert core.imu_state(t) is None
     assert {'JLWheel', 'JRWheel', 'JWaist'} <= set(core.joint_state(t).names)
     # just inside the timeout a drive is still fine; just after, it is silent
@@ -181,7 +204,8 @@ def test_nothing_moves_before_every_device_was_heard():
     core = BridgeCore(CFG, clock=lambda: 0.0)
     assert not core.motion_allowed(0.0)
     assert set(core.silent_devices(0.0)) >= {'amc/JLWheel', 'amc/JRWheel', 'imu'}
-    assert [wheel_amps_by_hand(f) for f in core.wheel_current_frames(30.0, 30.0, 0.0)] == [0.0, 0.0]
+    assert [wheel_amps_by_hand(f) for f in core.wheel_current_frames(30.0, 30.0, 0.0)] == [0.0,
+                                                                                           0.0]
 
 
 def test_stale_effort_command_becomes_zero():
@@ -198,19 +222,26 @@ def test_malformed_and_unknown_frames_are_counted_and_survived():
     core, dev, t = healthy_core()
     rng = random.Random(3)
     before = (core.counters.malformed, core.counters.unknown)
-    bad = [msg(0x2E3, bytes(5)), msg(0x40, bytes(7)), msg(0x0A4, bytes([0x0A, 0x3C]) + struct.pack('<f', math.nan)),
-           msg(0x0A4, bytes([0x0B, 99, 0, 0])), msg(0x2E6, bytes(3))]
+    bad = [
+        msg(0x2E3, bytes(5)),
+        msg(0x40, bytes(7)),
+        msg(0x0A4, bytes([0x0A, 0x3C]) + struct.pack('<f', math.nan)),
+        msg(0x0A4, bytes([0x0B, 99, 0, 0])),
+        msg(0x2E6, bytes(3)),
+    ]
     for m in bad:
         core.on_frame(m, t, 'can0' if m.arbitration_id == 0x0A4 else 'can3')
     assert core.counters.malformed == before[0] + len(bad)
     core.on_frame(msg(0x123, bytes(8)), t, 'can3')
-    core.on_frame(msg(0x0A4, bytes([0x0A, 0x3C, 0, 0, 0, 0])), t, 'can3')        # module 4 is not on can3
+    # module 4 is not on can3
+    core.on_frame(msg(0x0A4, bytes([0x0A, 0x3C, 0, 0, 0, 0])), t, 'can3')
     assert core.counters.unknown == before[1] + 2
     core.on_frame(can.Message(arbitration_id=0x20000080, is_error_frame=True), t, 'can3')
     assert core.counters.error_frames == {'can3': 1}
     for _ in range(2000):                                                        # fuzz
         data = bytes(rng.getrandbits(8) for _ in range(rng.randint(0, 8)))
-        core.on_frame(msg(rng.choice([0x40, 0x50, 0x2E3, 0x2E4, 0x2E5, 0x2E6, 0x0A4, 0x0AD, rng.randrange(0x800)]),
+        core.on_frame(msg(rng.choice([0x40, 0x50, 0x2E3, 0x2E4, 0x2E5, 0x2E6, 0x0A4, 0x0AD,
+                                      rng.randrange(0x800)]),
                           data), t, rng.choice(['can0', 'can3', 'can11', 'nonexistent']))
     # our own commands looped back by udp_multicast are neither unknown nor malformed
     n = core.counters.unknown, core.counters.malformed
@@ -222,18 +253,24 @@ def test_malformed_and_unknown_frames_are_counted_and_survived():
     dev.module_pos[('can11', 15)] = -1.2
     dev.feed(t + 0.001, wheel_counts=(30000, 30000))
     js = dict(zip(core.joint_state().names, core.joint_state().positions))
-    assert js['JWaist'] == pytest.approx(1.2, abs=1e-6)                          # (pos0 - pos1) / 2
+    # (pos0 - pos1) / 2
+    assert js['JWaist'] == pytest.approx(1.2, abs=1e-6)
     assert js['JLWheel'] == pytest.approx(math.pi) and js['JRWheel'] == pytest.approx(-math.pi)
 
 
 def test_imu_state_and_stream_toggle():
     core, dev, t = healthy_core()
     imu = core.imu_state()
-    assert imu.ready and imu.pitch == pytest.approx(-0.9, abs=2e-3) and imu.pitch_rate == pytest.approx(0, abs=0.01)
+    assert (
+        imu.ready
+        and imu.pitch == pytest.approx(-0.9, abs=2e-3)
+        and imu.pitch_rate == pytest.approx(0, abs=0.01)
+    )
     assert core.imu_stream_frames(t) == []                     # streaming: never toggle
     retry = CFG.imu.stream_toggle_retry_s
     frames = core.imu_stream_frames(t + retry + 0.01)
-    assert [(f.bus, f.msg.arbitration_id, bytes(f.msg.data)) for f in frames] == [('can3', 0x90, b'\x0f')]
+    assert [(f.bus, f.msg.arbitration_id, bytes(f.msg.data)) for f in frames] == [('can3', 0x90,
+                                                                                   b'\x0f')]
     assert core.imu_stream_frames(t + retry + 0.02) == []      # no toggle storm
     assert len(core.imu_stream_frames(t + 2 * retry + 0.03)) == 1
 

@@ -1,4 +1,5 @@
-"""can_bridge node end to end: real rclpy, udp_multicast buses, the device emulators on the robot side."""
+"""can_bridge node end to end: real rclpy, udp_multicast buses, the device emulators on the robot
+side."""
 import math
 import random
 import threading
@@ -22,6 +23,8 @@ from std_msgs.msg import Float64MultiArray  # noqa: E402
 
 from krang_can_bridge.config import load_devices  # noqa: E402
 from krang_can_bridge.node import CanBridgeNode  # noqa: E402
+from krang_model.drivetrain import drivetrain  # noqa: E402
+from krang_model.robot import load_krang  # noqa: E402
 from krang_sim.devices import KrangCanDevices  # noqa: E402
 
 
@@ -42,14 +45,16 @@ def devices_file(tmp_path):
 
 
 class Robot:
-    """KrangCanDevices on udp_multicast buses with a 250 Hz loop (what sim_krang does around its physics)."""
+    """KrangCanDevices on udp_multicast buses with a 250 Hz loop (what sim_krang does around its
+    physics)."""
 
     def __init__(self, cfg, q0):
         self.cfg = cfg
         self.devices = KrangCanDevices(cfg, initial_joint_positions=q0)
         self.lock = threading.Lock()
         self.buses = {b: can.Bus(**cfg.buses[b].bus_kwargs()) for b in cfg.buses_in_use()}
-        self.notifiers = [can.Notifier(bus, [self._listener(name)], timeout=0.05) for name, bus in self.buses.items()]
+        self.notifiers = [can.Notifier(bus, [self._listener(name)], timeout=0.05)
+                          for name, bus in self.buses.items()]
         self.stop = threading.Event()
         self.thread = threading.Thread(target=self.loop, daemon=True)
         self.thread.start()
@@ -92,14 +97,18 @@ def test_node_bridges_states_and_commands(devices_file):
     ctx = rclpy.Context()
     rclpy.init(context=ctx)
     ex = SingleThreadedExecutor(context=ctx)
-    bridge = CanBridgeNode(context=ctx, parameter_overrides=[Parameter('devices_file', value=str(devices_file))])
+    bridge = CanBridgeNode(context=ctx, parameter_overrides=[Parameter('devices_file',
+                                                                       value=str(devices_file))])
     probe = rclpy.create_node('probe', context=ctx)
     got = {}
     probe.create_subscription(JointState, '/joint_states', lambda m: got.__setitem__('js', m), 10)
-    probe.create_subscription(Imu, '/imu/data', lambda m: got.__setitem__('imu', m), qos_profile_sensor_data)
-    probe.create_subscription(DiagnosticArray, '/diagnostics', lambda m: got.__setitem__('diag', m), 10)
+    probe.create_subscription(Imu, '/imu/data', lambda m: got.__setitem__('imu', m),
+                              qos_profile_sensor_data)
+    probe.create_subscription(DiagnosticArray, '/diagnostics', lambda m: got.__setitem__('diag',
+                                                                                         m), 10)
     effort_pub = probe.create_publisher(Float64MultiArray, '/wheel_effort_cmd',
-                                        QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE))
+                                        QoSProfile(depth=10,
+                                                   reliability=ReliabilityPolicy.RELIABLE))
     joint_pub = probe.create_publisher(JointState, '/joint_position_cmd', 10)
     ex.add_node(bridge)
     ex.add_node(probe)
@@ -115,7 +124,8 @@ def test_node_bridges_states_and_commands(devices_file):
         return dict(zip(js.name, js.position)) if js else {}
     try:
         # the modules answer polls one by one: wait until every joint has been reported once
-        assert spin_until(lambda: all(j in joints() for j in ('JLWheel', 'JRWheel', 'JWaist', 'LJ4')), 10.0), joints()
+        assert spin_until(lambda: all(j in joints() for j in ('JLWheel', 'JRWheel', 'JWaist',
+                                                              'LJ4')), 10.0), joints()
         assert joints()['JLWheel'] == pytest.approx(0.4, abs=1e-3)
         assert joints()['JRWheel'] == pytest.approx(-0.6, abs=1e-3)
         assert joints()['JWaist'] == pytest.approx(1.5, abs=1e-5)
@@ -126,10 +136,14 @@ def test_node_bridges_states_and_commands(devices_file):
 
         def motion_ok():
             d = got.get('diag')
-            return d is not None and any(s.name == 'can_bridge: motion' and s.level == b'\x00' for s in d.status)
+            return d is not None and any(
+                s.name == 'can_bridge: motion' and s.level == b'\x00' for s in d.status
+            )
+
         assert spin_until(motion_ok, 10.0), [(s.name, s.message) for s in got['diag'].status][:3]
 
-        expected = 8.0 / (cfg.wheels.torque_constant_nm_per_a * cfg.wheels.gear_ratio)
+        drive = drivetrain(load_krang())
+        expected = 8.0 / (drive.torque_constant * drive.gear_ratio)
 
         def current_arrived():
             effort_pub.publish(Float64MultiArray(data=[8.0, 8.0]))
@@ -138,10 +152,12 @@ def test_node_bridges_states_and_commands(devices_file):
         assert spin_until(current_arrived, 5.0), robot.devices.wheel_currents()
 
         joint_pub.publish(JointState(name=['JTorso'], position=[0.1]))
-        assert spin_until(lambda: abs(joints().get('JTorso', 0.0) - 0.1) < 1e-3, 5.0), joints().get('JTorso')
+        assert spin_until(lambda: abs(joints().get('JTorso', 0.0) - 0.1) < 1e-3,
+                          5.0), joints().get('JTorso')
 
         # the controller stops publishing: the wheel command goes stale -> zero current
-        assert spin_until(lambda: robot.devices.wheel_currents() == {'JLWheel': 0.0, 'JRWheel': 0.0}, 2.0)
+        assert spin_until(lambda: robot.devices.wheel_currents() == {'JLWheel': 0.0,
+                                                                     'JRWheel': 0.0}, 2.0)
     finally:
         bridge.close()
         ex.shutdown()

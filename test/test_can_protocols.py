@@ -1,4 +1,5 @@
-"""Codecs against frames built by hand from FACTS §9 and the Krang drivers: ids, scales, signs, byte order."""
+"""Codecs against frames built by hand from docs/can.md and the Krang drivers: ids, scales, signs,
+byte order."""
 import math
 import struct
 
@@ -10,6 +11,8 @@ from krang_can_bridge.config import ConfigError, load_devices
 from krang_can_bridge.protocols import MalformedFrame, UnknownFrame, ValueOutOfRange, load_dbc
 from krang_can_bridge.protocols import amc, powercube as pc
 from krang_can_bridge.protocols.dmu_imu import DmuAccelerations, DmuCodec, DmuRates
+from krang_model.drivetrain import drivetrain
+from krang_model.robot import load_krang
 
 G = 9.80665
 
@@ -38,19 +41,25 @@ def right(cfg, dbc):
     return amc.AmcDriveCodec(cfg.wheels.drive('JRWheel'), cfg.wheels, dbc)
 
 
-# ---------------------------------------------------------------------------------------------- config
+# ----------------------------------------------------------------------------------------------
+# config
 def test_config_matches_facts(cfg):
     assert [d.node_id for d in cfg.wheels.drives] == [0x20, 0x21]
     assert cfg.wheels.drive('JRWheel').sign == -1 and cfg.wheels.drive('JLWheel').sign == 1
-    assert cfg.wheels.current_limit_a == 49.0
-    assert cfg.wheels.encoder_counts_per_rev == 4000 and cfg.wheels.gear_ratio == 15
-    assert cfg.wheels.torque_constant_nm_per_a == pytest.approx(12 * 0.00706155, rel=1e-4)
-    assert set(cfg.joint_names) == {'JWaist', 'JTorso', 'LJ1', 'LJ2', 'LJ3', 'LJ4', 'LJ5', 'LJ6', 'LJFT', 'RJ1',
-                                    'RJ2', 'RJ3', 'RJ4', 'RJ5', 'RJ6', 'RJFT', 'JLWheel', 'JRWheel'}
+    assert cfg.wheels.drivetrain == drivetrain(load_krang())      # the one drive-train description
+    assert cfg.wheels.drivetrain.current_limit == 49.0
+    assert cfg.wheels.encoder_counts_per_rev == 4000 and cfg.wheels.drivetrain.gear_ratio == 15
+    # BLY343D, 12 oz-in/A as robot.yaml rounds it
+    assert cfg.wheels.drivetrain.torque_constant == 0.0847
+    assert set(cfg.joint_names) == {'JWaist', 'JTorso', 'LJ1', 'LJ2', 'LJ3', 'LJ4', 'LJ5', 'LJ6',
+                                    'LJFT', 'RJ1',
+                                    'RJ2', 'RJ3', 'RJ4', 'RJ5', 'RJ6', 'RJFT', 'JLWheel',
+                                    'JRWheel'}
     waist = cfg.powercube.joint('JWaist')
     assert (waist.lower, waist.upper) == (0.0, 2.88)
     assert [m.sign for m in waist.modules] == [1, -1]
-    assert waist.module_limits(waist.modules[1]) == (-2.88, -0.0)     # the sign-inverted module limits
+    # the sign-inverted module limits
+    assert waist.module_limits(waist.modules[1]) == (-2.88, -0.0)
     assert cfg.powercube.joint('JTorso').lower == -1.57
     assert cfg.powercube.joint('LJ2').upper == 2.0944
     assert cfg.powercube.joint('LJ1').upper == pytest.approx(math.pi)
@@ -80,16 +89,58 @@ def test_config_rejects_bad_values(tmp_path, cfg):
         load_devices(bad)
 
 
-# ---------------------------------------------------------------------------------------------- AMC
+def _with_wheel_keys(cfg, tmp_path, name, keys):
+    """A copy of the device map whose `wheels` section also states `keys` (drive-train values)."""
+    extra = ''.join(f'\n  {k}: {v}' for k, v in keys.items())
+    text = cfg.path.read_text().replace('\nwheels:', '\nwheels:' + extra, 1)
+    assert text != cfg.path.read_text()
+    (tmp_path / 'krang_can.dbc').write_text(cfg.dbc_path.read_text())
+    path = tmp_path / name
+    path.write_text(text)
+    return path
+
+
+def test_device_map_with_a_disagreeing_torque_constant_is_rejected(tmp_path, cfg):
+    """The 12 oz-in/A of the datasheet (0.0847386) is not the drive train's 0.0847: the drives
+    would get 0.9995 of the current the controller computed, so the map is refused, naming file
+    and key."""
+    path = _with_wheel_keys(cfg, tmp_path, 'kt.yaml', {'torque_constant_nm_per_a': 0.0847386})
+    with pytest.raises(ConfigError) as err:
+        load_devices(path)
+    text = str(err.value)
+    assert str(path.resolve()) in text and 'wheels.torque_constant_nm_per_a' in text
+    assert '0.0847386' in text and 'torque_constant = 0.0847' in text
+    for key, value in (('gear_ratio', 14.0), ('current_limit_a', 50.0)):
+        with pytest.raises(ConfigError, match=f'wheels.{key} = {value}'):
+            load_devices(_with_wheel_keys(cfg, tmp_path, f'{key}.yaml', {key: value}))
+
+
+def test_device_map_may_state_drive_train_values_that_agree(tmp_path, cfg):
+    drive = cfg.wheels.drivetrain
+    path = _with_wheel_keys(cfg, tmp_path, 'agree.yaml', {
+        'torque_constant_nm_per_a': drive.torque_constant, 'gear_ratio': drive.gear_ratio,
+        'current_limit_a': drive.current_limit})
+    assert load_devices(path).wheels == cfg.wheels
+    # the check names the file the `wheels` section came from, also through `extends`
+    child = tmp_path / 'child.yaml'
+    child.write_text('extends: kt.yaml\n')
+    _with_wheel_keys(cfg, tmp_path, 'kt.yaml', {'torque_constant_nm_per_a': 0.0847386})
+    with pytest.raises(ConfigError, match=str((tmp_path / 'kt.yaml').resolve())):
+        load_devices(child)
+
+
+# ----------------------------------------------------------------------------------------------
+# AMC
 def test_amc_cob_ids_follow_facts(left, right):
-    # FACTS §9: 0x200 + 7*node + {0..6} -> 0x2E0-0x2E6 (node 0x20) and 0x2E7-0x2ED (node 0x21)
+    # docs/can.md: 0x200 + 7*node + {0..6} -> 0x2E0-0x2E6 (node 0x20) and 0x2E7-0x2ED (node 0x21)
     assert [left.ids[k] for k in range(7)] == list(range(0x2E0, 0x2E7))
     assert [right.ids[k] for k in range(7)] == list(range(0x2E7, 0x2EE))
 
 
 def test_amc_current_rpdo_bytes(cfg, left, right):
     kp = cfg.wheels.drive('JLWheel').peak_current_kp
-    dc2 = int(10.0 * 2 ** 15 / (kp / 10))               # DC2 = A * 2^15 / (Kp/10), truncated like the driver
+    # DC2 = A * 2^15 / (Kp/10), truncated like the driver
+    dc2 = int(10.0 * 2 ** 15 / (kp / 10))
     m = left.encode_current_command(10.0)
     assert m.arbitration_id == 0x2E2 and bytes(m.data) == struct.pack('<Hh', 0x008F, dc2)
     assert bytes(m.data)[:2] == b'\x8f\x00'             # controlword 0x008F little-endian
@@ -104,13 +155,25 @@ def test_amc_tpdo_decoding_by_hand(cfg, left, right):
     r = left.decode(msg(0x2E3, struct.pack('<Hi', 0x0027, one_wheel_rev)))
     assert (r.joint, r.kind, r.statusword) == ('JLWheel', 'position', 0x27)
     assert r.value == pytest.approx(2 * math.pi)
-    assert right.decode(msg(0x2EA, struct.pack('<Hi', 0x0027, one_wheel_rev))).value == pytest.approx(-2 * math.pi)
+    assert right.decode(
+        msg(0x2EA, struct.pack('<Hi', 0x0027, one_wheel_rev))
+    ).value == pytest.approx(-2 * math.pi)
     # DS1: counts/s = raw * k_i * k_s / 2^17
     raw = 2 ** 17
-    expected = raw * d.k_i * d.k_s / 2 ** 17 * 2 * math.pi / (w.encoder_counts_per_rev * w.gear_ratio)
+    expected = (
+        raw
+        * d.k_i
+        * d.k_s
+        / 2**17
+        * 2
+        * math.pi
+        / (w.encoder_counts_per_rev * w.drivetrain.gear_ratio)
+    )
     assert left.decode(msg(0x2E4, struct.pack('<Hi', 0x27, raw))).value == pytest.approx(expected)
-    assert right.decode(msg(0x2EB, struct.pack('<Hi', 0x27, raw))).value == pytest.approx(-expected)
-    # DC1: amccan_decode_dc1 = raw / (2^13 / Kp) / 10  (FACTS omits the /10; the driver has it)
+    assert right.decode(msg(0x2EB, struct.pack('<Hi', 0x27,
+                                               raw))).value == pytest.approx(-expected)
+    # DC1: amccan_decode_dc1 = raw / (2^13 / Kp) / 10  (the kit table omits the /10; the driver has
+    # it)
     dc1_amps = 4096 / (2 ** 13 / d.peak_current_kp) / 10
     assert left.decode(msg(0x2E5, struct.pack('<Hh', 0x27, 4096))).value == pytest.approx(dc1_amps)
     assert right.decode(msg(0x2EC, struct.pack('<Hh', 0x27, 4096))).value == pytest.approx(-30.0)
@@ -123,9 +186,14 @@ def test_amc_tpdo_decoding_by_hand(cfg, left, right):
 
 def test_amc_round_trips(left, right):
     for codec in (left, right):
-        assert codec.decode(codec.encode_position(1.2345, 0x27)).value == pytest.approx(1.2345, abs=2 * math.pi / 60000)
-        assert codec.decode(codec.encode_velocity(-3.5, 0x27)).value == pytest.approx(-3.5, abs=1e-4)
-        assert codec.decode(codec.encode_actual_current(-12.5, 0x27)).value == pytest.approx(-12.5, abs=0.01)
+        assert codec.decode(codec.encode_position(1.2345, 0x27)).value == pytest.approx(
+            1.2345, abs=2 * math.pi / 60000
+        )
+        assert codec.decode(codec.encode_velocity(-3.5, 0x27)).value == pytest.approx(-3.5,
+                                                                                      abs=1e-4)
+        assert codec.decode(codec.encode_actual_current(-12.5, 0x27)).value == pytest.approx(
+            -12.5, abs=0.01
+        )
         cw, amps = codec.decode_current_command(codec.encode_current_command(-33.3))
         assert cw == 0x8F and abs(amps) <= 33.3 and amps == pytest.approx(-33.3, abs=0.002)
 
@@ -142,7 +210,8 @@ def test_amc_malformed_frames_rejected(left):
     with pytest.raises(MalformedFrame):
         left.decode(msg(0x2E3, struct.pack('<Hi', 0, 0) + b'\x00'))
     with pytest.raises(MalformedFrame):
-        left.decode(can.Message(arbitration_id=0x2E3, is_remote_frame=True, dlc=6, is_extended_id=False))
+        left.decode(can.Message(arbitration_id=0x2E3, is_remote_frame=True, dlc=6,
+                                is_extended_id=False))
     with pytest.raises(MalformedFrame):
         left.decode(can.Message(arbitration_id=0x2E3, data=bytes(6), is_extended_id=True))
     with pytest.raises(UnknownFrame):
@@ -155,22 +224,26 @@ def test_amc_startup_sequence_enters_current_mode(cfg):
     steps = amc.startup_sequence(cfg.wheels.drive('JLWheel'))
     writes = [(s.index, s.subindex, s.value) for s in steps if s.action == 'write']
     assert (0x6060, 0, 4) in writes                              # op-mode current
-    assert (0x1404, 1, 0x2E2) in writes                          # RPDO current enabled at its COB-ID
+    # RPDO current enabled at its COB-ID
+    assert (0x1404, 1, 0x2E2) in writes
     assert (0x1402, 1, 0x2E0 | 1 << 31) in writes                # RPDO position disabled
     nmt = [s.value for s in steps if s.action == 'nmt']
     assert nmt == [0x80, 0x01]
     assert writes[-1] == (0x6040, 0, 0x0F) and writes.index((0x6060, 0, 4)) < len(writes) - 1
 
 
-# ---------------------------------------------------------------------------------------------- DMU
+# ----------------------------------------------------------------------------------------------
+# DMU
 def test_dmu_frames_by_hand(dbc):
     codec = DmuCodec(dbc)
     r = codec.decode(msg(0x40, struct.pack('<hhhBB', 125, -250, 0, 7, 42)))
     assert isinstance(r, DmuRates) and (r.status, r.sequence) == (7, 42)
-    assert (r.x, r.y, r.z) == pytest.approx((math.radians(1.0), math.radians(-2.0), 0.0))   # 0.008 deg/s per LSB
+    # 0.008 deg/s per LSB
+    assert (r.x, r.y, r.z) == pytest.approx((math.radians(1.0), math.radians(-2.0), 0.0))
     a = codec.decode(msg(0x50, struct.pack('<hhhBB', 1000, -3334, 32767, 0, 255)))
     assert isinstance(a, DmuAccelerations) and a.sequence == 255
-    assert (a.x, a.y, a.z) == pytest.approx((0.3 * G, -3334 * 0.0003 * G, 32767 * 0.0003 * G))   # 0.0003 g per LSB
+    # 0.0003 g per LSB
+    assert (a.x, a.y, a.z) == pytest.approx((0.3 * G, -3334 * 0.0003 * G, 32767 * 0.0003 * G))
     t = codec.stream_toggle()
     assert t.arbitration_id == 0x90 and bytes(t.data) == b'\x0f'
     assert codec.is_stream_toggle(t)
@@ -179,11 +252,13 @@ def test_dmu_frames_by_hand(dbc):
 def test_dmu_encode_round_trip_and_rejects(dbc):
     codec = DmuCodec(dbc)
     m = codec.encode_rates((0.1, -0.2, 0.3), status=1, sequence=9)
-    assert bytes(m.data) == struct.pack('<hhhBB', round(0.1 / math.radians(0.008)), round(-0.2 / math.radians(0.008)),
+    assert bytes(m.data) == struct.pack('<hhhBB', round(0.1 / math.radians(0.008)),
+                                        round(-0.2 / math.radians(0.008)),
                                         round(0.3 / math.radians(0.008)), 1, 9)
     back = codec.decode(codec.encode_accelerations((0.0, -4.9, 9.81), sequence=3))
     assert (back.x, back.y, back.z) == pytest.approx((0.0, -4.9, 9.81), abs=0.0003 * G)
-    for bad in ((math.nan, 0, 0), (0, math.inf, 0), (5.0, 0, 0)):     # 5 rad/s > 32767 * 0.008 deg/s
+    # 5 rad/s > 32767 * 0.008 deg/s
+    for bad in ((math.nan, 0, 0), (0, math.inf, 0), (5.0, 0, 0)):
         with pytest.raises(ValueOutOfRange):
             codec.encode_rates(bad)
     with pytest.raises(ValueOutOfRange):
@@ -202,9 +277,11 @@ def test_dmu_malformed_rejected(dbc):
         codec.is_stream_toggle(msg(0x90, b'\x01'))
 
 
-# ---------------------------------------------------------------------------------------------- DBC
+# ----------------------------------------------------------------------------------------------
+# DBC
 def test_dbc_and_codecs_agree(cfg, dbc, left, right):
-    """The file CAN engineers load decodes our frames to the same raw values and FACTS scales."""
+    """The file CAN engineers load decodes our frames to the same raw values and the scales of
+    docs/can.md."""
     db = cantools.database.load_file(str(cfg.dbc_path))
     assert db.get_message_by_frame_id(0x40).get_signal_by_name('dQ_x').scale == 0.008
     assert db.get_message_by_frame_id(0x50).get_signal_by_name('acc_z').scale == 0.0003
@@ -221,14 +298,17 @@ def test_dbc_and_codecs_agree(cfg, dbc, left, right):
     assert d['sequence'] == 5
 
 
-# ---------------------------------------------------------------------------------------------- PowerCube
+# ----------------------------------------------------------------------------------------------
+# PowerCube
 def test_powercube_host_frames_by_hand():
     m = pc.get_param(4, pc.ACT_FPOS)
     assert m.arbitration_id == 0x0C4 and bytes(m.data) == bytes([0x0A, 0x3C])
     m = pc.set_motion(13, pc.FRAMP_ACK, 1.5)
-    assert m.arbitration_id == 0x0ED and bytes(m.data) == bytes([0x0B, 14]) + struct.pack('<f', 1.5)
+    assert m.arbitration_id == 0x0ED and bytes(m.data) == bytes([0x0B, 14]) + struct.pack('<f',
+                                                                                          1.5)
     m = pc.set_param(5, pc.TARGET_VEL, 0.25)
-    assert m.arbitration_id == 0x0E5 and bytes(m.data) == bytes([0x08, 0x4F]) + struct.pack('<f', 0.25)
+    assert m.arbitration_id == 0x0E5 and bytes(m.data) == bytes([0x08, 0x4F]) + struct.pack('<f',
+                                                                                            0.25)
     m = pc.simple_command(7, pc.RESET)
     assert m.arbitration_id == 0x0E7 and bytes(m.data) == b'\x00'
     m = pc.broadcast_command(pc.HALT)
@@ -241,9 +321,11 @@ def test_powercube_replies_by_hand():
     r = pc.decode_reply(msg(0x0A4, bytes([0x0A, 0x3C]) + struct.pack('<f', -0.25)))
     assert (r.module_id, r.command, r.selector, r.value) == (4, 0x0A, 0x3C, -0.25)
     r = pc.decode_reply(msg(0x0AD, bytes([0x0B, 14]) + struct.pack('<f', 0.75) + bytes([0x20, 0])))
-    assert (r.module_id, r.command, r.selector, r.value, r.short_state) == (13, 0x0B, 14, 0.75, 0x20)
+    assert (r.module_id, r.command, r.selector, r.value, r.short_state) == (13, 0x0B, 14, 0.75,
+                                                                            0x20)
     r = pc.decode_reply(msg(0x0A6, bytes([0x0A, 0x27]) + struct.pack('<I', 0x8002)))
-    assert r.value == 0x8002                                           # state word stays an integer
+    # state word stays an integer
+    assert r.value == 0x8002
     assert pc.decode_reply(msg(0x0A7, b'\x00')) == (7, 0, None, None, None)
     assert pc.decode_reply(pc.reply_motion(8, 17, 1.25, 0x10)) == (8, 0x0B, 17, 1.25, 0x10)
 

@@ -1,8 +1,9 @@
 """Bridge core <-> device emulators over python-can `virtual` buses in one process.
 
-The simulator side (KrangCanDevices) and the bridge side (BridgeCore + a canopen Network for the AMC start-up)
-each own one virtual bus per configured bus; frames cross only through python-can. Expectations are physical
-values put into the emulators (or computed from FACTS), never values read back from the code under test.
+The simulator side (KrangCanDevices) and the bridge side (BridgeCore + a canopen Network for the
+AMC start-up) each own one virtual bus per configured bus; frames cross only through python-can.
+Expectations are physical values put into the emulators (or computed from docs/can.md), never
+values read back from the code under test.
 """
 import dataclasses
 import itertools
@@ -20,6 +21,8 @@ from krang_can_bridge.config import load_devices
 from krang_can_bridge.protocols import amc as amc_proto
 from krang_can_bridge.protocols import load_dbc
 from krang_can_bridge.protocols import powercube as pc
+from krang_model.drivetrain import drivetrain
+from krang_model.robot import load_krang
 from krang_sim.devices import AmcDriveEmulator, DmuImuEmulator, KrangCanDevices, PowerCubeEmulator
 
 CFG = load_devices()
@@ -44,7 +47,8 @@ class _Listener(can.Listener):
 
 
 class Rig:
-    """Virtual buses between a BridgeCore (host) and KrangCanDevices (robot), plus a 500 Hz robot thread."""
+    """Virtual buses between a BridgeCore (host) and KrangCanDevices (robot), plus a 500 Hz robot
+    thread."""
 
     def __init__(self, cfg=CFG, wheel_state=None, pitch=-0.9, **device_kwargs):
         uid = f'krang-test-{time.monotonic_ns()}-{next(_uid)}'
@@ -56,8 +60,10 @@ class Rig:
         self.host = {b: can.Bus(interface='virtual', channel=f'{uid}-{b}') for b in names}
         self.robot = {b: can.Bus(interface='virtual', channel=f'{uid}-{b}') for b in names}
         self.network = canopen.Network(self.host[cfg.wheels.bus])
-        self.notifiers = [can.Notifier(self.host[b], [_Listener(self._on_host, b)], timeout=0.05) for b in names]
-        self.notifiers += [can.Notifier(self.robot[b], [_Listener(self._on_robot, b)], timeout=0.05) for b in names]
+        self.notifiers = [can.Notifier(self.host[b], [_Listener(self._on_host, b)],
+                                       timeout=0.05) for b in names]
+        self.notifiers += [can.Notifier(self.robot[b], [_Listener(self._on_robot, b)],
+                                        timeout=0.05) for b in names]
         self.wheel_state = wheel_state or {'pos': {'JLWheel': 0.0, 'JRWheel': 0.0},
                                            'vel': {'JLWheel': 0.0, 'JRWheel': 0.0}}
         self.pitch = pitch
@@ -87,7 +93,8 @@ class Rig:
         while not self._stop.is_set():
             with self.lock:
                 self.devices.step(dt)
-                out = self.devices.wheel_feedback_frames(self.wheel_state['pos'], self.wheel_state['vel'])
+                out = self.devices.wheel_feedback_frames(self.wheel_state['pos'],
+                                                         self.wheel_state['vel'])
                 out += self.devices.imu_frames_from_pitch(self.pitch, 0.0)
             self.send_robot(out)
             if k % 10 == 0:
@@ -113,7 +120,8 @@ def start_drives(rig):
         assert amc_proto.run_startup(rig.network, drive) == []
 
 
-# ------------------------------------------------------------------------------------------------- over the bus
+# -------------------------------------------------------------------------------------------------
+# over the bus
 def test_amc_startup_through_canopen_enables_current_mode():
     with Rig() as rig:
         wheels = rig.devices.wheels
@@ -132,23 +140,31 @@ def test_commanded_current_arrives_with_value_and_sign():
         start_drives(rig)
         assert wait_for(lambda: rig.core.motion_allowed()), rig.core.diagnostics()[0]
         effort = 12.0
-        expected = effort / (rig.cfg.wheels.torque_constant_nm_per_a * rig.cfg.wheels.gear_ratio)
+        drive = drivetrain(load_krang())      # the robot's drive train, not the map's
+        expected = effort / (drive.torque_constant * drive.gear_ratio)
         frames = rig.core.wheel_current_frames(effort, effort)
-        assert struct.unpack('<Hh', bytes(frames[1].msg.data))[1] < 0          # right drive: raw sign flipped
+        # right drive: raw sign flipped
+        assert struct.unpack('<Hh', bytes(frames[1].msg.data))[1] < 0
         rig.send_host(frames)
         lsb = rig.cfg.wheels.drive('JLWheel').peak_current_a / 2 ** 15
-        assert wait_for(lambda: abs(rig.devices.wheels['JRWheel'].commanded_current_a - expected) < lsb)
+        assert wait_for(
+            lambda: abs(rig.devices.wheels['JRWheel'].commanded_current_a - expected) < lsb
+        )
         currents = rig.devices.wheel_currents()
         assert currents['JLWheel'] == pytest.approx(expected, abs=lsb)
-        assert currents['JRWheel'] == pytest.approx(expected, abs=lsb)      # same direction at the joint
+        # same direction at the joint
+        assert currents['JRWheel'] == pytest.approx(expected, abs=lsb)
         assert rig.devices.wheels['JLWheel'].wheel_torque_nm == pytest.approx(effort, rel=1e-3)
         rig.send_host(rig.core.wheel_current_frames(-effort, 0.5 * effort))
         assert wait_for(lambda: rig.devices.wheels['JLWheel'].commanded_current_a < 0)
-        assert wait_for(lambda: abs(rig.devices.wheels['JRWheel'].commanded_current_a - 0.5 * expected) < lsb)
+        assert wait_for(
+            lambda: abs(rig.devices.wheels['JRWheel'].commanded_current_a - 0.5 * expected) < lsb
+        )
 
 
 def test_silent_drive_stops_transmitting_but_still_applies_commands():
-    """Fault injection: the silenced drive sends no TPDO and answers nothing, yet takes the current it is sent,
+    """Fault injection: the silenced drive sends no TPDO and answers nothing, yet takes the current
+    it is sent,
     so the bridge's zero current after it notices the silence reaches the wheel."""
     with Rig() as rig:
         start_drives(rig)
@@ -158,7 +174,8 @@ def test_silent_drive_stops_transmitting_but_still_applies_commands():
         assert wait_for(lambda: 'amc/JLWheel' in rig.core.silent_devices())
         assert not rig.core.motion_allowed() and 'JLWheel' not in rig.core.joint_state().names
         assert 'amc/JRWheel' not in rig.core.silent_devices()
-        rig.send_host(rig.core.wheel_current_frames(12.0, 12.0))      # motion disallowed: zero current
+        # motion disallowed: zero current
+        rig.send_host(rig.core.wheel_current_frames(12.0, 12.0))
         assert wait_for(lambda: rig.devices.wheel_currents() == {'JLWheel': 0.0, 'JRWheel': 0.0})
         with rig.lock:
             rig.devices.set_silent([])
@@ -177,9 +194,11 @@ def test_silent_drive_stops_transmitting_but_still_applies_commands():
     devices.set_silent(['imu', 'JWaist'])
     assert devices.imu_frames_from_pitch(-1.0, 0.0) == []
     assert devices.imu.sequence == (seq + 1) & 0xFF                # the silent DMU keeps sampling
-    waist_ids = {0x0A0 + m.module_id for m in CFG.powercube.joints[0].modules}   # module -> host replies
+    # module -> host replies
+    waist_ids = {0x0A0 + m.module_id for m in CFG.powercube.joints[0].modules}
     assert waist_ids <= talking and not waist_ids & waist_bus_replies()
-    assert waist_bus_replies() == talking - waist_ids              # the torso module on that bus still answers
+    # the torso module on that bus still answers
+    assert waist_bus_replies() == talking - waist_ids
 
 
 def test_emulated_wheel_state_is_decoded_to_the_values_put_in():
@@ -196,7 +215,8 @@ def test_emulated_wheel_state_is_decoded_to_the_values_put_in():
             pos, vel = decoded()[joint]
             assert pos == pytest.approx(state['pos'][joint], abs=count)
             assert vel == pytest.approx(state['vel'][joint], abs=1e-4)
-        assert wait_for(lambda: rig.core.wheel_state('JRWheel').statusword == 0x27)   # OPERATION_ENABLED
+        # OPERATION_ENABLED
+        assert wait_for(lambda: rig.core.wheel_state('JRWheel').statusword == 0x27)
 
 
 def test_emulated_joint_states_and_position_commands():
@@ -210,14 +230,22 @@ def test_emulated_joint_states_and_position_commands():
             assert decoded()[joint] == pytest.approx(q, abs=1e-6)        # float32 on the wire
         assert decoded()['RJ1'] == pytest.approx(0.0, abs=1e-9)
         waist = [em.position for _, em in rig.devices.joint_modules['JWaist']]
-        assert waist == pytest.approx([1.0, -1.0], abs=1e-6)             # qWaist = (pos0 - pos1) / 2
+        # qWaist = (pos0 - pos1) / 2
+        assert waist == pytest.approx([1.0, -1.0], abs=1e-6)
 
         start_drives(rig)
         assert wait_for(lambda: rig.core.motion_allowed())
         rig.send_host(rig.core.joint_position_frames({'JWaist': 1.2, 'RJ1': 0.15, 'LJ2': 5.0}))
-        assert wait_for(lambda: abs(decoded()['JWaist'] - 1.2) < 1e-4 and abs(decoded()['RJ1'] - 0.15) < 1e-4
-                        and abs(decoded()['LJ2'] - 2.0944) < 1e-4, timeout=4.0), decoded()
-        assert [em.position for _, em in rig.devices.joint_modules['JWaist']] == pytest.approx([1.2, -1.2], abs=1e-4)
+        assert wait_for(
+            lambda: (
+                abs(decoded()['JWaist'] - 1.2) < 1e-4
+                and abs(decoded()['RJ1'] - 0.15) < 1e-4
+                and abs(decoded()['LJ2'] - 2.0944) < 1e-4
+            ),
+            timeout=4.0,
+        ), decoded()
+        positions = [em.position for _, em in rig.devices.joint_modules['JWaist']]
+        assert positions == pytest.approx([1.2, -1.2], abs=1e-4)
 
 
 def test_emulated_imu_is_decoded_to_the_pitch_put_in():
@@ -226,7 +254,8 @@ def test_emulated_imu_is_decoded_to_the_pitch_put_in():
         time.sleep(0.1)
         imu = rig.core.imu_state()
         assert imu.pitch == pytest.approx(-1.76, abs=2e-3)
-        assert imu.pitch_rate == pytest.approx(0.0, abs=5e-3)        # the emulator's bias was removed
+        # the emulator's bias was removed
+        assert imu.pitch_rate == pytest.approx(0.0, abs=5e-3)
         assert math.hypot(*imu.specific_force) == pytest.approx(9.81, abs=0.01)
 
 
@@ -243,12 +272,14 @@ def test_silent_dmu_is_woken_by_the_stream_toggle():
         assert rig.core.imu_stream_frames() == []
 
 
-# ------------------------------------------------------------------------------------------------- emulators alone
+# -------------------------------------------------------------------------------------------------
+# emulators alone
 def test_amc_emulator_ignores_current_until_started_and_drops_it_on_fault():
     dbc = load_dbc(CFG.dbc_path)
     drive = CFG.wheels.drive('JLWheel')
     em = AmcDriveEmulator(drive, CFG.wheels, dbc)
-    cmd = can.Message(arbitration_id=0x2E2, data=struct.pack('<Hh', 0x8F, 8192), is_extended_id=False)
+    cmd = can.Message(arbitration_id=0x2E2, data=struct.pack('<Hh', 0x8F, 8192),
+                      is_extended_id=False)
     em.on_frame(cmd)
     assert em.commanded_current_a == 0.0 and em.tpdo_frames(0.0, 0.0) == []      # pre-operational
     em = AmcDriveEmulator(drive, CFG.wheels, dbc, auto_enable=True)
@@ -257,7 +288,8 @@ def test_amc_emulator_ignores_current_until_started_and_drops_it_on_fault():
     em.fault()
     assert em.commanded_current_a == 0.0
     sw = struct.unpack('<H', bytes(em.tpdo_frames(0.0, 0.0)[3].data))[0]
-    assert sw & 0x4F == 0x08                                                     # FAULT in the status word
+    # FAULT in the status word
+    assert sw & 0x4F == 0x08
 
 
 def test_dmu_emulator_quantises_saturates_and_adds_bias():
@@ -267,7 +299,8 @@ def test_dmu_emulator_quantises_saturates_and_adds_bias():
     dq, dp, dr, _, seq = struct.unpack('<hhhBB', bytes(rates.data))
     assert (dq, dp) == (round(CFG.imu.gyro_bias_rad_s[0] / math.radians(0.008)),
                         round(CFG.imu.gyro_bias_rad_s[1] / math.radians(0.008)))
-    assert dr == 32767 and seq == 0                                             # 10 rad/s saturates
+    # 10 rad/s saturates
+    assert dr == 32767 and seq == 0
     assert struct.unpack('<hhhBB', bytes(acc.data))[2] == round(9.81 / (0.0003 * 9.80665))
     assert struct.unpack('<hhhBB', bytes(em.frames((0, 0, 0), (0, 0, 0))[1].data))[4] == 1
     em.on_frame(can.Message(arbitration_id=0x90, data=b'\x0f', is_extended_id=False))
@@ -288,15 +321,19 @@ def test_powercube_emulator_ramps_within_its_limits():
         assert abs(em.velocity) <= vmax + 1e-9
         assert abs(em.velocity - prev_v) <= amax * dt * (1 + 1e-9)
         prev_v, peak = em.velocity, max(peak, abs(em.velocity))
-    assert em.position == pytest.approx(1.57) and max(positions) <= 1.57          # clamped to the soft limit
+    # clamped to the soft limit
+    assert em.position == pytest.approx(1.57) and max(positions) <= 1.57
     assert peak == pytest.approx(vmax, rel=1e-6)
     em.on_frame(pc.simple_command(13, pc.HALT))
     em.on_frame(pc.set_motion(13, pc.FRAMP_ACK, 0.0))
     em.step(0.5)
-    assert em.position == pytest.approx(1.57)                                     # halted until RESET
-    assert pc.decode_reply(em.on_frame(pc.set_motion(13, pc.FRAMP_ACK, 0.0))[0]).short_state & pc.SHORT_NOT_OK
+    # halted until RESET
+    assert em.position == pytest.approx(1.57)
+    assert pc.decode_reply(em.on_frame(pc.set_motion(13, pc.FRAMP_ACK,
+                                                     0.0))[0]).short_state & pc.SHORT_NOT_OK
     em.on_frame(pc.simple_command(13, pc.RESET))
     em.on_frame(pc.set_motion(13, pc.FRAMP_ACK, 1.0))
     em.step(0.5)
     assert em.position < 1.57
-    assert em.on_frame(pc.get_param(12, pc.ACT_FPOS)) == []                       # another module's frame
+    # another module's frame
+    assert em.on_frame(pc.get_param(12, pc.ACT_FPOS)) == []

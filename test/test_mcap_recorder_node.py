@@ -19,8 +19,9 @@ from rosbags.highlevel import AnyReader
 from rosbags.rosbag2.metadata import parse_qos
 from rosbags.interfaces import QosDurability, QosReliability
 
-from krang_bag.node import (RequestQos, choose_request_qos, offered_qos_from_profile, plan_new_topics,
-                            resolve_output_path, topic_selected)
+from krang_bag.node import offered_qos_from_profile
+from krang_bag.recording import (RequestQos, choose_request_qos, plan_new_topics,
+                                 resolve_output_path, topic_selected)
 from krang_bag.writer import DURATION_INFINITE_NS, OfferedQos, offered_qos_yaml
 
 REPO = Path(__file__).resolve().parents[1]
@@ -34,10 +35,12 @@ def test_qos_request_is_the_strongest_that_matches_every_offer():
     assert choose_request_qos([RELIABLE, RELIABLE]) == RequestQos(True, False, 100)
     assert choose_request_qos([RELIABLE, BEST_EFFORT]) == RequestQos(False, False, 100)
     assert choose_request_qos([LATCHED]) == RequestQos(True, True, 100)
-    assert choose_request_qos([LATCHED, RELIABLE]) == RequestQos(True, False, 100)      # volatile joins
+    # volatile joins
+    assert choose_request_qos([LATCHED, RELIABLE]) == RequestQos(True, False, 100)
     assert choose_request_qos([OfferedQos(depth=500)], min_depth=10).depth == 500
     assert choose_request_qos([OfferedQos(history='unknown', depth=0)], min_depth=10).depth == 10
-    assert choose_request_qos([]) == RequestQos(True, False, 100)                       # rosbag2 default
+    # rosbag2 default
+    assert choose_request_qos([]) == RequestQos(True, False, 100)
 
 
 def test_topic_selection():
@@ -46,10 +49,13 @@ def test_topic_selection():
     assert topic_selected('/imu/data', include=['/imu/*', '/joint_states'])
     assert not topic_selected('/diagnostics', include=['/imu/*'])
     assert not topic_selected('/_hidden/x') and topic_selected('/_hidden/x', include_hidden=True)
-    assert topic_selected('/_hidden/x', include=['/_hidden/x'])                         # named explicitly
+    # named explicitly
+    assert topic_selected('/_hidden/x', include=['/_hidden/x'])
     add, skipped = plan_new_topics(
-        [('/b', ['std_msgs/msg/String']), ('/a', ['sensor_msgs/msg/Imu']), ('/done', ['std_msgs/msg/Bool']),
-         ('/mixed', ['std_msgs/msg/String', 'std_msgs/msg/Bool']), ('/rosout', ['rcl_interfaces/msg/Log'])],
+        [('/b', ['std_msgs/msg/String']), ('/a', ['sensor_msgs/msg/Imu']), ('/done',
+                                                                            ['std_msgs/msg/Bool']),
+         ('/mixed', ['std_msgs/msg/String', 'std_msgs/msg/Bool']), ('/rosout',
+                                                                    ['rcl_interfaces/msg/Log'])],
         recorded={'/done'}, exclude=['/rosout'])
     assert add == [('/a', 'sensor_msgs/msg/Imu'), ('/b', 'std_msgs/msg/String')]
     assert list(skipped) == ['/mixed']
@@ -59,20 +65,26 @@ def test_output_path(tmp_path):
     now = datetime(2025, 3, 4, 5, 6, 7)
     assert resolve_output_path('', now) == Path('krang_2025_03_04-05_06_07.mcap')
     assert resolve_output_path(str(tmp_path), now) == tmp_path / 'krang_2025_03_04-05_06_07.mcap'
-    assert resolve_output_path(str(tmp_path / 'new') + '/', now) == tmp_path / 'new' / 'krang_2025_03_04-05_06_07.mcap'
+    assert resolve_output_path(str(tmp_path / 'new') + '/',
+                               now) == tmp_path / 'new' / 'krang_2025_03_04-05_06_07.mcap'
     assert resolve_output_path(str(tmp_path / 'run.mcap'), now) == tmp_path / 'run.mcap'
 
 
 def test_offered_qos_from_rclpy_profiles_reads_back_in_rosbags():
     from rclpy.qos import QoSDurabilityPolicy, QoSProfile, qos_profile_sensor_data
-    latched = offered_qos_from_profile(QoSProfile(depth=1, durability=QoSDurabilityPolicy.TRANSIENT_LOCAL))
+    latched = offered_qos_from_profile(QoSProfile(depth=1,
+                                                  durability=QoSDurabilityPolicy.TRANSIENT_LOCAL))
     sensor = offered_qos_from_profile(qos_profile_sensor_data)
-    assert (latched.reliability, latched.durability, latched.depth) == ('reliable', 'transient_local', 1)
-    assert (sensor.reliability, sensor.durability, sensor.history) == ('best_effort', 'volatile', 'keep_last')
+    assert (latched.reliability, latched.durability, latched.depth) == ('reliable',
+                                                                        'transient_local', 1)
+    assert (sensor.reliability, sensor.durability, sensor.history) == ('best_effort', 'volatile',
+                                                                       'keep_last')
     parsed = parse_qos(offered_qos_yaml([latched, sensor, OfferedQos(history='unknown', depth=0)]))
-    assert [q.durability for q in parsed] == [QosDurability.TRANSIENT_LOCAL, QosDurability.VOLATILE,
+    assert [q.durability for q in parsed] == [QosDurability.TRANSIENT_LOCAL,
+                                              QosDurability.VOLATILE,
                                               QosDurability.VOLATILE]
-    assert [q.reliability for q in parsed][:2] == [QosReliability.RELIABLE, QosReliability.BEST_EFFORT]
+    assert [q.reliability for q in parsed][:2] == [QosReliability.RELIABLE,
+                                                   QosReliability.BEST_EFFORT]
     assert yaml.safe_load(offered_qos_yaml([OfferedQos()]))[0]['lifespan'] == \
         {'sec': DURATION_INFINITE_NS // 10**9, 'nsec': DURATION_INFINITE_NS % 10**9}
 
@@ -93,7 +105,8 @@ def start_recorder(*ros_params):
 
 @pytest.fixture
 def ros_domain(monkeypatch, request):
-    """A domain of its own per test (101..232, above conftest's 1..100 range), inherited by the recorder."""
+    """A domain of its own per test (101..232, above conftest's 1..100 range), inherited by the
+    recorder."""
     domain = 101 + (os.getpid() * 31 + sum(map(ord, request.node.name))) % 132
     monkeypatch.setenv('ROS_DOMAIN_ID', str(domain))
     monkeypatch.setenv('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
@@ -244,8 +257,9 @@ def test_recorder_killed_with_sigkill_is_recoverable(publisher_node, tmp_path):
     node, executor = publisher_node
     publishers = make_publishers(node)
     bag = tmp_path / 'killed.mcap'
-    proc = start_recorder(f'output:={bag}', 'chunk_size:=1024', "topics:=['/joint_states', '/imu/data', "
-                          "'/wheel_effort_cmd', '/com_estimator/beta']")
+    proc = start_recorder(f'output:={bag}', 'chunk_size:=1024',
+                          "topics:=['/joint_states', '/imu/data', '/wheel_effort_cmd', "
+                          "'/com_estimator/beta']")
     try:
         published = publish_all(node, executor, publishers, proc, beta_published_before=0)
         spin_for(executor, 0.5)        # one more poll tick: the recorder flushes completed chunks
@@ -263,7 +277,8 @@ def test_recorder_killed_with_sigkill_is_recoverable(publisher_node, tmp_path):
     assert report.truncated and report.messages == sum(counts.values()) > 0
     assert set(counts) <= set(publishers)              # the `topics` include list was honoured
     assert all(counts[t] <= published[t] for t in counts)
-    assert values['/joint_states'] == [float(i) for i in range(len(values['/joint_states']))]   # a prefix
+    # a prefix
+    assert values['/joint_states'] == [float(i) for i in range(len(values['/joint_states']))]
 
 
 @pytest.mark.ros

@@ -1,4 +1,5 @@
-"""Pose filtering: Algorithm 1 (fast == straightforward), its stop rule, the other criteria, the erroneous betas."""
+"""Pose filtering: Algorithm 1 (fast == straightforward), its stop rule, the other criteria, the
+erroneous betas."""
 import json
 import math
 import subprocess
@@ -63,8 +64,10 @@ def test_d_optimal_fast_equals_straightforward_before_saturation(robot, problem)
     A, b = est.equality_constraints(robot, robot.nominal_mass)
     _, S0 = est.condition_on_constraints(robot.nominal_beta, np.diag(prior ** 2), A, b)
     r = (math.radians(0.1) * 0.4) ** 2
-    fast = filter_poses(Phi, betas, 'd-optimal', prior_cov=S0, noise_var=r, x_tol=0.0, max_poses=25)
-    ref = filter_straightforward(Phi, betas, 'd-optimal', prior_cov=S0, noise_var=r, x_tol=0.0, max_poses=25)
+    fast = filter_poses(Phi, betas, 'd-optimal', prior_cov=S0, noise_var=r, x_tol=0.0,
+                        max_poses=25)
+    ref = filter_straightforward(Phi, betas, 'd-optimal', prior_cov=S0, noise_var=r, x_tol=0.0,
+                                 max_poses=25)
     assert np.array_equal(fast.selected, ref.selected)
     assert np.abs(fast.betas - ref.betas).max() < 1e-9 * np.abs(ref.betas).max()
 
@@ -97,8 +100,8 @@ def test_criteria_behave(robot, problem):
     _, Phi, betas = problem
     gd = filter_poses(Phi, betas, 'paper-l1')
     sq = filter_poses(Phi, betas, 'squared')
-    # squared: each step removes the most squared error, so after the same number of poses the pool-wide
-    # squared error of the hypotheses is no larger than with random poses
+    # squared: each step removes the most squared error, so after the same number of poses the
+    # pool-wide squared error of the hypotheses is no larger than with random poses
     n = 50
     B = betas.T.copy()
     for i in sq.selected[:n]:
@@ -127,11 +130,15 @@ def test_criteria_behave(robot, problem):
 
 def test_cli_filter(tmp_path):
     pool = tmp_path / 'pool.csv'
-    subprocess.run([sys.executable, '-m', 'krang_cli.main', 'poses', 'pool', '--n', '600', '--seed', '1',
-                    '--out', str(pool), '--no-progress', '--json'], check=True, capture_output=True)
+    subprocess.run([sys.executable, '-m', 'krang_cli.main', 'poses', 'pool', '--n', '600',
+                    '--seed', '1',
+                    '--out', str(pool), '--no-progress', '--json'], check=True,
+                    capture_output=True)
     out = tmp_path / 'filtered.csv'
-    res = subprocess.run([sys.executable, '-m', 'krang_cli.main', 'poses', 'filter', '--pool', str(pool),
-                          '--n-betas', '40', '--seed', '2', '--tol', '0.002', '--out', str(out), '--no-progress'],
+    res = subprocess.run([sys.executable, '-m', 'krang_cli.main', 'poses', 'filter', '--pool',
+                          str(pool),
+                          '--n-betas', '40', '--seed', '2', '--tol', '0.002', '--out', str(out),
+                          '--no-progress'],
                          capture_output=True, text=True, check=True)
     doc = json.loads(res.stdout.strip().splitlines()[-1])
     assert doc['criterion'] == 'paper-l1' and doc['selected'] > 10 and doc['seconds'] >= 0

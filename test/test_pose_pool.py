@@ -1,4 +1,5 @@
-"""The safe balanced pose pool: limits, balance, and collisions checked independently of pinocchio."""
+"""The safe balanced pose pool: limits, balance, and collisions checked independently of
+pinocchio."""
 import json
 import subprocess
 import sys
@@ -32,18 +33,21 @@ def generated(pool):
 
 def _rpy(r, p, y):
     cx, sx, cy, sy, cz, sz = np.cos(r), np.sin(r), np.cos(p), np.sin(p), np.cos(y), np.sin(y)
-    return (np.array([[cz, -sz, 0], [sz, cz, 0], [0, 0, 1]]) @ np.array([[cy, 0, sy], [0, 1, 0], [-sy, 0, cy]])
+    return (np.array([[cz, -sz, 0], [sz, cz, 0], [0, 0, 1]]) @ np.array([[cy, 0, sy], [0, 1, 0],
+                                                                         [-sy, 0, cy]])
             @ np.array([[1, 0, 0], [0, cx, -sx], [0, sx, cx]]))
 
 
 class IndependentChecker:
-    """Collision shapes straight from the URDF XML, placed with krang_model's numpy kinematics, tested
+    """Collision shapes straight from the URDF XML, placed with krang_model's numpy kinematics,
+    tested
     pair by pair with coal.collide; the floor by the lowest box corner in frame 0."""
 
     def __init__(self, robot):
         self.robot = robot
         root = ET.parse(robot.urdf_path).getroot()
-        self.shapes = []              # (body index, local rotation, local translation, coal shape, half extents)
+        # (body index, local rotation, local translation, coal shape, half extents)
+        self.shapes = []
         for i, name in enumerate(robot.body_names):
             for col in root.findall(f"link[@name='{name}']/collision"):
                 o = col.find('origin')
@@ -95,7 +99,8 @@ class IndependentChecker:
         """Lowest z (frame 0) of the non-wheel boxes."""
         R0 = base_to_frame0(q_base)[0]
         low = np.inf
-        signs = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], dtype=float)
+        signs = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)],
+                         dtype=float)
         for i, R, t, shape, half in self._placed(joints):
             if i in self.wheels or half is None:
                 continue
@@ -113,7 +118,9 @@ def test_poses_within_limits_and_balanced(robot, pool, generated):
     cfg = pool_config()
     j, q = generated.joints, generated.q_base
     assert j.shape == (300, 16)
-    assert np.all(j >= np.array(cfg['sampling_lower'])) and np.all(j <= np.array(cfg['sampling_upper']))
+    assert np.all(j >= np.array(cfg['sampling_lower'])) and np.all(
+        j <= np.array(cfg['sampling_upper'])
+    )
     assert np.all(j >= robot.lower) and np.all(j <= robot.upper)
     lo, hi = cfg['q_base_limits']
     assert np.all((q >= lo) & (q <= hi))
@@ -131,14 +138,16 @@ def test_poses_are_collision_free_by_an_independent_check(robot, checker, genera
 
 
 def test_excluded_pairs_are_the_adjacent_links(pool, checker, robot):
-    excluded = {frozenset((a.rsplit('_', 1)[0], b.rsplit('_', 1)[0])) for a, b in pool.checker.excluded_pairs}
+    excluded = {frozenset((a.rsplit('_', 1)[0], b.rsplit('_', 1)[0]))
+                for a, b in pool.checker.excluded_pairs}
     adjacent = {frozenset(robot.body_names[i] for i in pair) for pair in checker.adjacent}
     with_geometry = {robot.body_names[s[0]] for s in checker.shapes}
     assert excluded == {p for p in adjacent if p <= with_geometry}
 
 
 def _find(pool, checker, robot, want, seed=0, max_batches=40):
-    """A random pose, balanced and within the floor limits, with the wanted kind of collision according
+    """A random pose, balanced and within the floor limits, with the wanted kind of collision
+    according
     to the independent checker."""
     rng = np.random.default_rng(seed)
     for _ in range(max_batches):
@@ -157,7 +166,8 @@ def _find(pool, checker, robot, want, seed=0, max_batches=40):
 def test_a_self_colliding_pose_is_rejected(robot, pool, checker):
     qb, jt, hits = _find(pool, checker, robot, 'self', seed=1)
     assert not pool.is_safe(qb, jt)
-    names = {frozenset((a.rsplit('_', 1)[0], b.rsplit('_', 1)[0])) for a, b in pool.checker.colliding_pairs(qb, jt)}
+    names = {frozenset((a.rsplit('_', 1)[0], b.rsplit('_', 1)[0]))
+             for a, b in pool.checker.colliding_pairs(qb, jt)}
     assert {frozenset(h) for h in hits} <= names
 
 
@@ -170,8 +180,10 @@ def test_floor_check(robot, pool, checker):
     from krang_pose_server.pool import CollisionChecker
     assert CollisionChecker(robot, check_floor=False).is_free(qb, jt)
     # the wheels rest on the floor and never count as a floor collision
-    assert pool.checker.is_free(-0.5, np.zeros(16)) == (checker.self_collisions(np.zeros(16)) == []
-                                                         and checker.lowest_point(-0.5, np.zeros(16)) > -robot.wheel_radius)
+    assert pool.checker.is_free(-0.5, np.zeros(16)) == (
+        checker.self_collisions(np.zeros(16)) == []
+        and checker.lowest_point(-0.5, np.zeros(16)) > -robot.wheel_radius
+    )
 
 
 def test_agreement_on_random_candidates(robot, pool, checker):
@@ -179,16 +191,20 @@ def test_agreement_on_random_candidates(robot, pool, checker):
     joints = rng.uniform(pool.lower, pool.upper, size=(150, 16))
     q_base, ok = pool.balanced_candidates(joints)
     for qb, jt in zip(q_base[ok], joints[ok]):
-        ind = not checker.self_collisions(jt) and checker.lowest_point(qb, jt) > -robot.wheel_radius
+        ind = not checker.self_collisions(jt) and checker.lowest_point(qb,
+                                                                       jt) > -robot.wheel_radius
         assert pool.checker.is_free(qb, jt) == ind
 
 
 def test_cli_pool(tmp_path, robot):
     out = tmp_path / 'pool.csv'
-    res = subprocess.run([sys.executable, '-m', 'krang_cli.main', 'poses', 'pool', '--n', '200', '--seed', '3',
-                          '--out', str(out), '--no-progress'], capture_output=True, text=True, check=True)
+    res = subprocess.run([sys.executable, '-m', 'krang_cli.main', 'poses', 'pool', '--n', '200',
+                          '--seed', '3',
+                          '--out', str(out), '--no-progress'], capture_output=True, text=True,
+                          check=True)
     doc = json.loads(res.stdout.strip().splitlines()[-1])
     assert doc['poses'] == 200 and doc['tries'] >= 200 and doc['seconds'] > 0
     q, j, _ = load_poses(out, KRANG_POSE_COLUMNS)
     assert len(q) == 200
-    assert np.abs(x_com(robot, q, j, robot.nominal_beta)).max() < 1e-8      # 9 significant digits in the CSV
+    # 9 significant digits in the CSV
+    assert np.abs(x_com(robot, q, j, robot.nominal_beta)).max() < 1e-8

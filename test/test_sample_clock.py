@@ -1,4 +1,5 @@
-"""DMU sample times from the sequence counter (krang_can_bridge.sample_clock), against arrival times."""
+"""DMU sample times from the sequence counter (krang_can_bridge.sample_clock), against arrival
+times."""
 import pytest
 
 from krang_can_bridge.sample_clock import SampleClock
@@ -29,6 +30,7 @@ def test_counter_wrap_and_re_anchoring():
     clock = SampleClock(P, lead_max_s=0.5)
     clock.time_of(254, 10.0)
     assert clock.time_of(1, 10.015) == pytest.approx(10.0 + 3 * P)     # 254 -> 255 -> 0 -> 1
-    assert clock.time_of(200, 10.02) == pytest.approx(10.02)            # 1.0 s ahead: a restart, re-anchored
+    # 1.0 s ahead: a restart, re-anchored
+    assert clock.time_of(200, 10.02) == pytest.approx(10.02)
     with pytest.raises(ValueError):
         SampleClock(0.0)

@@ -27,7 +27,8 @@ from krang_cli.processes import NodeSet  # noqa: E402
 from krang_model.config import load_config  # noqa: E402
 from krang_ros import topics  # noqa: E402
 from krang_ros.session_client import open_session_client  # noqa: E402
-from krang_sim.node import GROUND_TRUTH, GROUND_TRUTH_FIELDS  # noqa: E402
+from krang_ros.names import GROUND_TRUTH  # noqa: E402
+from krang_sim.node import GROUND_TRUTH_FIELDS  # noqa: E402
 from krang_sim.session_config import session_devices_file  # noqa: E402
 
 NODES = ('sim_krang', 'can_bridge', 'adrc_controller')

@@ -1,12 +1,14 @@
-"""Krang's CAN device protocols: pure encode/decode on python-can `can.Message`, one module per device family.
+"""Krang's CAN device protocols: pure encode/decode on python-can `can.Message`, one module per
+device family.
 
 - `amc`: AMC wheel drives (CANopen DS402 PDOs, current mode; canopen for NMT/SDO start-up).
 - `dmu_imu`: Silicon Sensing DMU IMU (raw frames 0x40 / 0x50 / 0x90).
 - `powercube`: Schunk PowerCube modules (Amtec protocol).
 
-Fixed-layout frames (IMU, AMC PDOs) are packed and unpacked with cantools from config/krang_can.dbc, the file
-CAN engineers load into their own tools. Every decoder raises a `ProtocolError` subclass on a frame it cannot
-trust, and every encoder refuses NaN, inf and out-of-range values instead of wrapping them.
+Fixed-layout frames (IMU, AMC PDOs) are packed and unpacked with cantools from
+config/krang_can.dbc, the file CAN engineers load into their own tools. Every decoder raises a
+`ProtocolError` subclass on a frame it cannot trust, and every encoder refuses NaN, inf and
+out-of-range values instead of wrapping them.
 """
 from __future__ import annotations
 
@@ -63,7 +65,9 @@ def check_data_frame(msg: can.Message, expected_dlc: int | tuple[int, ...], what
         raise MalformedFrame(f'{what}: extended id 0x{msg.arbitration_id:X}')
     allowed = (expected_dlc,) if isinstance(expected_dlc, int) else expected_dlc
     if len(msg.data) not in allowed:
-        raise MalformedFrame(f'{what}: DLC {len(msg.data)}, expected {"/".join(map(str, allowed))}')
+        raise MalformedFrame(
+            f'{what}: DLC {len(msg.data)}, expected {"/".join(map(str, allowed))}'
+        )
 
 
 def frame(arbitration_id: int, data: bytes | bytearray) -> can.Message:
@@ -71,5 +75,6 @@ def frame(arbitration_id: int, data: bytes | bytearray) -> can.Message:
     return can.Message(arbitration_id=arbitration_id, data=bytes(data), is_extended_id=False)
 
 
-__all__ = ['ProtocolError', 'UnknownFrame', 'MalformedFrame', 'ValueOutOfRange', 'load_dbc', 'require_finite',
+__all__ = ['ProtocolError', 'UnknownFrame', 'MalformedFrame', 'ValueOutOfRange', 'load_dbc',
+           'require_finite',
            'check_data_frame', 'frame']

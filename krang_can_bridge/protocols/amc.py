@@ -1,29 +1,36 @@
-"""AMC wheel drives: CANopen DS402 objects with AMC's own PDOs, current mode (FACTS §5, §9).
+"""AMC wheel drives: CANopen DS402 objects with AMC's own PDOs, current mode (docs/can.md).
 
-Wire format, checked against the Krang driver (munzir/Krang-Software drivers/amc/{amccan,amcdrive,amciod}.c):
+Wire format, checked against the Krang driver (munzir/Krang-Software
+drivers/amc/{amccan,amcdrive,amciod}.c):
 
-- COB-ID = 0x200 + 7*node + offset; offsets 0/1/2 = RPDO position/velocity/current (the host writes),
-  3/4/5/6 = TPDO position/velocity/current/statusword (the drive sends, timer-driven at 1 kHz, async).
-- RPDO current (4 bytes): controlword 0x008F (u16 LE), target current DC2 (i16 LE), DC2 = A * 2^15 / (Kp/10),
-  truncated toward zero like the driver's int cast (so the current sent never exceeds the one asked for).
-- TPDO position/velocity (6 bytes): 2 leading bytes, then i32 LE (counts; DS1 velocity units). The driver skips
-  bytes 0-1 without naming them; we read them as the status word, which is how AMC maps its fixed TPDOs
-  (our assumption - nothing in the driver depends on it).
-- TPDO current (4 bytes): 2 leading bytes, then i16 LE in DC1 units, A = raw * (Kp/10) / 2^13. FACTS §9 writes
-  DC1 = raw/(2^13/Kp); amccan_decode_dc1 divides that by a further 10, consistent with Kp being in 0.1 A
-  (amcdrive_set_current clamps at Kp/10 A). We follow the driver.
+- COB-ID = 0x200 + 7*node + offset; offsets 0/1/2 = RPDO position/velocity/current (the host
+  writes), 3/4/5/6 = TPDO position/velocity/current/statusword (the drive sends, timer-driven at 1
+  kHz, async).
+- RPDO current (4 bytes): controlword 0x008F (u16 LE), target current DC2 (i16 LE), DC2 = A * 2^15
+  / (Kp/10), truncated toward zero like the driver's int cast (so the current sent never exceeds
+  the one asked for).
+- TPDO position/velocity (6 bytes): 2 leading bytes, then i32 LE (counts; DS1 velocity units). The
+  driver skips bytes 0-1 without naming them; we read them as the status word, which is how AMC
+  maps its fixed TPDOs (our assumption - nothing in the driver depends on it).
+- TPDO current (4 bytes): 2 leading bytes, then i16 LE in DC1 units, A = raw * (Kp/10) / 2^13. The
+  data kit's table writes DC1 = raw/(2^13/Kp); amccan_decode_dc1 divides that by a further 10,
+  consistent with Kp being in 0.1 A (amcdrive_set_current clamps at Kp/10 A). We follow the driver
+  (docs/can.md).
 - TPDO statusword (2 bytes): u16 LE.
 - Velocity: counts/s = DS1 * k_i * k_s / 2^17 (amccan_decode_ds1).
 - Position: rad = counts * 2 pi / (4000 * 15) at the wheel (amcdrive ticks_to_rad).
-- The right drive (node 0x21) has current_sign -1, and ticks_to_rad applies it to position and velocity too.
+- The right drive (node 0x21) has current_sign -1, and ticks_to_rad applies it to position and
+  velocity too.
 
-The layouts live in config/krang_can.dbc and are packed with cantools; the scalings need per-drive constants
-(Kp, k_i, k_s, counts/rev, gear), which live in config/can_devices.yaml, so the DBC carries raw units.
+The layouts live in config/krang_can.dbc and are packed with cantools; the scalings need per-drive
+constants (Kp, k_i, k_s, counts/rev, gear), which live in config/can_devices.yaml, so the DBC
+carries raw units.
 
-canopen is used for what CANopen standardises and the Krang driver did by hand: the object dictionary of the
-objects we touch, NMT and the SDO start-up sequence (`startup_sequence` / `run_startup`), and - in the
-simulator - an SDO server (`canopen.LocalNode`). The PDOs themselves stay plain frames: AMC's COB-ID scheme
-and fixed mappings are not the CiA defaults canopen's PDO classes would assume.
+canopen is used for what CANopen standardises and the Krang driver did by hand: the object
+dictionary of the objects we touch, NMT and the SDO start-up sequence (`startup_sequence` /
+`run_startup`), and - in the simulator - an SDO server (`canopen.LocalNode`). The PDOs themselves
+stay plain frames: AMC's COB-ID scheme and fixed mappings are not the CiA defaults canopen's PDO
+classes would assume.
 """
 from __future__ import annotations
 
@@ -36,9 +43,16 @@ import canopen
 from canopen import objectdictionary as od
 
 from krang_can_bridge.config import WheelDriveConfig, WheelsConfig
-from krang_can_bridge.protocols import UnknownFrame, ValueOutOfRange, check_data_frame, frame, require_finite
+from krang_can_bridge.protocols import (
+    UnknownFrame,
+    ValueOutOfRange,
+    check_data_frame,
+    frame,
+    require_finite,
+)
 
-# COB-ID scheme chosen by the Krang driver (amcdrive_enable_pdos: cob_base 0x200, "What the heck is the 7 from?").
+# COB-ID scheme chosen by the Krang driver (amcdrive_enable_pdos: cob_base 0x200, "What the heck is
+# the 7 from?").
 COB_BASE = 0x200
 COB_STRIDE = 7
 RPDO_POSITION, RPDO_VELOCITY, RPDO_CURRENT = 0, 1, 2
@@ -67,8 +81,10 @@ TIMER1_CYCLE = 0x2120
 TIMER1_TPDOS = 0x2121
 # PDO communication parameter objects of the AMC PDOs the driver uses (amccan.c pdo_com_index)
 RPDO_COMM = {RPDO_POSITION: 0x1402, RPDO_VELOCITY: 0x1403, RPDO_CURRENT: 0x1404}
-TPDO_COMM = {TPDO_STATUSWORD: 0x1800, TPDO_POSITION: 0x1802, TPDO_VELOCITY: 0x1803, TPDO_CURRENT: 0x1804}
-# AMC's fixed mappings as the wire layouts imply them (the leading status word of TPDO 3/4/5 is our reading).
+TPDO_COMM = {TPDO_STATUSWORD: 0x1800, TPDO_POSITION: 0x1802, TPDO_VELOCITY: 0x1803,
+             TPDO_CURRENT: 0x1804}
+# AMC's fixed mappings as the wire layouts imply them (the leading status word of TPDO 3/4/5 is our
+# reading).
 PDO_MAPPINGS = {
     RPDO_POSITION: ((CONTROLWORD, 0, 16), (0x607A, 0, 32)),
     RPDO_VELOCITY: ((CONTROLWORD, 0, 16), (0x60FF, 0, 32)),
@@ -102,7 +118,13 @@ DRIVE_STATES = (
 )
 STATUSWORD_OF_STATE = {name: value for name, value, _ in DRIVE_STATES}
 
-NMT_START, NMT_STOP, NMT_PRE_OPERATIONAL, NMT_RESET_NODE, NMT_RESET_COMMUNICATION = 0x01, 0x02, 0x80, 0x81, 0x82
+NMT_START, NMT_STOP, NMT_PRE_OPERATIONAL, NMT_RESET_NODE, NMT_RESET_COMMUNICATION = (
+    0x01,
+    0x02,
+    0x80,
+    0x81,
+    0x82,
+)
 
 DC2_FULL_SCALE = 2 ** 15
 DC1_FULL_SCALE = 2 ** 13
@@ -124,7 +146,8 @@ def cob_id(node_id: int, offset: int) -> int:
 
 
 class AmcReading(NamedTuple):
-    """One decoded TPDO: `kind` is position [rad], velocity [rad/s], current [A] or statusword (value None)."""
+    """One decoded TPDO: `kind` is position [rad], velocity [rad/s], current [A] or statusword
+    (value None)."""
 
     joint: str
     kind: str
@@ -134,7 +157,8 @@ class AmcReading(NamedTuple):
 
 @dataclass(frozen=True)
 class StartupStep:
-    """One step of the drive start-up: an NMT command, an SDO write, or an SDO read to compare with config."""
+    """One step of the drive start-up: an NMT command, an SDO write, or an SDO read to compare with
+    config."""
 
     action: str            # 'nmt' | 'write' | 'check'
     index: int = 0
@@ -150,28 +174,36 @@ class AmcDriveCodec:
         self.drive = drive
         self.wheels = wheels
         self.ids = {k: cob_id(drive.node_id, k) for k in range(7)}
-        self._kind_of_id = {self.ids[TPDO_POSITION]: 'position', self.ids[TPDO_VELOCITY]: 'velocity',
-                            self.ids[TPDO_CURRENT]: 'current', self.ids[TPDO_STATUSWORD]: 'statusword'}
+        self._kind_of_id = {self.ids[TPDO_POSITION]: 'position',
+                            self.ids[TPDO_VELOCITY]: 'velocity',
+                            self.ids[TPDO_CURRENT]: 'current',
+                            self.ids[TPDO_STATUSWORD]: 'statusword'}
         self._messages = {}
-        expected = {RPDO_CURRENT: {'controlword', 'target_current_dc2'},
-                    TPDO_POSITION: {'statusword', 'position_counts'}, TPDO_VELOCITY: {'statusword', 'velocity_ds1'},
-                    TPDO_CURRENT: {'statusword', 'current_dc1'}, TPDO_STATUSWORD: {'statusword'}}
+        expected = {
+            RPDO_CURRENT: {'controlword', 'target_current_dc2'},
+            TPDO_POSITION: {'statusword', 'position_counts'},
+            TPDO_VELOCITY: {'statusword', 'velocity_ds1'},
+            TPDO_CURRENT: {'statusword', 'current_dc1'},
+            TPDO_STATUSWORD: {'statusword'},
+        }
         for offset, signals in expected.items():
             try:
                 message = dbc.get_message_by_frame_id(self.ids[offset])
             except KeyError as exc:
-                raise UnknownFrame(f'DBC has no frame 0x{self.ids[offset]:03X} for AMC node 0x{drive.node_id:02X}') \
+                raise UnknownFrame(f'DBC has no frame 0x{self.ids[offset]:03X} for AMC node '
+                                   f'0x{drive.node_id:02X}') \
                     from exc
             if {s.name for s in message.signals} != signals:
-                raise UnknownFrame(f'DBC frame {message.name} has signals {[s.name for s in message.signals]}, '
-                                   f'expected {sorted(signals)}')
+                raise UnknownFrame(f'DBC frame {message.name} has signals '
+                                   f'{[s.name for s in message.signals]}, expected '
+                                   f'{sorted(signals)}')
             self._messages[offset] = message
         self._amps_per_dc2 = drive.peak_current_a / DC2_FULL_SCALE
         self._amps_per_dc1 = drive.peak_current_a / DC1_FULL_SCALE
         self._counts_per_rad = wheels.counts_per_wheel_rad
         self._counts_per_s_per_ds1 = drive.k_i * drive.k_s / DS1_FULL_SCALE
 
-    # ---- ids -------------------------------------------------------------------------------------------
+    # ---- ids ------------------------------------------------------------------------------------
     @property
     def command_ids(self) -> frozenset[int]:
         """Ids the host sends to this drive (RPDOs)."""
@@ -192,34 +224,42 @@ class AmcDriveCodec:
     def _unpack(self, offset: int, msg: can.Message) -> dict:
         message = self._messages[offset]
         check_data_frame(msg, message.length, message.name)
-        return message.decode(bytes(msg.data), decode_choices=False, scaling=False, allow_excess=False)
+        return message.decode(bytes(msg.data), decode_choices=False, scaling=False,
+                              allow_excess=False)
 
-    # ---- host -> drive -----------------------------------------------------------------------------------
+    # ---- host -> drive --------------------------------------------------------------------------
     def current_to_dc2(self, amps: float) -> int:
-        """DC2 truncated toward zero, as amcdrive_set_current's int cast: the sent current never exceeds |amps|."""
+        """DC2 truncated toward zero, as amcdrive_set_current's int cast: the sent current never
+        exceeds |amps|."""
         amps = require_finite(amps, f'{self.drive.joint} current')
         raw = math.trunc(self.drive.sign * amps / self._amps_per_dc2)
         if not INT16_MIN <= raw <= INT16_MAX:
-            raise ValueOutOfRange(f'{self.drive.joint}: {amps} A exceeds the drive peak {self.drive.peak_current_a} A')
+            raise ValueOutOfRange(f'{self.drive.joint}: {amps} A exceeds the drive peak '
+                                  f'{self.drive.peak_current_a} A')
         return raw
 
     def encode_current_command(self, amps: float) -> can.Message:
-        """RPDO current: [controlword 0x008F][DC2]. Raises ValueOutOfRange for NaN/inf or beyond the drive peak."""
+        """RPDO current: [controlword 0x008F][DC2]. Raises ValueOutOfRange for NaN/inf or beyond
+        the drive peak."""
         return self._pack(RPDO_CURRENT, {'controlword': CONTROLWORD_CURRENT_PDO,
                                          'target_current_dc2': self.current_to_dc2(amps)})
 
     def decode_current_command(self, msg: can.Message) -> tuple[int, float]:
         """(controlword, amps at the joint) of an RPDO current frame (the drive's view)."""
         if msg.arbitration_id != self.ids[RPDO_CURRENT]:
-            raise UnknownFrame(f'0x{msg.arbitration_id:03X} is not the current RPDO of {self.drive.joint}')
+            raise UnknownFrame(f'0x{msg.arbitration_id:03X} is not the current RPDO of '
+                               f'{self.drive.joint}')
         s = self._unpack(RPDO_CURRENT, msg)
-        return int(s['controlword']), self.drive.sign * s['target_current_dc2'] * self._amps_per_dc2
+        return int(s['controlword']), self.drive.sign * s[
+            'target_current_dc2'
+        ] * self._amps_per_dc2
 
-    # ---- drive -> host -----------------------------------------------------------------------------------
+    # ---- drive -> host --------------------------------------------------------------------------
     def decode(self, msg: can.Message) -> AmcReading:
         kind = self._kind_of_id.get(msg.arbitration_id)
         if kind is None:
-            raise UnknownFrame(f'0x{msg.arbitration_id:03X} is not a TPDO of AMC node 0x{self.drive.node_id:02X}')
+            raise UnknownFrame(f'0x{msg.arbitration_id:03X} is not a TPDO of AMC node '
+                               f'0x{self.drive.node_id:02X}')
         sign = self.drive.sign
         if kind == 'position':
             s = self._unpack(TPDO_POSITION, msg)
@@ -236,16 +276,19 @@ class AmcDriveCodec:
         return AmcReading(self.drive.joint, kind, value, int(s['statusword']))
 
     def position_counts(self, position_rad: float) -> int:
-        return round(self.drive.sign * require_finite(position_rad, 'position') * self._counts_per_rad)
+        return round(self.drive.sign * require_finite(position_rad,
+                                                      'position') * self._counts_per_rad)
 
     def encode_position(self, position_rad: float, statusword: int) -> can.Message:
         counts = self.position_counts(position_rad)
         if not INT32_MIN <= counts <= INT32_MAX:
-            raise ValueOutOfRange(f'{self.drive.joint}: position {position_rad} rad overflows int32 counts')
+            raise ValueOutOfRange(f'{self.drive.joint}: position {position_rad} rad overflows '
+                                  'int32 counts')
         return self._pack(TPDO_POSITION, {'statusword': statusword, 'position_counts': counts})
 
     def encode_position_counts(self, counts: int, statusword: int) -> can.Message:
-        return self._pack(TPDO_POSITION, {'statusword': statusword, 'position_counts': int(counts)})
+        return self._pack(TPDO_POSITION, {'statusword': statusword,
+                                          'position_counts': int(counts)})
 
     def encode_velocity(self, velocity_rad_s: float, statusword: int) -> can.Message:
         v = require_finite(velocity_rad_s, 'velocity')
@@ -259,7 +302,7 @@ class AmcDriveCodec:
     def encode_statusword(self, statusword: int) -> can.Message:
         return self._pack(TPDO_STATUSWORD, {'statusword': statusword})
 
-    # ---- CANopen -----------------------------------------------------------------------------------------
+    # ---- CANopen --------------------------------------------------------------------------------
     def object_dictionary(self) -> od.ObjectDictionary:
         return object_dictionary(self.drive)
 
@@ -267,7 +310,8 @@ class AmcDriveCodec:
         return startup_sequence(self.drive)
 
 
-def _var(index: int, subindex: int, name: str, data_type: int, access: str = 'rw', default: int | None = None):
+def _var(index: int, subindex: int, name: str, data_type: int, access: str = 'rw',
+         default: int | None = None):
     v = od.ODVariable(name, index, subindex)
     v.data_type = data_type
     v.access_type = access
@@ -278,26 +322,31 @@ def _var(index: int, subindex: int, name: str, data_type: int, access: str = 'rw
 
 def _record(index: int, name: str, subs: list) -> od.ODRecord:
     rec = od.ODRecord(name, index)
-    rec.add_member(_var(index, 0, 'highest sub-index', od.UNSIGNED8, 'ro', max(s.subindex for s in subs)))
+    rec.add_member(_var(index, 0, 'highest sub-index', od.UNSIGNED8, 'ro',
+                        max(s.subindex for s in subs)))
     for s in subs:
         rec.add_member(s)
     return rec
 
 
 def switching_frequency_pbf(k_s_hz: float) -> int:
-    """Inverse of amcccan_decode_pbf: the drive reports kHz in 16.16 fixed point (k_s = 1000 * pbf / 2^16)."""
+    """Inverse of amcccan_decode_pbf: the drive reports kHz in 16.16 fixed point (k_s = 1000 * pbf
+    / 2^16)."""
     return round(k_s_hz / 1000.0 * (1 << 16))
 
 
 def object_dictionary(drive: WheelDriveConfig) -> od.ObjectDictionary:
-    """The DS402/AMC objects the bridge and the emulator use, with this drive's constants as defaults."""
+    """The DS402/AMC objects the bridge and the emulator use, with this drive's constants as
+    defaults."""
     d = od.ObjectDictionary()
     d.node_id = drive.node_id
     d.add_object(_var(HEARTBEAT_TIME, 0, 'Producer heartbeat time', od.UNSIGNED16, 'rw', 0))
     d.add_object(_var(CONTROLWORD, 0, 'Controlword', od.UNSIGNED16, 'rw', 0))
-    d.add_object(_var(STATUSWORD, 0, 'Statusword', od.UNSIGNED16, 'ro', STATUSWORD_OF_STATE['SWITCH_ON_DISABLED']))
+    d.add_object(_var(STATUSWORD, 0, 'Statusword', od.UNSIGNED16, 'ro',
+                      STATUSWORD_OF_STATE['SWITCH_ON_DISABLED']))
     d.add_object(_var(MODES_OF_OPERATION, 0, 'Modes of operation', od.INTEGER8, 'rw', 0))
-    d.add_object(_var(MODES_OF_OPERATION_DISPLAY, 0, 'Modes of operation display', od.INTEGER8, 'ro', 0))
+    d.add_object(_var(MODES_OF_OPERATION_DISPLAY, 0, 'Modes of operation display', od.INTEGER8,
+                      'ro', 0))
     d.add_object(_var(POSITION_ACTUAL, 0, 'Position actual value', od.INTEGER32, 'ro', 0))
     d.add_object(_var(VELOCITY_ACTUAL, 0, 'Velocity actual value', od.INTEGER32, 'ro', 0))
     d.add_object(_var(TARGET_CURRENT, 0, 'Target current', od.INTEGER16, 'rw', 0))
@@ -308,43 +357,60 @@ def object_dictionary(drive: WheelDriveConfig) -> od.ObjectDictionary:
         _var(BOARD_INFO, BOARD_INFO_SWITCH_FREQ, 'Switching frequency', od.UNSIGNED32, 'ro',
              switching_frequency_pbf(drive.k_s))]))
     d.add_object(_record(FEEDBACK_PARAMETERS, 'Feedback parameters', [
-        _var(FEEDBACK_PARAMETERS, FEEDBACK_POS_INTERPOLATION, 'Position interpolation', od.UNSIGNED16, 'ro',
+        _var(FEEDBACK_PARAMETERS, FEEDBACK_POS_INTERPOLATION, 'Position interpolation',
+             od.UNSIGNED16, 'ro',
              round(drive.k_i))]))
     d.add_object(_var(TIMER1_CYCLE, 0, 'Timer 1 cycle time', od.UNSIGNED32, 'rw', 0))
     d.add_object(_var(TIMER1_TPDOS, 0, 'Timer 1 TPDOs', od.UNSIGNED32, 'rw', 0))
     for offset, index in list(RPDO_COMM.items()) + list(TPDO_COMM.items()):
         d.add_object(_record(index, f'PDO communication 0x{index:04X}', [
-            _var(index, 1, 'COB-ID', od.UNSIGNED32, 'rw', cob_id(drive.node_id, offset) | PDO_COB_DISABLED),
+            _var(index, 1, 'COB-ID', od.UNSIGNED32, 'rw', cob_id(drive.node_id,
+                                                                 offset) | PDO_COB_DISABLED),
             _var(index, 2, 'Transmission type', od.UNSIGNED8, 'rw', PDO_TRANS_ASYNC)]))
         mapping_index = index + 0x200
         entries = PDO_MAPPINGS[offset]
         d.add_object(_record(mapping_index, f'PDO mapping 0x{mapping_index:04X}', [
-            _var(mapping_index, i + 1, f'Mapped object {i + 1}', od.UNSIGNED32, 'ro', (obj << 16) | (sub << 8) | bits)
+            _var(mapping_index, i + 1, f'Mapped object {i + 1}', od.UNSIGNED32, 'ro',
+                 (obj << 16) | (sub << 8) | bits)
             for i, (obj, sub, bits) in enumerate(entries)]))
     return d
 
 
 def startup_sequence(drive: WheelDriveConfig) -> list[StartupStep]:
-    """amcdrive_init_drive + amcdrive_start as data: configure the PDOs and the 1 kHz timer, enter current mode.
+    """amcdrive_init_drive + amcdrive_start as data: configure the PDOs and the 1 kHz timer, enter
+    current mode.
 
-    Only the current RPDO is enabled (position/velocity RPDOs stay disabled, as in amciod); all four TPDOs are
-    enabled (amciod left the current TPDO off; we want the measured current in diagnostics).
+    Only the current RPDO is enabled (position/velocity RPDOs stay disabled, as in amciod); all
+    four TPDOs are enabled (amciod left the current TPDO off; we want the measured current in
+    diagnostics).
     """
     n = drive.node_id
     steps = [StartupStep('nmt', value=NMT_PRE_OPERATIONAL, what='pre-operational'),
-             StartupStep('check', BOARD_INFO, BOARD_INFO_MAX_PEAK_CURRENT, round(drive.peak_current_kp), 'Kp'),
-             StartupStep('check', BOARD_INFO, BOARD_INFO_SWITCH_FREQ, switching_frequency_pbf(drive.k_s), 'k_s'),
-             StartupStep('check', FEEDBACK_PARAMETERS, FEEDBACK_POS_INTERPOLATION, round(drive.k_i), 'k_i')]
+             StartupStep('check', BOARD_INFO, BOARD_INFO_MAX_PEAK_CURRENT,
+                         round(drive.peak_current_kp), 'Kp'),
+             StartupStep('check', BOARD_INFO, BOARD_INFO_SWITCH_FREQ,
+                         switching_frequency_pbf(drive.k_s), 'k_s'),
+             StartupStep('check', FEEDBACK_PARAMETERS, FEEDBACK_POS_INTERPOLATION,
+                         round(drive.k_i), 'k_i')]
     for offset, index in RPDO_COMM.items():
         enabled = offset == RPDO_CURRENT
-        steps.append(StartupStep('write', index, 1, cob_id(n, offset) | (0 if enabled else PDO_COB_DISABLED),
-                                 f'RPDO COB-ID 0x{cob_id(n, offset):03X}'))
+        steps.append(
+            StartupStep(
+                'write',
+                index,
+                1,
+                cob_id(n, offset) | (0 if enabled else PDO_COB_DISABLED),
+                f'RPDO COB-ID 0x{cob_id(n, offset):03X}',
+            )
+        )
     for offset, index in TPDO_COMM.items():
-        steps.append(StartupStep('write', index, 1, cob_id(n, offset), f'TPDO COB-ID 0x{cob_id(n, offset):03X}'))
+        steps.append(StartupStep('write', index, 1, cob_id(n, offset),
+                                 f'TPDO COB-ID 0x{cob_id(n, offset):03X}'))
     for index in list(RPDO_COMM.values()) + list(TPDO_COMM.values()):
         steps.append(StartupStep('write', index, 2, PDO_TRANS_ASYNC, 'async transmission'))
     steps += [StartupStep('write', TIMER1_CYCLE, 0, 1, 'timer 1 = 1 ms'),
-              StartupStep('write', TIMER1_TPDOS, 0, TIMER1_TPDO_BITS, 'timer 1 drives TPDO 1/3/4/5'),
+              StartupStep('write', TIMER1_TPDOS, 0, TIMER1_TPDO_BITS,
+                          'timer 1 drives TPDO 1/3/4/5'),
               StartupStep('write', CONTROLWORD, 0, CW_SHUTDOWN, 'shutdown'),
               StartupStep('write', CONTROLWORD, 0, CW_RESET_FAULT, 'reset fault'),
               StartupStep('nmt', value=NMT_START, what='start'),
@@ -355,12 +421,15 @@ def startup_sequence(drive: WheelDriveConfig) -> list[StartupStep]:
     return steps
 
 
-def run_startup(network: canopen.Network, drive: WheelDriveConfig, sdo_timeout_s: float = 0.3) -> list[str]:
-    """Execute `startup_sequence` through canopen (blocking SDO transfers; run it off the ROS executor).
+def run_startup(network: canopen.Network, drive: WheelDriveConfig,
+                sdo_timeout_s: float = 0.3) -> list[str]:
+    """Execute `startup_sequence` through canopen (blocking SDO transfers; run it off the ROS
+    executor).
 
-    Returns human-readable mismatches between the drive's constants and the config (the codecs use the config
-    values, so a mismatch means wrong currents: the caller must treat it as an error). Raises canopen's
-    SdoCommunicationError / SdoAbortedError when the drive does not answer or refuses a write.
+    Returns human-readable mismatches between the drive's constants and the config (the codecs use
+    the config values, so a mismatch means wrong currents: the caller must treat it as an error).
+    Raises canopen's SdoCommunicationError / SdoAbortedError when the drive does not answer or
+    refuses a write.
     """
     dictionary = object_dictionary(drive)
     node = canopen.RemoteNode(drive.node_id, dictionary)
@@ -380,8 +449,8 @@ def run_startup(network: canopen.Network, drive: WheelDriveConfig, sdo_timeout_s
                 var = dictionary[step.index][step.subindex]
                 got = var.decode_raw(node.sdo.upload(step.index, step.subindex))
                 if got != step.value:
-                    mismatches.append(f'{drive.joint} (node 0x{drive.node_id:02X}): drive reports {step.what} = {got}, '
-                                      f'config expects {step.value}')
+                    mismatches.append(f'{drive.joint} (node 0x{drive.node_id:02X}): drive reports '
+                                      f'{step.what} = {got}, config expects {step.value}')
     finally:
         del network[drive.node_id]
     return mismatches
@@ -392,5 +461,6 @@ def codecs_from_config(wheels: WheelsConfig, dbc) -> dict[str, AmcDriveCodec]:
     return {d.joint: AmcDriveCodec(d, wheels, dbc) for d in wheels.drives}
 
 
-__all__ = ['AmcDriveCodec', 'AmcReading', 'StartupStep', 'codecs_from_config', 'cob_id', 'drive_state',
+__all__ = ['AmcDriveCodec', 'AmcReading', 'StartupStep', 'codecs_from_config', 'cob_id',
+           'drive_state',
            'object_dictionary', 'run_startup', 'startup_sequence']

@@ -1,16 +1,23 @@
-"""Silicon Sensing DMU IMU: raw CAN frames 0x40 (angular rates), 0x50 (accelerations), 0x90 (stream toggle).
+"""Silicon Sensing DMU IMU: raw CAN frames 0x40 (angular rates), 0x50 (accelerations),
+0x90 (stream toggle).
 
-Checked against the Krang driver (munzir/Krang-Software drivers/imu/ssdmu.c, include/ssdmu/ssdmu.h):
+Checked against the Krang driver (munzir/Krang-Software drivers/imu/ssdmu.c,
+include/ssdmu/ssdmu.h):
 
-- 0x40, 8 bytes: int16 dQ (rate about x), int16 dP (about y), int16 dR (about z), u8 status, u8 sequence.
+- 0x40, 8 bytes: int16 dQ (rate about x), int16 dP (about y), int16 dR (about z), u8 status, u8
+  sequence.
 - 0x50, 8 bytes: int16 x, y, z acceleration, u8 status, u8 sequence.
-- Byte order: the driver memcpy()s the payload into a packed struct of `short` on an x86 host, so the fields
-  are little-endian. That is the only evidence available (no DMU datasheet at hand); the DBC says the same.
-- Scales (ssdmu.c): 0.008 deg/s per LSB and 0.0003 g per LSB. They are read from config/krang_can.dbc, so the
-  DBC is their single source; this module only converts deg -> rad and g -> m/s^2.
+- Byte order: the driver memcpy()s the payload into a packed struct of `short` on an x86 host, so
+  the fields are little-endian. That is the only evidence available (no DMU datasheet at hand); the
+  DBC says the same.
+- Scales (ssdmu.c): 0.008 deg/s per LSB and 0.0003 g per LSB. They are read from
+  config/krang_can.dbc, so the DBC is their single source; this module only converts deg -> rad and
+  g -> m/s^2.
 - A rates frame and an accelerations frame with the same sequence number form one sample.
-- 0x90 [0x0F] *toggles* streaming (ssdmu_toggle_streaming): the host sends it only while the DMU is silent.
-- Gyro biases are not removed here (imud published raw samples); the bridge subtracts the configured biases.
+- 0x90 [0x0F] *toggles* streaming (ssdmu_toggle_streaming): the host sends it only while the DMU is
+  silent.
+- Gyro biases are not removed here (imud published raw samples); the bridge subtracts the
+  configured biases.
 """
 from __future__ import annotations
 
@@ -19,7 +26,8 @@ from typing import NamedTuple, Sequence
 
 import can
 
-from krang_can_bridge.protocols import (MalformedFrame, UnknownFrame, ValueOutOfRange, check_data_frame, frame,
+from krang_can_bridge.protocols import (MalformedFrame, UnknownFrame, ValueOutOfRange,
+                                        check_data_frame, frame,
                                         require_finite)
 
 RATES_ID = 0x40
@@ -44,7 +52,8 @@ class DmuRates(NamedTuple):
 
 
 class DmuAccelerations(NamedTuple):
-    """Specific force along the sensor x, y, z axes [m/s^2] (+1 g along the axis pointing up at rest)."""
+    """Specific force along the sensor x, y, z axes [m/s^2] (+1 g along the axis pointing up at
+    rest)."""
 
     x: float
     y: float
@@ -83,11 +92,17 @@ class DmuCodec:
         if msg.arbitration_id == RATES_ID:
             message, names, lsb, cls = self._rates, _RATE_SIGNALS, self.rate_lsb_rad_s, DmuRates
         elif msg.arbitration_id == ACCELERATIONS_ID:
-            message, names, lsb, cls = self._accel, _ACCEL_SIGNALS, self.accel_lsb_m_s2, DmuAccelerations
+            message, names, lsb, cls = (
+                self._accel,
+                _ACCEL_SIGNALS,
+                self.accel_lsb_m_s2,
+                DmuAccelerations,
+            )
         else:
             raise UnknownFrame(f'0x{msg.arbitration_id:03X} is not a DMU data frame')
         check_data_frame(msg, message.length, message.name)
-        s = message.decode(bytes(msg.data), decode_choices=False, scaling=False, allow_excess=False)
+        s = message.decode(bytes(msg.data), decode_choices=False, scaling=False,
+                           allow_excess=False)
         return cls(*(s[n] * lsb for n in names), int(s['status']), int(s['sequence']))
 
     def _to_raw(self, values: Sequence[float], lsb: float, what: str) -> list[int]:
@@ -95,7 +110,8 @@ class DmuCodec:
             raise ValueOutOfRange(f'{what}: need 3 axes, got {len(values)}')
         raw = [round(require_finite(v, what) / lsb) for v in values]
         if any(not INT16_MIN <= r <= INT16_MAX for r in raw):
-            raise ValueOutOfRange(f'{what}: {list(values)} outside the DMU range +-{INT16_MAX * lsb:.4g}')
+            raise ValueOutOfRange(f'{what}: {list(values)} outside the DMU range '
+                                  f'+-{INT16_MAX * lsb:.4g}')
         return raw
 
     def rates_to_raw(self, rates_rad_s: Sequence[float]) -> list[int]:
@@ -104,7 +120,8 @@ class DmuCodec:
     def accelerations_to_raw(self, accel_m_s2: Sequence[float]) -> list[int]:
         return self._to_raw(accel_m_s2, self.accel_lsb_m_s2, 'DMU accelerations')
 
-    def _encode(self, message, names, raw: Sequence[int], status: int, sequence: int) -> can.Message:
+    def _encode(self, message, names, raw: Sequence[int], status: int,
+                sequence: int) -> can.Message:
         values = dict(zip(names, (int(r) for r in raw)))
         values.update(status=int(status) & 0xFF, sequence=int(sequence) & 0xFF)
         try:
@@ -113,26 +130,35 @@ class DmuCodec:
             raise ValueOutOfRange(f'{message.name}: {exc}') from exc
         return frame(message.frame_id, data)
 
-    def encode_rates(self, rates_rad_s: Sequence[float], status: int = 0, sequence: int = 0) -> can.Message:
-        """0x40 from rates about sensor x, y, z [rad/s] (rounded to the LSB; raises beyond int16)."""
-        return self._encode(self._rates, _RATE_SIGNALS, self.rates_to_raw(rates_rad_s), status, sequence)
+    def encode_rates(self, rates_rad_s: Sequence[float], status: int = 0,
+                     sequence: int = 0) -> can.Message:
+        """0x40 from rates about sensor x, y, z [rad/s] (rounded to the LSB; raises beyond
+        int16)."""
+        return self._encode(self._rates, _RATE_SIGNALS, self.rates_to_raw(rates_rad_s), status,
+                            sequence)
 
-    def encode_raw_rates(self, raw: Sequence[int], status: int = 0, sequence: int = 0) -> can.Message:
+    def encode_raw_rates(self, raw: Sequence[int], status: int = 0,
+                         sequence: int = 0) -> can.Message:
         return self._encode(self._rates, _RATE_SIGNALS, raw, status, sequence)
 
-    def encode_accelerations(self, accel_m_s2: Sequence[float], status: int = 0, sequence: int = 0) -> can.Message:
+    def encode_accelerations(self, accel_m_s2: Sequence[float], status: int = 0,
+                             sequence: int = 0) -> can.Message:
         """0x50 from specific force along sensor x, y, z [m/s^2]."""
-        return self._encode(self._accel, _ACCEL_SIGNALS, self.accelerations_to_raw(accel_m_s2), status, sequence)
+        return self._encode(self._accel, _ACCEL_SIGNALS, self.accelerations_to_raw(accel_m_s2),
+                            status, sequence)
 
-    def encode_raw_accelerations(self, raw: Sequence[int], status: int = 0, sequence: int = 0) -> can.Message:
+    def encode_raw_accelerations(self, raw: Sequence[int], status: int = 0,
+                                 sequence: int = 0) -> can.Message:
         return self._encode(self._accel, _ACCEL_SIGNALS, raw, status, sequence)
 
     def stream_toggle(self) -> can.Message:
         """0x90 [0x0F]: toggles streaming on the DMU."""
-        return frame(STREAM_TOGGLE_ID, self._toggle.encode({'command': STREAM_TOGGLE_COMMAND}, scaling=False))
+        return frame(STREAM_TOGGLE_ID, self._toggle.encode({'command': STREAM_TOGGLE_COMMAND},
+                                                           scaling=False))
 
     def is_stream_toggle(self, msg: can.Message) -> bool:
-        """True for a valid toggle command; raises MalformedFrame for a 0x90 frame with another payload."""
+        """True for a valid toggle command; raises MalformedFrame for a 0x90 frame with another
+        payload."""
         if msg.arbitration_id != STREAM_TOGGLE_ID:
             return False
         check_data_frame(msg, self._toggle.length, self._toggle.name)

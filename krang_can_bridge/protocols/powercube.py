@@ -1,19 +1,22 @@
-"""Schunk PowerCube modules (waist, torso, arms): the Amtec CAN protocol, not CANopen (FACTS §9).
+"""Schunk PowerCube modules (waist, torso, arms): Amtec's CAN protocol, not CANopen (docs/can.md).
 
-Checked against the Krang driver (munzir/Krang-Software drivers/pcio/{pcio.c, include/pcio.h}), which follows
-Amtec's "Data Exchange with PowerCube" rev 1.3:
+Checked against the Krang driver (munzir/Krang-Software drivers/pcio/{pcio.c, include/pcio.h}),
+which follows Amtec's "Data Exchange with PowerCube" rev 1.3:
 
-- CAN ids: module -> host acknowledgements 0x0A0 + id, host "get" 0x0C0 + id, host "put" 0x0E0 + id, all
-  modules 0x100; id = the module address (5 bits). FACTS §9 lists only 0x0E0 + id for host -> module: the
-  driver sends GET_PARAM on 0x0C0 + id (PCIO_IDMASK_CMDGET) and everything else on 0x0E0 + id, so do we.
-- Frames: [cmd] for RESET/HOME/HALT; [cmd][param] for GET_PARAM; [cmd][param or motion][32-bit LE] for
-  SET_PARAM/SET_MOTION. Floats are IEEE float32 little-endian (aa_endconv_st_le_u32 on the float bits).
+- CAN ids: module -> host acknowledgements 0x0A0 + id, host "get" 0x0C0 + id, host "put" 0x0E0 +
+  id, all modules 0x100; id = the module address (5 bits). The data kit lists only 0x0E0 + id for
+  host -> module: the driver sends GET_PARAM on 0x0C0 + id (PCIO_IDMASK_CMDGET) and everything else
+  on 0x0E0 + id, so do we.
+- Frames: [cmd] for RESET/HOME/HALT; [cmd][param] for GET_PARAM; [cmd][param or motion][32-bit LE]
+  for SET_PARAM/SET_MOTION. Floats are IEEE float32 little-endian (aa_endconv_st_le_u32 on the
+  float bits).
 - Replies: RESET/HOME/HALT -> [cmd] (1 byte, pcio_group_msg_recv matches `1 == msg.len`);
   GET_PARAM -> [0x0A][param][value LE] (6 bytes); SET_PARAM -> [0x08][param][status] (3 bytes);
-  SET_MOTION with an _ACK motion -> [0x0B][motion][float32 actual position][short state][dio] (the driver reads
-  the short state from byte 6; byte 7 is the digital I/O byte of the Amtec manual, sent as 0 by our emulator).
-- Positions in rad, velocities in rad/s; FRAMP moves with the module's TARGET_VEL / TARGET_ACC parameters,
-  which the host sets with SET_PARAM before the motion (pcio_group_setpos).
+  SET_MOTION with an _ACK motion -> [0x0B][motion][float32 actual position][short state][dio] (the
+  driver reads the short state from byte 6; byte 7 is the digital I/O byte of the Amtec manual,
+  sent as 0 by our emulator).
+- Positions in rad, velocities in rad/s; FRAMP moves with the module's TARGET_VEL / TARGET_ACC
+  parameters, which the host sets with SET_PARAM before the motion (pcio_group_setpos).
 """
 from __future__ import annotations
 
@@ -23,7 +26,8 @@ from typing import NamedTuple
 
 import can
 
-from krang_can_bridge.protocols import (MalformedFrame, UnknownFrame, ValueOutOfRange, check_data_frame, frame,
+from krang_can_bridge.protocols import (MalformedFrame, UnknownFrame, ValueOutOfRange,
+                                        check_data_frame, frame,
                                         require_finite)
 
 ACK_BASE = 0x0A0
@@ -49,7 +53,8 @@ MAX_ACC = 0x4A
 ACT_FPSEUDOCURRENT = 0x4D
 TARGET_VEL = 0x4F
 TARGET_ACC = 0x50
-FLOAT_PARAMS = frozenset({ACT_FPOS, ACT_FVEL, MIN_FPOS, MAX_FPOS, MAX_VEL, MAX_ACC, ACT_FPSEUDOCURRENT,
+FLOAT_PARAMS = frozenset({ACT_FPOS, ACT_FVEL, MIN_FPOS, MAX_FPOS, MAX_VEL, MAX_ACC,
+                          ACT_FPSEUDOCURRENT,
                           TARGET_VEL, TARGET_ACC})
 U32_PARAMS = frozenset({CUBE_STATE, CONFIG})
 
@@ -68,7 +73,8 @@ FLOAT32_MAX = 3.4028234663852886e38
 
 
 class PowerCubeRequest(NamedTuple):
-    """A host -> module frame. `module_id` is None for a broadcast; `value` is float/int or None."""
+    """A host -> module frame. `module_id` is None for a broadcast; `value` is float/int or
+    None."""
 
     module_id: int | None
     command: int
@@ -77,7 +83,8 @@ class PowerCubeRequest(NamedTuple):
 
 
 class PowerCubeReply(NamedTuple):
-    """A module -> host frame. `value`: parameter value or actual position (SET_MOTION); `short_state` or None."""
+    """A module -> host frame. `value`: parameter value or actual position (SET_MOTION);
+    `short_state` or None."""
 
     module_id: int
     command: int
@@ -109,7 +116,7 @@ def _decode_value(selector: int, raw: bytes, what: str) -> float | int:
     return u
 
 
-# ---- host -> module ---------------------------------------------------------------------------------------
+# ---- host -> module -----------------------------------------------------------------------------
 def simple_command(module_id: int, command: int) -> can.Message:
     """RESET / HOME / HALT to one module."""
     if command not in SIMPLE_COMMANDS:
@@ -142,7 +149,10 @@ def set_motion(module_id: int, motion: int, value: float) -> can.Message:
     """SET_MOTION (FRAMP_ACK position [rad], FVEL_ACK velocity [rad/s], FCUR_ACK current [A])."""
     if motion not in MOTIONS:
         raise ValueOutOfRange(f'motion {motion} not one of {sorted(MOTIONS)}')
-    return frame(PUT_BASE + _module_id(module_id), bytes([SET_MOTION, motion]) + _f32(value, f'motion {motion}'))
+    return frame(
+        PUT_BASE + _module_id(module_id),
+        bytes([SET_MOTION, motion]) + _f32(value, f'motion {motion}'),
+    )
 
 
 def decode_request(msg: can.Message) -> PowerCubeRequest:
@@ -162,7 +172,8 @@ def decode_request(msg: can.Message) -> PowerCubeRequest:
     if cmd == GET_PARAM and len(data) == 2:
         return PowerCubeRequest(module_id, cmd, data[1], None)
     if cmd == SET_PARAM and len(data) == 6:
-        return PowerCubeRequest(module_id, cmd, data[1], _decode_value(data[1], data[2:6], 'SET_PARAM'))
+        return PowerCubeRequest(module_id, cmd, data[1], _decode_value(data[1], data[2:6],
+                                                                       'SET_PARAM'))
     if cmd == SET_MOTION and len(data) == 6 and data[1] in MOTIONS:
         (v,) = struct.unpack('<f', data[2:6])
         if not math.isfinite(v):
@@ -171,7 +182,7 @@ def decode_request(msg: can.Message) -> PowerCubeRequest:
     raise MalformedFrame(f'PowerCube request {data.hex()} on 0x{aid:03X}')
 
 
-# ---- module -> host ---------------------------------------------------------------------------------------
+# ---- module -> host -----------------------------------------------------------------------------
 def reply_simple(module_id: int, command: int) -> can.Message:
     return frame(ACK_BASE + _module_id(module_id), bytes([command]))
 
@@ -188,13 +199,17 @@ def reply_set_param(module_id: int, param: int, status: int = 0) -> can.Message:
     return frame(ACK_BASE + _module_id(module_id), bytes([SET_PARAM, param, status & 0xFF]))
 
 
-def reply_motion(module_id: int, motion: int, position: float, short_state: int, dio: int = 0) -> can.Message:
+def reply_motion(module_id: int, motion: int, position: float, short_state: int,
+                 dio: int = 0) -> can.Message:
     return frame(ACK_BASE + _module_id(module_id),
-                 bytes([SET_MOTION, motion]) + _f32(position, 'position') + bytes([short_state & 0xFF, dio & 0xFF]))
+                 bytes([SET_MOTION, motion]) + _f32(position,
+                                                    'position') + bytes([short_state & 0xFF,
+                                                                         dio & 0xFF]))
 
 
 def decode_reply(msg: can.Message) -> PowerCubeReply:
-    """A module acknowledgement (0x0A0 + id). MalformedFrame for wrong lengths, commands or NaN floats."""
+    """A module acknowledgement (0x0A0 + id). MalformedFrame for wrong lengths, commands or NaN
+    floats."""
     aid = msg.arbitration_id
     if not ACK_BASE < aid <= ACK_BASE + MODULE_ID_MASK:
         raise UnknownFrame(f'0x{aid:03X} is not a PowerCube reply')
@@ -205,7 +220,8 @@ def decode_reply(msg: can.Message) -> PowerCubeReply:
     if cmd in SIMPLE_COMMANDS and len(data) == 1:
         return PowerCubeReply(module_id, cmd, None, None, None)
     if cmd == GET_PARAM and len(data) == 6:
-        return PowerCubeReply(module_id, cmd, data[1], _decode_value(data[1], data[2:6], 'GET_PARAM reply'), None)
+        return PowerCubeReply(module_id, cmd, data[1], _decode_value(data[1], data[2:6],
+                                                                     'GET_PARAM reply'), None)
     if cmd == SET_PARAM and len(data) == 3:
         return PowerCubeReply(module_id, cmd, data[1], data[2], None)
     if cmd == SET_MOTION and len(data) in (7, 8) and data[1] in MOTIONS:
@@ -218,4 +234,6 @@ def decode_reply(msg: can.Message) -> PowerCubeReply:
 
 def is_host_frame(arbitration_id: int) -> bool:
     """Ids a host sends (our own echoes on a shared bus)."""
-    return GET_BASE <= arbitration_id <= PUT_BASE + MODULE_ID_MASK or arbitration_id == BROADCAST_ID
+    return (
+        GET_BASE <= arbitration_id <= PUT_BASE + MODULE_ID_MASK or arbitration_id == BROADCAST_ID
+    )
