@@ -10,7 +10,6 @@ updates its CoM offset and LQR(q), so that part runs slower; it is measured sepa
 import argparse
 import time
 
-
 from krang_adrc_controller.controller import load_controller_config
 from krang_model.beta import load_beta
 from krang_model.config import config_path
@@ -81,31 +80,15 @@ def main(argv=None):
     wall = best(lambda: run_ctl(ctl, samples), args.repeat)
     fast_us = wall / n * 1e6
     mode = ctl.mode.value
-    print(f'BalanceController.step ({mode}, fast path): {fast_us:6.2f} us/step = {fast_us / period_us:.4f} of the period')
-    # a controller in BALANCE with the reference (numpy) ADRC path: reuse the loop's state
-    ctl.config.fast_path = False
-    samples2 = [loop.sim.control_sample() for _ in range(n)]
-    for k, s in enumerate(samples2):
-        s.t = samples[-1].t + (k + 1) * ctl.h
-    wall_ref = best(lambda: run_ctl(ctl, samples2), 1)
-    ctl.config.fast_path = True
-    ref_us = wall_ref / n * 1e6
-    print(f'BalanceController.step ({ctl.mode.value}, AdrcController.update path): {ref_us:6.2f} us/step '
-          f'(fast path is {ref_us / fast_us:.1f}x faster)')
+    print(f'BalanceController.step ({mode}): {fast_us:6.2f} us/step = '
+          f'{fast_us / period_us:.4f} of the period')
     ad = ctl.adrc
 
     def run_adrc():
         for k in range(n):
             ad.update(0.001, 0.01, ctl.h, dtheta=0.0, dx=0.0)
-    w = best(run_adrc, 1)
-    fa = ctl._fast
-
-    def run_fast():
-        for k in range(n):
-            fa.update(0.001, 0.01, ctl.h, 0.0, 0.0)
-    w2 = best(run_fast, args.repeat)
-    print(f'  ADRC law alone: AdrcController.update {w / n * 1e6:6.2f} us, scalar path {w2 / n * 1e6:6.2f} us '
-          f'({w / w2:.1f}x)')
+    w = best(run_adrc, args.repeat)
+    print(f'  ADRC law alone (AdrcController.update): {w / n * 1e6:6.2f} us')
 
     sim = FastKrangSim(robot, tb, TABLE2_POSE)
     ref = KrangSim(robot, tb, TABLE2_POSE)

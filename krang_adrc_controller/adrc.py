@@ -20,29 +20,51 @@ channels):
   ~0. It is kept only to show that (test_adrc.py); do not run it on the robot.
 
 Velocities: the law uses measured rates when given (IMU rate, wheel speed), else the ESO
-estimates. Gains, b's, limits and motor constants are arguments; defaults cite FACTS.
+estimates. Motor constants and the current limit come from the one drive-train description
+(``krang_model.drivetrain``); everything else is ``AdrcConfig``.
+
+This is the one implementation of the law, and it is the controller's 500 Hz hot path: it runs on
+floats (eso.py), because numpy's per-call cost on 2- and 3-vectors would dominate the loop.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import Mapping, Sequence
+import math
+from dataclasses import dataclass, field
+from typing import Mapping, NamedTuple
 
-import numpy as np
+from krang_model.drivetrain import Drivetrain
 
-from .eso import AUTHORS_CONTINUOUS_GAINS, ExtendedStateObserver
-
-#: Motor torque constant, 12 oz-in/A (FACTS §5; the authors' code uses 12 * 0.00706155).
-DEFAULT_TORQUE_CONSTANT_NM_PER_A = 12 * 0.00706155
-#: GBPH-0902-NS-015 gearbox (FACTS §5).
-DEFAULT_GEAR_RATIO = 15.0
-#: Current clamp of the paper-era controller (FACTS §5: 49 A in 33-beta-testing, 50 A daemon).
-DEFAULT_CURRENT_LIMIT_A = 49.0
-#: Mean hardware loop period in the paper's runs (FACTS §7: 0.0333 s).
-DEFAULT_SAMPLE_PERIOD_S = 0.0333
+from .eso import EsoConfig, ExtendedStateObserver
 
 
-@dataclass
-class WheelCommand:
+@dataclass(frozen=True)
+class AdrcConfig:
+    """The ADRC law (parameters ``adrc.*``), paper §II-D."""
+    use_disturbance_rejection: bool = field(default=True, metadata={
+        'doc': 'false = plain LQR (the observers still run, for the rates and a bumpless switch)'})
+    eso_input: str = field(default='nominal', metadata={
+        'doc': "what the ESOs are fed: 'nominal' (the authors' code) or 'applied' (winds up "
+               'with a wrong CoM; analysis only)'})
+    use_measured_rates: bool = field(default=True, metadata={
+        'doc': 'feedback on the IMU rate and the wheel speed (false: on the ESO estimates)'})
+    f_limit_x: float = field(default=0.0, metadata={
+        'doc': '|f_hat| clamp of the x channel, m/s^2 (0 = none)'})
+    f_limit_theta: float = field(default=0.0, metadata={
+        'doc': '|f_hat| clamp of the theta channel, rad/s^2 (0 = none)'})
+    left_share: float = field(default=0.5, metadata={
+        'doc': 'fraction of the total wheel torque sent to the left wheel'})
+    torque_limit_nm: float = field(default=0.0, metadata={
+        'doc': 'per-wheel torque clamp before the current clamp, N m (0 = none)'})
+    eso: EsoConfig = EsoConfig()
+
+    def __post_init__(self):
+        if self.eso_input not in ('nominal', 'applied'):
+            raise ValueError("adrc.eso_input must be 'nominal' or 'applied'")
+        if not 0.0 <= self.left_share <= 1.0:
+            raise ValueError('adrc.left_share must be in [0, 1]')
+
+
+class WheelCommand(NamedTuple):
     """One control step's output. Torques at the wheels [N m], currents at the motors [A]."""
     tau_left: float
     tau_right: float
@@ -63,72 +85,50 @@ class AdrcController:
     ----------
     f_x, f_theta : LQR gains over [x, xdot] and [theta, thetadot] (``lqr.split_gains``).
     b_x, b_theta : B rows of xddot and thetaddot (``lqr.channel_input_gains``).
-    sample_period_s : nominal loop period (default 0.0333 s, FACTS §7).
-    eso_omega_o : ESO bandwidth [rad/s]; when None, the authors' continuous gains
-        ``eso_continuous_gains`` (default FACTS §7) discretised by ``eso_method``.
-    eso_method : 'current' (matched poles / bandwidth) or 'zoh' (see eso.py).
-    f_limit_x, f_limit_theta : optional saturation of the disturbance estimates.
-    torque_constant_nm_per_a, gear_ratio : motor constant and gearbox (FACTS §5).
-    current_limit_a : per-motor current clamp (FACTS §5).
-    torque_limit_nm : optional per-wheel torque clamp, applied before the current clamp.
-    left_share : fraction of the total torque sent to the left wheel (0.5, FACTS §7).
-    use_disturbance_rejection : False = plain LQR (the ESOs keep running for the rates and a
-        bumpless switch, but f_hat is not compensated).
-    eso_input : 'nominal' (authors) or 'applied' (see module docstring).
+    drive : the drive train (gear ratio, torque constant, current limit).
+    sample_period_s : nominal loop period; ``update(dt=...)`` re-discretises for others.
+    config : the law's settings (``AdrcConfig``, with its ESO design).
     """
 
-    def __init__(self, f_x, f_theta, b_x: float, b_theta: float, *,
-                 sample_period_s: float = DEFAULT_SAMPLE_PERIOD_S,
-                 eso_omega_o: float | None = None,
-                 eso_continuous_gains: Sequence[float] = AUTHORS_CONTINUOUS_GAINS,
-                 eso_method: str = 'current',
-                 f_limit_x: float | None = None, f_limit_theta: float | None = None,
-                 torque_constant_nm_per_a: float = DEFAULT_TORQUE_CONSTANT_NM_PER_A,
-                 gear_ratio: float = DEFAULT_GEAR_RATIO,
-                 current_limit_a: float = DEFAULT_CURRENT_LIMIT_A,
-                 torque_limit_nm: float | None = None,
-                 left_share: float = 0.5,
-                 use_disturbance_rejection: bool = True,
-                 eso_input: str = 'nominal'):
-        if eso_input not in ('nominal', 'applied'):
-            raise ValueError("eso_input must be 'nominal' or 'applied'")
-        if not 0.0 <= left_share <= 1.0:
-            raise ValueError('left_share must be in [0, 1]')
-        if torque_constant_nm_per_a <= 0 or gear_ratio <= 0 or current_limit_a <= 0:
+    def __init__(self, f_x, f_theta, b_x: float, b_theta: float, drive: Drivetrain, *,
+                 sample_period_s: float, config: AdrcConfig = AdrcConfig()):
+        if drive.torque_constant <= 0 or drive.gear_ratio <= 0 or drive.current_limit <= 0:
             raise ValueError('motor constants and current limit must be positive')
         self.h = float(sample_period_s)
-        self.kt = float(torque_constant_nm_per_a)
-        self.gear = float(gear_ratio)
-        self.current_limit = float(current_limit_a)
-        self.torque_limit = None if torque_limit_nm is None else abs(float(torque_limit_nm))
-        self.left_share = float(left_share)
-        self.use_disturbance_rejection = bool(use_disturbance_rejection)
-        self.eso_input = eso_input
-        gains = None if eso_omega_o is not None else eso_continuous_gains
-        self.eso_x = ExtendedStateObserver(b_x, self.h, omega_o=eso_omega_o, continuous_gains=gains,
-                                           method=eso_method, f_limit=f_limit_x)
-        self.eso_theta = ExtendedStateObserver(b_theta, self.h, omega_o=eso_omega_o,
-                                               continuous_gains=gains, method=eso_method,
-                                               f_limit=f_limit_theta)
+        self.config = config
+        self.kt = float(drive.torque_constant)
+        self.gear = float(drive.gear_ratio)
+        self.current_limit = float(drive.current_limit)
+        self.torque_limit = abs(float(config.torque_limit_nm)) or None
+        self.left_share = float(config.left_share)
+        self.use_disturbance_rejection = bool(config.use_disturbance_rejection)
+        self.use_measured_rates = bool(config.use_measured_rates)
+        self.eso_input = config.eso_input
+        self.eso_x = ExtendedStateObserver.from_config(b_x, self.h, config.eso,
+                                                       config.f_limit_x or None)
+        self.eso_theta = ExtendedStateObserver.from_config(b_theta, self.h, config.eso,
+                                                           config.f_limit_theta or None)
         self.set_gains(f_x, f_theta, b_x, b_theta)
         self._u_prev_x = 0.0
         self._u_prev_theta = 0.0
         self._ready = False
 
     @classmethod
-    def from_design(cls, design: Mapping, **kwargs) -> 'AdrcController':
+    def from_design(cls, design: Mapping, drive: Drivetrain, **kwargs) -> 'AdrcController':
         """Build from a ``GainCache.design(...)`` dict."""
-        return cls(design['F_x'], design['F_theta'], design['b_x'], design['b_theta'], **kwargs)
+        return cls(design['F_x'], design['F_theta'], design['b_x'], design['b_theta'], drive,
+                   **kwargs)
 
     # ------------------------------------------------------------------ configuration
     def set_gains(self, f_x, f_theta, b_x: float, b_theta: float) -> None:
         """New LQR(q) design (pose or beta changed); observer estimates are kept."""
         if b_x == 0 or b_theta == 0:
             raise ValueError('b_x and b_theta must be non-zero')
-        self.f_x = np.asarray(f_x, float).ravel()
-        self.f_theta = np.asarray(f_theta, float).ravel()
-        if self.f_x.size != 2 or self.f_theta.size != 2:
+        f_x = [float(v) for v in (f_x.ravel() if hasattr(f_x, 'ravel') else f_x)]
+        f_theta = [float(v) for v in (f_theta.ravel() if hasattr(f_theta, 'ravel') else f_theta)]
+        if len(f_x) != 2 or len(f_theta) != 2:
             raise ValueError('F_x and F_theta must have 2 elements each')
+        self.f_x, self.f_theta = tuple(f_x), tuple(f_theta)
         self.b_x = float(b_x)
         self.b_theta = float(b_theta)
         self.eso_x.set_b(self.b_x)
@@ -161,51 +161,65 @@ class AdrcController:
         self._u_prev_theta = 0.0
         self._ready = True
 
+    def shift_theta(self, step: float) -> None:
+        """Bumpless change of the theta origin: a new CoM model moved the measured theta by
+        `step` with no motion, which must not read as an acceleration."""
+        self.eso_theta.shift(step)
+
     def update(self, theta: float, x: float, dt: float | None = None, *,
                dtheta: float | None = None, dx: float | None = None) -> WheelCommand:
         """One control step from the measured CoM angle theta [rad] and wheel position x.
 
         dt: the period since the previous call (None = nominal). dtheta, dx: measured rates
-        (used in the feedback when given; else the ESO estimates).
+        (used in the feedback when given and ``use_measured_rates``; else the ESO estimates).
         """
         if not self._ready:
             self.reset({'theta': theta, 'x': x, 'dtheta': dtheta, 'dx': dx})
-        zx = self.eso_x.update(x, self._u_prev_x, dt)
-        zt = self.eso_theta.update(theta, self._u_prev_theta, dt)
-        vx = zx[1] if dx is None else float(dx)
-        vt = zt[1] if dtheta is None else float(dtheta)
-        u_x = -float(self.f_x @ np.array([x, vx]))
-        u_th = -float(self.f_theta @ np.array([theta, vt]))
+        eso_x, eso_theta = self.eso_x, self.eso_theta
+        eso_x.step(x, self._u_prev_x, dt)
+        eso_theta.step(theta, self._u_prev_theta, dt)
+        zx, zt = eso_x.z, eso_theta.z
+        if self.use_measured_rates and dx is not None:
+            vx = dx
+        else:
+            vx = zx[1]
+        if self.use_measured_rates and dtheta is not None:
+            vt = dtheta
+        else:
+            vt = zt[1]
+        fx0, fx1 = self.f_x
+        ft0, ft1 = self.f_theta
+        u_x = -(fx0 * x + fx1 * vx)
+        u_th = -(ft0 * theta + ft1 * vt)
         if self.use_disturbance_rejection:
             tx = u_x - zx[2] / self.b_x
             tt = u_th - zt[2] / self.b_theta
         else:
             tx, tt = u_x, u_th
         tau_cmd = tx + tt
-        tau_l, tau_r, i_l, i_r, sat = self._to_wheels(tau_cmd)
+        # split, limit the torque, convert to current, limit the current
+        k = self.gear * self.kt
+        lim = self.current_limit
+        tlim = self.torque_limit
+        sat = False
+        tau_l = self.left_share * tau_cmd
+        tau_r = (1.0 - self.left_share) * tau_cmd
+        if tlim is not None:
+            if abs(tau_l) > tlim:
+                tau_l, sat = math.copysign(tlim, tau_l), True
+            if abs(tau_r) > tlim:
+                tau_r, sat = math.copysign(tlim, tau_r), True
+        i_l = tau_l / k
+        i_r = tau_r / k
+        if abs(i_l) > lim:
+            i_l, sat = math.copysign(lim, i_l), True
+        if abs(i_r) > lim:
+            i_r, sat = math.copysign(lim, i_r), True
+        tau_l, tau_r = i_l * k, i_r * k
         tau_total = tau_l + tau_r
         if self.eso_input == 'nominal':
             self._u_prev_x, self._u_prev_theta = u_x, u_th
         else:
             scale = tau_total / tau_cmd if tau_cmd != 0 else 1.0
             self._u_prev_x, self._u_prev_theta = tx * scale, tt * scale
-        return WheelCommand(tau_l, tau_r, i_l, i_r, tau_total, u_x, u_th, float(zx[2]),
-                            float(zt[2]), sat)
-
-    def _to_wheels(self, tau_total: float):
-        """Split, limit torque, convert to current, limit current, and report what is applied."""
-        k = self.motor_torque_per_amp
-        taus = [self.left_share * tau_total, (1.0 - self.left_share) * tau_total]
-        sat = False
-        out_tau, out_i = [], []
-        for tau in taus:
-            if self.torque_limit is not None and abs(tau) > self.torque_limit:
-                tau = float(np.sign(tau)) * self.torque_limit
-                sat = True
-            i = tau / k
-            if abs(i) > self.current_limit:
-                i = float(np.sign(i)) * self.current_limit
-                sat = True
-            out_i.append(i)
-            out_tau.append(i * k)
-        return out_tau[0], out_tau[1], out_i[0], out_i[1], sat
+        return WheelCommand(tau_l, tau_r, i_l, i_r, tau_total, u_x, u_th, zx[2], zt[2], sat)

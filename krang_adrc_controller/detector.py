@@ -13,17 +13,45 @@ Settled means, over the last ``window_s`` of samples (all of them, contiguous in
   * optionally, the std of q_base below ``q_base_std_max``.
 Then ONE point is emitted: the window mean of every joint and of q_base. The detector disarms and
 re-arms only when the joints move again (flag set, or a joint leaves ``rearm_tol_rad`` around the
-emitted pose). A gap in the samples longer than ``max_gap_s`` restarts the window.
+emitted pose). A gap in the samples longer than ``max_gap_s`` (at least three feed periods)
+restarts the window.
 
-Defaults are our choices (not in FACTS) except pitch_rate_max = 0.03 rad/s, the hardware's
-"standing still" rate threshold (FACTS §7).
+Thresholds are ``DetectorConfig``: our choices, except pitch_rate_max = 0.03 rad/s, the hardware's
+"standing still" rate threshold (docs/control.md).
 """
 from __future__ import annotations
 
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
+
+
+@dataclass(frozen=True)
+class DetectorConfig:
+    """The balanced-pose detector (parameters ``detector.*``), fed in BALANCE only."""
+    rate_hz: float = field(default=50.0, metadata={
+        'doc': 'feed rate, Hz (decimated: the window statistics need no more)'})
+    window_s: float = field(default=2.0, metadata={'doc': 'settled window, s'})
+    pitch_rate_max: float = field(default=0.03, metadata={'doc': '|pitch rate| bound, rad/s'})
+    wheel_speed_max: float = field(default=0.008, metadata={
+        'doc': '|ground speed| bound, m/s: r (mean wheel rate + pitch rate); its noise ~0.0015'})
+    fhat_band: float = field(default=0.6, metadata={
+        'doc': "max - min of the theta ESO's f_hat over the window, rad/s^2 (noise std 0.065 at "
+               "an ESO bandwidth of 20 rad/s; ~1.9 with the authors' gains)"})
+    joint_tol_rad: float = field(default=2e-3, metadata={
+        'doc': 'every joint within this of its window mean, rad'})
+    rearm_tol_rad: float = field(default=0.02, metadata={
+        'doc': 're-arm when a joint leaves this band around the emitted pose, rad'})
+    q_base_std_max: float = field(default=0.0, metadata={
+        'doc': 'std bound on q_base over the window, rad (0 = off)'})
+    max_gap_s: float = field(default=0.2, metadata={
+        'doc': 'a longer gap between samples restarts the window, s'})
+    min_samples: int = field(default=10, metadata={'doc': 'fewest samples in a window'})
+
+    def __post_init__(self):
+        if self.window_s <= 0 or self.rate_hz <= 0:
+            raise ValueError('detector.window_s and rate_hz must be positive')
 
 
 @dataclass
@@ -37,22 +65,17 @@ class BalancedPoint:
 
 
 class BalancedPoseDetector:
-    def __init__(self, *, window_s: float = 2.0, pitch_rate_max: float = 0.03,
-                 wheel_speed_max: float = 0.05, fhat_band: float = 0.05,
-                 joint_tol_rad: float = 2e-3, rearm_tol_rad: float = 0.02,
-                 q_base_std_max: float | None = None, max_gap_s: float = 0.2,
-                 min_samples: int = 10):
-        if window_s <= 0:
-            raise ValueError('window_s must be positive')
-        self.window_s = window_s
-        self.pitch_rate_max = pitch_rate_max
-        self.wheel_speed_max = wheel_speed_max
-        self.fhat_band = fhat_band
-        self.joint_tol = joint_tol_rad
-        self.rearm_tol = rearm_tol_rad
-        self.q_base_std_max = q_base_std_max
-        self.max_gap_s = max_gap_s
-        self.min_samples = min_samples
+    def __init__(self, config: DetectorConfig = DetectorConfig()):
+        c = config
+        self.window_s = c.window_s
+        self.pitch_rate_max = c.pitch_rate_max
+        self.wheel_speed_max = c.wheel_speed_max
+        self.fhat_band = c.fhat_band
+        self.joint_tol = c.joint_tol_rad
+        self.rearm_tol = c.rearm_tol_rad
+        self.q_base_std_max = c.q_base_std_max or None
+        self.max_gap_s = max(c.max_gap_s, 3.0 / c.rate_hz)
+        self.min_samples = c.min_samples
         self.reset()
 
     def reset(self) -> None:

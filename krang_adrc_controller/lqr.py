@@ -3,14 +3,14 @@
 State order (ours, as returned by ``krang_model.wip.linearize``): X = [x, xdot, theta, thetadot],
 input = total wheel torque [N m] (both wheels together), u = -K X.
 
-Weights. FACTS §7 quotes Q = diag(300, 96000, 30000, 90000), R = 500 next to the 18h state order
+Weights. The kit's summary quotes Q = diag(300, 96000, 30000, 90000), R = 500 next to the 18h order
 (theta, thetadot, x, xdot). That pairing is wrong: the numbers come from munzir/18d Controller.cpp,
 whose state order is (thCOM, thWheel, dthCOM, dthWheel), and the later hardware repo
 (munzir/18i Q.txt) writes the same weights as diag(300, 30000, 96000, 90000) in the 18h order.
 Both say: theta 300, thetadot 30000, x 96000, xdot 90000 (x in wheel radians). A third check:
 for a plant whose x is a free integrator, Kalman's return-difference equality at w -> 0 gives
-|K_x| = sqrt(Q_x / R); sqrt(96000 / 500) = 13.8564, exactly the x gain FACTS §7 lists for the
-hardware (-13.8564), whereas 30000 would give 7.75. Mapped to our order:
+|K_x| = sqrt(Q_x / R); sqrt(96000 / 500) = 13.8564, exactly the hardware's x gain (-13.8564),
+whereas 30000 would give 7.75. Mapped to our order:
 
     Q = diag(Q_x, Q_xdot, Q_theta, Q_thetadot) = diag(96000, 90000, 300, 30000), R = 500.
 
@@ -20,6 +20,7 @@ radius: the x and xdot weights are divided by r^2 so the design is the same cont
 from __future__ import annotations
 
 from collections import OrderedDict
+from dataclasses import dataclass, field
 from typing import Callable
 
 import control as ct
@@ -27,8 +28,29 @@ import numpy as np
 
 #: Authors' weights mapped to our state order [x, xdot, theta, thetadot] (see module docstring).
 AUTHORS_Q_DIAG = (96000.0, 90000.0, 300.0, 30000.0)
-#: Authors' input weight (FACTS §7).
+#: Authors' input weight (munzir/18d Controller.cpp).
 AUTHORS_R = 500.0
+
+
+@dataclass(frozen=True)
+class LqrConfig:
+    """LQR(q) weights and when the controller redoes the design (parameters ``lqr.*``)."""
+    q_diag: tuple[float, ...] = field(default=AUTHORS_Q_DIAG, metadata={
+        'doc': "Q over [x, xdot, theta, thetadot] with x in WHEEL RADIANS (the authors' weights, "
+               're-ordered: krang_adrc_controller/lqr.py); a controller in metres rescales them'})
+    r: float = field(default=AUTHORS_R, metadata={'doc': 'R on the total wheel torque'})
+    gain_update_period_s: float = field(default=0.1, metadata={
+        'doc': 'while the joints move: LQR(q) redesign at most this often, s'})
+    pose_update_period_s: float = field(default=0.02, metadata={
+        'doc': 'while the joints move: CoM-offset (theta) update period, s'})
+    pose_tol_rad: float = field(default=2e-3, metadata={
+        'doc': 'a settled pose counts as changed when a joint leaves this band, rad'})
+    pose_check_period_s: float = field(default=0.1, metadata={
+        'doc': 'how often a settled pose is compared with its reference, s'})
+
+    def __post_init__(self):
+        if len(self.q_diag) != 4 or any(q < 0 for q in self.q_diag) or self.r <= 0:
+            raise ValueError('lqr.q_diag needs 4 non-negative entries and lqr.r > 0')
 
 
 def lqr_gain(a, b, q, r) -> np.ndarray:
@@ -56,23 +78,18 @@ def channel_input_gains(b) -> tuple[float, float]:
 
 
 class LqrDesigner:
-    """Q, R in our state order; defaults are the authors' weights (FACTS §7, remapped above).
+    """Q, R in our state order; defaults are the authors' weights (remapped above).
 
     Parameters
     ----------
-    q_diag : diagonal of Q over [x, xdot, theta, thetadot], with x in wheel radians.
-    r : input weight on the total wheel torque.
+    config : the weights (``LqrConfig.q_diag`` with x in wheel radians, ``LqrConfig.r``).
     position_unit : ``'rad'`` (x in wheel radians, the authors' convention) or ``'m'``.
     wheel_radius_m : needed when position_unit == 'm' (config drivetrain / URDF).
     """
 
-    def __init__(self, q_diag=AUTHORS_Q_DIAG, r: float = AUTHORS_R, *,
+    def __init__(self, config: LqrConfig = LqrConfig(), *,
                  position_unit: str = 'rad', wheel_radius_m: float | None = None):
-        q = np.asarray(q_diag, float).ravel()
-        if q.size != 4 or np.any(q < 0):
-            raise ValueError('q_diag must be 4 non-negative numbers')
-        if r <= 0:
-            raise ValueError('R must be positive')
+        q = np.asarray(config.q_diag, float).ravel()
         if position_unit == 'm':
             if not wheel_radius_m or wheel_radius_m <= 0:
                 raise ValueError("position_unit='m' needs wheel_radius_m")
@@ -81,7 +98,7 @@ class LqrDesigner:
         elif position_unit != 'rad':
             raise ValueError("position_unit must be 'rad' or 'm'")
         self.q = np.diag(q)
-        self.r = float(r)
+        self.r = float(config.r)
 
     def gain(self, a, b) -> np.ndarray:
         return lqr_gain(a, b, self.q, self.r)

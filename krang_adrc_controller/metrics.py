@@ -6,7 +6,7 @@ Layers, so other log sources plug in:
     dispatches on the file suffix through ``LOADERS``. A bag (MCAP) loader is added elsewhere with
     ``register_loader('.mcap', fn)``; ``fn(path) -> BalancingRun`` must follow the container's
     conventions (below).
-  * math: ``paper_metrics(run)`` and ``physical_metrics(run, wheel_radius_m=...)``;
+  * math: ``paper_metrics(run)`` and ``physical_metrics(run, drive)`` (a ``Drivetrain``);
     ``compute_metrics`` bundles both into the JSON shape of ``krang metrics --json``.
 
 Container conventions: t in s from the start of the log (the CSV gives t = cumsum(dt), so t[0] =
@@ -37,12 +37,14 @@ from __future__ import annotations
 
 import csv
 import math
-import os
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Callable
 
 import numpy as np
+
+from krang_model.drivetrain import Drivetrain, drivetrain
+from krang_model.robot import load_krang
 
 # ----------------------------------------------------------------------------- container
 
@@ -223,20 +225,17 @@ def paper_metrics(run: BalancingRun, definition: PaperDefinition = PAPER) -> dic
 
 # ----------------------------------------------------------------------------- physical math
 
-#: Motor defaults when config has none: BLY343D Kt 12 oz-in/A and R_LL 0.09 ohm, 15:1 gearbox
-#: (FACTS §5).
-DEFAULT_TORQUE_CONSTANT_NM_PER_A = 12 * 0.00706155
-DEFAULT_GEAR_RATIO = 15.0
+#: Winding resistance of the BLY343D line to line, ohm (krang_model/README.md); not part of the
+#: drive-train description, which the controller and the simulator share.
 DEFAULT_WINDING_RESISTANCE_OHM = 0.09
 
 
-def physical_metrics(run: BalancingRun, wheel_radius_m: float, *,
-                     torque_constant_nm_per_a: float = DEFAULT_TORQUE_CONSTANT_NM_PER_A,
-                     gear_ratio: float = DEFAULT_GEAR_RATIO,
+def physical_metrics(run: BalancingRun, drive: Drivetrain, *,
                      winding_resistance_ohm: float = DEFAULT_WINDING_RESISTANCE_OHM,
                      settle_band_m: float = 0.08,
                      definition: PaperDefinition = PAPER) -> dict:
-    """What the Table II columns mean physically, on the same motion start and 55 s window.
+    """What the Table II columns mean physically, on the same motion start and 55 s window, with
+    the wheel radius, gear ratio and torque constant of ``drive``.
 
     * max_displacement_m = r max|x - x_start|, x_start = x at motion start.
     * resting_displacement_m = r (mean x over 20..55 s - x_start), signed (negative = behind).
@@ -251,13 +250,13 @@ def physical_metrics(run: BalancingRun, wheel_radius_m: float, *,
     * mean_resting_power_paper_integrand_w: the paper's own integrand (one wheel, smoothed current,
       ground speed) averaged properly (energy / time) instead of mJ per step.
     """
-    if wheel_radius_m is None or wheel_radius_m <= 0:
-        raise ValueError('wheel_radius_m must be positive')
+    if drive.wheel_radius <= 0:
+        raise ValueError('the wheel radius must be positive')
     d = definition
     w = _window(run, d)
     sl = slice(w.start, w.end)
     x, rel, dt = run.x_wheel_rad[sl], w.rel[sl], run.dt[sl]
-    r = float(wheel_radius_m)
+    r = float(drive.wheel_radius)
     x0 = float(x[0])
     rest_mask = (rel >= d.resting_from_s) & (rel <= d.window_s)
     rest = float(np.mean(x[rest_mask])) if rest_mask.any() else math.nan
@@ -271,7 +270,7 @@ def physical_metrics(run: BalancingRun, wheel_radius_m: float, *,
     w_mean = run.dx_wheel_rad_s[sl] - (run.dtheta_rad_s[sl] if relative_speed else 0.0)
     w_spin = run.dpsi_wheel_rad_s[sl] if run.dpsi_wheel_rad_s is not None else 0.0
     i_l, i_r = run.i_left[sl], run.i_right[sl]
-    k = gear_ratio * torque_constant_nm_per_a
+    k = drive.gear_ratio * drive.torque_constant
     p_l = k * i_l * (w_mean - w_spin)
     p_r = k * i_r * (w_mean + w_spin)
     mech = np.abs(p_l) + np.abs(p_r)
@@ -300,51 +299,7 @@ def physical_metrics(run: BalancingRun, wheel_radius_m: float, *,
     }
 
 
-# ----------------------------------------------------------------------------- config + bundle
-
-
-def _robot_config() -> dict:
-    """config/robot.yaml as a dict ({} when unavailable). $KRANG_ROBOT_CONFIG overrides."""
-    env = os.environ.get('KRANG_ROBOT_CONFIG')
-    try:
-        import yaml
-        if env:
-            with open(env) as f:
-                return yaml.safe_load(f) or {}
-        from krang_model.config import robot_config
-        return dict(robot_config() or {})
-    except Exception:   # no config installed, or krang_model unavailable: caller falls back
-        return {}
-
-
-def drivetrain_parameters(wheel_radius_m: float | None = None) -> dict:
-    """Wheel radius, Kt, gear ratio and winding resistance, with where each came from.
-
-    Wheel radius: the argument, else config drivetrain.wheel_radius_m, else the URDF wheel
-    cylinder via krang_model (the project's source of truth). Motor constants: config
-    drivetrain.{torque_constant_Nm_per_A, gear_ratio, winding_resistance_ohm}, else FACTS §5.
-    """
-    cfg = _robot_config().get('drivetrain', {}) or {}
-    out = {}
-    if wheel_radius_m is not None:
-        out['wheel_radius_m'], out['wheel_radius_source'] = float(wheel_radius_m), 'argument'
-    elif cfg.get('wheel_radius_m') is not None:
-        out['wheel_radius_m'], out['wheel_radius_source'] = float(cfg['wheel_radius_m']), \
-            'config/robot.yaml drivetrain.wheel_radius_m'
-    else:
-        try:
-            from krang_model.robot import load_krang
-            out['wheel_radius_m'], out['wheel_radius_source'] = float(load_krang().wheel_radius), \
-                'krang_model URDF wheel cylinder'
-        except Exception as exc:   # pragma: no cover - depends on the installed model
-            raise ValueError('no wheel radius: pass --wheel-radius (or wheel_radius_m), or add '
-                             f'drivetrain.wheel_radius_m to config/robot.yaml ({exc})') from exc
-    out['torque_constant_nm_per_a'] = float(cfg.get('torque_constant_Nm_per_A',
-                                                    DEFAULT_TORQUE_CONSTANT_NM_PER_A))
-    out['gear_ratio'] = float(cfg.get('gear_ratio', DEFAULT_GEAR_RATIO))
-    out['winding_resistance_ohm'] = float(cfg.get('winding_resistance_ohm',
-                                                  DEFAULT_WINDING_RESISTANCE_OHM))
-    return out
+# ----------------------------------------------------------------------------- bundle
 
 
 PAPER_KEYS = ('max_position_m', 'resting_position_m', 'time_until_resting_s', 'max_power_w',
@@ -352,18 +307,21 @@ PAPER_KEYS = ('max_position_m', 'resting_position_m', 'time_until_resting_s', 'm
 
 
 def compute_metrics(run: BalancingRun, wheel_radius_m: float | None = None, *,
-                    settle_band_m: float = 0.08, definition: PaperDefinition = PAPER) -> dict:
-    """Both definitions in the ``krang metrics --json`` shape (NaN -> None)."""
+                    drive: Drivetrain | None = None, settle_band_m: float = 0.08,
+                    definition: PaperDefinition = PAPER) -> dict:
+    """Both definitions in the ``krang metrics --json`` shape (NaN -> None). The physical ones use
+    ``drive`` (default: the robot's, krang_model.drivetrain), its wheel radius replaced by
+    ``wheel_radius_m`` when given."""
     paper = paper_metrics(run, definition)
-    drive = drivetrain_parameters(wheel_radius_m)
-    phys = physical_metrics(run, drive['wheel_radius_m'],
-                            torque_constant_nm_per_a=drive['torque_constant_nm_per_a'],
-                            gear_ratio=drive['gear_ratio'],
-                            winding_resistance_ohm=drive['winding_resistance_ohm'],
-                            settle_band_m=settle_band_m, definition=definition)
-    phys['wheel_radius_source'] = drive['wheel_radius_source']
-    phys['torque_constant_nm_per_a'] = drive['torque_constant_nm_per_a']
-    phys['gear_ratio'] = drive['gear_ratio']
+    if drive is None:
+        drive = drivetrain(load_krang())
+    source = 'krang_model URDF wheel cylinder'
+    if wheel_radius_m is not None:
+        drive, source = replace(drive, wheel_radius=float(wheel_radius_m)), 'argument'
+    phys = physical_metrics(run, drive, settle_band_m=settle_band_m, definition=definition)
+    phys['wheel_radius_source'] = source
+    phys['torque_constant_nm_per_a'] = drive.torque_constant
+    phys['gear_ratio'] = drive.gear_ratio
     phys['complete_window'] = paper['complete_window']
     out = {k: _nan_to_none(paper[k]) for k in PAPER_KEYS}
     out['physical'] = {k: _nan_to_none(v) for k, v in phys.items()}

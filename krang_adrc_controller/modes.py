@@ -1,18 +1,18 @@
 """Hardware mode machine: SIT (on the caster) -> STAND_UP -> BALANCE (-> SIT_DOWN -> SIT), plus
 a latched SAFE_STOP. Pure: every input is explicit in ``ModeInputs``; no clocks, no I/O.
 
-Guards follow the authors' hardware balancer (munzir/33-beta-testing 01-balance-kore.cpp and
-FACTS §7), with thresholds as constructor arguments:
+Guards follow the authors' hardware balancer (munzir/33-beta-testing 01-balance-kore.cpp), with
+thresholds in ``ModesConfig`` and ``SafetyConfig``:
 
 * SIT -> STAND_UP on a stand request only if the CoM-angle (balance) error is in
   [stand_error_min_rad, stand_error_max_rad] = [-10 deg, 0 deg]; otherwise the request is refused.
 * STAND_UP -> BALANCE when IMU pitch > balance_imu_min_rad (-101 deg) and |thetadot| <
-  balance_rate_max (0.03 rad/s) have held *continuously* for stand_settle_s. FACTS counts
+  balance_rate_max (0.03 rad/s) have held *continuously* for stand_settle_s. The hardware counts
   "> 100 iterations"; at the paper's 0.0333 s loop that is 3.33 s, the default. (The 2018 code
   counted iterations without resetting the counter; a continuous duration is the safe reading
   and does not depend on the loop rate.)
 * STAND_UP/BALANCE -> SIT_DOWN on a sit request only if the waist is above sit_waist_min_rad
-  (150 deg, FACTS §7); SIT_DOWN -> SIT once the IMU pitch is below sit_imu_limit_rad (-103 deg).
+  (150 deg); SIT_DOWN -> SIT once the IMU pitch is below sit_imu_limit_rad (-103 deg).
 * Any mode -> SAFE_STOP on a stop request or stale sensor data (newest sample older than
   stale_timeout_s). SAFE_STOP commands zero wheel torque and stays latched until a reset request
   arrives with fresh data and no stop request; the robot then restarts in SIT.
@@ -20,7 +20,8 @@ FACTS §7), with thresholds as constructor arguments:
   not in the authors' code).
 
 Each mode carries the PD current gains of its controller (th, dth, x, dx, psi, dpsi) in A/rad and
-A/(rad/s) (FACTS §7); BALANCE says 'adrc'. ``pd_currents`` applies such gains like the hardware.
+A/(rad/s) (01-balance-kore.cpp); BALANCE says 'adrc'. ``pd_currents`` applies such gains like
+the hardware. The thresholds above are the hardware's; ``ModesConfig`` says where ours differ.
 As on the hardware, the caller re-zeroes the x/psi references when ``entered`` is set, and in
 SIT_DOWN uses (IMU pitch - sit_imu_limit_rad) as the theta error of the sit gains.
 """
@@ -28,17 +29,86 @@ from __future__ import annotations
 
 import enum
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 
 import numpy as np
 
 DEG = math.pi / 180.0
 
-#: FACTS §7 PD gains (th, dth, x, dx, psi, dpsi) in A per rad / (rad/s).
+#: The hardware's PD gains (th, dth, x, dx, psi, dpsi) in A per rad / (rad/s), 01-balance-kore.cpp.
 GROUND_LO_GAINS = (0.0, 0.0, 0.0, -10.0, 0.0, -15.0)
 STAND_GAINS = (277.4, 61.889, 7.4484, 18.235, 0.0, 0.0)
 SIT_GAINS = (250.0, 40.0, 0.0, 0.0, 0.0, 0.0)
-BALANCE_LO_GAINS = (277.4, 61.889, 7.4484, 18.235, 0.0, -10.0)
+
+
+def _doc(text):
+    return {'doc': text}
+
+
+@dataclass(frozen=True)
+class ModesConfig:
+    """Mode guards and the PD gains of the modes (parameters ``modes.*``). PD gains are (th, dth,
+    x, dx, psi, dpsi) in A/rad and A/(rad/s). Where our robot differs from the 2018 hardware's
+    guards, the reason is given."""
+    auto_stand: bool = field(default=True, metadata=_doc(
+        'when enabled and sitting, ask to stand (the joystick button on the hardware)'))
+    start_enabled: bool = field(default=False, metadata=_doc(
+        'false = start in SAFE_STOP until enabled'))
+    stand_error_min_rad: float = field(default=-0.20944, metadata=_doc(
+        'stand only if the CoM-angle error is above this, rad. -12 deg, the authors\' sim: in our '
+        'sim the robot sits at q_base -1.7628 and balances at -1.568 with the true beta, theta = '
+        '-11.2 deg on the caster, so the hardware\'s -10 deg would refuse a perfect model'))
+    stand_error_max_rad: float = field(default=0.0, metadata=_doc(
+        'stand only if the CoM-angle error is below this, rad'))
+    balance_imu_min_rad: float = field(default=-1.76278, metadata=_doc(
+        'STAND_UP -> BALANCE needs the IMU pitch above this, rad (-101 deg)'))
+    balance_rate_max: float = field(default=0.03, metadata=_doc(
+        '... and |pitch rate| below this, rad/s, continuously for stand_settle_s'))
+    stand_settle_s: float = field(default=3.33, metadata=_doc(
+        'settle time before BALANCE, s (100 loops of the 30 Hz hardware)'))
+    sit_waist_min_rad: float = field(default=2.61799, metadata=_doc(
+        'sit down only with the waist above this, rad (150 deg)'))
+    sit_imu_limit_rad: float = field(default=-1.75406, metadata=_doc(
+        'SIT_DOWN -> SIT below this IMU pitch, rad. -100.5 deg: the hardware used -103 deg, but '
+        'the sim\'s caster holds the robot at -101.1 deg, so -103 deg is never reached'))
+    ground_gains: tuple[float, ...] = field(default=GROUND_LO_GAINS, metadata=_doc(
+        'PD gains in SIT (the hardware\'s GroundLo)'))
+    stand_gains: tuple[float, ...] = field(default=STAND_GAINS, metadata=_doc(
+        'PD gains in STAND_UP'))
+    sit_gains: tuple[float, ...] = field(default=SIT_GAINS, metadata=_doc(
+        'PD gains in SIT_DOWN'))
+    spin_gains: tuple[float, ...] = field(default=(0.0, -10.0), metadata=_doc(
+        '(psi, dpsi) spin PD in BALANCE (the hardware\'s BalLo), A/rad, A/(rad/s)'))
+    spin_limit_a: float = field(default=30.0, metadata=_doc('|spin current| clamp, A'))
+
+    def __post_init__(self):
+        for name in ('ground_gains', 'stand_gains', 'sit_gains'):
+            if len(getattr(self, name)) != 6:
+                raise ValueError(f'modes.{name} needs 6 gains (th, dth, x, dx, psi, dpsi)')
+        if len(self.spin_gains) != 2:
+            raise ValueError('modes.spin_gains needs (psi, dpsi)')
+
+
+@dataclass(frozen=True)
+class SafetyConfig:
+    """Stops (parameters ``safety.*``); 0 = off where noted. stand_timeout_s and max_speed_m_s
+    are ours, not in the 2018 code: a stand-up that does not settle, or a runaway (e.g. the robot
+    pushed along on its caster when the estimated CoM angle is near 0), ends in SAFE_STOP."""
+    stale_timeout_s: float = field(default=0.1, metadata=_doc(
+        'SAFE_STOP when the newest sensor sample is older than this, s'))
+    fall_angle_rad: float = field(default=0.0, metadata=_doc(
+        'SAFE_STOP when |theta| exceeds this in STAND_UP/BALANCE, rad (0 = off, as on the '
+        'hardware)'))
+    stand_timeout_s: float = field(default=20.0, metadata=_doc(
+        'SAFE_STOP when STAND_UP has not settled within this, s (0 = off)'))
+    max_speed_m_s: float = field(default=3.0, metadata=_doc(
+        'SAFE_STOP above this |ground speed| in STAND_UP/BALANCE, m/s (0 = off)'))
+
+    def __post_init__(self):
+        if self.stale_timeout_s <= 0:
+            raise ValueError('safety.stale_timeout_s must be positive')
+        if any(getattr(self, f.name) < 0 for f in fields(self)):
+            raise ValueError('safety limits must not be negative')
 
 
 class Mode(enum.Enum):
@@ -78,30 +148,21 @@ class ModeOutput:
 class ModeMachine:
     """See the module docstring. ``step(inputs) -> ModeOutput``."""
 
-    def __init__(self, *, stand_error_min_rad: float = -10.0 * DEG,
-                 stand_error_max_rad: float = 0.0,
-                 balance_imu_min_rad: float = -101.0 * DEG,
-                 balance_rate_max: float = 0.03,
-                 stand_settle_s: float = 100 * 0.0333,
-                 sit_waist_min_rad: float = 150.0 * DEG,
-                 sit_imu_limit_rad: float = -103.0 * DEG,
-                 stale_timeout_s: float = 0.1,
-                 fall_angle_rad: float | None = None,
-                 ground_gains=GROUND_LO_GAINS, stand_gains=STAND_GAINS, sit_gains=SIT_GAINS,
+    def __init__(self, config: ModesConfig = ModesConfig(), safety: SafetyConfig = SafetyConfig(),
                  initial_mode: Mode = Mode.SIT):
-        self.stand_error_min = stand_error_min_rad
-        self.stand_error_max = stand_error_max_rad
-        self.balance_imu_min = balance_imu_min_rad
-        self.balance_rate_max = balance_rate_max
-        self.stand_settle_s = stand_settle_s
-        self.sit_waist_min = sit_waist_min_rad
-        self.sit_imu_limit = sit_imu_limit_rad
-        self.stale_timeout_s = stale_timeout_s
-        self.fall_angle = fall_angle_rad
-        self.gains = {Mode.SIT: ('ground_pd', tuple(ground_gains)),
-                      Mode.STAND_UP: ('stand_pd', tuple(stand_gains)),
+        self.stand_error_min = config.stand_error_min_rad
+        self.stand_error_max = config.stand_error_max_rad
+        self.balance_imu_min = config.balance_imu_min_rad
+        self.balance_rate_max = config.balance_rate_max
+        self.stand_settle_s = config.stand_settle_s
+        self.sit_waist_min = config.sit_waist_min_rad
+        self.sit_imu_limit = config.sit_imu_limit_rad
+        self.stale_timeout_s = safety.stale_timeout_s
+        self.fall_angle = safety.fall_angle_rad or None
+        self.gains = {Mode.SIT: ('ground_pd', tuple(config.ground_gains)),
+                      Mode.STAND_UP: ('stand_pd', tuple(config.stand_gains)),
                       Mode.BALANCE: ('adrc', None),
-                      Mode.SIT_DOWN: ('sit_pd', tuple(sit_gains)),
+                      Mode.SIT_DOWN: ('sit_pd', tuple(config.sit_gains)),
                       Mode.SAFE_STOP: ('off', None)}
         self.mode = initial_mode
         self._settle_since: float | None = None
@@ -157,12 +218,13 @@ class ModeMachine:
         return ModeOutput(self.mode, controller, gains, self.mode is Mode.SAFE_STOP, entered, events)
 
 
-def pd_currents(gains, error, *, spin_limit_a: float = 30.0,
-                current_limit_a: float = 49.0) -> tuple[float, float]:
+def pd_currents(gains, error, *, spin_limit_a: float,
+                current_limit_a: float) -> tuple[float, float]:
     """Hardware PD law: (i_left, i_right) from error = state - reference over
     (theta, thetadot, x, xdot, psi, psidot), as in 01-balance-kore.cpp:
     u_theta + u_x +/- u_spin with u_spin = -(K_psi e_psi + K_dpsi e_dpsi) clamped to the spin
-    limit (FACTS §7: +/-30 A) and each wheel clamped to the current limit (FACTS §5: 49 A)."""
+    limit (``ModesConfig.spin_limit_a``) and each wheel clamped to the drive train's current
+    limit."""
     k = np.asarray(gains, float).ravel()
     e = np.asarray(error, float).ravel()
     if k.size != 6 or e.size != 6:

@@ -9,6 +9,7 @@ sample age). The timer then only watches: if no sample has driven the loop for t
 anyway, so stale data still end in a safe stop. If either input is older than `stale_timeout_s`, the
 controller is told the data are stale and commands zero torque (safe stop) until it is re-enabled.
 """
+import ctypes
 import sys
 
 import numpy as np
@@ -21,23 +22,20 @@ from std_srvs.srv import SetBool
 
 from krang_model.beta import load_beta
 from krang_model.robot import load_krang
-from krang_ros import messages, names, topics
+from krang_ros import messages, names, params, topics
+from krang_ros.names import WHEEL_JOINTS as WHEELS
 from krang_ros.spin import run_node
 
 from .controller import BalanceController, ControllerConfig, ControlSample
-
-from krang_ros.names import WHEEL_JOINTS as WHEELS  # noqa: E402
 
 
 class AdrcControllerNode(Node):
     def __init__(self):
         super().__init__('adrc_controller')
         self.robot = load_krang()
-        # every ControllerConfig field is a ROS parameter of the same name (config/controller.yaml)
-        defaults = ControllerConfig().to_dict()
-        values = {name: self.declare_parameter(name, default).value for name, default in defaults.items()}
-        self.config = ControllerConfig.from_dict(values)
-        self.stale_timeout = self.config.stale_timeout_s
+        # every ControllerConfig leaf is a dotted ROS parameter (adrc.eso.omega_o; controller.yaml)
+        self.config = params.declare(self, ControllerConfig)
+        self.stale_timeout = self.config.safety.stale_timeout_s
         self.step_on_imu = bool(self.declare_parameter('step_on_imu', False).value)
         beta_file = self.declare_parameter('initial_beta', '').value
         beta = load_beta(beta_file, self.robot) if beta_file else self.robot.nominal_beta
@@ -168,7 +166,38 @@ class AdrcControllerNode(Node):
                                                    f'mode {out.mode if out else "starting"}', values))
 
 
+def single_thread_blas() -> int:
+    """Limit the OpenBLAS libraries loaded in this process (numpy's and scipy's) to one thread.
+
+    Why: the LQR(q) redesign (python-control -> scipy -> LAPACK) on 4x4 matrices gains nothing from
+    threads, but on a loaded machine OpenBLAS's thread pool turned a 1 ms design into 20-65 ms
+    (measured on the shared 2-core dev box), stalling the 500 Hz loop. Same effect as
+    OPENBLAS_NUM_THREADS=1 set before numpy is imported; process-wide, so the node's process sets
+    it, not the controller. Linux only; returns the number of libraries changed (0 when none)."""
+    try:
+        with open('/proc/self/maps') as f:
+            libs = sorted({line.split()[-1] for line in f
+                           if 'openblas' in line.lower() and '/' in line})
+    except OSError:
+        return 0
+    changed = 0
+    for path in libs:
+        try:
+            lib = ctypes.CDLL(path)
+        except OSError:
+            continue
+        for name in ('scipy_openblas_set_num_threads64_', 'scipy_openblas_set_num_threads',
+                     'openblas_set_num_threads64_', 'openblas_set_num_threads'):
+            fn = getattr(lib, name, None)
+            if fn is not None:
+                fn(1)
+                changed += 1
+                break
+    return changed
+
+
 def main(args=None):
+    single_thread_blas()
     return run_node(AdrcControllerNode, args)
 
 

@@ -19,8 +19,8 @@ Paper definitions (exactly as the authors' analysis, quirks kept; krang_data/REA
                         12 x 0.00706 N m, w = ground-referenced wheel speed (one wheel)
   avg_resting_power_mw  1000 x mean over 10-55 s of |tau w| x dt: mJ per control step, not mW
 
-Physical definitions (under "physical"; wheel radius from --wheel-radius, else
-config/robot.yaml drivetrain.wheel_radius_m, else the URDF wheel):
+Physical definitions (under "physical"; the robot's drive train, krang_model.drivetrain: gear
+ratio and torque constant from config/robot.yaml, wheel radius from the URDF or --wheel-radius):
   max_displacement_m, resting_displacement_m (signed, from the motion-start position),
   settle_time_s (band --settle-band in m), peak/mean mechanical and electrical power of BOTH
   wheels from the raw commanded currents and the wheel speeds relative to the body, in W
@@ -38,7 +38,7 @@ def register(subparsers):
                         '{"max_position_m", "resting_position_m", "time_until_resting_s", '
                         '"max_power_w", "avg_resting_power_mw", "physical": {...}}')
     p.add_argument('--wheel-radius', type=float, default=None, metavar='M',
-                   help='wheel radius in m for the physical metrics (default: config, else URDF)')
+                   help='wheel radius in m for the physical metrics (default: the URDF wheel)')
     p.add_argument('--settle-band', type=float, default=0.08, metavar='M',
                    help='physical settle band around the resting point, m (default 0.08)')
     p.set_defaults(func=run)

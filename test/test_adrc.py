@@ -4,19 +4,25 @@ import numpy as np
 import pytest
 from scipy.linalg import expm
 
-from krang_adrc_controller.adrc import AdrcController
+from krang_adrc_controller.adrc import AdrcConfig, AdrcController
+from krang_adrc_controller.eso import EsoConfig
 from krang_adrc_controller.lqr import LqrDesigner, channel_input_gains, split_gains
+from krang_model.drivetrain import drivetrain
+from krang_model.robot import load_krang
 
 from test_lqr import wip_ab
 
 FX, FTH, BX, BTH = [-10.0, -20.0], [-500.0, -100.0], 0.4, -0.2
+DRIVE = drivetrain(load_krang())
+#: the authors' ESO gains (the shipped controller uses a bandwidth design)
+AUTHORS_ESO = EsoConfig(omega_o=0.0)
 
 
-def make(**kw):
-    kw.setdefault('torque_constant_nm_per_a', 0.1)
-    kw.setdefault('gear_ratio', 10.0)
-    kw.setdefault('current_limit_a', 100.0)
-    return AdrcController(FX, FTH, BX, BTH, sample_period_s=0.01, **kw)
+def make(current_limit=100.0, **kw):
+    drive = drivetrain(load_krang(), torque_constant=0.1, gear_ratio=10.0,
+                       current_limit=current_limit)
+    return AdrcController(FX, FTH, BX, BTH, drive, sample_period_s=0.01,
+                          config=AdrcConfig(eso=AUTHORS_ESO, **kw))
 
 
 def test_first_step_by_hand():
@@ -30,15 +36,16 @@ def test_first_step_by_hand():
     assert cmd.i_left == pytest.approx(13.5 / (10.0 * 0.1)) and not cmd.saturated
 
 
-def test_default_motor_constants_from_facts():
-    c = AdrcController(FX, FTH, BX, BTH)
+def test_motor_constants_from_the_drive_train():
+    c = AdrcController(FX, FTH, BX, BTH, DRIVE, sample_period_s=0.0333)
     c.reset((0.05, 0.2))
     cmd = c.update(0.05, 0.2, dtheta=0.0, dx=0.0)
-    assert cmd.i_left == pytest.approx(13.5 / (15 * 12 * 0.00706155))
+    assert (DRIVE.gear_ratio, DRIVE.torque_constant) == (15.0, pytest.approx(0.0847, rel=1e-3))
+    assert cmd.i_left == pytest.approx(13.5 / (DRIVE.gear_ratio * DRIVE.torque_constant))
 
 
 def test_current_and_torque_limits_and_split():
-    c = make(current_limit_a=5.0)
+    c = make(current_limit=5.0)
     c.reset((0.05, 0.2))
     cmd = c.update(0.05, 0.2, dtheta=0.0, dx=0.0)
     assert cmd.i_left == 5.0 and cmd.tau_left == pytest.approx(5.0) and cmd.saturated
@@ -82,8 +89,10 @@ def closed_loop(h, duration, *, adrc=True, eso_input='nominal', rates=True, **kw
     K = LqrDesigner().gain(A, B)
     f_x, f_th = split_gains(K)
     b_x, b_th = channel_input_gains(B)
-    c = AdrcController(f_x, f_th, b_x, b_th, sample_period_s=h, use_disturbance_rejection=adrc,
-                       eso_input=eso_input, current_limit_a=1e6, **kw)
+    drive = drivetrain(load_krang(), current_limit=1e6)
+    c = AdrcController(f_x, f_th, b_x, b_th, drive, sample_period_s=h,
+                       config=AdrcConfig(use_disturbance_rejection=adrc, eso_input=eso_input,
+                                         eso=AUTHORS_ESO, **kw))
     m = expm(np.block([[A, B[:, None]], [np.zeros((1, 5))]]) * h)
     ad, bd = m[:4, :4], m[:4, 4]
     X = np.array([0.0, 0.0, 0.1, 0.0])        # start 0.1 rad off balance

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 from scipy.linalg import expm
 
-from krang_adrc_controller.balance_point import BalancePointObserver
+from krang_adrc_controller.balance_point import BalancePointObserver, ObserverConfig
 
 H = 0.002
 
@@ -39,7 +39,7 @@ def test_estimates_the_balance_point_whatever_the_input(a, delta):
     theta' H / 2 (bounded here by max |theta'| H)."""
     b = 2.0
     step = plant_step(a, b, delta)
-    obs = BalancePointObserver(H, omega_o=20.0, time_constant_s=0.5)
+    obs = BalancePointObserver(H, 20.0, ObserverConfig(time_constant_s=0.5))
     obs.set_model(*model(a, b))
     state = np.array([0.3, 0.0])
     obs.reset(state[0], state[1])
@@ -57,7 +57,7 @@ def test_regulating_about_the_estimate_ends_at_the_true_balance_point():
     """A PD about theta - delta_hat (what BalanceController does) rests at theta = delta, with zero input."""
     a, b, delta = 20.0, 1.5, 0.12
     step = plant_step(a, b, delta)
-    obs = BalancePointObserver(H, omega_o=20.0, time_constant_s=1.0)
+    obs = BalancePointObserver(H, 20.0, ObserverConfig(time_constant_s=1.0))
     obs.set_model(*model(a, b))
     state = np.array([0.0, 0.0])
     obs.reset(0.0, 0.0)
@@ -72,7 +72,7 @@ def test_regulating_about_the_estimate_ends_at_the_true_balance_point():
 
 def test_shift_hold_and_limit():
     a, b = 20.0, 1.5
-    obs = BalancePointObserver(H, omega_o=20.0, time_constant_s=1.0, limit_rad=0.25)
+    obs = BalancePointObserver(H, 20.0, ObserverConfig(time_constant_s=1.0, limit_rad=0.25))
     obs.set_model(*model(a, b))
     obs.reset(0.0, 0.0)
     obs.delta = 0.1

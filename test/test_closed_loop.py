@@ -2,14 +2,18 @@
 
 Stand-up and balance from the caster with the true and a wrong beta, the detector's q_base against
 the true balance pitch, mode transitions, stale data -> zero current, ADRC vs plain LQR with a
-wrong CoM, a short online learning session, and the fast paths against the reference code."""
+wrong CoM, a short online learning session, the ADRC law against its matrix form, and the fast
+simulator."""
+
+from dataclasses import replace
 
 import numpy as np
 import pytest
 
-from krang_adrc_controller.adrc import AdrcController
+from krang_adrc_controller.adrc import AdrcConfig, AdrcController
 from krang_adrc_controller.controller import (BalanceController, ControllerConfig, ControlSample,
                                               load_controller_config, sample_from_sensors)
+from krang_adrc_controller.eso import EsoConfig
 from krang_adrc_controller.metrics import compute_metrics
 from krang_model.beta import load_beta
 from krang_model.com import balance_pitch, com_error, x_com
@@ -43,19 +47,13 @@ def wrong_beta(robot, true_beta):
 def runs(robot, true_beta, wrong_beta):
     """One 30 s stand-up-and-balance run per beta with the shipped controller, and the wrong beta under
     the paper's law alone (no balance-point observer). Shared by several tests."""
-    paper = load_controller_config(overrides={'balance_point_observer': False})
+    paper = load_controller_config(overrides={'balance_point.enabled': False})
     return {name: run_balance(robot, true_beta, b, seconds=30.0, seed=3, controller_config=cfg)
             for name, b, cfg in (('true', true_beta, None), ('wrong', wrong_beta, None),
                                  ('wrong-paper', wrong_beta, paper))}
 
 
 # ----------------------------------------------------------------------------- configuration
-
-
-def test_yaml_defaults_equal_the_dataclass_defaults():
-    assert load_controller_config() == ControllerConfig()
-    with pytest.raises(ValueError, match='unknown'):
-        ControllerConfig.from_dict({'no_such_gain': 1.0})
 
 
 def test_wrong_beta_is_two_and_a_half_centimetres_off(robot, true_beta, wrong_beta):
@@ -67,30 +65,79 @@ def test_wrong_beta_is_two_and_a_half_centimetres_off(robot, true_beta, wrong_be
 # ----------------------------------------------------------------------------- fast paths
 
 
-@pytest.mark.parametrize('kw', [dict(eso_omega_o=20.0), dict(), dict(eso_method='zoh'),
-                                dict(eso_omega_o=20.0, eso_input='applied', f_limit_theta=3.0),
-                                dict(eso_omega_o=20.0, use_disturbance_rejection=False)],
+class MatrixAdrc:
+    """The ADRC law in matrix form on the ESOs' discretisation matrices (numpy), as the reference
+    for the float implementation in adrc.py."""
+
+    def __init__(self, ctl: AdrcController):
+        self.ctl = ctl
+
+    def reset(self, theta, x, dtheta, dx):
+        self.zx, self.zt = np.array([x, dx, 0.0]), np.array([theta, dtheta, 0.0])
+        self.yx, self.yt = x, theta
+        self.ux = self.ut = 0.0
+
+    def _eso(self, eso, z, u, y, y_prev, dt):
+        d = eso.discretisation(dt)
+        z = d.phi @ z + d.gam_u * u + d.gam_y * (y_prev if eso.method == 'zoh' else y)
+        if eso.f_limit is not None:
+            z[2] = np.clip(z[2], -eso.f_limit, eso.f_limit)
+        return z
+
+    def update(self, theta, x, dt, dtheta, dx):
+        c, cfg = self.ctl, self.ctl.config
+        self.zx = self._eso(c.eso_x, self.zx, self.ux, x, self.yx, dt)
+        self.zt = self._eso(c.eso_theta, self.zt, self.ut, theta, self.yt, dt)
+        self.yx, self.yt = x, theta
+        u_x = -float(np.dot(c.f_x, [x, self.zx[1] if dx is None else dx]))
+        u_th = -float(np.dot(c.f_theta, [theta, self.zt[1] if dtheta is None else dtheta]))
+        dr = cfg.use_disturbance_rejection
+        tx = u_x - self.zx[2] / c.b_x if dr else u_x
+        tt = u_th - self.zt[2] / c.b_theta if dr else u_th
+        tau = tx + tt
+        k = c.gear * c.kt
+        i = np.clip(np.array([cfg.left_share, 1.0 - cfg.left_share]) * tau / k, -c.current_limit,
+                    c.current_limit)
+        sat = bool(np.any(np.abs(np.array([cfg.left_share, 1.0 - cfg.left_share]) * tau / k)
+                          > c.current_limit))
+        if cfg.eso_input == 'nominal':
+            self.ux, self.ut = u_x, u_th
+        else:
+            scale = i.sum() * k / tau if tau != 0 else 1.0
+            self.ux, self.ut = tx * scale, tt * scale
+        return i[0], i[1], self.zx[2], self.zt[2], sat
+
+
+@pytest.mark.parametrize('cfg', [AdrcConfig(), AdrcConfig(eso=EsoConfig(omega_o=0.0)),
+                                 AdrcConfig(eso=EsoConfig(method='zoh', omega_o=0.0)),
+                                 AdrcConfig(eso_input='applied', f_limit_theta=3.0),
+                                 AdrcConfig(use_disturbance_rejection=False)],
                          ids=['bandwidth', 'authors', 'zoh', 'applied_flimit', 'lqr'])
-def test_scalar_adrc_equals_adrc_controller(robot, true_beta, kw):
-    from krang_adrc_controller.controller import _ScalarAdrc
+def test_adrc_law_equals_its_matrix_form(robot, true_beta, cfg):
     ctl = BalanceController(robot, true_beta, ControllerConfig())
     ctl._redesign(TABLE2_POSE)
-    d = ctl.design
-    ref = AdrcController.from_design(d, sample_period_s=0.002, current_limit_a=30.0, **kw)
-    fast = _ScalarAdrc(AdrcController.from_design(d, sample_period_s=0.002, current_limit_a=30.0, **kw))
+    drive = replace(ctl.drive, current_limit=30.0)
+    fast = AdrcController.from_design(ctl.design, drive, sample_period_s=0.002, config=cfg)
+    ref = MatrixAdrc(fast)
     rng = np.random.default_rng(0)
-    ref.reset((0.05, 0.1, 0.0, 0.0))
-    fast.reset(0.05, 0.1, 0.0, 0.0)
+    ref.reset(0.05, 0.1, 0.0, 0.0)
+    fast.reset((0.05, 0.1, 0.0, 0.0))
+    saturated = 0
     for k in range(400):
         th, x = 0.05 + rng.normal(0, 0.02), 0.1 + rng.normal(0, 0.05)
         dth, dx = rng.normal(0, 0.1, 2)
         dt = 0.002 if k % 7 else 0.0025
         rates = k % 3 != 0
-        c = ref.update(th, x, dt, dtheta=dth if rates else None, dx=dx if rates else None)
-        f = fast.update(th, x, dt, dth if rates else None, dx if rates else None)
-        assert f[2:4] == (pytest.approx(c.i_left, rel=1e-9, abs=1e-9), pytest.approx(c.i_right, rel=1e-9, abs=1e-9))
-        assert f[6:8] == (pytest.approx(c.fhat_x, rel=1e-9, abs=1e-9), pytest.approx(c.fhat_theta, rel=1e-9, abs=1e-9))
-        assert f[8] == c.saturated
+        i_l, i_r, fx, ft, sat = ref.update(th, x, dt, dth if rates else None,
+                                           dx if rates else None)
+        c = fast.update(th, x, dt, dtheta=dth if rates else None, dx=dx if rates else None)
+        assert (c.i_left, c.i_right) == (pytest.approx(i_l, rel=1e-9, abs=1e-9),
+                                         pytest.approx(i_r, rel=1e-9, abs=1e-9))
+        assert (c.fhat_x, c.fhat_theta) == (pytest.approx(fx, rel=1e-9, abs=1e-9),
+                                            pytest.approx(ft, rel=1e-9, abs=1e-9))
+        assert c.saturated == sat
+        saturated += sat
+    assert 0 < saturated < 400                     # the clamp was exercised, not always on
 
 
 def test_fast_sim_steps_and_samples_exactly_like_krangsim(robot, true_beta):
@@ -115,24 +162,6 @@ def test_fast_sim_steps_and_samples_exactly_like_krangsim(robot, true_beta):
                      'wheel_right_rate', 'joints_moving'):
             assert getattr(got, name) == getattr(ref, name), name
         np.testing.assert_array_equal(got.joints, ref.joints)
-
-
-def test_fast_controller_path_equals_the_reference_path(robot, true_beta, wrong_beta):
-    """The whole closed loop with fast_path on and off gives the same currents (to rounding)."""
-    logs = []
-    for fast in (True, False):
-        cfg = load_controller_config(overrides={'fast_path': fast})
-        loop = ClosedLoop(robot, true_beta, wrong_beta, TABLE2_POSE, controller_config=cfg, seed=1, log_rate_hz=0)
-        out = []
-        loop.run(0.2)
-        loop.controller.set_enabled(True)
-        for _ in range(4000):
-            loop.run(loop.h)
-            out.append((loop.last_output.current_left, loop.last_output.mode))
-        logs.append(out)
-    assert [m for _, m in logs[0]] == [m for _, m in logs[1]]
-    assert 'balance' in {m for _, m in logs[0]}
-    np.testing.assert_allclose([i for i, _ in logs[0]], [i for i, _ in logs[1]], rtol=1e-6, atol=1e-6)
 
 
 # ----------------------------------------------------------------------------- stand up and balance
@@ -234,13 +263,14 @@ def test_stale_sensors_stop_the_wheels_within_the_timeout(robot, true_beta):
         if stopped is None and loop.last_output.mode == 'safe_stop':
             stopped = loop.sim.t
     assert stopped is not None
-    assert stopped - t_drop <= ctl.config.stale_timeout_s + 2 * loop.h
+    assert stopped - t_drop <= ctl.config.safety.stale_timeout_s + 2 * loop.h
     assert loop.last_output.current_left == 0.0 and loop.last_output.current_right == 0.0
     assert loop.sim.applied_current == (0.0, 0.0)
 
 
 def test_caller_stale_flag_and_nan_data_stop_at_once(robot, true_beta):
-    ctl = BalanceController(robot, true_beta, load_controller_config(overrides={'start_enabled': True}))
+    cfg = load_controller_config(overrides={'modes.start_enabled': True})
+    ctl = BalanceController(robot, true_beta, cfg)
     s = ControlSample(0.0, -1.7643, 0.0, 0.0, 0.0, 0.0, 0.0, TABLE2_POSE.copy(), False)
     assert ctl.step(s).mode in ('sit', 'stand_up')
     s.t = 0.002
@@ -290,9 +320,9 @@ def test_new_beta_at_rest_is_bumpless_with_the_balance_point_observer(robot, tru
 @pytest.fixture(scope='module')
 def adrc_vs_lqr(robot, true_beta, wrong_beta):
     """The adrc-vs-lqr scenario (stand-up, push, pose change) for the three laws, 2.5 cm CoM error."""
-    from krang_cli.experiment import adrc_vs_lqr_scenario
-    paper = load_controller_config(overrides={'balance_point_observer': False})
-    observer = paper.replace(balance_point_observer=True)
+    from krang_experiments.adrc_vs_lqr import scenario as adrc_vs_lqr_scenario
+    paper = load_controller_config(overrides={'balance_point.enabled': False})
+    observer = paper.override({'balance_point.enabled': True})
     return {name: adrc_vs_lqr_scenario(robot, true_beta, wrong_beta, dr, seed=5, seconds=70.0, config=cfg)
             for name, dr, cfg in (('adrc', True, paper), ('lqr', False, paper), ('adrc+bp', True, observer))}
 
@@ -333,7 +363,7 @@ def test_adrc_with_the_balance_point_observer_rests_where_it_stood_up(adrc_vs_lq
 
 
 def test_short_online_session_reduces_the_com_error(robot, true_beta, krang_data):
-    from krang_cli.experiment import load_filtered_poses
+    from krang_experiments.common import load_filtered_poses
     poses, order, _ = load_filtered_poses(krang_data)
     train = poses[order[:4]]
     held_out = np.delete(poses, order, axis=0)[:200]
@@ -409,7 +439,7 @@ def test_cli_table2_on_an_extended_model(tmp_path, robot, true_beta, krang_data)
 def test_sixteen_pose_session_learns_like_the_hardware(robot, true_beta, krang_data):
     """15 online updates in the authors' order (= the hardware's beta_16) leave about the same CoM-angle
     error in the Table II pose as the authors' own beta_16 has against our simulated truth."""
-    from krang_cli.experiment import load_filtered_poses
+    from krang_experiments.common import load_filtered_poses
     poses, order, _ = load_filtered_poses(krang_data)
     res = run_online_session(robot, true_beta, robot.nominal_beta, poses[order[:15]], seed=0, progress=False)
     assert not res.failures

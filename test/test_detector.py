@@ -1,11 +1,19 @@
 """Balanced-pose detector on synthetic streams: one point per pose, none while moving, q_base
 accurate under noise, re-arming."""
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
-from krang_adrc_controller.detector import BalancedPoseDetector
+from krang_adrc_controller.detector import BalancedPoseDetector, DetectorConfig
 
 H = 1 / 30
+#: thresholds for the synthetic stream below (its wheel-speed noise is 0.01 m/s, its f_hat's 0.004)
+STREAM = DetectorConfig(wheel_speed_max=0.05, fhat_band=0.05)
+
+
+def detector(**kw):
+    return BalancedPoseDetector(replace(STREAM, **kw))
 
 
 class Stream:
@@ -57,7 +65,7 @@ POSE_B = np.linspace(0.4, -0.3, 16)
 
 
 def test_one_point_per_pose_and_none_while_moving():
-    det = BalancedPoseDetector()
+    det = detector()
     s = Stream()
     assert feed(det, s.move(POSE_A, 3.0)) == []
     points = feed(det, s.settle(-1.20, 0.8, 12.0))
@@ -80,7 +88,7 @@ def test_one_point_per_pose_and_none_while_moving():
 
 
 def test_unconverged_observer_blocks_the_point():
-    det = BalancedPoseDetector(fhat_band=0.05)
+    det = detector(fhat_band=0.05)
     s = Stream(seed=3)
     feed(det, s.move(POSE_A, 1.0))
     # f_hat still drifting (time constant 20 s): robot still, but no point
@@ -88,7 +96,7 @@ def test_unconverged_observer_blocks_the_point():
 
 
 def test_wheels_rolling_blocks_the_point():
-    det = BalancedPoseDetector()
+    det = detector()
     s = Stream(seed=4)
     feed(det, s.move(POSE_A, 1.0))
     samples = list(s.settle(-1.1, 0.2, 8.0))
@@ -99,7 +107,7 @@ def test_wheels_rolling_blocks_the_point():
 
 
 def test_rearms_on_joint_change_without_flag():
-    det = BalancedPoseDetector(rearm_tol_rad=0.02)
+    det = detector(rearm_tol_rad=0.02)
     s = Stream(seed=5)
     feed(det, s.move(POSE_A, 1.0))
     assert len(feed(det, s.settle(-1.0, 0.1, 6.0))) == 1
@@ -109,7 +117,7 @@ def test_rearms_on_joint_change_without_flag():
 
 
 def test_gap_in_samples_restarts_window():
-    det = BalancedPoseDetector(window_s=2.0, max_gap_s=0.2)
+    det = detector(window_s=2.0, max_gap_s=0.2)
     s = Stream(seed=6)
     feed(det, s.move(POSE_A, 1.0))
     samples = list(s.settle(-1.0, 0.0, 1.5, tau_s=0.01, f_tau=0.01))

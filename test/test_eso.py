@@ -13,7 +13,8 @@ RATES = [0.002, 0.003, 0.010, 0.033]
 
 
 def test_authors_gain_poles():
-    """FACTS §7: L = (1160, 173438.396, 1343839.408) -> poles -985.4, -166.4, -8.19 rad/s."""
+    """The authors' gains (munzir/18d): L = (1160, 173438.396, 1343839.408) -> poles -985.4,
+    -166.4, -8.19 rad/s."""
     p = np.sort(continuous_poles(AUTHORS_CONTINUOUS_GAINS).real)
     assert p == pytest.approx([-985.4, -166.4, -8.19], abs=0.05)
 

@@ -63,8 +63,8 @@ def test_closed_loop_stable_and_equal_to_care(p):
 
 def test_authors_q_order_reproduces_hardware_x_gain():
     """Kalman's equality at w -> 0 gives |K_x| = sqrt(Q_x / R) when x is a free integrator.
-    With the weights mapped to our order the x gain is sqrt(96000/500) = 13.8564, the value FACTS
-    §7 lists for the hardware; reading FACTS' order literally would give sqrt(30000/500) = 7.746."""
+    With the weights mapped to our order the x gain is sqrt(96000/500) = 13.8564, the hardware's
+    value; reading the kit summary's order literally would give sqrt(30000/500) = 7.746."""
     A, B = wip_ab(**MODELS[1])
     K = LqrDesigner().gain(A, B)
     assert abs(K[0]) == pytest.approx(13.8564, abs=1e-4)

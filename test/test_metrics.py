@@ -8,6 +8,8 @@ import pytest
 from krang_adrc_controller.metrics import (PAPER_KEYS, BalancingRun, centred_moving_average,
                                            compute_metrics, load_hardware_csv, load_run,
                                            paper_metrics, physical_metrics, register_loader)
+from krang_model.drivetrain import drivetrain
+from krang_model.robot import load_krang
 
 # ---------------------------------------------------------------- synthetic run, hand-computed
 
@@ -61,8 +63,8 @@ def test_paper_metrics_synthetic_by_hand():
 def test_physical_metrics_synthetic_by_hand():
     run, st = synthetic_run()
     r, kt, gear, res = 0.25, 0.08, 15.0, 0.1
-    p = physical_metrics(run, r, torque_constant_nm_per_a=kt, gear_ratio=gear,
-                         winding_resistance_ohm=res, settle_band_m=0.08)
+    drive = drivetrain(load_krang(), wheel_radius=r, torque_constant=kt, gear_ratio=gear)
+    p = physical_metrics(run, drive, winding_resistance_ohm=res, settle_band_m=0.08)
     assert p['max_displacement_m'] == pytest.approx(r * 3.5)
     assert p['resting_displacement_m'] == pytest.approx(r * (-3.0 - 0.5))
     assert p['settle_time_s'] == pytest.approx(8.0, abs=1e-9)          # shifted clock
@@ -163,7 +165,8 @@ def test_physical_figures_match_kit_statements(table2_runs):
     """README: 0.27 x max|x - x_start| is about 2.9 m (beta16) and 1.1 m (beta190); the true mean
     of the paper's power integrand is about 214 mW (beta16) and 48 mW (beta190)."""
     def means(b):
-        ph = [physical_metrics(r, 0.27) for r in table2_runs[b]]
+        drive = drivetrain(load_krang(), wheel_radius=0.27)
+        ph = [physical_metrics(r, drive) for r in table2_runs[b]]
         return (np.mean([p['max_displacement_m'] for p in ph]),
                 np.mean([p['mean_resting_power_paper_integrand_w'] for p in ph]))
     d16, p16 = means(16)

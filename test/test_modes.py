@@ -1,13 +1,24 @@
-"""Mode machine, transition by transition, with the hardware's guards (FACTS §7)."""
+"""Mode machine, transition by transition, with the 2018 hardware's guards (docs/control.md)."""
 import math
+from dataclasses import replace
 
 import pytest
 
 from krang_adrc_controller.modes import (GROUND_LO_GAINS, SIT_GAINS, STAND_GAINS, Mode,
-                                         ModeInputs, ModeMachine, pd_currents)
+                                         ModeInputs, ModeMachine, ModesConfig, SafetyConfig,
+                                         pd_currents)
+from krang_model.drivetrain import drivetrain
+from krang_model.robot import load_krang
 
 DEG = math.pi / 180
 H = 0.0333
+#: the 2018 hardware's guards, where the shipped configuration differs (its docs say why)
+HARDWARE = ModesConfig(stand_error_min_rad=-10.0 * DEG, balance_imu_min_rad=-101.0 * DEG,
+                       sit_waist_min_rad=150.0 * DEG, sit_imu_limit_rad=-103.0 * DEG)
+
+
+def machine(safety=SafetyConfig(), **kw):
+    return ModeMachine(replace(HARDWARE, **kw), safety)
 
 
 def inp(t, **kw):
@@ -24,7 +35,7 @@ def standing(m, t0=0.0):
 
 
 def test_starts_sitting_with_ground_gains():
-    out = ModeMachine().step(inp(0.0))
+    out = machine().step(inp(0.0))
     assert out.mode is Mode.SIT and out.controller == 'ground_pd'
     assert out.gains == GROUND_LO_GAINS and not out.zero_torque and not out.entered
 
@@ -32,7 +43,7 @@ def test_starts_sitting_with_ground_gains():
 @pytest.mark.parametrize('theta_deg,ok', [(-12, False), (-10.01, False), (-10, True), (-5, True),
                                           (0, True), (0.5, False)])
 def test_stand_guard_com_angle_error_in_minus10_to_0_deg(theta_deg, ok):
-    m = ModeMachine()
+    m = machine()
     out = m.step(inp(0.0, theta_com=theta_deg * DEG, stand_request=True))
     assert (out.mode is Mode.STAND_UP) == ok
     assert out.entered == ok
@@ -43,7 +54,7 @@ def test_stand_guard_com_angle_error_in_minus10_to_0_deg(theta_deg, ok):
 
 
 def test_stand_to_balance_after_continuous_settle_time():
-    m = ModeMachine()
+    m = machine()
     standing(m)
     t = 0.0
     # still on the caster: IMU at -101.5 deg < -101 deg, never switches
@@ -68,7 +79,7 @@ def test_stand_to_balance_after_continuous_settle_time():
 
 
 def test_settle_timer_restarts_when_interrupted():
-    m = ModeMachine(stand_settle_s=1.0)
+    m = machine(stand_settle_s=1.0)
     standing(m)
     m.step(inp(0.1, imu_pitch=-95 * DEG))
     m.step(inp(0.9, imu_pitch=-95 * DEG))
@@ -85,7 +96,7 @@ def balancing(m):
 
 
 def test_sit_down_guard_and_completion():
-    m = ModeMachine(stand_settle_s=0.0)
+    m = machine(stand_settle_s=0.0)
     balancing(m)
     out = m.step(inp(1.0, imu_pitch=-90 * DEG, waist=140 * DEG, sit_request=True))
     assert out.mode is Mode.BALANCE and any('sit_refused' in e for e in out.events)
@@ -100,7 +111,7 @@ def test_sit_down_guard_and_completion():
 
 @pytest.mark.parametrize('start', ['sit', 'stand', 'balance', 'sit_down'])
 def test_stop_request_latches_safe_stop_from_every_mode(start):
-    m = ModeMachine(stand_settle_s=0.0)
+    m = machine(stand_settle_s=0.0)
     if start != 'sit':
         standing(m)
     if start in ('balance', 'sit_down'):
@@ -120,7 +131,7 @@ def test_stop_request_latches_safe_stop_from_every_mode(start):
 
 
 def test_stale_sensors_stop_and_block_reset():
-    m = ModeMachine(stand_settle_s=0.0, stale_timeout_s=0.1)
+    m = machine(SafetyConfig(stale_timeout_s=0.1), stand_settle_s=0.0)
     balancing(m)
     assert m.step(inp(1.00, last_sensor_t=0.95, imu_pitch=-90 * DEG)).mode is Mode.BALANCE
     out = m.step(inp(1.06, last_sensor_t=0.95, imu_pitch=-90 * DEG))     # 0.11 s old
@@ -131,25 +142,28 @@ def test_stale_sensors_stop_and_block_reset():
 
 
 def test_optional_fall_guard():
-    m = ModeMachine(stand_settle_s=0.0, fall_angle_rad=0.5)
+    m = machine(SafetyConfig(fall_angle_rad=0.5), stand_settle_s=0.0)
     balancing(m)
     assert m.step(inp(1.0, imu_pitch=-90 * DEG, theta_com=0.49)).mode is Mode.BALANCE
     assert m.step(inp(1.1, imu_pitch=-90 * DEG, theta_com=-0.51)).mode is Mode.SAFE_STOP
     # off by default
-    m = ModeMachine(stand_settle_s=0.0)
+    m = machine(stand_settle_s=0.0)
     balancing(m)
     assert m.step(inp(1.0, imu_pitch=-90 * DEG, theta_com=1.0)).mode is Mode.BALANCE
 
 
 def test_pd_currents_by_hand():
+    lim = dict(spin_limit_a=ModesConfig().spin_limit_a,
+               current_limit_a=drivetrain(load_krang()).current_limit)
+    assert lim == {'spin_limit_a': 30.0, 'current_limit_a': 49.0}
     e = (0.02, -0.1, 0.5, 0.2, 0.0, 0.0)
     u = 277.4 * 0.02 + 61.889 * -0.1 + 7.4484 * 0.5 + 18.235 * 0.2
-    left, right = pd_currents(STAND_GAINS, e)
+    left, right = pd_currents(STAND_GAINS, e, **lim)
     assert left == pytest.approx(u) and right == pytest.approx(u)
     # spin term: u_spin = -(K_psi e_psi + K_dpsi e_dpsi), clamped to +/-30 A, added left / right
-    left, right = pd_currents(GROUND_LO_GAINS, (0, 0, 0, 0.0, 0.0, 1.0))
+    left, right = pd_currents(GROUND_LO_GAINS, (0, 0, 0, 0.0, 0.0, 1.0), **lim)
     assert (left, right) == (pytest.approx(15.0), pytest.approx(-15.0))
-    left, right = pd_currents(GROUND_LO_GAINS, (0, 0, 0, 0.0, 0.0, 3.0))
+    left, right = pd_currents(GROUND_LO_GAINS, (0, 0, 0, 0.0, 0.0, 3.0), **lim)
     assert (left, right) == (30.0, -30.0)
-    left, right = pd_currents(STAND_GAINS, (1.0, 0, 0, 0, 0, 0), current_limit_a=49.0)
+    left, right = pd_currents(STAND_GAINS, (1.0, 0, 0, 0, 0, 0), **lim)
     assert (left, right) == (49.0, 49.0)
