@@ -17,10 +17,10 @@ from typing import Any, Mapping
 
 import yaml
 
+from krang_model.config import config_path
 from krang_model.drivetrain import Drivetrain, drivetrain
 from krang_model.robot import load_krang
 
-PACKAGE_NAME = 'krang_com'
 DEVICES_FILE_NAME = 'can_devices.yaml'
 
 
@@ -198,16 +198,9 @@ class CanDevicesConfig:
 
 
 def default_devices_file() -> Path:
-    """The installed config (share/krang_com/config), else the one next to this source checkout."""
-    try:
-        from ament_index_python.packages import get_package_share_directory
-        installed = Path(get_package_share_directory(PACKAGE_NAME)) / 'config' / DEVICES_FILE_NAME
-        if installed.exists():
-            return installed
-    # noqa: BLE001 - no ament index (plain pip install / source tree): fall through
-    except Exception:
-        pass
-    return Path(__file__).resolve().parents[1] / 'config' / DEVICES_FILE_NAME
+    """config/can_devices.yaml of the config directory robot.yaml comes from (the source tree's,
+    else the installed share/krang_com/config), so the map and the drive train always match."""
+    return config_path(DEVICES_FILE_NAME)
 
 
 def _read_yaml(path: Path, seen: tuple[Path, ...] = ()) -> tuple[dict, dict]:
