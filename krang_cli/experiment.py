@@ -1,8 +1,8 @@
 """krang experiment: the paper's experiments in closed-loop simulation.
 
 The experiments live in the krang_experiments package (one module each: `run(params) -> result`,
-`report(result, out_dir)`); this module only turns the command line into their Params. Sub-subcommands
-are registered in ``EXPERIMENTS``; adding one is a small function pair::
+`report(result, out_dir)`); this module only turns the command line into their Params.
+Sub-subcommands are registered in ``EXPERIMENTS``; adding one is a small function pair::
 
     from krang_cli.experiment import register_experiment
     def _args(p): p.add_argument('--out', default='out/mine')
@@ -21,6 +21,7 @@ Built in:
 The experiment modules are imported when a command runs, not at parser time: they load the
 simulator and matplotlib, which every other `krang` command would otherwise pay for.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -51,34 +52,43 @@ EXPERIMENTS: dict[str, Experiment] = {}
 
 
 def register_experiment(name, help, add_arguments, run, description=None):
-    """Add `krang experiment NAME`: add_arguments(parser) declares options, run(args) -> exit code."""
+    """Add `krang experiment NAME`: add_arguments(parser) declares options, run(args) -> exit
+    code."""
     EXPERIMENTS[name] = Experiment(name, help, add_arguments, run, description)
 
 
 def _discover():
-    """Import krang_cli/experiment_*.py (they may call register_experiment at import) and return them."""
+    """Import krang_cli/experiment_*.py (they may call register_experiment at import) and return
+    them."""
     found = []
     for mod in sorted(pkgutil.iter_modules(krang_cli.__path__), key=lambda m: m.name):
         if mod.name.startswith('experiment_'):
             try:
                 found.append(importlib.import_module(f'krang_cli.{mod.name}'))
-            except Exception as err:   # one broken plug-in must not take `krang experiment` down
+            except Exception as err:  # one broken plug-in must not take `krang experiment` down
                 print(f'krang experiment: skipped krang_cli.{mod.name} ({err})', file=sys.stderr)
     return found
 
 
 def register(subparsers):
-    p = subparsers.add_parser('experiment', help="the paper's experiments in closed-loop simulation",
-                              description=__doc__.split('\n\n')[0] + ' Run `krang experiment <name> --help`.')
+    p = subparsers.add_parser(
+        'experiment',
+        help="the paper's experiments in closed-loop simulation",
+        description=__doc__.split('\n\n')[0] + ' Run `krang experiment <name> --help`.',
+    )
     sub = p.add_subparsers(dest='experiment', metavar='<experiment>')
     plugins = _discover()
     for exp in EXPERIMENTS.values():
-        sp = sub.add_parser(exp.name, help=exp.help, description=exp.description or exp.help,
-                            formatter_class=argparse.RawDescriptionHelpFormatter)
+        sp = sub.add_parser(
+            exp.name,
+            help=exp.help,
+            description=exp.description or exp.help,
+            formatter_class=argparse.RawDescriptionHelpFormatter,
+        )
         exp.add_arguments(sp)
         sp.set_defaults(func=exp.run)
-    # second protocol: a module-level hook `register_experiment(experiment_subparsers)` that adds its own
-    # sub-subparsers (e.g. krang_cli/experiment_learning.py -> `krang experiment learning`)
+    # second protocol: a module-level hook `register_experiment(experiment_subparsers)` that adds
+    # its own sub-subparsers (e.g. krang_cli/experiment_learning.py -> `krang experiment learning`)
     for mod in plugins:
         hook = getattr(mod, 'register_experiment', None)
         if callable(hook) and hook is not register_experiment:
@@ -91,63 +101,128 @@ def register(subparsers):
 
 def _adrc_args(p):
     p.add_argument('--out', default='out/adrc_vs_lqr', help='output folder (report.md, PNG, JSON)')
-    p.add_argument('--shift', type=float, default=0.025, help='CoM error of the wrong beta in m (default 0.025)')
+    p.add_argument(
+        '--shift',
+        type=float,
+        default=0.025,
+        help='CoM error of the wrong beta in m (default 0.025)',
+    )
     p.add_argument('--seed', type=int, default=5)
-    p.add_argument('--true-beta', default=None, help='hidden truth (default config/sim_true_beta.yaml)')
-    p.add_argument('--params', default=None, help='controller YAML (default config/controller.yaml)')
-    p.add_argument('--json', action='store_true', help='print a JSON summary as the last stdout line')
+    p.add_argument(
+        '--true-beta', default=None, help='hidden truth (default config/sim_true_beta.yaml)'
+    )
+    p.add_argument(
+        '--params', default=None, help='controller YAML (default config/controller.yaml)'
+    )
+    p.add_argument(
+        '--json', action='store_true', help='print a JSON summary as the last stdout line'
+    )
 
 
 def _run_adrc(args):
     from krang_experiments import adrc_vs_lqr
-    result = adrc_vs_lqr.run(adrc_vs_lqr.Params(shift=args.shift, seed=args.seed, true_beta=args.true_beta,
-                                                params=args.params))
+
+    result = adrc_vs_lqr.run(
+        adrc_vs_lqr.Params(
+            shift=args.shift, seed=args.seed, true_beta=args.true_beta, params=args.params
+        )
+    )
     print(adrc_vs_lqr.report(result, args.out))
     if args.json:
         print_json({'out': str(Path(args.out)), 'variants': result['summary']})
     return 0
 
 
-register_experiment('adrc-vs-lqr', 'ADRC vs plain LQR with the same wrong CoM (stand-up, push, pose change)',
-                    _adrc_args, _run_adrc)
+register_experiment(
+    'adrc-vs-lqr',
+    'ADRC vs plain LQR with the same wrong CoM (stand-up, push, pose change)',
+    _adrc_args,
+    _run_adrc,
+)
 
 
 # ----------------------------------------------------------------------------- table2
 
 
 def _table2_args(p):
-    p.add_argument('--out', default='out/table2', help='output folder (report.md, PNGs, JSON, learned betas)')
-    p.add_argument('--runs', type=int, default=7, help='stand-up-and-balance runs per beta (noise seeds 0..runs-1)')
-    p.add_argument('--poses', type=int, default=189,
-                   help='poses to learn from (default 189: beta_190 = row 189, the paper\'s numbering)')
-    p.add_argument('--order', choices=('authors', 'file'), default='authors',
-                   help="pose order: the authors' hardware training order of the filtered poses (kit "
-                        "hardware_balanced_poses_train.csv) or the file order of finalSetMunzir.txt")
+    p.add_argument(
+        '--out', default='out/table2', help='output folder (report.md, PNGs, JSON, learned betas)'
+    )
+    p.add_argument(
+        '--runs',
+        type=int,
+        default=7,
+        help='stand-up-and-balance runs per beta (noise seeds 0..runs-1)',
+    )
+    p.add_argument(
+        '--poses',
+        type=int,
+        default=189,
+        help="poses to learn from (default 189: beta_190 = row 189, the paper's numbering)",
+    )
+    p.add_argument(
+        '--order',
+        choices=('authors', 'file'),
+        default='authors',
+        help="pose order: the authors' hardware training order of the filtered poses (kit "
+        'hardware_balanced_poses_train.csv) or the file order of finalSetMunzir.txt',
+    )
     p.add_argument('--seconds', type=float, default=62.0, help='length of each balancing run (s)')
-    p.add_argument('--kit', default=None,
-                   help='real-data kit folder (default $KRANG_DATA or shared/krang_data beside the checkout)')
-    p.add_argument('--true-beta', default=None, help='hidden truth (default config/sim_true_beta.yaml)')
-    p.add_argument('--params', default=None, help='controller YAML (default config/controller.yaml)')
+    p.add_argument(
+        '--kit',
+        default=None,
+        help='real-data kit folder (default $KRANG_DATA or shared/krang_data beside the checkout)',
+    )
+    p.add_argument(
+        '--true-beta', default=None, help='hidden truth (default config/sim_true_beta.yaml)'
+    )
+    p.add_argument(
+        '--params', default=None, help='controller YAML (default config/controller.yaml)'
+    )
     p.add_argument('--seed', type=int, default=0, help='seed of the learning session')
-    p.add_argument('--betas', default=None, metavar='FILE',
-                   help='skip the learning: take the betas (row k = after k updates) from FILE, e.g. the '
-                        'learned_betas.txt of an earlier run')
-    p.add_argument('--paper-era-pd', action='store_true',
-                   help="the 2018 runs' controller instead of ours: the paper-era stand PD (250, 40, 4, 10) "
-                        'for the whole run (on the hardware the switch to balance needed |theta| < 0.034 rad, '
-                        'which the learned betas never met), no ADRC')
-    p.add_argument('--extended-model', default=None, metavar='YAML',
-                   help='simulate the robot with the effects `krang discrepancy` found (its extended_model.yaml, '
-                        'e.g. from the hardware Table II runs), to compare the simulated table with the hardware')
-    p.add_argument('--json', action='store_true', help='print the table as JSON on the last stdout line')
+    p.add_argument(
+        '--betas',
+        default=None,
+        metavar='FILE',
+        help='skip the learning: take the betas (row k = after k updates) from FILE, e.g. the '
+        'learned_betas.txt of an earlier run',
+    )
+    p.add_argument(
+        '--paper-era-pd',
+        action='store_true',
+        help="the 2018 runs' controller instead of ours: the paper-era stand PD (250, 40, 4, 10) "
+        'for the whole run (on the hardware the switch to balance needed |theta| < 0.034 rad, '
+        'which the learned betas never met), no ADRC',
+    )
+    p.add_argument(
+        '--extended-model',
+        default=None,
+        metavar='YAML',
+        help='simulate the robot with the effects `krang discrepancy` found (its '
+             'extended_model.yaml, '
+        'e.g. from the hardware Table II runs), to compare the simulated table with the hardware',
+    )
+    p.add_argument(
+        '--json', action='store_true', help='print the table as JSON on the last stdout line'
+    )
 
 
 def _run_table2(args):
     from krang_experiments import table2
-    params = table2.Params(runs=args.runs, poses=args.poses, order=args.order, seconds=args.seconds,
-                           kit=args.kit, true_beta=args.true_beta, params=args.params, seed=args.seed,
-                           betas=args.betas, paper_era_pd=args.paper_era_pd,
-                           extended_model=args.extended_model)
+
+    params = table2.Params(
+        runs=args.runs,
+        poses=args.poses,
+        order=args.order,
+        seconds=args.seconds,
+        kit=args.kit,
+        true_beta=args.true_beta,
+        params=args.params,
+        seed=args.seed,
+        betas=args.betas,
+        paper_era_pd=args.paper_era_pd,
+        extended_model=args.extended_model,
+    )
     result = table2.run(params)
     print(table2.report(result, args.out))
     if args.json:
@@ -155,5 +230,9 @@ def _run_table2(args):
     return 0
 
 
-register_experiment('table2', "Table II in simulation: learn online, then 7 stand-up-and-balance runs per beta",
-                    _table2_args, _run_table2)
+register_experiment(
+    'table2',
+    'Table II in simulation: learn online, then 7 stand-up-and-balance runs per beta',
+    _table2_args,
+    _run_table2,
+)

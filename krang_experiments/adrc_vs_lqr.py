@@ -1,5 +1,6 @@
-"""ADRC and plain LQR with the same wrong CoM: stand-up, a push, a pose change (README, "ADRC versus
-plain LQR with a wrong CoM"; docs/control.md). `krang experiment adrc-vs-lqr`."""
+"""ADRC and plain LQR with the same wrong CoM: stand-up, a push, a pose change (README, "ADRC
+versus plain LQR with a wrong CoM"; docs/control.md). `krang experiment adrc-vs-lqr`."""
+
 import json
 import math
 import time
@@ -16,19 +17,32 @@ from .common import setup, subplots
 
 @dataclass
 class Params:
-    shift: float = 0.025            # CoM error of the wrong beta in the Table II pose (m)
+    shift: float = 0.025  # CoM error of the wrong beta in the Table II pose (m)
     seed: int = 5
-    true_beta: str | None = None    # hidden truth (default config/sim_true_beta.yaml)
-    params: str | None = None       # controller YAML (default config/controller.yaml)
+    true_beta: str | None = None  # hidden truth (default config/sim_true_beta.yaml)
+    params: str | None = None  # controller YAML (default config/controller.yaml)
 
 
-def scenario(robot, true_beta, beta_est, disturbance_rejection=True, *, seed=0, seconds=70.0,
-             config=None, kick_at_s=25.0, kick_rad_s=0.3, pose_at_s=45.0, pose2=None,
-             eso_omega_o=None):
-    """Stand up from the caster (enable at 0.5 s), balance; at `kick_at_s` a push (+kick_rad_s on the
-    body's pitch rate); at `pose_at_s` the waist opens from 2.755 to 2.3 rad. Per phase: rest position
-    (mean of the last 3 s) and the prediction x_ref - F_th0 delta / F_x0, max excursion from the rest,
-    overshoot, settle time (2 cm band), max tilt from the true balance pitch, peak/RMS current."""
+def scenario(
+    robot,
+    true_beta,
+    beta_est,
+    disturbance_rejection=True,
+    *,
+    seed=0,
+    seconds=70.0,
+    config=None,
+    kick_at_s=25.0,
+    kick_rad_s=0.3,
+    pose_at_s=45.0,
+    pose2=None,
+    eso_omega_o=None,
+):
+    """Stand up from the caster (enable at 0.5 s), balance; at `kick_at_s` a push (+kick_rad_s on
+    the body's pitch rate); at `pose_at_s` the waist opens from 2.755 to 2.3 rad. Per phase: rest
+    position (mean of the last 3 s) and the prediction x_ref - F_th0 delta / F_x0, max excursion
+    from the rest, overshoot, settle time (2 cm band), max tilt from the true balance pitch,
+    peak/RMS current."""
     over = {'adrc.use_disturbance_rejection': bool(disturbance_rejection)}
     if eso_omega_o is not None:
         over['adrc.eso.omega_o'] = float(eso_omega_o)
@@ -36,10 +50,24 @@ def scenario(robot, true_beta, beta_est, disturbance_rejection=True, *, seed=0, 
     if pose2 is None:
         pose2 = TABLE2_POSE.copy()
         pose2[0] = 2.3
-    loop = ClosedLoop(robot, true_beta, beta_est, TABLE2_POSE, controller_config=cfg, seed=seed, log_rate_hz=100.0)
-    loop.schedule(Disturbance(kick_at_s, 'kick', kick_rad_s), Disturbance(pose_at_s, 'joints', pose2))
+    loop = ClosedLoop(
+        robot,
+        true_beta,
+        beta_est,
+        TABLE2_POSE,
+        controller_config=cfg,
+        seed=seed,
+        log_rate_hz=100.0,
+    )
+    loop.schedule(
+        Disturbance(kick_at_s, 'kick', kick_rad_s), Disturbance(pose_at_s, 'joints', pose2)
+    )
     ctl = loop.controller
-    bounds = [(0.5, kick_at_s, 'stand-up'), (kick_at_s, pose_at_s, 'push'), (pose_at_s, seconds, 'pose change')]
+    bounds = [
+        (0.5, kick_at_s, 'stand-up'),
+        (kick_at_s, pose_at_s, 'push'),
+        (pose_at_s, seconds, 'pose change'),
+    ]
     loop.run(0.5)
     ctl.set_enabled(True)
     phases = []
@@ -47,8 +75,16 @@ def scenario(robot, true_beta, beta_est, disturbance_rejection=True, *, seed=0, 
         loop.run(t1 - loop.sim.t)
         delta = ctl.com_offset + loop.sim.balance_pitch()
         pred = ctl.x_ref + ctl.expected_rest_offset() * delta if ctl.design else math.nan
-        phases.append({'name': name, 't0': t0, 't1': t1, 'theta_error_rad': delta, 'x_rest_predicted_m': pred,
-                       'balance_trim_rad': ctl.last_output.balance_trim})
+        phases.append(
+            {
+                'name': name,
+                't0': t0,
+                't1': t1,
+                'theta_error_rad': delta,
+                'x_rest_predicted_m': pred,
+                'balance_trim_rad': ctl.last_output.balance_trim,
+            }
+        )
     lg = {k: np.asarray(v, float) for k, v in loop.log.items()}
     t, x, q, i = lg['t'], lg['x_true_m'], lg['q_base_true'], lg['i_left']
     t_bal = next((tt for tt, e in loop.events if '->balance' in e), math.nan)
@@ -65,8 +101,9 @@ def scenario(robot, true_beta, beta_est, disturbance_rejection=True, *, seed=0, 
         ph['settle_time_s'] = float(t[m][out[-1]] - ph['t0']) if out.size else 0.0
         # tilt from the (instantaneous) true balance pitch; stand-up: from BALANCE entry on
         mt = m & (t >= (t_bal if k == 0 else ph['t0']))
-        ph['max_tilt_from_balance_rad'] = float(np.abs(q[mt] - lg['balance_pitch_true'][mt]).max()) \
-            if mt.any() else math.nan
+        ph['max_tilt_from_balance_rad'] = (
+            float(np.abs(q[mt] - lg['balance_pitch_true'][mt]).max()) if mt.any() else math.nan
+        )
         ph['peak_current_a'] = float(np.abs(i[m]).max())
         ph['rms_current_a'] = float(np.sqrt(np.mean(i[m] ** 2)))
         rest = m & (t >= ph['t1'] - 5.0)
@@ -75,8 +112,14 @@ def scenario(robot, true_beta, beta_est, disturbance_rejection=True, *, seed=0, 
     for tt, e in loop.events:
         if '->' in e:
             times.setdefault(e.split('->', 1)[1].split(':', 1)[0], tt)
-    return {'stood_up': 'balance' in times, 'final_mode': ctl.mode.value, 'mode_times': times,
-            'phases': phases, 'log': lg, 'expected_rest_per_rad_m': ctl.expected_rest_offset()}
+    return {
+        'stood_up': 'balance' in times,
+        'final_mode': ctl.mode.value,
+        'mode_times': times,
+        'phases': phases,
+        'log': lg,
+        'expected_rest_per_rad_m': ctl.expected_rest_offset(),
+    }
 
 
 def run(params: Params):
@@ -86,20 +129,28 @@ def run(params: Params):
     wrong = shifted_beta(robot, true_beta, TABLE2_POSE, params.shift)
     paper = cfg.override({'balance_point.enabled': False})
     observer = cfg.override({'balance_point.enabled': True})
-    variants = [('ADRC + balance-point observer (shipped)', wrong, True, None, observer),
-                ("ADRC, the paper's law (ESO 20 rad/s)", wrong, True, None, paper),
-                ('plain LQR', wrong, False, None, paper),
-                ("ADRC, the paper's law (authors' ESO gains)", wrong, True, 0.0, paper),
-                ('plain LQR, TRUE beta', true_beta, False, None, paper)]
+    variants = [
+        ('ADRC + balance-point observer (shipped)', wrong, True, None, observer),
+        ("ADRC, the paper's law (ESO 20 rad/s)", wrong, True, None, paper),
+        ('plain LQR', wrong, False, None, paper),
+        ("ADRC, the paper's law (authors' ESO gains)", wrong, True, 0.0, paper),
+        ('plain LQR, TRUE beta', true_beta, False, None, paper),
+    ]
     results = {}
     wall = time.perf_counter()
     for name, beta, dr, omega, variant_cfg in variants:
-        results[name] = scenario(robot, true_beta, beta, dr, seed=params.seed, config=variant_cfg,
-                                 eso_omega_o=omega)
+        results[name] = scenario(
+            robot, true_beta, beta, dr, seed=params.seed, config=variant_cfg, eso_omega_o=omega
+        )
     wall = time.perf_counter() - wall
-    summary = {name: {'stood_up': r['stood_up'], 'final_mode': r['final_mode'],
-                      'phases': [{k: v for k, v in ph.items()} for ph in r['phases']]}
-               for name, r in results.items()}
+    summary = {
+        name: {
+            'stood_up': r['stood_up'],
+            'final_mode': r['final_mode'],
+            'phases': [{k: v for k, v in ph.items()} for ph in r['phases']],
+        }
+        for name, r in results.items()
+    }
     return {'params': params, 'results': results, 'summary': summary, 'wall_s': wall}
 
 
@@ -123,29 +174,50 @@ def report(result, out_dir):
     ax[2].set_ylabel('left current (A)')
     ax[2].set_xlabel('t (s): enable at 0.5 s, push at 25 s, waist 2.755 -> 2.3 rad at 45 s')
     ax[0].legend(loc='lower left', fontsize=8)
-    ax[0].set_title(f'Wrong CoM ({100 * params.shift:.1f} cm in the Table II pose): ADRC (with and without the '
-                    f'balance-point observer) vs plain LQR')
+    ax[0].set_title(
+        f'Wrong CoM ({100 * params.shift:.1f} cm in the Table II pose): ADRC (with and without '
+        'the '
+        f'balance-point observer) vs plain LQR'
+    )
     fig.tight_layout()
     fig.savefig(out / 'adrc_vs_lqr.png', dpi=110)
-    lines = [f'# ADRC vs plain LQR with a wrong CoM ({100 * params.shift:.1f} cm)', '',
-             f'`krang experiment adrc-vs-lqr --out {out_dir}` (seed {params.seed}; {wall:.1f} s wall).',
-             'Robot: simulated Krang, hidden truth `config/sim_true_beta.yaml`; the controller uses the truth with '
-             f'the Base mass moment shifted so the paper\'s x_com is off by {100 * params.shift:.1f} cm in the Table II '
-             'pose (theta error ' f'{results["plain LQR"]["phases"][0]["theta_error_rad"]:.3f} rad). Sensor noise on. '
-             'Stand-up uses the hardware stand PD in every variant; the compared law acts from BALANCE on. '
-             'The balance-point observer (krang_adrc_controller/balance_point.py) estimates the CoM-angle error '
-             'delta from the theta-channel disturbance and the ADRC regulates about it; its estimate at the end of '
-             'each phase is the last column.', '',
-             '![adrc vs lqr](adrc_vs_lqr.png)', '',
-             '| controller | phase | rest x (m) | LQR offset -F_th0 δ/F_x0 (m) | max excursion (m) | overshoot (m) | '
-             'settle 2 cm (s) | max tilt (rad) | peak I (A) | I std at rest (A) | δ (rad) | observer δ̂ (rad) |',
-             '|---|---|---|---|---|---|---|---|---|---|---|---|']
+    lines = [
+        f'# ADRC vs plain LQR with a wrong CoM ({100 * params.shift:.1f} cm)',
+        '',
+        f'`krang experiment adrc-vs-lqr --out {out_dir}` (seed {params.seed}; {wall:.1f} s wall).',
+        'Robot: simulated Krang, hidden truth `config/sim_true_beta.yaml`; the controller uses '
+        'the truth with '
+        f"the Base mass moment shifted so the paper's x_com is off by {100 * params.shift:.1f} cm "
+        "in the Table II "
+        'pose (theta error '
+        f'{results["plain LQR"]["phases"][0]["theta_error_rad"]:.3f} rad). Sensor noise on. '
+        'Stand-up uses the hardware stand PD in every variant; the compared law acts from BALANCE '
+        'on. '
+        'The balance-point observer (krang_adrc_controller/balance_point.py) estimates the '
+        'CoM-angle error '
+        'delta from the theta-channel disturbance and the ADRC regulates about it; its estimate '
+        'at the end of '
+        'each phase is the last column.',
+        '',
+        '![adrc vs lqr](adrc_vs_lqr.png)',
+        '',
+        '| controller | phase | rest x (m) | LQR offset -F_th0 δ/F_x0 (m) | max excursion (m) | '
+        'overshoot (m) | '
+        'settle 2 cm (s) | max tilt (rad) | peak I (A) | I std at rest (A) | δ (rad) | observer '
+        'δ̂ (rad) |',
+        '|---|---|---|---|---|---|---|---|---|---|---|---|',
+    ]
     for name, r in results.items():
         for ph in r['phases']:
-            lines.append(f"| {name} | {ph['name']} | {ph['x_rest_m']:.3f} | {ph['x_rest_predicted_m']:.3f} | "
-                         f"{ph['max_excursion_m']:.3f} | {ph['overshoot_m']:.3f} | {ph['settle_time_s']:.1f} | "
-                         f"{ph['max_tilt_from_balance_rad']:.3f} | {ph['peak_current_a']:.1f} | "
-                         f"{ph['rest_current_std_a']:.2f} | {ph['theta_error_rad']:.4f} | {ph['balance_trim_rad']:.4f} |")
+            lines.append(
+                f'| {name} | {ph["name"]} | {ph["x_rest_m"]:.3f} | {ph["x_rest_predicted_m"]:.3f} '
+                '| '
+                f'{ph["max_excursion_m"]:.3f} | {ph["overshoot_m"]:.3f} | '
+                f'{ph["settle_time_s"]:.1f} | '
+                f'{ph["max_tilt_from_balance_rad"]:.3f} | {ph["peak_current_a"]:.1f} | '
+                f'{ph["rest_current_std_a"]:.2f} | {ph["theta_error_rad"]:.4f} | '
+                f'{ph["balance_trim_rad"]:.4f} |'
+            )
     (out / 'report.md').write_text('\n'.join(lines) + '\n')
     (out / 'summary.json').write_text(json.dumps(result['summary'], indent=1))
     return '\n'.join(lines)

@@ -1,4 +1,6 @@
-"""Helpers shared by the experiments: the real-data kit, the filtered poses, the simulated robot."""
+"""Helpers shared by the experiments: the real-data kit, the filtered poses, the simulated
+robot."""
+
 import csv
 import math
 import os
@@ -26,13 +28,15 @@ def kit_dir(path=None):
 
 
 def load_filtered_poses(kit):
-    """(poses (528, 16) pose order, authors' training order (filtered indices) or None, description)
-    from poses/finalSetMunzir.txt (Munzir format: heading, q_base, x, y, z, q_lwheel, q_rwheel,
-    q_waist, q_torso, q_kinect, left 1..7, right 1..7; the Kinect is dropped)."""
+    """(poses (528, 16) pose order, authors' training order (filtered indices) or None,
+    description) from poses/finalSetMunzir.txt (Munzir format: heading, q_base, x, y, z, q_lwheel,
+    q_rwheel, q_waist, q_torso, q_kinect, left 1..7, right 1..7; the Kinect is dropped)."""
     kit = Path(kit)
     raw = np.loadtxt(kit / 'poses' / 'finalSetMunzir.txt', ndmin=2)
     if raw.shape[1] != 24:
-        raise ValueError(f'{kit}/poses/finalSetMunzir.txt: expected 24 columns, got {raw.shape[1]}')
+        raise ValueError(
+            f'{kit}/poses/finalSetMunzir.txt: expected 24 columns, got {raw.shape[1]}'
+        )
     poses = raw[:, [7, 8] + list(range(10, 24))]
     order = None
     train = kit / 'hardware_balanced_poses_train.csv'
@@ -55,11 +59,13 @@ def setup(true_beta=None, params=None):
 
 def mean_std(values):
     """(mean, population std) of the finite values, or (None, None)."""
-    v = np.asarray([x for x in values if x is not None and not (isinstance(x, float) and math.isnan(x))],
-                   float)
+    v = np.asarray(
+        [x for x in values if x is not None and not (isinstance(x, float) and math.isnan(x))],
+        float,
+    )
     if v.size == 0:
         return None, None
-    return float(v.mean()), float(v.std())          # population std (ddof=0), as the paper's table
+    return float(v.mean()), float(v.std())  # population std (ddof=0), as the paper's table
 
 
 def fmt(m, s, digits=3):

@@ -1,5 +1,6 @@
 """The estimator registry: every registered estimator follows the one update protocol, and an
 estimator a user registers is offered wherever a method is chosen by name (the CLI's --method)."""
+
 import numpy as np
 import pytest
 
@@ -76,11 +77,12 @@ def test_every_estimator_follows_the_protocol(robot, data, user_estimator, name)
     assert e.n_updates == len(q) and len(e.errors) == len(q)
     assert np.abs(e.beta - truth).max() < 1e-9 * np.abs(truth).max()
     cov = e.covariance
-    assert cov is None or (cov.shape == (robot.n_beta,) * 2
-                           and np.all(np.linalg.eigvalsh(cov) > -1e-9))
+    assert cov is None or (
+        cov.shape == (robot.n_beta,) * 2 and np.all(np.linalg.eigvalsh(cov) > -1e-9)
+    )
     # from a wrong start, the batch fit learns: the CoM error at the poses falls by more than half
     e.reset(start)
-    assert np.abs(e.beta - start).max() < 1e-9 * np.abs(start).max()    # MAP: conditioned prior
+    assert np.abs(e.beta - start).max() < 1e-9 * np.abs(start).max()  # MAP: conditioned prior
     assert e.n_updates == 0 and e.errors == []
     beta, info = e.fit(q, joints)
     assert info['method'] == name and info['poses'] == len(q)
@@ -108,12 +110,28 @@ def test_a_user_registered_estimator_is_offered_by_the_cli(robot, data, user_est
     save_poses(poses, q, joints, KRANG_POSE_COLUMNS)
     np.savetxt(tmp_path / 'start.txt', start[None])
     out = tmp_path / 'learned.txt'
-    assert main(['learn', '--poses', str(poses), '--beta0', str(tmp_path / 'start.txt'),
-                 '--out', str(out), '--method', 'user-nlms', '--folds', '0']) == 0
-    q_file, joints_file, _ = load_poses(poses, KRANG_POSE_COLUMNS)       # as the CLI read them
+    assert (
+        main(
+            [
+                'learn',
+                '--poses',
+                str(poses),
+                '--beta0',
+                str(tmp_path / 'start.txt'),
+                '--out',
+                str(out),
+                '--method',
+                'user-nlms',
+                '--folds',
+                '0',
+            ]
+        )
+        == 0
+    )
+    q_file, joints_file, _ = load_poses(poses, KRANG_POSE_COLUMNS)  # as the CLI read them
     expected, _ = NormalisedGD(robot, start).fit(q_file, joints_file)
     learned = np.loadtxt(out)
-    np.testing.assert_allclose(learned, expected, rtol=1e-8, atol=1e-12)   # 9 digits in the file
+    np.testing.assert_allclose(learned, expected, rtol=1e-8, atol=1e-12)  # 9 digits in the file
     assert not np.allclose(learned, start)
 
 
@@ -128,8 +146,11 @@ def test_entry_point_plugins_are_loaded(monkeypatch):
             est.register_estimator('user-ep')(NormalisedGD)
 
     monkeypatch.setattr(est, '_plugins_loaded', False)
-    monkeypatch.setattr(est.importlib.metadata, 'entry_points',
-                        lambda group: [EntryPoint()] if group == est.ENTRY_POINT_GROUP else [])
+    monkeypatch.setattr(
+        est.importlib.metadata,
+        'entry_points',
+        lambda group: [EntryPoint()] if group == est.ENTRY_POINT_GROUP else [],
+    )
     try:
         assert 'user-ep' in est.estimator_names()
         est.estimator_names()

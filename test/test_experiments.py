@@ -1,5 +1,7 @@
 """The experiments package: each experiment's run(params) on small settings, then report(result,
-out_dir) writes what `krang experiment <name>` promises (the full runs are in the README and docs)."""
+out_dir) writes what `krang experiment <name>` promises (the full runs are in the README and
+docs)."""
+
 import json
 
 import numpy as np
@@ -12,18 +14,31 @@ from krang_sim.closed_loop import TABLE2_POSE, shifted_beta
 
 def test_table2_run_and_report_on_given_betas(tmp_path, krang_data):
     robot, true_beta, _ = setup()
-    betas = np.vstack([robot.nominal_beta] * 15 + [shifted_beta(robot, true_beta, TABLE2_POSE, 0.01)])
+    betas = np.vstack(
+        [robot.nominal_beta] * 15 + [shifted_beta(robot, true_beta, TABLE2_POSE, 0.01)]
+    )
     np.savetxt(tmp_path / 'betas.txt', betas)
-    params = table2.Params(runs=1, seconds=20.0, poses=16, kit=str(krang_data),
-                           betas=str(tmp_path / 'betas.txt'))
+    params = table2.Params(
+        runs=1, seconds=20.0, poses=16, kit=str(krang_data), betas=str(tmp_path / 'betas.txt')
+    )
     result = table2.run(params, progress=False)
     assert [name for name, _ in result['rows']] == ['beta_0', 'beta_16', 'TRUE beta']
     assert set(result['table']) == {'beta_0', 'beta_16', 'TRUE beta'}
-    assert result['table']['beta_16']['stood_up'] == 1 and result['table']['beta_0']['refused'] == 1
+    assert (
+        result['table']['beta_16']['stood_up'] == 1 and result['table']['beta_0']['refused'] == 1
+    )
     out = tmp_path / 'out'
     text = table2.report(result, out)
-    for name in ('report.md', 'power_traces.png', 'standup.png', 'learning_curve.png', 'table2.json',
-                 'learned_betas.txt', 'beta_16.txt', 'TRUE_beta.txt'):
+    for name in (
+        'report.md',
+        'power_traces.png',
+        'standup.png',
+        'learning_curve.png',
+        'table2.json',
+        'learned_betas.txt',
+        'beta_16.txt',
+        'TRUE_beta.txt',
+    ):
         assert (out / name).stat().st_size > 0, name
     assert (out / 'report.md').read_text() == text + '\n'
     assert f'krang experiment table2 --out {out} --runs 1 --poses 16' in text
@@ -45,7 +60,9 @@ def test_adrc_vs_lqr_run_and_report(tmp_path):
 
 
 def test_learning_run_and_report_on_a_small_pool(tmp_path):
-    params = learning.Params(n_pool=400, n_betas=20, n_runs=2, n_test=50, parts=('filter', 'curves'))
+    params = learning.Params(
+        n_pool=400, n_betas=20, n_runs=2, n_test=50, parts=('filter', 'curves')
+    )
     result = learning.run(params, progress=lambda message: None)
     res = result['results']
     assert res['settings']['n_pool'] == 400 and res['paper_filter']['filtered_poses'] > 0
@@ -56,16 +73,17 @@ def test_learning_run_and_report_on_a_small_pool(tmp_path):
             assert last['balance_mm_mean'] < first['balance_mm_mean'], (setting, method)
     learning.report(result, tmp_path)
     assert (tmp_path / 'learning_curves.png').stat().st_size > 0
-    assert not (tmp_path / 'real_data.png').exists()            # the real part was not asked for
+    assert not (tmp_path / 'real_data.png').exists()  # the real part was not asked for
     assert json.loads((tmp_path / 'learning_results.json').read_text())['settings']['n_runs'] == 2
 
 
-@pytest.mark.slow                  # 10-25 s: ten-fold CV of five estimators and the authors' pool
+@pytest.mark.slow  # 10-25 s: ten-fold CV of five estimators and the authors' pool
 def test_learning_real_data_part_reproduces_the_documented_cross_validation(tmp_path, krang_data):
     """docs/learning.md, "Real data": 10-fold CV mean |x_com| 0.589 cm for the paper's GD, 0.231 cm
     for our MAP."""
-    result = learning.run(learning.Params(data_dir=krang_data, parts=('real',)),
-                          progress=lambda message: None)
+    result = learning.run(
+        learning.Params(data_dir=krang_data, parts=('real',)), progress=lambda message: None
+    )
     cv = result['results']['real_data']['cross_validation']
     assert cv['paper-gd']['mean_cm'] == pytest.approx(0.589, abs=5e-4)
     assert cv['map']['mean_cm'] == pytest.approx(0.231, abs=5e-4)
