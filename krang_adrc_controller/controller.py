@@ -55,7 +55,7 @@ from .adrc import AdrcConfig, AdrcController
 from .balance_point import BalancePointObserver, ObserverConfig
 from .detector import BalancedPoint, BalancedPoseDetector, DetectorConfig
 from .lqr import GainCache, LqrConfig, LqrDesigner
-from .modes import Mode, ModeInputs, ModeMachine, ModeOutput, ModesConfig, SafetyConfig
+from .modes import Mode, ModeInputs, ModeMachine, ModesConfig, SafetyConfig
 
 NODE_NAME = 'adrc_controller'
 #: ESO bandwidth of the balance-point observer when the ADRC runs the authors' gains, rad/s
@@ -207,7 +207,6 @@ class BalanceController:
         self._refused = False
         self._t_stand = 0.0
         self._stop_reason = None
-        self._steady_balance = ModeOutput(Mode.BALANCE, 'adrc', None, False, False, ())
         self.last_output: ControlOutput | None = None
         self.points: list[BalancedPoint] = []
         self.redesigns = 0
