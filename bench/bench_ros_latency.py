@@ -70,7 +70,7 @@ def main():
     # the simulated node set's parameters, but on wall time: this benchmark plays the robot, with no /clock
     nodes = NodeSet(params_files(True, []), log_dir=os.path.join(tmp, 'logs'))
     nodes.start('can_bridge', {'devices_file': devices_file, 'use_sim_time': False})
-    nodes.start('adrc_controller', {'auto_stand': False, 'use_sim_time': False})
+    nodes.start('adrc_controller', {'modes.auto_stand': False, 'use_sim_time': False})
     toggles = []
     efforts = []
     stop = threading.Event()

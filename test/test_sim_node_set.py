@@ -21,6 +21,7 @@ from rcl_interfaces.srv import SetParameters  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 from std_msgs.msg import Float64MultiArray  # noqa: E402
 
+from krang_adrc_controller.controller import ControllerConfig  # noqa: E402
 from krang_can_bridge.config import load_devices  # noqa: E402
 from krang_cli.node_set import params_files  # noqa: E402
 from krang_cli.processes import NodeSet  # noqa: E402
@@ -38,9 +39,10 @@ DELIVERY_SLACK_S = 0.05         # a frame or message in flight when the deadline
 
 def stale_timeout_s():
     """The controller's stale timeout as the sim node set runs it (sim_params.yaml over controller.yaml)."""
-    value = None
+    value = ControllerConfig().safety.stale_timeout_s
     for path in params_files(sim=True, extra=()):
-        value = load_config(path).get('adrc_controller', {}).get('ros__parameters', {}).get('stale_timeout_s', value)
+        section = load_config(path).get('adrc_controller', {}).get('ros__parameters', {})
+        value = section.get('safety.stale_timeout_s', value)
     return float(value)
 
 
