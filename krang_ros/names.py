@@ -11,6 +11,7 @@ POSE_TARGET = '/pose_server/target'
 DIAGNOSTICS = '/diagnostics'
 CLOCK = '/clock'                                 # ROS simulated time, published by sim_krang
 GROUND_TRUTH = '/sim_krang/ground_truth'         # the simulator's truth, for evaluation only
+DRIVE_FAULT = '/can_bridge/drive_fault'         # latched reason of a drive fault, '' when clear
 
 BASE_PITCH = 'base_pitch'    # the extra "joint" of /balanced_pose
 WHEEL_JOINTS = ('JLWheel', 'JRWheel')
@@ -21,3 +22,4 @@ NEXT_POSE = '/pose_server/next_pose'
 POSE_RESET = '/pose_server/reset'
 SAVE = '/com_estimator/save'
 ESTIMATOR_RESET = '/com_estimator/reset'
+BRIDGE_RECOVER = '/can_bridge/recover'          # std_srvs/Trigger: fault reset + enable, or why not
