@@ -45,12 +45,12 @@ setup(
     entry_points={
         'console_scripts': [
             'krang = krang_cli.main:main',
-            'can_bridge = krang_can_bridge.node:main',
-            'adrc_controller = krang_adrc_controller.node:main',
-            'pose_server = krang_pose_server.node:main',
-            'com_estimator = krang_com_estimator.node:main',
-            'mcap_recorder = krang_bag.node:main',
-            'sim_krang = krang_sim.node:main',
+            'can_bridge = krang_ros.entry:can_bridge',
+            'adrc_controller = krang_ros.entry:adrc_controller',
+            'pose_server = krang_ros.entry:pose_server',
+            'com_estimator = krang_ros.entry:com_estimator',
+            'mcap_recorder = krang_ros.entry:mcap_recorder',
+            'sim_krang = krang_ros.entry:sim_krang',
         ],
     },
 )

@@ -8,16 +8,6 @@ import time
 
 log = logging.getLogger('krang.bringup')
 
-# executable -> Python module with main(); the same entry points as setup.py's console_scripts
-NODE_MODULES = {
-    'sim_krang': 'krang_sim.node',
-    'can_bridge': 'krang_can_bridge.node',
-    'adrc_controller': 'krang_adrc_controller.node',
-    'pose_server': 'krang_pose_server.node',
-    'com_estimator': 'krang_com_estimator.node',
-    'mcap_recorder': 'krang_bag.node',
-}
-
 
 class NodeSet:
     """A group of node processes that live and die together."""
@@ -29,7 +19,7 @@ class NodeSet:
         self.procs = {}
 
     def start(self, name, extra_params=None):
-        cmd = [sys.executable, '-m', NODE_MODULES[name], '--ros-args']
+        cmd = [sys.executable, '-m', 'krang_ros.entry', name, '--ros-args']
         for f in self.params_files:
             cmd += ['--params-file', f]
         for key, value in (extra_params or {}).items():

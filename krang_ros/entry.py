@@ -1,0 +1,79 @@
+"""The entry point of every node executable (console scripts, `ros2 run`, `krang bringup`).
+
+It is deliberately light: Ctrl-C or SIGTERM while a node is still importing numpy, scipy or
+pinocchio ends it quietly with exit code 0 instead of a KeyboardInterrupt traceback, and `--help`
+prints what the node does and its parameters without starting it (no bus is opened, no node joins
+the graph)."""
+import importlib
+import signal
+import sys
+
+#: executable -> module with the node's `main()` and a docstring that lists its parameters.
+NODE_MODULES = {
+    'sim_krang': 'krang_sim.node',
+    'can_bridge': 'krang_can_bridge.node',
+    'adrc_controller': 'krang_adrc_controller.node',
+    'pose_server': 'krang_pose_server.node',
+    'com_estimator': 'krang_com_estimator.node',
+    'mcap_recorder': 'krang_bag.node',
+}
+
+
+def _exit_quietly(signum, frame):
+    raise SystemExit(0)
+
+
+def run(executable, argv=None):
+    """Run the node `executable`; rclpy's own signal handling takes over once it is initialised."""
+    argv = sys.argv[1:] if argv is None else list(argv)
+    signal.signal(signal.SIGINT, _exit_quietly)
+    signal.signal(signal.SIGTERM, _exit_quietly)
+    ros_args = argv[argv.index('--ros-args'):] if '--ros-args' in argv else []
+    own = argv[:len(argv) - len(ros_args)]
+    module = importlib.import_module(NODE_MODULES[executable])
+    if own and own[0] in ('-h', '--help'):
+        print(help_text(executable, module))
+        return 0
+    if own:
+        print(f'{executable}: unknown arguments {own}; parameters go after --ros-args '
+              f'(-p name:=value, --params-file FILE). See {executable} --help.', file=sys.stderr)
+        return 2
+    return module.main([executable] + ros_args)
+
+
+def help_text(executable, module):
+    """The node's docstring, then its parameters if the module describes them (`PARAMETERS`)."""
+    lines = [f'usage: {executable} [--help] [--ros-args -p NAME:=VALUE ... --params-file FILE]',
+             '', (module.__doc__ or '').strip()]
+    described = getattr(module, 'describe_parameters', None)
+    if described is not None:
+        lines += ['', 'parameters:'] + [f'  {line}' for line in described()]
+    return '\n'.join(lines)
+
+
+def sim_krang():
+    return run('sim_krang')
+
+
+def can_bridge():
+    return run('can_bridge')
+
+
+def adrc_controller():
+    return run('adrc_controller')
+
+
+def pose_server():
+    return run('pose_server')
+
+
+def com_estimator():
+    return run('com_estimator')
+
+
+def mcap_recorder():
+    return run('mcap_recorder')
+
+
+if __name__ == '__main__':
+    sys.exit(run(sys.argv[1], sys.argv[2:]))

@@ -1,0 +1,80 @@
+"""Every node executable answers --help without starting, and ends with exit code 0 and no
+traceback on SIGINT or SIGTERM, whether the signal comes while it imports, while it is being
+built, or while it spins; `krang bringup --sim` too (issue: RCLError and KeyError on Ctrl-C)."""
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+
+from krang_cli.node_set import params_files
+from krang_model.config import load_config
+from krang_ros.params import nested_to_dotted
+from krang_ros.entry import NODE_MODULES
+from krang_sim.session_config import session_devices_file
+
+NODES = sorted(NODE_MODULES)
+
+
+def configured_parameters(executable):
+    """The parameter names the package's own parameter files set for this node."""
+    names = set()
+    for path in params_files(sim=True):
+        doc = load_config(path).get(executable, {}).get('ros__parameters', {})
+        names |= set(nested_to_dotted(doc)) - {'use_sim_time'}
+    return names
+
+
+@pytest.mark.parametrize('executable', NODES)
+def test_help_explains_and_exits(executable, tmp_path):
+    """--help prints what the node does and every parameter (each one our config files set
+    among them), then exits without starting the node."""
+    out = subprocess.run([sys.executable, '-m', 'krang_ros.entry', executable, '--help'],
+                         cwd=tmp_path, capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.startswith(f'usage: {executable}')
+    listed = out.stdout.split('\nparameters:\n', 1)
+    assert len(listed) == 2, f'{executable} --help lists no parameters'
+    shown = {line.split()[0] for line in listed[1].splitlines() if line.strip()}
+    assert configured_parameters(executable) <= shown
+    assert list(tmp_path.iterdir()) == [], 'help must not start the node (it wrote files)'
+
+
+def start(executable, tmp_path):
+    devices = session_devices_file(tmp_path)
+    cmd = [sys.executable, '-m', 'krang_ros.entry', executable, '--ros-args']
+    for f in params_files(sim=True):
+        cmd += ['--params-file', f]
+    cmd += ['-p', f'devices_file:={devices}', '-p', f'output:={tmp_path / "out.mcap"}']
+    return subprocess.Popen(cmd, cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                            text=True)
+
+
+@pytest.mark.ros
+@pytest.mark.parametrize('executable', NODES)
+@pytest.mark.parametrize('signum, delay_s', [(signal.SIGINT, 0.3), (signal.SIGTERM, 1.2),
+                                             (signal.SIGINT, 4.0)])
+def test_signal_exits_cleanly(executable, signum, delay_s, tmp_path):
+    proc = start(executable, tmp_path)
+    time.sleep(delay_s)
+    proc.send_signal(signum)
+    out, _ = proc.communicate(timeout=30)
+    assert 'Traceback' not in out, out[-3000:]
+    assert proc.returncode == 0, out[-3000:]
+
+
+@pytest.mark.ros
+@pytest.mark.parametrize('signum', [signal.SIGINT, signal.SIGTERM])
+def test_bringup_sim_without_record_exits_cleanly(signum, tmp_path):
+    proc = subprocess.Popen([sys.executable, '-m', 'krang_cli.main', 'bringup', '--sim',
+                             '--log-dir', str(tmp_path / 'logs')],
+                            cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                            text=True)
+    time.sleep(6.0)
+    assert proc.poll() is None, proc.communicate()[0][-3000:]
+    proc.send_signal(signum)
+    out, _ = proc.communicate(timeout=90)
+    logs = ''.join(p.read_text() for p in (tmp_path / 'logs').glob('*.log'))
+    assert 'Traceback' not in out + logs, (out + logs)[-3000:]
+    assert proc.returncode == 0, out[-3000:]
