@@ -62,7 +62,7 @@ def test_wrong_beta_is_two_and_a_half_centimetres_off(robot, true_beta, wrong_be
     assert x_com(robot, qb, TABLE2_POSE[None], true_beta)[0] == pytest.approx(0.0, abs=1e-12)
 
 
-# ----------------------------------------------------------------------------- the ADRC law, the fast simulator
+# ------------------------------------------------------------ the ADRC law, the fast simulator
 
 
 class MatrixAdrc:
