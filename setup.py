@@ -34,9 +34,10 @@ setup(
         'pyyaml',
         'tqdm',
         'matplotlib',
+        'foxglove-sdk',       # krang view: the live Foxglove WebSocket server
     ],
     extras_require={'test': ['pytest', 'pytest-timeout', 'rosbags', 'colcon-common-extensions',
-                             'ruff']},
+                             'ruff', 'websockets']},
     zip_safe=True,
     maintainer='krang_com developers',
     maintainer_email='dev@krang-com.example',
@@ -51,6 +52,7 @@ setup(
             'com_estimator = krang_ros.entry:com_estimator',
             'mcap_recorder = krang_ros.entry:mcap_recorder',
             'sim_krang = krang_ros.entry:sim_krang',
+            'state_publisher = krang_ros.state_publisher:main',
         ],
     },
 )

@@ -61,13 +61,18 @@ def array_values(msg, expected_size=None):
 
 
 def pitch_quaternion(pitch):
-    """(x, y, z, w) of the base pitch as a rotation about frame 0's y axis (nose down is +pitch:
-    q_base grows as the robot tips forward, a right-handed rotation about +y of frame 0)."""
+    """Orientation (x, y, z, w) that /imu/data publishes for the authors' base pitch q_base: the
+    rotation of imu_link (= base_link's axes, krang.urdf) in a gravity-aligned frame, REP-145, with
+    yaw 0 (arbitrary: no magnetometer). About +y (left) by q_base, so REP-103's positive pitch,
+    nose down, is q_base's positive, top tilting forward; upright (q_base = 0) is level, sitting
+    on the caster (-1.76 rad) is tilted back past horizontal (krang_model/README.md, Conventions)."""
     return 0.0, math.sin(pitch / 2), 0.0, math.cos(pitch / 2)
 
 
 def pitch_from_quaternion(x, y, z, w):
-    return 2.0 * math.atan2(y, w)
+    """q_base from an /imu/data orientation: the inverse of pitch_quaternion, read off the
+    direction of gravity in imu_link (R^T z), so any yaw the publisher chose drops out."""
+    return math.atan2(2.0 * (w * y - x * z), 1.0 - 2.0 * (x * x + y * y))
 
 
 def imu(stamp, frame_id, pitch, pitch_variance, angular_velocity, linear_acceleration):
