@@ -157,7 +157,10 @@ class PitchKalmanFilter:
         closed loop)."""
         a, q = self._model(dt)
         c, r = self._C, self.measurement_cov
-        prior = solve_discrete_are(a.T, c.T, q, r)
+        try:
+            prior = solve_discrete_are(a.T, c.T, q, r)
+        except (np.linalg.LinAlgError, ValueError):      # a bias noise too small to solve for
+            return np.diag([1.0, 1.0, r[1, 1]])
         return prior - prior @ c.T @ np.linalg.solve(c @ prior @ c.T + r, c @ prior)
 
     def update(self, angle: float, rate: float, dt: float) -> tuple[float, float]:

@@ -123,7 +123,7 @@ def test_pitch_survives_axle_acceleration():
     assert kore > 5 * ours
 
 
-# ------------------------------------------------------------ a gyro bias the filter is not told of
+# ---------------------------------------------------------- a gyro bias the filter is not told of
 # The DMU as sim_krang emulates it: 200 Hz, noise 0.002 rad/s and 0.02 m/s^2, LSB-quantised.
 DMU_DT, RATE_STD, ACCEL_STD = 0.005, 0.002, 0.02
 RATE_LSB, ACCEL_LSB = math.radians(0.008), 0.0003 * 9.80665
