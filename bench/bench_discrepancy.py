@@ -32,7 +32,9 @@ def main(argv=None):
     if args.validate:
         return validate(args.seed if args.seed != 1 else 3)
 
-    from krang_discrepancy.data import ReplayConfig, load_csv_record, simulate_record
+    from krang_discrepancy.loaders import load_csv_record
+    from krang_discrepancy.replay import ReplayConfig
+    from krang_discrepancy.synthetic import simulate_record
     from krang_discrepancy.report import run_discrepancy
     from krang_sim.physics import SimEffects
 
@@ -69,7 +71,10 @@ def main(argv=None):
 
 
 def validate(seed):
-    from krang_discrepancy.data import NominalModel, Replay, ReplayConfig, simulate_record
+    from krang_discrepancy.effects import nominal_drive
+    from krang_discrepancy.nominal import NominalModel
+    from krang_discrepancy.replay import Replay, ReplayConfig
+    from krang_discrepancy.synthetic import simulate_record
     from krang_discrepancy.naming import gaps, name_effects
     from krang_sim.physics import SimEffects
     cases = [
@@ -80,7 +85,8 @@ def validate(seed):
         ('payload', SimEffects(payload_kg=5.0), 5.0),
         ('wheel_viscous_friction', SimEffects(wheel_viscous_Nm_s=2.0), 2.0),
         ('wheel_coulomb_friction', SimEffects(wheel_coulomb_Nm=2.0), 2.0),
-        ('torque_constant', SimEffects(torque_constant_scale=0.8), 0.8 * 0.0847),
+        ('torque_constant', SimEffects(torque_constant_scale=0.8),
+         0.8 * nominal_drive().torque_constant),
         ('actuation_delay', SimEffects(actuation_delay_s=0.02), 0.02),
         ('encoder_offset', SimEffects(encoder_offset_rad=0.05), 0.05),
     ]

@@ -79,7 +79,9 @@ def register(subparsers):
 def run(args):
     import sys
 
-    from krang_discrepancy.data import NominalModel, ReplayConfig
+    from krang_discrepancy.nominal import NominalModel
+    from krang_discrepancy.phases import PHASES
+    from krang_discrepancy.replay import ReplayConfig
     from krang_discrepancy.effects import load_effects_module, register_optional_effects
     from krang_discrepancy.naming import NamingConfig
     from krang_discrepancy.report import run_discrepancy
@@ -96,7 +98,6 @@ def run(args):
             setattr(ncfg, attr, v)
     rcfg = ReplayConfig(horizon_s=args.horizon, stride_s=args.stride, pose_delay_s=args.pose_delay)
     phases = tuple(s.strip() for s in args.phases.split(',')) if args.phases else None
-    from krang_discrepancy.data import PHASES
     if phases and not set(phases) <= set(PHASES):
         raise ValueError(f'unknown phases {sorted(set(phases) - set(PHASES))}; known: {", ".join(PHASES)}')
     cands = [s.strip() for s in args.effects.split(',')] if args.effects else None

@@ -2,17 +2,18 @@
 with a physical meaning and a unit.
 
 The nominal model is ``krang_model.wip`` (locked pose reduced to one body on the axle, the drive
-train of ``config/robot.yaml``) with the mass model of ``config/sim_true_beta.yaml``. An effect
-changes one scalar term of that model (``ModelTerms``); ``krang_discrepancy.data.Replay`` then
-predicts the measured signals with the changed terms. Every effect also says how its value maps onto
-``krang_sim.physics.SimEffects`` so that the extended model can be simulated.
+train of ``krang_model.drivetrain``) with the mass model of ``config/sim_true_beta.yaml``. An
+effect changes one term of that model (``ModelTerms``: a field of its ``Drivetrain``, or the body, the
+sensors, the command timing); ``krang_discrepancy.replay.Replay`` then predicts the measured
+signals with the changed terms through ``krang_model.wip.WipDynamics``. Every effect also says how
+its value maps onto ``krang_sim.physics.SimEffects`` so that the extended model can be simulated.
 
 Built-in effects (``name``: value unit, meaning):
 
 =========================  =========  =====================================================================
 imu_pitch_bias             rad        the IMU reads q_base + bias (a pitch misalignment of the sensor)
 floor_slope                rad        the floor rises along the heading (uphill forward is positive)
-wheel_radius               m          effective rolling radius (the nominal one is the URDF's 0.2667 m)
+wheel_radius               m          effective rolling radius (the nominal one is the URDF's)
 payload                    kg         an unmodelled point mass rigidly on a named link, at a point of it
 wheel_viscous_friction     N m s      extra wheel-to-body viscous friction (both wheels together)
 wheel_coulomb_friction     N m        extra Coulomb friction per wheel (as ``krang_model.wip`` models it)
@@ -23,7 +24,8 @@ encoder_offset             rad        a body-joint encoder reads q + offset (def
 
 Optional effects (``register_optional_effects()``, ``krang discrepancy --extra-effects``): body_inertia
 (kg m^2 about the axle), drive_current_limit (A), rolling_resistance (N m s), com_height (m). The
-simulator cannot produce them, so they are not in the default library; they serve the hardware data.
+simulator cannot produce the first three (only rolling_resistance maps onto ``SimEffects``), so
+they are not in the default library; they serve the hardware data.
 
 Adding your own effect
 ----------------------
@@ -41,9 +43,16 @@ my_effects`` (a module path or a .py file) imports your module before the run, s
         description = 'rolling resistance of the tyres, proportional to the ground speed'
 
         def apply(self, terms, value):
-            terms.ground_viscous += value       # any field of ModelTerms
+            terms.add_to_drive(ground_viscous=value)     # any field of the Drivetrain
 
-    # a term the nominal model has no field for: an additive generalised force (N m) on the
+        def sim_effects(self, value):
+            return {'drive_extra': {'ground_viscous': value}}
+
+A new physical term goes into ``krang_model.wip.WipDynamics`` (its parameter a new field of
+``krang_model.drivetrain.Drivetrain``); an effect then adds to it as above, and the simulator, the
+replay and the controller's design all see it.
+
+    # a term the model has no field for: an additive generalised force (N m) on the
     # wheel equation and on the pitch equation, evaluated on arrays of the predicted state
     @register_effect
     class PitchSpring(Effect):
@@ -66,39 +75,39 @@ from __future__ import annotations
 
 import copy
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
+from functools import lru_cache
+
+from krang_model.drivetrain import Drivetrain, drivetrain
+from krang_model.robot import load_krang
 
 # ----------------------------------------------------------------------------- model terms
 
 
+@lru_cache(maxsize=None)
+def nominal_drive() -> Drivetrain:
+    """Krang's drive train (krang_model.drivetrain): the nominal values of the effects."""
+    return drivetrain(load_krang())
+
+
 @dataclass
 class ModelTerms:
-    """The scalar terms of the predicted model that effects may change (SI units).
+    """The terms of the predicted model that effects may change (SI units): the drive train (the
+    physical parameters of krang_model.wip) and what lies outside the equations of motion.
+    ``ModelTerms.nominal(drive)`` is the nominal model."""
 
-    Defaults are "nominal": call ``ModelTerms.nominal(drive)`` to take them from a
-    ``krang_model.drivetrain.Drivetrain``.
-    """
-
-    wheel_radius: float = 0.2667            # m
-    floor_slope: float = 0.0                # rad
-    torque_scale: float = 1.0               # applied / commanded wheel torque
-    viscous_friction: float = 0.1           # N m s, wheel-to-body, both wheels
-    ground_viscous: float = 0.0             # N m s, wheel-to-ground
-    coulomb_friction: float = 0.0           # N m per wheel (krang_model.wip convention)
+    drive: Drivetrain
     actuation_delay: float = 0.0            # s
     imu_pitch_bias: float = 0.0             # rad, measured = true + bias
     inertia_add: float = 0.0                # kg m^2 added to the body's inertia about the axle
     com_shift: float = 0.0                  # m added to the body CoM distance from the axle
-    current_limit: float | None = None      # A per motor where the drives clamp (None: the record's)
     payloads: tuple = ()                    # ((link, (x, y, z) m in the link frame, kg), ...)
     joint_offsets: dict = field(default_factory=dict)   # joint name -> encoder offset (rad)
     extra_forces: list = field(default_factory=list)    # callables s -> (f_phi, f_qbase), N m
 
     @classmethod
     def nominal(cls, drive) -> 'ModelTerms':
-        return cls(wheel_radius=drive.wheel_radius, floor_slope=drive.floor_slope,
-                   viscous_friction=drive.viscous_friction, ground_viscous=drive.ground_viscous,
-                   coulomb_friction=drive.coulomb_friction)
+        return cls(drive=drive)
 
     def copy(self) -> 'ModelTerms':
         new = copy.copy(self)
@@ -107,9 +116,14 @@ class ModelTerms:
         new.payloads = tuple(self.payloads)
         return new
 
+    def add_to_drive(self, **amounts):
+        """Add to fields of the drive train (the Drivetrain is immutable: replaced)."""
+        added = {k: getattr(self.drive, k) + v for k, v in amounts.items()}
+        self.drive = replace(self.drive, **added)
+
     def body_key(self):
         """Hashable description of what changes the reduced body (payloads, joint offsets)."""
-        return (tuple((l, tuple(p), float(m)) for l, p, m in self.payloads),
+        return (tuple((link, tuple(p), float(m)) for link, p, m in self.payloads),
                 tuple(sorted((j, float(v)) for j, v in self.joint_offsets.items() if v)))
 
 
@@ -190,7 +204,7 @@ class FloorSlope(Effect):
     description = 'the floor rises along the heading by this angle (uphill forward positive)'
 
     def apply(self, terms, value):
-        terms.floor_slope += value
+        terms.add_to_drive(floor_slope=value)
 
     def sim_effects(self, value):
         return {'floor_slope_rad': float(value)}
@@ -203,12 +217,13 @@ class WheelRadius(Effect):
     scale = 0.01
     description = 'effective rolling radius of the wheels (enters the inertia and the coupling)'
 
-    def __init__(self, nominal_m: float = 0.2667, **attrs):
+    def __init__(self, nominal_m: float | None = None, **attrs):
         super().__init__(**attrs)
-        self.nominal_value = float(nominal_m)
+        nominal = nominal_drive().wheel_radius if nominal_m is None else nominal_m
+        self.nominal_value = float(nominal)
 
     def apply(self, terms, value):
-        terms.wheel_radius = float(value)
+        terms.drive = replace(terms.drive, wheel_radius=float(value))
 
     def sim_effects(self, value):
         return {'wheel_radius_m': float(value)}
@@ -248,7 +263,7 @@ class WheelViscousFriction(Effect):
     description = 'extra viscous friction between wheels and body (both wheels), on the relative speed'
 
     def apply(self, terms, value):
-        terms.viscous_friction += value
+        terms.add_to_drive(viscous_friction=value)
 
     def sim_effects(self, value):
         return {'wheel_viscous_Nm_s': float(value)}
@@ -263,7 +278,7 @@ class WheelCoulombFriction(Effect):
                    'wheel-to-body speed, on the wheel equation as krang_model.wip models it')
 
     def apply(self, terms, value):
-        terms.coulomb_friction += value
+        terms.add_to_drive(coulomb_friction=value)
 
     def sim_effects(self, value):
         return {'wheel_coulomb_Nm': float(value)}
@@ -278,16 +293,17 @@ class TorqueConstant(Effect):
     description = ('motor torque constant: the fit estimates the scale true/nominal of the applied '
                    'torque; reported as the true Kt at the motor')
 
-    def __init__(self, nominal_kt: float = 0.0847, **attrs):
+    def __init__(self, nominal_kt: float | None = None, **attrs):
         super().__init__(**attrs)
-        self.nominal_kt = float(nominal_kt)
+        nominal = nominal_drive().torque_constant if nominal_kt is None else nominal_kt
+        self.nominal_kt = float(nominal)
 
     @property
     def detail(self):
         return {'nominal_kt_Nm_per_A': self.nominal_kt}
 
     def apply(self, terms, value):
-        terms.torque_scale *= value
+        terms.drive = replace(terms.drive, torque_constant=terms.drive.torque_constant * value)
 
     def sim_effects(self, value):
         return {'torque_constant_scale': float(value)}
@@ -339,8 +355,9 @@ class EncoderOffset(Effect):
 
 
 # ----------------------------------------------------------------------------- optional effects
-# Not in the default library (the simulator cannot produce them, so the per-effect tests cannot
-# check them); `krang discrepancy --extra-effects` or ``register_optional_effects()`` adds them.
+# Not in the default library (the simulator cannot produce most of them, so the per-effect tests
+# cannot check them); `krang discrepancy --extra-effects` or ``register_optional_effects()`` adds
+# them.
 
 
 class BodyInertia(Effect):
@@ -360,11 +377,14 @@ class DriveCurrentLimit(Effect):
     unit = 'A'
     bounds = (3.0, 60.0)
     scale = 1.0
-    nominal_value = 49.0
     description = 'the motor current where the drives really saturate (commanded currents are clamped there)'
 
+    def __init__(self, **attrs):
+        super().__init__(**attrs)
+        self.nominal_value = float(nominal_drive().current_limit)
+
     def apply(self, terms, value):
-        terms.current_limit = float(value)
+        terms.drive = replace(terms.drive, current_limit=float(value))
 
 
 class ComHeight(Effect):
@@ -387,7 +407,10 @@ class RollingResistance(Effect):
     description = 'tyre rolling resistance, viscous in the ground speed (wheel-to-ground, not wheel-to-body)'
 
     def apply(self, terms, value):
-        terms.ground_viscous += value
+        terms.add_to_drive(ground_viscous=value)
+
+    def sim_effects(self, value):
+        return {'drive_extra': {'ground_viscous': float(value)}}
 
 
 OPTIONAL_EFFECTS = (BodyInertia, DriveCurrentLimit, RollingResistance, ComHeight)

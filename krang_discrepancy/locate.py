@@ -23,7 +23,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .data import CHANNEL_UNITS, CHANNELS, PHASES, Replay
+from krang_model.wip import reduce_pose
+
+from .phases import PHASES
+from .record import CHANNEL_UNITS, CHANNELS
+from .replay import Replay
 
 PHASE_COLOURS = {'sitting': '#d9d9d9', 'standing_up': '#fdd0a2', 'balancing': '#ffffff',
                  'moving_joints': '#c6dbef', 'sitting_down': '#fcbba1'}
@@ -131,7 +135,6 @@ def statics(replay: Replay, terms=None, min_rest_s: float = 2.0, rate_tol: float
     model; a = 1/s for a torque scale s (torque_constant), c = -a M g l delta for an IMU pitch bias
     (or CoM angle error) delta. Friction on the wheel-ground side (floor, tyres) holds the wheel
     equation and scatters the rest points along that line rather than off it."""
-    from krang_model.wip import reduce_pose
     model = replay.model
     terms = terms if terms is not None else model.terms()
     pts = []
@@ -144,7 +147,8 @@ def statics(replay: Replay, terms=None, min_rest_s: float = 2.0, rate_tol: float
         body = reduce_pose(model.robot, rec.joints[quiet].mean(axis=0), model.beta)
         mgl = body.mass * model.drive.gravity * body.com_distance
         theta = rec.q_base[quiet] - terms.imu_pitch_bias + body.com_offset
-        tau = rec.total_torque_at(rec.t[quiet]) * terms.torque_scale
+        scale = terms.drive.torque_constant / model.drive.torque_constant
+        tau = rec.total_torque_at(rec.t[quiet]) * scale
         pts.append({'record': rec.name, 'rest_s': float(quiet.sum() * rec.period),
                     'q_base': float(rec.q_base[quiet].mean()), 'model_balance_q_base': float(-body.com_offset),
                     'theta': float(theta.mean()), 'tau_cmd': float(tau.mean()), 'tau_cmd_std': float(tau.std()),

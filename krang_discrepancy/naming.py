@@ -38,7 +38,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .data import Replay, gap_metrics
+from .replay import Replay, gap_metrics
 from .effects import Effect, ModelTerms, apply_effects, library
 
 
@@ -247,9 +247,9 @@ def _cluster_cov(jac, res, win_cluster, n_per_window):
 def start_value(effect: Effect, base: ModelTerms) -> float:
     """The parameter value at which the effect leaves `base` unchanged."""
     if effect.name == 'wheel_radius':
-        return base.wheel_radius
-    if effect.name == 'drive_current_limit' and base.current_limit:
-        return base.current_limit
+        return base.drive.wheel_radius
+    if effect.name == 'drive_current_limit':
+        return base.drive.current_limit
     return effect.nominal_value
 
 

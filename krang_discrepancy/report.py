@@ -26,7 +26,11 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from .data import CHANNEL_UNITS, CHANNELS, PHASES, NominalModel, Replay, ReplayConfig, gap_metrics, load_measured
+from .loaders import load_measured
+from .nominal import NominalModel
+from .phases import PHASES
+from .record import CHANNEL_UNITS, CHANNELS, resample
+from .replay import Replay, ReplayConfig, gap_metrics
 from .effects import ModelTerms, apply_effects, get_effect, library
 from .locate import locate, plot_location, shade_phases
 from .naming import NamingConfig, name_effects
@@ -64,7 +68,12 @@ def write_extended_model(path, fit, model: NominalModel, *, sources=(), gaps=Non
             not_simulable.append(e.key)
             continue
         for k, v in kw.items():
-            if k in sim and isinstance(v, (int, float)) and k not in ('torque_constant_scale',):
+            if isinstance(v, dict):         # drive_extra: amounts per Drivetrain field add up
+                merged = dict(sim.get(k, {}))
+                for field_name, amount in v.items():
+                    merged[field_name] = merged.get(field_name, 0.0) + amount
+                sim[k] = merged
+            elif k in sim and isinstance(v, (int, float)) and k not in ('torque_constant_scale',):
                 sim[k] = sim[k] + v
             elif k == 'torque_constant_scale' and k in sim:
                 sim[k] = sim[k] * v
@@ -352,7 +361,6 @@ def run_discrepancy(measured, out_dir, *, model: NominalModel | None = None, can
 
 def _resample_record(rec, period):
     from dataclasses import replace
-    from .data import resample
     if abs(rec.period - period) < 1e-9:
         return rec
     grid = np.arange(rec.t[0], rec.t[-1] + 1e-12, period)

@@ -1,9 +1,9 @@
 """phi(q): the regressor of the mass-weighted CoM, and the CoM quantities built on it.
 
 Frame 0 (paper §II): origin at the wheel-axle midpoint, x along the heading, z up. The base pitch
-q_base is the IMU pitch of the hardware (FACTS §2): the base frame is placed by
-R0(q_base) = RotX(pi/2) RotY(-pi/2) RotX(-q_base), so in frame 0 a base-frame vector (X, Y, Z) has
-x = sin(q_base) Y - cos(q_base) Z and z = cos(q_base) Y + sin(q_base) Z.
+q_base is the IMU pitch of the hardware (krang_model/README.md, Conventions): the base frame is
+placed by R0(q_base) = RotX(pi/2) RotY(-pi/2) RotX(-q_base), so in frame 0 a base-frame
+vector (X, Y, Z) has x = sin(q_base) Y - cos(q_base) Z and z = cos(q_base) Y + sin(q_base) Z.
 
 For body i with beta_i = [m, m c] (c in the body frame) the mass-weighted position in frame 0 is
 m p_i + R_i (m c) = [p_i, R_i] beta_i, which is linear in beta. Stacking over bodies gives the

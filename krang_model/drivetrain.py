@@ -1,26 +1,34 @@
 """The one drive-train description: wheels from the URDF, motors, gearbox and contacts from
 config/robot.yaml. Every user of a motor constant (controller, simulator, bridge, metrics,
-discrepancy) reads it from here."""
-from dataclasses import dataclass, replace
+discrepancy) reads it from here.
+
+Its fields are also the physical parameters of the WIP equations (krang_model.wip) that are not the
+body: the named effects of the simulator and of `krang discrepancy` (wheel radius, friction, floor
+slope, torque constant) are values of these fields. A field may hold a numpy array: ``stack`` makes
+one Drivetrain of P parameter sets that broadcasts in ``WipDynamics``."""
+
+from dataclasses import dataclass, fields, replace
+
+import numpy as np
 
 from .config import robot_config
 
 
 @dataclass(frozen=True)
 class Drivetrain:
-    wheel_radius: float           # m
-    track_width: float            # m
-    wheel_mass: float             # kg, both wheels
-    wheel_inertia: float          # kg m^2, both wheels about the axle
+    wheel_radius: float  # m
+    track_width: float  # m
+    wheel_mass: float  # kg, both wheels
+    wheel_inertia: float  # kg m^2, both wheels about the axle
     gear_ratio: float
-    torque_constant: float        # N m / A, motor side
-    rotor_inertia: float          # kg m^2, one motor
-    current_limit: float          # A
-    viscous_friction: float       # N m s, wheel relative to body, both wheels
-    ground_viscous: float         # N m s, wheel relative to ground
-    coulomb_friction: float       # N m per wheel
-    yaw_friction: float           # N m s
-    caster_pitch: float           # rad, base pitch where the caster touches
+    torque_constant: float  # N m / A, motor side
+    rotor_inertia: float  # kg m^2, one motor
+    current_limit: float  # A
+    viscous_friction: float  # N m s, wheel relative to body, both wheels
+    ground_viscous: float  # N m s, wheel relative to ground
+    coulomb_friction: float  # N m per wheel
+    yaw_friction: float  # N m s
+    caster_pitch: float  # rad, base pitch where the caster touches
     caster_stiffness: float
     caster_damping: float
     gravity: float = 9.81
@@ -28,7 +36,18 @@ class Drivetrain:
 
     @property
     def reflected_rotor_inertia(self):
-        return 2.0 * self.gear_ratio ** 2 * self.rotor_inertia
+        return 2.0 * self.gear_ratio**2 * self.rotor_inertia
+
+
+def stack(drives):
+    """One Drivetrain of P parameter sets: a field that differs between them becomes a (P, 1)
+    array (broadcasting against (P, S) states), a field they share stays a float."""
+    out = {}
+    for f in fields(Drivetrain):
+        values = [getattr(d, f.name) for d in drives]
+        same = all(v == values[0] for v in values)
+        out[f.name] = values[0] if same else np.array(values, dtype=float)[:, None]
+    return Drivetrain(**out)
 
 
 def drivetrain(robot, **overrides):

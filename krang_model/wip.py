@@ -1,158 +1,272 @@
-"""The robot as a wheeled inverted pendulum: reduction of a locked pose, dynamics, linearisation.
+"""The robot as a wheeled inverted pendulum: reduction of locked poses, dynamics, linearisation.
 
-With the body joints locked the robot is one rigid body on two wheels. Its state is the ground-
-referenced wheel angle phi (x = r phi, as the hardware's "x_wheel = encoders + IMU pitch"), the base
-pitch q_base (IMU convention, FACTS §2) and the yaw psi. The body CoM angle from vertical is
-theta = q_base + offset, where the offset is fixed by the pose and beta.
+This module is the one statement of the WIP physics. The simulator (krang_sim.physics), the
+controller's design (``linearize``), the discrepancy replay and its named effects all evaluate
+``WipDynamics``; a new physical term is added here (its parameter in
+``krang_model.drivetrain.Drivetrain``) and nowhere else.
+
+With the body joints locked the robot is one rigid body on two wheels. Its state is the
+ground-referenced wheel angle phi (x = r phi, as the hardware's "x_wheel = encoders + IMU
+pitch"), the base pitch q_base (the IMU pitch; krang_model/README.md, Conventions) and the yaw
+psi. The body CoM angle from vertical is theta = q_base + offset, where the offset is fixed by the
+pose and beta.
 
 Equations (Lagrange; notes/identification.md §6 plus rotor inertia as in 18h linearize_wip.cpp,
 plus a floor slope alpha and a caster contact):
   [(M+m_w) r^2 + I_w + J] phi'' + [M r l cos(theta+alpha) - J] theta''
-      = M r l sin(theta+alpha) theta'^2 - (M+m_w) g r sin(alpha) + tau - b (phi'-theta') - b_g phi' - tau_c
+      = M r l sin(theta+alpha) theta'^2 - (M+m_w) g r sin(alpha) + tau
+        - b (phi'-theta') - b_g phi' - tau_c
   [M r l cos(theta+alpha) - J] phi'' + [I_axle + J] theta''
       = M g l sin(theta) - tau + b (phi'-theta') + tau_caster
-with J = 2 gear^2 I_rotor the reflected rotor inertia of both drives, tau the sum of the wheel torques
-and tau_c the wheels' Coulomb friction.
+with J = 2 gear^2 I_rotor the reflected rotor inertia of both drives, tau the sum of the wheel
+torques and tau_c the wheels' Coulomb friction.
+
+Broadcasting. Every field of a ``WipBody`` and of a ``Drivetrain`` may be a float or a numpy array,
+and so may the state and the torques: a batch of poses, of parameter sets (one per row of a fit)
+and of states steps in one call. Python floats take the ``math`` path, which keeps one simulator
+step near a microsecond; arrays take the numpy path. Both paths run the same lines.
 """
+
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, fields, replace
 
 import numpy as np
 
-from .com import base_regressor, base_to_frame0
 from .kinematics import body_placements
 
 
 @dataclass(frozen=True)
 class WipBody:
-    """A locked pose reduced to one rigid body on the axle (the wheels excluded)."""
+    """A locked pose reduced to one rigid body on the axle (the wheels excluded).
 
-    mass: float            # kg
-    com_distance: float    # m, axle to body CoM
-    com_offset: float      # rad, theta (CoM angle from vertical) = q_base + com_offset
-    inertia_axle: float    # kg m^2 about the axle
-    yaw_inertia: float     # kg m^2 about the vertical through the axle midpoint, wheels included
-    com_offset_full: float  # rad, the same for the whole robot incl. wheels (what the learner balances)
+    Fields are floats for one pose or arrays for a batch (``body[i]`` is pose i)."""
+
+    mass: float  # kg
+    com_distance: float  # m, axle to body CoM
+    com_offset: float  # rad, theta (CoM angle from vertical) = q_base + com_offset
+    inertia_axle: float  # kg m^2 about the axle
+    yaw_inertia: float = (
+        math.nan
+    )  # kg m^2 about the vertical through the axle midpoint, wheels incl.
+    com_offset_full: float = (
+        math.nan
+    )  # rad, the same for the whole robot incl. wheels (what learning balances)
+
+    def __getitem__(self, i):
+        values = np.broadcast_arrays(
+            *(np.asarray(getattr(self, f.name), float) for f in fields(self))
+        )
+        return WipBody(*(float(v[i]) for v in values))
+
+    def __len__(self):
+        return int(np.size(self.com_offset))
+
+    def adjusted(self, com_shift=0.0, inertia_add=0.0):
+        """The body with its CoM moved `com_shift` (m) farther from the axle along its direction
+        (a point-mass shift: M l -> M (l + dl), I += M ((l + dl)^2 - l^2)) and `inertia_add`
+        (kg m^2) more inertia about the axle: the named effects com_height and body_inertia."""
+        dist, m = self.com_distance, self.mass
+        return replace(
+            self,
+            com_distance=dist + com_shift,
+            inertia_axle=self.inertia_axle + inertia_add + m * com_shift * (2 * dist + com_shift),
+        )
+
+
+def reduce_poses(robot, joints, beta):
+    """WipBody of N locked poses (rows of `joints`, pose order) under mass parameters beta: fields
+    are (N,) arrays."""
+    rot, trans = body_placements(robot, np.atleast_2d(np.asarray(joints, dtype=float)))
+    return reduce_placements(robot, rot, trans, beta)
 
 
 def reduce_pose(robot, joints, beta):
-    """WipBody of one locked pose (joints in pose order) under mass parameters beta."""
-    beta = np.asarray(beta, dtype=float)
-    joints = np.asarray(joints, dtype=float).reshape(1, -1)
-    rot, trans = body_placements(robot, joints)
-    rot, trans = rot[0], trans[0]
-    body_ids = [i for i in range(robot.n_bodies) if i not in robot.wheel_body_ids]
-    b4 = beta.reshape(-1, 4)
-    moment_full = base_regressor(robot, joints)[0] @ beta
-    mass = b4[body_ids, 0].sum()
-    moment = np.zeros(3)
-    inertia_axle = 0.0
-    yaw_inertia = 0.0
-    for i in body_ids:
-        m = b4[i, 0]
-        com = trans[i] + rot[i] @ (b4[i, 1:] / m if m != 0 else np.zeros(3))
-        moment += m * com
-        inertia_base = rot[i] @ robot.body_inertias[i] @ rot[i].T
-        inertia_axle += inertia_base[0, 0] + m * (com[1] ** 2 + com[2] ** 2)
-    com = moment / mass
-    distance = math.hypot(com[1], com[2])
-    offset = math.atan2(-com[2], com[1])
-    # yaw inertia at balance (theta = 0): horizontal distances in frame 0
-    r0 = base_to_frame0(-offset)[0]
-    for i in body_ids:
-        m = b4[i, 0]
-        c0 = r0 @ (trans[i] + rot[i] @ (b4[i, 1:] / m if m != 0 else np.zeros(3)))
-        yaw_inertia += (r0 @ rot[i] @ robot.body_inertias[i] @ rot[i].T @ r0.T)[2, 2] + m * (c0[0] ** 2 + c0[1] ** 2)
-    for i in robot.wheel_body_ids:
-        m = b4[i, 0]
-        yaw_inertia += robot.body_inertias[i][1, 1] + m * trans[i][0] ** 2
-    return WipBody(mass=float(mass), com_distance=distance, com_offset=offset,
-                   inertia_axle=float(inertia_axle), yaw_inertia=float(yaw_inertia),
-                   com_offset_full=math.atan2(-moment_full[2], moment_full[1]))
+    """WipBody of one locked pose: ``reduce_poses(robot, [joints], beta)[0]``."""
+    return reduce_poses(robot, np.asarray(joints, dtype=float)[None], beta)[0]
 
 
-def linearize(body, drive):
-    """Continuous A (4x4), B (4x1) about upright balance; state [x, x', theta, theta'], input the
-    total wheel torque tau_w (N m) — the paper's (A(q), B(q)), B = [0, b_x, 0, b_theta]."""
-    r, M, l = drive.wheel_radius, body.mass, body.com_distance
-    j = drive.reflected_rotor_inertia
-    m11 = (M + drive.wheel_mass) * r ** 2 + drive.wheel_inertia + j
-    m12 = M * r * l - j
-    m22 = body.inertia_axle + j
-    delta = m11 * m22 - m12 ** 2
-    b, bg, mgl = drive.viscous_friction, drive.ground_viscous, M * drive.gravity * l
-    # generalized forces linear terms: F1 = tau - (b+bg) phi' + b theta', F2 = mgl theta - tau + b phi' - b theta'
-    # [phi'', theta''] = inv([[m11, m12], [m12, m22]]) [F1, F2]
-    inv = np.array([[m22, -m12], [-m12, m11]]) / delta
-    d_theta = inv @ np.array([0.0, mgl])
-    d_phidot = inv @ np.array([-(b + bg), b])
-    d_thetadot = inv @ np.array([b, -b])
-    d_tau = inv @ np.array([1.0, -1.0])
-    a = np.zeros((4, 4))
-    a[0, 1] = 1.0
-    a[2, 3] = 1.0
-    a[1] = [0.0, d_phidot[0], r * d_theta[0], r * d_thetadot[0]]
-    a[3] = [0.0, d_phidot[1] / r, d_theta[1], d_thetadot[1]]
-    bmat = np.array([[0.0], [r * d_tau[0]], [0.0], [d_tau[1]]])
-    return a, bmat
+def reduce_placements(robot, rot, trans, beta):
+    """WipBody from body placements (rot (N, B, 3, 3), trans (N, B, 3) in the base frame, as
+    ``kinematics.body_placements`` gives them): a caller that varies beta at fixed poses (a payload
+    being fitted) computes the kinematics once."""
+    # explicit products and sums (no einsum): a pose's result must not depend on the batch it is in
+    b4 = np.asarray(beta, dtype=float).reshape(-1, 4)
+    m_all = b4[:, 0]
+    local = np.divide(
+        b4[:, 1:], m_all[:, None], out=np.zeros((len(b4), 3)), where=m_all[:, None] != 0
+    )
+    com_all = trans + _matvec(rot, local)  # (N, B, 3) body CoMs
+    wheels = list(robot.wheel_body_ids)
+    ids = [i for i in range(robot.n_bodies) if i not in wheels]
+    m, com, rot_b = m_all[ids], com_all[:, ids], rot[:, ids]
+    moment = _sum_bodies(m[:, None] * com)
+    moment_full = moment + _sum_bodies(m_all[wheels, None] * com_all[:, wheels])
+    inert = robot.body_inertias[ids]  # (B, 3, 3) about each CoM
+    mass = float(m.sum())
+    my, mz = moment[:, 1], moment[:, 2]
+    offset = np.arctan2(-mz, my)
+    # about the axle (base x): rotational part plus the parallel-axis term
+    axle = _quadratic(inert, rot_b[..., 0, :])  # base x in body coordinates = row 0 of R
+    inertia_axle = _sum_bodies(axle + m * (com[..., 1] ** 2 + com[..., 2] ** 2))
+    # yaw inertia at balance (theta = 0): frame-0 x = (0, sin o, -cos o) and z = (0, cos o, sin o)
+    # in base coordinates, with o = -offset the balance pitch
+    s, c = np.sin(-offset)[:, None], np.cos(-offset)[:, None]
+    x0 = s * com[..., 1] - c * com[..., 2]
+    vertical = (
+        c[..., None] * rot_b[..., 1, :] + s[..., None] * rot_b[..., 2, :]
+    )  # in body coordinates
+    yaw = _sum_bodies(_quadratic(inert, vertical) + m * (x0**2 + com[..., 0] ** 2))
+    for i in wheels:
+        yaw = yaw + (robot.body_inertias[i][1, 1] + m_all[i] * trans[:, i, 0] ** 2)
+    return WipBody(
+        mass=np.full(len(offset), mass),
+        com_distance=np.hypot(my, mz) / mass,
+        com_offset=offset,
+        inertia_axle=inertia_axle,
+        yaw_inertia=yaw,
+        com_offset_full=np.arctan2(-moment_full[:, 2], moment_full[:, 1]),
+    )
+
+
+def _sum_bodies(x):
+    """Sum over axis 1 in body order (numpy's own sum changes its order with the batch size)."""
+    out = x[:, 0].copy()
+    for b in range(1, x.shape[1]):
+        out += x[:, b]
+    return out
+
+
+def _matvec(rot, v):
+    """rot (..., 3, 3) @ v (..., 3), summed term by term."""
+    return (
+        rot[..., 0] * v[..., 0, None]
+        + rot[..., 1] * v[..., 1, None]
+        + rot[..., 2] * v[..., 2, None]
+    )
+
+
+def _quadratic(inertia, u):
+    """u^T I u for inertias (B, 3, 3) and directions u (N, B, 3), summed term by term."""
+    iu = _matvec(inertia, u)
+    return u[..., 0] * iu[..., 0] + u[..., 1] * iu[..., 1] + u[..., 2] * iu[..., 2]
+
+
+def point_mass_beta(robot, beta, body, point, kg):
+    """beta with `kg` more mass at `point` (m, in the frame of `body`): an unmodelled payload."""
+    beta = np.array(beta, dtype=float)
+    if kg:
+        i = robot.body_names.index(body)
+        beta[4 * i] += kg
+        beta[4 * i + 1 : 4 * i + 4] += kg * np.asarray(point, dtype=float)
+    return beta
+
+
+_ndarray = np.ndarray
+
+
+def _is_array(*xs):
+    return any(isinstance(x, np.ndarray) for x in xs)
+
+
+def _nonzero(x):
+    return bool(np.any(x)) if isinstance(x, np.ndarray) else x != 0.0
 
 
 class WipDynamics:
-    """Nonlinear WIP with caster contact; scalar float math so one step costs microseconds.
+    """The nonlinear WIP with caster contact: the one implementation of the equations above.
 
-    State: [phi, q_base, phi', q_base', psi, psi'] (phi = ground-referenced wheel angle, psi = yaw).
-    Inputs: left and right wheel torques at the wheels (N m, after the gearbox).
+    State: [phi, q_base, phi', q_base', psi, psi'] (phi: ground-referenced wheel angle, psi: yaw).
+    Inputs: left and right wheel torques at the wheels (N m, after the gearbox). `body` and `drive`
+    may hold arrays (poses, parameter sets); everything broadcasts against the state.
     """
 
     def __init__(self, body, drive):
         self.body = body
-        self.drive = drive
-        d = drive
+        self.drive = d = drive
+        sin = np.sin if _is_array(d.floor_slope) else math.sin
         self._j = d.reflected_rotor_inertia
-        self._m11 = (body.mass + d.wheel_mass) * d.wheel_radius ** 2 + d.wheel_inertia + self._j
+        self._m11 = (body.mass + d.wheel_mass) * d.wheel_radius**2 + d.wheel_inertia + self._j
         self._mrl = body.mass * d.wheel_radius * body.com_distance
         self._m22 = body.inertia_axle + self._j
         self._mgl = body.mass * d.gravity * body.com_distance
-        self._grade = (body.mass + d.wheel_mass) * d.gravity * d.wheel_radius * math.sin(d.floor_slope)
+        self._grade = (body.mass + d.wheel_mass) * d.gravity * d.wheel_radius * sin(d.floor_slope)
         half = 0.5 * d.track_width / d.wheel_radius
-        self._yaw_inertia = body.yaw_inertia + 2.0 * (d.wheel_inertia / 2 + self._j / 2) * half ** 2
+        self._yaw_inertia = body.yaw_inertia + 2.0 * (d.wheel_inertia / 2 + self._j / 2) * half**2
         self._yaw_arm = 0.5 * d.track_width / d.wheel_radius
+        self._coulomb = _nonzero(d.coulomb_friction)
+        self._numpy = _is_array(self._mrl, self.body.com_offset, d.floor_slope, d.coulomb_friction)
 
     def caster_torque(self, q_base, dq_base):
+        """The caster's unilateral penalty torque on the body (zero out of contact)."""
         d = self.drive
         pen = d.caster_pitch - q_base
-        if pen <= 0.0:
+        if type(pen) is not _ndarray:
+            if pen <= 0.0:
+                return 0.0
+            return max(0.0, d.caster_stiffness * pen - d.caster_damping * dq_base)
+        touching = pen > 0.0
+        if not touching.any():
             return 0.0
-        return max(0.0, d.caster_stiffness * pen - d.caster_damping * dq_base)
+        return np.where(
+            touching, np.maximum(0.0, d.caster_stiffness * pen - d.caster_damping * dq_base), 0.0
+        )
+
+    def pitch_accelerations(self, q_base, dphi, dq_base, tau, f_phi=None, f_qbase=None):
+        """(phi'', q_base'') under the total wheel torque `tau`, plus optional extra generalised
+        forces on the wheel and the pitch equations (N m)."""
+        d = self.drive
+        if (
+            self._numpy
+            or type(q_base) is _ndarray
+            or type(dphi) is _ndarray
+            or type(dq_base) is _ndarray
+            or type(tau) is _ndarray
+        ):
+            sin, cos, tanh = np.sin, np.cos, np.tanh
+        else:
+            sin, cos, tanh = math.sin, math.cos, math.tanh
+        theta = q_base + self.body.com_offset
+        c = cos(theta + d.floor_slope)
+        s_slope = sin(theta + d.floor_slope)
+        rel = dphi - dq_base
+        friction = d.viscous_friction * rel + d.ground_viscous * dphi
+        if self._coulomb:
+            friction = friction + 2.0 * d.coulomb_friction * tanh(rel / 1e-2)
+        m12 = self._mrl * c - self._j
+        f1 = self._mrl * s_slope * dq_base * dq_base - self._grade + tau - friction
+        f2 = (
+            self._mgl * sin(theta)
+            - tau
+            + d.viscous_friction * rel
+            + self.caster_torque(q_base, dq_base)
+        )
+        if f_phi is not None:
+            f1 = f1 + f_phi
+            f2 = f2 + f_qbase
+        delta = self._m11 * self._m22 - m12 * m12
+        return (self._m22 * f1 - m12 * f2) / delta, (self._m11 * f2 - m12 * f1) / delta
 
     def accelerations(self, state, tau_left, tau_right):
         """(phi'', q_base'', psi'') at `state` under the given wheel torques."""
         phi, qb, dphi, dqb, psi, dpsi = state
-        d = self.drive
-        theta = qb + self.body.com_offset
-        c = math.cos(theta + d.floor_slope)
-        s_slope = math.sin(theta + d.floor_slope)
-        tau = tau_left + tau_right
-        rel = dphi - dqb
-        friction = d.viscous_friction * rel + d.ground_viscous * dphi
-        if d.coulomb_friction:
-            friction += 2.0 * d.coulomb_friction * math.tanh(rel / 1e-2)
-        m12 = self._mrl * c - self._j
-        f1 = self._mrl * s_slope * dqb * dqb - self._grade + tau - friction
-        f2 = self._mgl * math.sin(theta) - tau + d.viscous_friction * rel + self.caster_torque(qb, dqb)
-        delta = self._m11 * self._m22 - m12 * m12
-        ddphi = (self._m22 * f1 - m12 * f2) / delta
-        ddqb = (self._m11 * f2 - m12 * f1) / delta
-        ddpsi = ((tau_right - tau_left) * self._yaw_arm - d.yaw_friction * dpsi) / self._yaw_inertia
+        ddphi, ddqb = self.pitch_accelerations(qb, dphi, dqb, tau_left + tau_right)
+        ddpsi = (
+            (tau_right - tau_left) * self._yaw_arm - self.drive.yaw_friction * dpsi
+        ) / self._yaw_inertia
         return ddphi, ddqb, ddpsi
 
     def energy(self, state):
         """Kinetic + potential energy (J), for conservation checks (slope and caster excluded)."""
         phi, qb, dphi, dqb, psi, dpsi = state
+        cos = np.cos if self._numpy or _is_array(qb) else math.cos
         theta = qb + self.body.com_offset
-        kinetic = 0.5 * self._m11 * dphi ** 2 + (self._mrl * math.cos(theta) - self._j) * dphi * dqb \
-            + 0.5 * self._m22 * dqb ** 2 + 0.5 * self._yaw_inertia * dpsi ** 2
-        return kinetic + self._mgl * math.cos(theta)
+        kinetic = (
+            0.5 * self._m11 * dphi**2
+            + (self._mrl * cos(theta) - self._j) * dphi * dqb
+            + 0.5 * self._m22 * dqb**2
+            + 0.5 * self._yaw_inertia * dpsi**2
+        )
+        return kinetic + self._mgl * cos(theta)
 
     def step(self, state, tau_left, tau_right, dt):
         """Semi-implicit Euler (velocities first): symplectic, one force evaluation per step."""
@@ -164,14 +278,18 @@ class WipDynamics:
 
     def step_rk4(self, state, tau_left, tau_right, dt):
         """Classical RK4 (four force evaluations) for accuracy checks."""
+
         def f(s):
             a = self.accelerations(s, tau_left, tau_right)
             return [s[2], s[3], a[0], a[1], s[5], a[2]]
+
         k1 = f(state)
         k2 = f([x + 0.5 * dt * k for x, k in zip(state, k1)])
         k3 = f([x + 0.5 * dt * k for x, k in zip(state, k2)])
         k4 = f([x + dt * k for x, k in zip(state, k3)])
-        return [x + dt / 6.0 * (a + 2 * b + 2 * c + d) for x, a, b, c, d in zip(state, k1, k2, k3, k4)]
+        return [
+            x + dt / 6.0 * (a + 2 * b + 2 * c + d) for x, a, b, c, d in zip(state, k1, k2, k3, k4)
+        ]
 
     def wheel_torques_from_currents(self, current_left, current_right):
         """Motor currents (A, clamped at the limit) to wheel torques (N m)."""
@@ -179,3 +297,57 @@ class WipDynamics:
         k = d.torque_constant * d.gear_ratio
         lim = d.current_limit
         return k * min(max(current_left, -lim), lim), k * min(max(current_right, -lim), lim)
+
+
+#: step of the central differences in ``linearize`` (rad, rad/s, N m): the model is linear in the
+#: velocities and the torque, quadratic in theta' and sin/cos in theta, so at this step the
+#: truncation error (h^2/6 relative) is below rounding
+_LINEARIZE_STEP = 1e-7
+
+
+def linearize(body, drive):
+    """Continuous A (4x4), B (4x1) about upright balance at rest; state [x, x', theta, theta'],
+    input the total wheel torque tau_w (N m): the paper's (A(q), B(q)), B = [0, b_x, 0, b_theta].
+
+    The Jacobian of ``WipDynamics.pitch_accelerations`` itself (central differences, exact to
+    rounding, see ``_LINEARIZE_STEP``), so every term of the model enters the design; the caster
+    is out of contact at upright. Batched bodies or drives give (..., 4, 4) and (..., 4, 1)."""
+    dyn = WipDynamics(body, replace(drive, caster_stiffness=0.0, caster_damping=0.0))
+    batch = np.broadcast(
+        *(
+            np.asarray(getattr(body, f.name))
+            for f in fields(body)
+            if f.name not in ('yaw_inertia', 'com_offset_full')
+        ),
+        *(np.asarray(getattr(drive, f.name)) for f in fields(drive)),
+    ).shape
+    h = _LINEARIZE_STEP
+    # columns: theta, phi', theta', tau; each at +h and -h
+    e = np.zeros((4, 8))
+    for k in range(4):
+        e[k, 2 * k], e[k, 2 * k + 1] = h, -h
+    e = e.reshape(4, 8, *(1,) * len(batch))
+    offset = np.asarray(body.com_offset, float)
+    q_base = -offset + e[0]
+    ddphi, ddqb = dyn.pitch_accelerations(q_base, e[1], e[2], e[3])
+    ddphi = np.broadcast_to(ddphi, (8, *batch))
+    ddqb = np.broadcast_to(ddqb, (8, *batch))
+    # the steps as the model saw them (theta = q_base + offset rounds the step in theta)
+    step = np.broadcast_to(e, (4, 8, *batch)).copy()
+    step[0] = np.broadcast_to(q_base + offset, (8, *batch))
+    step = (step[:, 0::2] - step[:, 1::2])[[0, 1, 2, 3], [0, 1, 2, 3]]  # (4, ...)
+    d_phi = (ddphi[0::2] - ddphi[1::2]) / step  # (4, ...) d phi'' / d (theta, phi', theta', tau)
+    d_qb = (ddqb[0::2] - ddqb[1::2]) / step
+    r = np.asarray(drive.wheel_radius, float)
+    zero = np.zeros(batch)
+    a = np.stack(
+        [
+            np.stack([zero, zero + 1.0, zero, zero], axis=-1),
+            np.stack([zero, d_phi[1], r * d_phi[0], r * d_phi[2]], axis=-1),
+            np.stack([zero, zero, zero, zero + 1.0], axis=-1),
+            np.stack([zero, d_qb[1] / r, d_qb[0], d_qb[2]], axis=-1),
+        ],
+        axis=-2,
+    )
+    b = np.stack([zero, r * d_phi[3], zero, d_qb[3]], axis=-1)[..., None]
+    return a, b

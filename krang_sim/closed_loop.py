@@ -60,7 +60,7 @@ class FastKrangSim(KrangSim):
         self._jnoise = None
         n = self.config.noise
         self._half = 0.5 * self.drive.track_width / self.drive.wheel_radius
-        self._kt = self.drive.torque_constant * self.drive.gear_ratio * self.config.effects.torque_constant_scale
+        self._kt = self.drive.torque_constant * self.drive.gear_ratio  # the true Kt (SimEffects)
         self._jbase = self.joints + self._enc_offset
         self._noise = (n.imu_pitch_std_rad, n.gyro_std_rad_s, n.gyro_lsb_rad_s, n.encoder_counts_per_rad,
                        n.joint_std_rad)

@@ -6,7 +6,9 @@ the locked-pose reduction is recomputed every `reduce_period` (quasi-static arms
 joints' own momentum is negligible against the 150 kg body).
 
 `SimEffects` are physical effects the nominal model leaves out. The simulator can switch each one on
-with a value, and `krang discrepancy` has to name them from data.
+with a value, and `krang discrepancy` has to name them from data. The physical ones are values of
+the drive train (``SimEffects.drive``): the equations are krang_model.wip's, nothing here restates
+them.
 """
 import math
 from collections import deque
@@ -14,9 +16,8 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from krang_model.com import com_frame0
 from krang_model.drivetrain import drivetrain
-from krang_model.wip import WipDynamics, reduce_pose
+from krang_model.wip import WipDynamics, point_mass_beta, reduce_pose
 
 
 @dataclass
@@ -35,11 +36,26 @@ class SimEffects:
     actuation_delay_s: float = 0.0         # transport delay of the wheel current commands
     encoder_offset_rad: float = 0.0        # the waist encoder reads q + offset
     encoder_offset_joint: str = 'JWaist'
+    drive_extra: dict = field(default_factory=dict)  # amounts added to any Drivetrain field
+
+    def drive(self, robot):
+        """The true robot's Drivetrain: the nominal one with these effects."""
+        nominal = drivetrain(robot)
+        extra = dict(self.drive_extra)
+        for name, amount in (('floor_slope', self.floor_slope_rad),
+                             ('viscous_friction', self.wheel_viscous_Nm_s),
+                             ('coulomb_friction', self.wheel_coulomb_Nm)):
+            extra[name] = extra.get(name, 0.0) + amount
+        values = {k: getattr(nominal, k) + v for k, v in extra.items()}
+        if self.wheel_radius_m:
+            values['wheel_radius'] = self.wheel_radius_m
+        values['torque_constant'] = nominal.torque_constant * self.torque_constant_scale
+        return replace(nominal, **values)
 
 
 @dataclass
 class SensorNoise:
-    """Noise and resolution of the hardware sensors (FACTS §5, §9)."""
+    """Noise and resolution of the hardware sensors (krang_model/README.md, Sensors)."""
 
     imu_pitch_std_rad: float = math.radians(0.1)
     gyro_std_rad_s: float = 0.002
@@ -79,12 +95,8 @@ class Sensors:
 
 def payload_beta(robot, beta, effects):
     """beta of the true robot including an unmodelled payload."""
-    beta = np.array(beta, dtype=float)
-    if effects.payload_kg:
-        i = robot.body_names.index(effects.payload_body)
-        beta[4 * i] += effects.payload_kg
-        beta[4 * i + 1:4 * i + 4] += effects.payload_kg * np.asarray(effects.payload_com_m)
-    return beta
+    return point_mass_beta(robot, beta, effects.payload_body, effects.payload_com_m,
+                           effects.payload_kg)
 
 
 class KrangSim:
@@ -95,13 +107,7 @@ class KrangSim:
         self.config = config or SimConfig()
         fx = self.config.effects
         self.true_beta = payload_beta(robot, true_beta, fx)
-        overrides = dict(floor_slope=fx.floor_slope_rad)
-        if fx.wheel_radius_m:
-            overrides['wheel_radius'] = fx.wheel_radius_m
-        nominal = drivetrain(robot)
-        overrides['viscous_friction'] = nominal.viscous_friction + fx.wheel_viscous_Nm_s
-        overrides['coulomb_friction'] = nominal.coulomb_friction + fx.wheel_coulomb_Nm
-        self.drive = drivetrain(robot, **overrides)
+        self.drive = fx.drive(robot)
         self.rng = np.random.default_rng(self.config.seed)
         self.t = 0.0
         self.joints = np.array(joints, dtype=float)
@@ -136,7 +142,7 @@ class KrangSim:
     def step(self, n=1):
         dt = self.config.dt
         delay_steps = int(round(self.config.effects.actuation_delay_s / dt))
-        kt = self.drive.torque_constant * self.drive.gear_ratio * self.config.effects.torque_constant_scale
+        kt = self.drive.torque_constant * self.drive.gear_ratio
         lim = self.drive.current_limit
         for _ in range(n):
             self._delay.append(self._current_cmd)
@@ -195,11 +201,6 @@ class KrangSim:
     def axle_acceleration(self):
         """Forward acceleration of the axle along the floor (m/s^2) over the last step."""
         return self.drive.wheel_radius * self._accel[0]
-
-    def com_angle(self):
-        """True CoM angle from vertical (rad) of the whole robot, wheels included."""
-        com = com_frame0(self.robot, [self.state[1]], self.joints[None], self.true_beta)[0]
-        return math.atan2(com[0], com[2])
 
     def balance_pitch(self):
         """The q_base at which the true robot (pose as it is now) balances."""

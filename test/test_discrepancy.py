@@ -2,8 +2,8 @@
 
 Each naming test hides ONE effect in the simulated plant (krang_sim.physics.SimEffects) and runs the
 workflow on the record with the whole effect library; the workflow is not told which effect, nor its
-value. The data generator (data.simulate_record) is KrangSim under the ADRC BalanceController with the
-NOMINAL model: sit, stand up, balance through three pose changes with a +-3 A current excitation.
+value. The data generator (synthetic.simulate_record) is KrangSim under the ADRC BalanceController
+with the NOMINAL model: sit, stand up, balance through three pose changes with a +-3 A current excitation.
 
 The replay is configured once for all simulated records with the simulator's own data-acquisition
 property, never the hidden effect: KrangSim re-reduces a moving pose every 20 ms, so its body lags
@@ -22,12 +22,19 @@ import numpy as np
 import pytest
 
 from krang_discrepancy import effects as fx
-from krang_discrepancy.data import (PHASES, NominalModel, Record, Replay, ReplayConfig, label_phases,
-                                    load_bag_record, load_csv_record, reduce_poses, save_bag,
-                                    simulate_record)
+from krang_discrepancy.loaders import load_bag_record, load_csv_record, save_bag
 from krang_discrepancy.locate import locate
-from krang_discrepancy.naming import NamingConfig, gaps, name_effects
+from krang_discrepancy.naming import Fit, NamingConfig, gaps, name_effects
+from krang_discrepancy.nominal import NominalModel
+from krang_discrepancy.phases import PHASES, label_phases
+from krang_discrepancy.record import Record
+from krang_discrepancy.replay import Replay, ReplayConfig
 from krang_discrepancy.report import load_extended_model, run_discrepancy, write_extended_model
+from krang_discrepancy.synthetic import simulate_record
+from krang_model.drivetrain import drivetrain
+from krang_model.robot import load_krang
+from krang_model.wip import WipDynamics, reduce_pose
+from krang_sim.closed_loop import TABLE2_POSE
 from krang_sim.physics import SensorNoise, SimEffects
 
 SIM_REPLAY = dict(pose_delay_s=0.01, stride_s=0.1)
@@ -43,7 +50,8 @@ CASES = [
     ('payload', SimEffects(payload_kg=5.0), 5.0, {'link': 'lGripper'}),
     ('wheel_viscous_friction', SimEffects(wheel_viscous_Nm_s=2.0), 2.0, {}),
     ('wheel_coulomb_friction', SimEffects(wheel_coulomb_Nm=2.0), 2.0, {}),
-    ('torque_constant', SimEffects(torque_constant_scale=0.8), 0.8 * 0.0847, {}),
+    ('torque_constant', SimEffects(torque_constant_scale=0.8),
+     0.8 * drivetrain(load_krang()).torque_constant, {}),
     ('actuation_delay', SimEffects(actuation_delay_s=0.02), 0.02, {}),
     ('encoder_offset', SimEffects(encoder_offset_rad=0.05), 0.05, {'joint': 'JWaist'}),
 ]
@@ -100,8 +108,6 @@ def test_no_hidden_effect_names_none(model):
 def _wip_record(model, seconds=3.0, seed=0):
     """A record made by krang_model.wip.WipDynamics itself (1 ms semi-implicit Euler) under random
     piecewise-constant torques around upright, no controller, no noise."""
-    from krang_model.wip import WipDynamics, reduce_pose
-    from krang_sim.closed_loop import TABLE2_POSE
     rng = np.random.default_rng(seed)
     body = reduce_pose(model.robot, TABLE2_POSE, model.beta)
     dyn = WipDynamics(body, model.drive)
@@ -133,19 +139,6 @@ def test_replay_reproduces_wipdynamics_exactly(model):
     res = rp.residuals([model.terms()])[0]
     assert len(rp) > 10
     assert np.abs(res).max() < 1e-9
-
-
-def test_reduce_poses_matches_reduce_pose(model):
-    from krang_model.wip import reduce_pose
-    rng = np.random.default_rng(1)
-    joints = rng.uniform(model.robot.lower * 0.5, model.robot.upper * 0.5, (4, 16))
-    red = reduce_poses(model.robot, joints, model.beta)
-    for i in range(4):
-        b = reduce_pose(model.robot, joints[i], model.beta)
-        assert red['mass'] == pytest.approx(b.mass)
-        assert np.hypot(red['my'][i], red['mz'][i]) / red['mass'] == pytest.approx(b.com_distance, rel=1e-12)
-        assert np.arctan2(-red['mz'][i], red['my'][i]) == pytest.approx(b.com_offset, abs=1e-12)
-        assert red['inertia'][i] == pytest.approx(b.inertia_axle, rel=1e-12)
 
 
 def test_every_library_effect_reproduces_the_simulator(model):
@@ -220,7 +213,6 @@ def test_user_effect_registers_and_changes_the_model(model):
 
 
 def test_extended_model_yaml_maps_onto_simeffects(tmp_path, model):
-    from krang_discrepancy.naming import Fit
     effs = [fx.get_effect('floor_slope'), fx.get_effect('payload@rGripper'), fx.get_effect('torque_constant')]
     fit = Fit(effs, np.array([0.01, 2.0, 0.9]), np.array([1e-4, 0.1, 0.01]), 0.0, np.zeros(1), np.zeros((2, 3)))
     path = tmp_path / 'ext.yaml'
@@ -229,7 +221,9 @@ def test_extended_model_yaml_maps_onto_simeffects(tmp_path, model):
     assert (sim.floor_slope_rad, sim.payload_kg, sim.payload_body, sim.torque_constant_scale) == \
         (0.01, 2.0, 'rGripper', 0.9)
     assert tuple(sim.payload_com_m) == (0.0, 0.0, 0.1)
-    assert terms.floor_slope == 0.01 and terms.torque_scale == 0.9 and terms.payloads[0][2] == 2.0
+    assert terms.drive.floor_slope == 0.01 and terms.payloads[0][2] == 2.0
+    assert terms.drive.torque_constant == pytest.approx(0.9 * model.drive.torque_constant,
+                                                        rel=1e-15)
 
 
 def test_bag_round_trip(tmp_path):

@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 
 from krang_model.com import balance_pitch
+from krang_model.drivetrain import drivetrain
 from krang_model.robot import load_krang
 from krang_sim.physics import KrangSim, SimConfig, SimEffects, SensorNoise, perturbed_beta
 
@@ -95,3 +96,25 @@ def test_perturbed_truth_is_physical(krang):
     assert np.all(beta[0::4] > 0)
     for w in krang.wheel_body_ids:
         assert np.all(beta[4 * w + 1:4 * w + 4] == 0)
+
+
+def test_effects_are_values_of_the_true_drive_train(krang):
+    """The physical effects become the true robot's Drivetrain, which krang_model.wip integrates;
+    drive_extra adds to any of its fields (a new term needs no simulator code)."""
+    nominal = drivetrain(krang)
+    fx = SimEffects(floor_slope_rad=0.01, wheel_radius_m=0.25, wheel_viscous_Nm_s=2.0,
+                    wheel_coulomb_Nm=0.5, torque_constant_scale=0.8,
+                    drive_extra={'ground_viscous': 1.5, 'viscous_friction': 0.25})
+    d = fx.drive(krang)
+    assert (d.floor_slope, d.wheel_radius) == (0.01, 0.25)
+    assert d.viscous_friction == pytest.approx(nominal.viscous_friction + 2.25)
+    assert d.coulomb_friction == pytest.approx(nominal.coulomb_friction + 0.5)
+    assert d.ground_viscous == pytest.approx(nominal.ground_viscous + 1.5)
+    assert d.torque_constant == pytest.approx(0.8 * nominal.torque_constant)
+    assert SimEffects().drive(krang) == nominal
+    slow = sim(krang, q_base=-1.0, drive_extra={'ground_viscous': 50.0})
+    free = sim(krang, q_base=-1.0)
+    for s in (slow, free):
+        s.state[2] = 1.0            # rolling forward
+        s.step(50)
+    assert slow.state[2] < free.state[2] - 0.05   # the rolling resistance brakes the wheels

@@ -1,0 +1,482 @@
+"""The multiple-shooting replay: the nominal (or extended) model driven by the measured initial
+states, commands and poses, for many parameter sets at once.
+
+Why short horizons (multiple shooting) and not one long rollout
+    The balancing robot is an open-loop unstable pendulum (pole near +5 rad/s for the Table II
+    pose). An open-loop rollout from the first sample with the measured commands diverges from any
+    tiny error within a second or two, whatever the model, so its "gap" measures the instability,
+    the initial condition, not the missing physics. A closed-loop re-simulation with our controller
+    would not be the hardware's controller, and feedback hides the effects it compensates. So the
+    replay starts a short prediction (default 0.3 s, about 1.5 time constants) at every measured
+    state (every ``stride_s``), drives it with the measured commands and the measured pose, and
+    compares the predicted signals with the measured ones along the horizon. Errors cannot compound
+    across windows; a missing effect shows up as a systematic prediction error.
+
+The model is ``krang_model.wip.WipDynamics`` itself (its semi-implicit Euler step), evaluated on
+numpy arrays: all windows and all parameter sets of a fit step at once. Poses are reduced with
+``krang_model.wip.reduce_placements`` and payloads added with ``point_mass_beta``, as the simulator
+does.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from krang_model.drivetrain import stack
+from krang_model.kinematics import body_placements
+from krang_model.wip import WipBody, WipDynamics, point_mass_beta, reduce_placements
+
+from .effects import ModelTerms
+from .nominal import NominalModel
+from .phases import PHASES, label_phases
+from .record import CHANNELS, Record
+
+
+@dataclass
+class ReplayConfig:
+    horizon_s: float = 0.3  # prediction horizon of each window
+    stride_s: float = 0.05  # a window starts every stride
+    n_eval: int = 3  # comparison points along the horizon (equally spaced, last = H)
+    substep_s: float = 0.002  # largest integration step
+    smooth_s: float = 0.02  # half-width of the gyro-aided smoothing of the measured pitch
+    body_period_s: float = 0.02  # pose reduction period while joints move
+    pose_delay_s: float = 0.0  # the body follows the measured joints this much later
+    caster_margin: float = 0.02  # windows that come this close to the caster pitch are 'sitting'
+    max_windows: int = 4000  # per record (stride is widened beyond)
+
+
+@dataclass
+class _Rec:
+    """Per-record precomputations."""
+
+    record: Record
+    labels: np.ndarray
+    tb: np.ndarray  # body-table times
+    jb: np.ndarray  # body-table joints (K, 16)
+    ct: np.ndarray  # command breakpoints
+    cu: np.ndarray  # total clamped torque after each breakpoint
+    cc: np.ndarray  # cumulative integral at breakpoints
+    lr: np.ndarray  # (M, 2) per-wheel commands at the breakpoints (for other clamps)
+
+
+class Replay:
+    """Multiple-shooting replay of records under the nominal model or any extension of it.
+
+    ``predict(terms_list)`` -> predicted measurements (P, S, E, 4) for P parameter sets, S windows,
+    E points along the horizon, channels CHANNELS; ``measured`` is (S, E, 4); ``residuals`` the
+    difference. Window metadata: ``win_record``, ``win_t`` (start time), ``win_phase``.
+    """
+
+    def __init__(
+        self, records, model: NominalModel, config: ReplayConfig | None = None, phases=None
+    ):
+        self.model = model
+        self.cfg = cfg = config or ReplayConfig()
+        self.records = list(records) if isinstance(records, (list, tuple)) else [records]
+        d = model.drive
+        self._recs = []
+        starts, t_start, rec_id, phase, inits, meas = [], [], [], [], [], []
+        self._h = None
+        for ri, rec in enumerate(self.records):
+            h, n_steps, step_samples, eval_samples = self._grid(rec.period)
+            if self._h is None:
+                self._h, self._n_steps = h, n_steps
+                self._horizon = n_steps * h
+                self.eval_steps = np.round(eval_samples / step_samples).astype(int)
+            elif abs(h - self._h) > 1e-6 * self._h or n_steps != self._n_steps:
+                raise ValueError(
+                    'records with different sample periods: resample them to one rate '
+                    f'({rec.name}: {rec.period:.4g} s vs {self.records[0].period:.4g} s)'
+                )
+            n_h = int(eval_samples[-1])
+            eval_off = eval_samples
+            labels = label_phases(rec, d.caster_pitch)
+            stride = max(1, int(round(cfg.stride_s / rec.period)))
+            ks = np.arange(0, len(rec) - n_h, stride)
+            if ks.size > cfg.max_windows:
+                ks = ks[np.linspace(0, ks.size - 1, cfg.max_windows).astype(int)]
+            eval_off = np.round(np.linspace(n_h / cfg.n_eval, n_h, cfg.n_eval)).astype(int)
+            qs = self._smooth_pitch(rec)
+            sig = np.column_stack([qs, rec.pitch_rate, rec.wheel, rec.wheel_rate])
+            # windows touching the caster are 'sitting' whatever the label at their start
+            win_min = (
+                np.array([rec.q_base[k : k + n_h + 1].min() for k in ks])
+                if ks.size
+                else np.zeros(0)
+            )
+            ph = labels[ks].copy()
+            ph[win_min < d.caster_pitch + cfg.caster_margin] = 'sitting'
+            ok = np.all(np.isfinite(sig[ks]), axis=1)
+            for e in eval_off:
+                ok &= np.all(np.isfinite(sig[ks + e]), axis=1)
+            ks, ph = ks[ok], ph[ok]
+            starts.append(ks)
+            t_start.append(rec.t[ks])
+            rec_id.append(np.full(ks.size, ri))
+            phase.append(ph)
+            inits.append(sig[ks])
+            meas.append(np.stack([sig[ks + e] for e in eval_off], axis=1))
+            # commands: total clamped torque as a step function and its running integral
+            lim = rec.torque_limit
+            ct = rec.cmd_t
+            lr = rec.cmd_torque if ct.size else np.zeros((0, 2))
+            ct = np.concatenate(
+                [[ct[0] - 1e6 if ct.size else rec.t[0] - 1e6], ct, [rec.t[-1] + 1e6]]
+            )
+            lr = np.concatenate([np.zeros((1, 2)), lr, lr[-1:] if lr.size else np.zeros((1, 2))])
+            cu = np.clip(lr, -lim, lim).sum(axis=1)
+            cc = np.concatenate([[0.0], np.cumsum(cu[:-1] * np.diff(ct))])
+            tb, jb = self._body_samples(rec)
+            self._recs.append(_Rec(rec, labels, tb, jb, ct, cu, cc, lr))
+        self.win_k = np.concatenate(starts)
+        self.win_t = np.concatenate(t_start)
+        self.win_record = np.concatenate(rec_id)
+        self.win_phase = np.concatenate(phase)
+        self.init = np.concatenate(inits)  # (S, 4) measured state at the start
+        self.measured = np.concatenate(meas)  # (S, E, 4)
+        self.eval_tau = self.eval_steps * self._h
+        # sub-step times (S, J+1) and body-table interpolation
+        self.sub_t = self.win_t[:, None] + self._h * np.arange(self._n_steps + 1)[None]
+        self._body_cache = {}
+        self._reduce_cache = {}
+        self._torque_cache = {}
+        self.select(phases)
+        self.scales = None
+        self.timing = {}
+
+    # ------------------------------------------------------------------ set-up helpers
+    @property
+    def horizon(self) -> float:
+        return self._horizon
+
+    @property
+    def substep(self) -> float:
+        return self._h
+
+    def __len__(self):
+        return self.win_t.size
+
+    def select(self, phases=None):
+        """Restrict ``active`` (the windows fits use) to these phases (None: all but sitting)."""
+        if phases is None:
+            phases = tuple(p for p in PHASES if p != 'sitting')
+        self.phases = tuple(phases)
+        self.active = np.isin(self.win_phase, self.phases)
+        return self.active
+
+    def _grid(self, period):
+        """(sub-step h, steps per horizon, samples per step, eval offsets in samples) for a
+        measurement period: h divides the period (slow data) or is a multiple of it (fast data),
+        and every comparison point falls on both a sample and a sub-step boundary."""
+        cfg = self.cfg
+        if period >= cfg.substep_s:
+            m = int(math.ceil(period / cfg.substep_s - 1e-9))
+            n_h = max(cfg.n_eval, int(round(cfg.horizon_s / period)))
+            ev = np.round(np.linspace(n_h / cfg.n_eval, n_h, cfg.n_eval)).astype(int)
+            return period / m, n_h * m, 1.0 / m, ev
+        q = max(1, int(math.floor(cfg.substep_s / period + 1e-9)))
+        n_steps = max(cfg.n_eval, int(round(cfg.horizon_s / (q * period))))
+        ev_steps = np.round(np.linspace(n_steps / cfg.n_eval, n_steps, cfg.n_eval)).astype(int)
+        return q * period, n_steps, float(q), ev_steps * q
+
+    def _smooth_pitch(self, rec):
+        """Gyro-aided moving average of the IMU pitch: mean over +-smooth_s of
+        (q_base_j - integral of the rate from t_k to t_j). Unbiased for any pitch motion when the
+        rate is right; it only averages the angle noise."""
+        w = int(round(self.cfg.smooth_s / rec.period))
+        if w < 1:
+            return rec.q_base.copy()
+        a = np.concatenate(
+            [[0.0], np.cumsum(0.5 * (rec.pitch_rate[1:] + rec.pitch_rate[:-1]) * np.diff(rec.t))]
+        )
+        d = rec.q_base - a
+        kern = np.ones(2 * w + 1)
+        num = np.convolve(d, kern, mode='same')
+        cnt = np.convolve(np.ones_like(d), kern, mode='same')
+        return num / cnt + a
+
+    def _body_samples(self, rec):
+        """Times and joints (bin means over body_period_s) at which the pose is reduced; bins
+        inside still stretches are dropped (linear interpolation between the kept ones is exact
+        there), so a record that mostly holds its pose needs few reductions."""
+        span = np.ptp(rec.joints, axis=0).max()
+        delay = self.cfg.pose_delay_s
+        if span < 2e-3:
+            return np.array([rec.t[0]]), rec.joints.mean(axis=0, keepdims=True)
+        per = max(1, int(round(self.cfg.body_period_s / rec.period)))
+        n = len(rec) // per
+        jb = rec.joints[: n * per].reshape(n, per, -1).mean(axis=1)
+        tb = rec.t[: n * per].reshape(n, per).mean(axis=1) + delay
+        keep = [0]
+        tol = 5e-4
+        for i in range(1, n):
+            if np.max(np.abs(jb[i] - jb[keep[-1]])) > tol:
+                if keep[-1] != i - 1:
+                    keep.append(i - 1)
+                keep.append(i)
+        if keep[-1] != n - 1:
+            keep.append(n - 1)
+        keep = np.array(keep)
+        return tb[keep], jb[keep]
+
+    def _placements(self, offsets_key):
+        """Per record: the body placements at the body-table joints shifted by the encoder offsets
+        (cached by offsets): payload variants then cost only the mass contraction."""
+        hit = _lru_get(self._reduce_cache, offsets_key)
+        if hit is not None:
+            return hit
+        robot = self.model.robot
+        out = []
+        for r in self._recs:
+            joints = r.jb.copy()
+            for jname, off in offsets_key:
+                joints[:, robot.pose_joints.index(jname)] -= off  # true = measured - offset
+            out.append(body_placements(robot, joints))
+        _lru_put(self._reduce_cache, offsets_key, out, 64)
+        return out
+
+    def _body_arrays(self, terms: ModelTerms):
+        """(mass, com distance (S,J), offset (S,J), inertia (S,J)) of this body variant at the
+        mid-point of every sub-step (cached by terms.body_key()). A payload is added to its link's
+        beta (krang_model.wip.point_mass_beta) and the pose reduced again, as in the simulator."""
+        key = terms.body_key()
+        hit = _lru_get(self._body_cache, key)
+        if hit is not None:
+            return hit
+        robot, beta = self.model.robot, self.model.beta
+        for link, point, kg in terms.payloads:
+            beta = point_mass_beta(robot, beta, link, point, kg)
+        places = self._placements(key[1])
+        still = all(len(r.tb) == 1 for r in self._recs)
+        # a record whose pose never moves needs one value per window, broadcast over sub-steps
+        mid = self.sub_t[:, :1] if still else 0.5 * (self.sub_t[:, 1:] + self.sub_t[:, :-1])
+        out = [np.empty(mid.shape) for _ in range(3)]
+        mass = 0.0
+        for ri, r in enumerate(self._recs):
+            sel = self.win_record == ri
+            if not np.any(sel):
+                continue
+            body = reduce_placements(robot, *places[ri], beta)
+            mass = float(body.mass[0])
+            tq = mid[sel]
+            for k, v in enumerate((body.com_distance, body.com_offset, body.inertia_axle)):
+                out[k][sel] = v[0] if v.size == 1 else np.interp(tq, r.tb, v)
+        out = (mass, *out)
+        _lru_put(self._body_cache, key, out, 24)
+        return out
+
+    def _torque_arrays(self, delay: float, current_limit: float):
+        """Average commanded total torque over each sub-step, delayed by `delay` (S, J), the
+        per-wheel commands clamped at the record's torque limit or at `current_limit` (A) of the
+        nominal motors, whichever is lower."""
+        key = (delay, current_limit)
+        hit = _lru_get(self._torque_cache, key)
+        if hit is not None:
+            return hit
+        k_motor = self.model.drive.torque_constant * self.model.drive.gear_ratio
+        tq = np.empty((self.sub_t.shape[0], self._n_steps))
+        for ri, r in enumerate(self._recs):
+            sel = self.win_record == ri
+            if not np.any(sel):
+                continue
+            cu, cc = r.cu, r.cc
+            lim = current_limit * k_motor
+            if lim < r.record.torque_limit:
+                cu = np.clip(r.lr, -lim, lim).sum(axis=1)
+                cc = np.concatenate([[0.0], np.cumsum(cu[:-1] * np.diff(r.ct))])
+            # exact integral of the step function: C(t) = cc[i] + cu[i] (t - ct[i])
+            tt = self.sub_t[sel] - delay
+            i = np.clip(np.searchsorted(r.ct, tt, side='right') - 1, 0, r.ct.size - 1)
+            c = cc[i] + cu[i] * (tt - r.ct[i])
+            tq[sel] = np.diff(c, axis=1) / self._h
+        _lru_put(self._torque_cache, key, tq, 12)
+        return tq
+
+    # ------------------------------------------------------------------ prediction
+    def predict(self, terms_list, windows=None, trajectory=False, max_elements: int = 300_000):
+        """``_predict`` in chunks of windows so that (parameter sets x windows) stays below
+        `max_elements` (memory)."""
+        if isinstance(terms_list, ModelTerms):
+            terms_list = [terms_list]
+        sel = np.arange(len(self)) if windows is None else np.arange(len(self))[windows]
+        chunk = max(1, max_elements // max(1, len(terms_list)))
+        if sel.size <= chunk:
+            return self._predict(terms_list, sel, trajectory)
+        parts = [
+            self._predict(terms_list, sel[i : i + chunk], trajectory)
+            for i in range(0, sel.size, chunk)
+        ]
+        if trajectory:
+            return (
+                np.concatenate([p[0] for p in parts], axis=1),
+                np.concatenate([p[1] for p in parts], axis=1),
+            )
+        return np.concatenate(parts, axis=1)
+
+    def _predict(self, terms_list, windows=None, trajectory=False):
+        """Predicted measurements (P, S, E, 4) for each ModelTerms in `terms_list` (windows: an
+        index/mask into the windows, default all). With trajectory=True also returns the sub-step
+        states (P, S, J+1, 4) as measured channels.
+
+        All P parameter sets step together; body variants (payloads, encoder offsets) and delays
+        are computed once per distinct value and gathered per step."""
+        t_start = time.perf_counter()
+        if isinstance(terms_list, ModelTerms):
+            terms_list = [terms_list]
+        sel = np.arange(len(self)) if windows is None else np.arange(len(self))[windows]
+        P, S, J = len(terms_list), sel.size, self._n_steps
+        h = self._h
+        drive = stack([tm.drive for tm in terms_list])  # shared fields stay floats
+        col = lambda name: np.array([getattr(tm, name) for tm in terms_list], float)[:, None]  # noqa: E731
+        bias, ia, dl = col('imu_pitch_bias'), col('inertia_add'), col('com_shift')
+        adjust = bool(np.any(ia)) or bool(np.any(dl))
+        # applied / commanded torque: the commands were computed with the nominal Kt
+        t_scale = drive.torque_constant / self.model.drive.torque_constant
+        # distinct body variants: (J, n_u, S) arrays, gathered per step when n_u > 1
+        bkeys = [tm.body_key() for tm in terms_list]
+        ukeys = list(dict.fromkeys(bkeys))
+        bidx = np.array([ukeys.index(k) for k in bkeys]) if len(ukeys) > 1 else None
+        first = {k: terms_list[bkeys.index(k)] for k in ukeys}
+        bodies = [self._body_arrays(first[k]) for k in ukeys]
+        mass = np.array([bd[0] for bd in bodies])[bidx if bidx is not None else [0]][:, None]
+        dist = np.stack([bd[1][sel].T for bd in bodies], axis=1)  # (J or 1, n_u, S)
+        off = np.stack([bd[2][sel].T for bd in bodies], axis=1)
+        inertia = np.stack([bd[3][sel].T for bd in bodies], axis=1)
+        jb_last = dist.shape[0] - 1
+        delays = [(tm.actuation_delay, tm.drive.current_limit) for tm in terms_list]
+        udel = list(dict.fromkeys(delays))
+        didx = np.array([udel.index(d) for d in delays]) if len(udel) > 1 else None
+        tq_u = np.stack([self._torque_arrays(*d)[sel].T for d in udel], axis=1)  # (J, n_d, S)
+        # initial state (true pitch = measured - bias)
+        x0 = self.init[sel]
+        qb = x0[:, 0][None] - bias + np.zeros((P, 1))
+        dqb = x0[:, 1][None] + np.zeros((P, 1))
+        phi = qb + x0[:, 2][None]
+        dphi = dqb + x0[:, 3][None]
+        extra = [tm.extra_forces for tm in terms_list]
+        any_extra = any(extra)
+        out = np.empty((P, S, len(self.eval_steps), 4))
+        traj = np.empty((P, S, J + 1, 4)) if trajectory else None
+        if trajectory:
+            traj[:, :, 0] = np.stack([qb + bias, dqb, phi - qb, dphi - dqb], axis=-1)
+        e_index = {int(s): i for i, s in enumerate(self.eval_steps)}
+        dyn = None
+        for j in range(J):
+            jb = j if j < jb_last else jb_last
+            if dyn is None or jb == j:  # the body moves (or the first step)
+                pick = (lambda a: a[jb]) if bidx is None else (lambda a: a[jb][bidx])  # noqa: E731
+                body = WipBody(
+                    mass=mass,
+                    com_distance=pick(dist),
+                    com_offset=pick(off),
+                    inertia_axle=pick(inertia),
+                )
+                if adjust:
+                    body = body.adjusted(com_shift=dl, inertia_add=ia)
+                dyn = WipDynamics(body, drive)
+            tau = (tq_u[j] if didx is None else tq_u[j][didx]) * t_scale
+            f_phi = f_qbase = None
+            if any_extra:
+                f_phi, f_qbase = np.zeros((P, S)), np.zeros((P, S))
+                theta = qb + body.com_offset
+                tau_p = np.broadcast_to(tau, qb.shape)
+                for p, fl in enumerate(extra):
+                    st = _State(
+                        phi[p], qb[p], dphi[p], dqb[p], theta[p], tau_p[p], self.sub_t[sel, j]
+                    )
+                    for fn in fl:
+                        a1, a2 = fn(st)
+                        f_phi[p] += a1
+                        f_qbase[p] += a2
+            ddphi, ddqb = dyn.pitch_accelerations(qb, dphi, dqb, tau, f_phi, f_qbase)
+            # WipDynamics.step's semi-implicit Euler, on the pitch plane
+            dphi = dphi + h * ddphi
+            dqb = dqb + h * ddqb
+            phi = phi + h * dphi
+            qb = qb + h * dqb
+            if trajectory:
+                traj[:, :, j + 1] = np.stack([qb + bias, dqb, phi - qb, dphi - dqb], axis=-1)
+            e = e_index.get(j + 1)
+            if e is not None:
+                out[:, :, e, 0] = qb + bias
+                out[:, :, e, 1] = dqb
+                out[:, :, e, 2] = phi - qb
+                out[:, :, e, 3] = dphi - dqb
+        self.timing['predict_s'] = (
+            self.timing.get('predict_s', 0.0) + time.perf_counter() - t_start
+        )
+        self.timing['predict_calls'] = self.timing.get('predict_calls', 0) + 1
+        self.timing['predict_sets'] = self.timing.get('predict_sets', 0) + P
+        return (out, traj) if trajectory else out
+
+    def residuals(self, terms_list, windows=None):
+        """measured - predicted, (P, S, E, 4)."""
+        sel = np.arange(len(self)) if windows is None else np.arange(len(self))[windows]
+        return self.measured[sel][None] - self.predict(terms_list, sel)
+
+    # ------------------------------------------------------------------ scales and gaps
+    def set_scales(self, residual0, windows=None):
+        """Whitening scales (E, 4) from the nominal residuals on the active windows: a robust RMS,
+        sqrt(median(r^2) / 0.455) (= the standard deviation for Gaussian residuals), so that a few
+        outlying windows do not set the yardstick."""
+        w = self.active if windows is None else windows
+        r = residual0[w] if residual0.ndim == 3 else residual0[0][w]
+        self.scales = np.sqrt(np.median(r**2, axis=0) / 0.4549) + 1e-12
+        return self.scales
+
+    def window_loss(self, residuals):
+        """Robust loss per window, (P, S): mean over points and channels of the soft-L1 function
+        2 (sqrt(1 + z^2) - 1) of the whitened residual z (quadratic for |z| < 1, linear beyond)."""
+        z2 = (residuals / self.scales) ** 2
+        return np.mean(2.0 * (np.sqrt(1.0 + z2) - 1.0), axis=(-2, -1))
+
+
+def _lru_get(cache: dict, key):
+    hit = cache.pop(key, None)
+    if hit is not None:
+        cache[key] = hit  # most recent last
+    return hit
+
+
+def _lru_put(cache: dict, key, value, size: int):
+    cache[key] = value
+    while len(cache) > size:
+        cache.pop(next(iter(cache)))
+
+
+@dataclass
+class _State:
+    phi: np.ndarray
+    q_base: np.ndarray
+    dphi: np.ndarray
+    dq_base: np.ndarray
+    theta: np.ndarray
+    tau: np.ndarray
+    t: np.ndarray
+
+
+def gap_metrics(replay: Replay, residuals, windows=None) -> dict:
+    """Gap figures of one residual set (S, E, 4) on the given windows (default: the active ones):
+
+    gap          RMS whitened prediction error over all windows, horizon points and the four
+                 signals, each signal divided by its scale (``Replay.scales``: the nominal model's
+                 robust RMS error for that signal and horizon point). Unitless: about 1 for the
+                 nominal model (more with outlying windows), the share left for an extended model.
+    rms_<signal> RMS error at the horizon, physical units (q_base rad, pitch_rate rad/s, wheel rad,
+                 wheel_rate rad/s)
+    mad_q_base   median absolute pitch error at the horizon (rad), insensitive to outlying windows
+    """
+    w = replay.active if windows is None else windows
+    r = residuals[w]
+    out = {'gap': math.nan}
+    if replay.scales is not None and r.size:
+        out['gap'] = float(np.sqrt(np.mean((r / replay.scales) ** 2)))
+    for c, name in enumerate(CHANNELS):
+        out[f'rms_{name}'] = float(np.sqrt(np.mean(r[:, -1, c] ** 2))) if r.size else math.nan
+    out['mad_q_base'] = float(np.median(np.abs(r[:, -1, 0]))) if r.size else math.nan
+    out['windows'] = int(r.shape[0])
+    return out
