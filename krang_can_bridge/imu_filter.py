@@ -1,13 +1,14 @@
-"""Base pitch from the DMU: the kore recipe (munzir/36-kore src/sensors.cpp getImu, src/kore.cpp initImu).
+"""Base pitch from the DMU: the kore recipe (munzir/36-kore src/sensors.cpp getImu,
+src/kore.cpp initImu).
 
 Geometry (the DMU is mounted at m = -45 deg about its z axis):
     pitch      = atan2(a_x cos m - a_y sin m, a_z)       (specific force, any unit)
     pitch_rate = w_y sin m + w_x cos m                  (w_x = dQ, w_y = dP, biases removed)
 So in sensor coordinates the pitch axis is e = (cos m, sin m, 0), the in-plane tilt direction is
-d = (cos m, -sin m, 0), and z points up at pitch 0. Rotating the sensor by +theta about e turns gravity's
-reaction into g (sin(theta) d + cos(theta) z): the same pitch atan2 reads, so the rate and the angle agree.
-The output is the hardware q_base (kore: qBase := IMU pitch, no offset): about -1.76 rad sitting on the caster,
-positive = tilting forward.
+d = (cos m, -sin m, 0), and z points up at pitch 0. Rotating the sensor by +theta about e turns
+gravity's reaction into g (sin(theta) d + cos(theta) z): the same pitch atan2 reads, so the rate
+and the angle agree. The output is the hardware q_base (kore: qBase := IMU pitch, no offset):
+about -1.76 rad sitting on the caster, positive = tilting forward.
 
 Filter: kore's Kalman filter on (angle, rate), both measured directly, with a constant-rate process
 model, process noise from dt with k1 = 2, k1b = 5 (docs/imu.md), augmented with the
@@ -15,8 +16,9 @@ gyro's residual bias so that a bias the configuration does not know of does not 
 (`PitchKalmanFilter`, docs/imu.md). It starts from the average of `init_samples` still samples, as
 kore averaged >= 100 samples, which also gives the gyro's bias.
 
-Unlike imud/kore (which fed raw rates), the configured gyro biases are removed before the filter: ssdmu.c
-defines them for this DMU and leaving -0.14 rad/s in the pitch rate would bias the balance controller.
+Unlike imud/kore (which fed raw rates), the configured gyro biases are removed before the filter:
+ssdmu.c defines them for this DMU and leaving -0.14 rad/s in the pitch rate would bias the balance
+controller.
 """
 from __future__ import annotations
 
@@ -36,13 +38,15 @@ def pitch_axis(mount_angle_rad: float) -> np.ndarray:
 
 
 def tilt_direction(mount_angle_rad: float) -> np.ndarray:
-    """Unit in-plane direction along which gravity's reaction appears when pitched (sensor coordinates)."""
+    """Unit in-plane direction along which gravity's reaction appears when pitched (sensor
+    coordinates)."""
     return np.array([math.cos(mount_angle_rad), -math.sin(mount_angle_rad), 0.0])
 
 
 def pitch_measurement(specific_force: Sequence[float], rates: Sequence[float],
                       mount_angle_rad: float) -> tuple[float, float]:
-    """(pitch, pitch_rate) of one sample, exactly as kore computed them (specific force in any unit)."""
+    """(pitch, pitch_rate) of one sample, exactly as kore computed them (specific force in any
+    unit)."""
     m = mount_angle_rad
     new_x = specific_force[0] * math.cos(m) - specific_force[1] * math.sin(m)
     return math.atan2(new_x, specific_force[2]), rates[1] * math.sin(m) + rates[0] * math.cos(m)
@@ -51,15 +55,17 @@ def pitch_measurement(specific_force: Sequence[float], rates: Sequence[float],
 def sensor_vectors(pitch: float, pitch_rate: float, mount_angle_rad: float, gravity: float = 9.81,
                    forward_specific_force: float = 0.0, up_specific_force: float | None = None
                    ) -> tuple[np.ndarray, np.ndarray]:
-    """(specific force [m/s^2], rates [rad/s]) in sensor coordinates for a robot at `pitch` in the pitch plane.
+    """(specific force [m/s^2], rates [rad/s]) in sensor coordinates for a robot at `pitch` in the
+    pitch plane.
 
-    The inverse of `pitch_measurement`. Specific force is given in the world pitch plane: `up_specific_force`
-    (default `gravity`, i.e. at rest) along world up and `forward_specific_force` along the direction the top of
+    The inverse of `pitch_measurement`. Specific force is given in the world pitch plane:
+    `up_specific_force` (default `gravity`, i.e. at rest) along world up and
+    `forward_specific_force` along the direction the top of
     the robot moves for positive pitch. Rates other than the pitch rate are zero.
     """
     up = gravity if up_specific_force is None else up_specific_force
     s, c = math.sin(pitch), math.cos(pitch)
-    along_tilt = -forward_specific_force * c + up * s      # component on d (d is world -forward at pitch 0)
+    along_tilt = -forward_specific_force * c + up * s   # on d (d is world -forward at pitch 0)
     along_z = forward_specific_force * s + up * c
     force = along_tilt * tilt_direction(mount_angle_rad) + np.array([0.0, 0.0, along_z])
     return force, pitch_rate * pitch_axis(mount_angle_rad)
@@ -219,10 +225,12 @@ class ImuPitchEstimator:
     def corrected_rates(self, rates: Sequence[float]) -> np.ndarray:
         return np.asarray(rates, dtype=float) - self.gyro_bias
 
-    def update(self, rates: Sequence[float], specific_force: Sequence[float], t: float) -> PitchEstimate:
+    def update(self, rates: Sequence[float], specific_force: Sequence[float],
+               t: float) -> PitchEstimate:
         w = self.corrected_rates(rates)
         raw_pitch, raw_rate = pitch_measurement(specific_force, w, self.mount_angle_rad)
         dt = 0.0 if self._last_t is None else t - self._last_t
         self._last_t = t
         pitch, rate = self.filter.update(raw_pitch, raw_rate, dt)
-        return PitchEstimate(pitch, rate, raw_pitch, raw_rate, self.filter.ready, float(self.filter.P[0, 0]))
+        return PitchEstimate(pitch, rate, raw_pitch, raw_rate, self.filter.ready,
+                             float(self.filter.P[0, 0]))

@@ -1,4 +1,5 @@
-"""Base pitch from DMU samples: kore's geometry with the -45 deg mount, bias removal, the Kalman filter."""
+"""Base pitch from DMU samples: kore's geometry with the -45 deg mount, bias removal, the Kalman
+filter, and a gyro bias the filter is not told of (sitting and in the closed loop)."""
 import dataclasses
 import math
 
@@ -16,8 +17,9 @@ G = 9.81
 
 
 def hand_sample(pitch, pitch_rate, mount):
-    """Sensor-frame readings built by hand: gravity's reaction g*(sin(p) d + cos(p) z) with the tilt direction
-    d = (cos m, -sin m, 0); the rate about the axle e = (cos m, sin m, 0) (kore getImu, inverted)."""
+    """Sensor-frame readings built by hand: gravity's reaction g*(sin(p) d + cos(p) z) with the
+    tilt direction d = (cos m, -sin m, 0); the rate about the axle e = (cos m, sin m, 0) (kore
+    getImu, inverted)."""
     c, s = math.cos(mount), math.sin(mount)
     force = np.array([G * math.sin(pitch) * c, -G * math.sin(pitch) * s, G * math.cos(pitch)])
     rates = np.array([pitch_rate * c, pitch_rate * s, 0.0])
@@ -56,8 +58,8 @@ def run(estimator, pitch_of_t, rate_of_t, mount, bias, duration=3.0, dt=0.002, n
 
 
 def test_constant_pitch_on_the_caster_is_recovered(imu):
-    est = run(ImuPitchEstimator(imu), lambda t: -1.76, lambda t: 0.0, imu.mount_angle_rad, imu.gyro_bias_rad_s,
-              noise=0.01)
+    est = run(ImuPitchEstimator(imu), lambda t: -1.76, lambda t: 0.0, imu.mount_angle_rad,
+              imu.gyro_bias_rad_s, noise=0.01)
     assert est.ready
     assert est.pitch == pytest.approx(-1.76, abs=0.01)
     assert est.pitch_rate == pytest.approx(0.0, abs=0.02)      # the -0.14 rad/s bias is gone
@@ -65,18 +67,20 @@ def test_constant_pitch_on_the_caster_is_recovered(imu):
 
 def test_pitch_ramp_is_tracked(imu):
     rate = 0.2
-    est = run(ImuPitchEstimator(imu), lambda t: -1.2 + rate * t, lambda t: rate, imu.mount_angle_rad,
-              imu.gyro_bias_rad_s, duration=3.0)
+    est = run(ImuPitchEstimator(imu), lambda t: -1.2 + rate * t, lambda t: rate,
+              imu.mount_angle_rad, imu.gyro_bias_rad_s, duration=3.0)
     assert est.pitch == pytest.approx(-1.2 + rate * (3.0 - 0.002), abs=0.005)
     assert est.pitch_rate == pytest.approx(rate, abs=0.01)
 
 
 def test_mount_angle_is_honoured(imu):
-    """Data from a DMU mounted at 0 deg: an estimator configured for 0 recovers the pitch, one configured for
-    -45 deg does not (the tilt is read on the wrong axis)."""
+    """Data from a DMU mounted at 0 deg: an estimator configured for 0 recovers the pitch, one
+    configured for -45 deg does not (the tilt is read on the wrong axis)."""
     flat = dataclasses.replace(imu, mount_angle_rad=0.0)
-    good = run(ImuPitchEstimator(flat), lambda t: -0.7, lambda t: 0.0, 0.0, flat.gyro_bias_rad_s, duration=0.5)
-    wrong = run(ImuPitchEstimator(imu), lambda t: -0.7, lambda t: 0.0, 0.0, imu.gyro_bias_rad_s, duration=0.5)
+    good = run(ImuPitchEstimator(flat), lambda t: -0.7, lambda t: 0.0, 0.0, flat.gyro_bias_rad_s,
+               duration=0.5)
+    wrong = run(ImuPitchEstimator(imu), lambda t: -0.7, lambda t: 0.0, 0.0, imu.gyro_bias_rad_s,
+                duration=0.5)
     assert good.pitch == pytest.approx(-0.7, abs=1e-3)
     assert abs(wrong.pitch - -0.7) > 0.1
 
@@ -90,8 +94,9 @@ def test_filter_waits_for_its_initial_average(imu):
 
 
 def test_pitch_survives_axle_acceleration():
-    """An accelerating axle tilts the accelerometer's pitch by atan(a/g); the configured filter trusts the
-    gyro and keeps the pitch error small, where kore's equal weighting (1e-3, 1e-3) follows the tilt."""
+    """An accelerating axle tilts the accelerometer's pitch by atan(a/g); the configured filter
+    trusts the gyro and keeps the pitch error small, where kore's equal weighting (1e-3, 1e-3)
+    follows the tilt."""
     import math
 
     import numpy as np
@@ -108,9 +113,10 @@ def test_pitch_survives_axle_acceleration():
             pitch = -1.55 + 0.08 * math.sin(2 * math.pi * 0.4 * t)
             rate = 0.08 * 2 * math.pi * 0.4 * math.cos(2 * math.pi * 0.4 * t)
             accel = 3.0 * math.sin(2 * math.pi * 0.7 * t + 1.0)   # m/s^2 along the floor
-            force, rates = sensor_vectors(pitch, rate, cfg.mount_angle_rad, forward_specific_force=accel)
-            measured = pitch_measurement(force + rng.normal(0, 0.02, 3), rates + rng.normal(0, 0.002, 3),
-                                         cfg.mount_angle_rad)
+            force, rates = sensor_vectors(pitch, rate, cfg.mount_angle_rad,
+                                          forward_specific_force=accel)
+            measured = pitch_measurement(force + rng.normal(0, 0.02, 3),
+                                         rates + rng.normal(0, 0.002, 3), cfg.mount_angle_rad)
             estimate, _ = kalman.update(*measured, dt if k else 0.0)
             if t > 10:
                 errors.append(estimate - pitch)
