@@ -7,7 +7,7 @@ import sys
 # Order here is the order in `krang --help`.
 COMMAND_MODULES = (
     'demo', 'bringup', 'evaluate', 'learn', 'relearn', 'identifiability', 'poses', 'metrics',
-    'experiment', 'discrepancy', 'bag',
+    'experiment', 'discrepancy', 'bag', 'view',
 )
 
 

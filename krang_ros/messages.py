@@ -65,7 +65,8 @@ def pitch_quaternion(pitch):
     rotation of imu_link (= base_link's axes, krang.urdf) in a gravity-aligned frame, REP-145, with
     yaw 0 (arbitrary: no magnetometer). About +y (left) by q_base, so REP-103's positive pitch,
     nose down, is q_base's positive, top tilting forward; upright (q_base = 0) is level, sitting
-    on the caster (-1.76 rad) is tilted back past horizontal (krang_model/README.md, Conventions)."""
+    on the caster (-1.76 rad) is tilted back past horizontal (krang_model/README.md,
+    Conventions)."""
     return 0.0, math.sin(pitch / 2), 0.0, math.cos(pitch / 2)
 
 

@@ -69,7 +69,7 @@ class WheelOdometry:
         self._last = None
 
     def update(self, left, right, pitch):
-        """Encoder angles (positive rolls forward) and the base pitch (rad); returns (x, y, yaw)."""
+        """Encoder angles (positive rolls forward) and the base pitch (rad) -> (x, y, yaw)."""
         ground = np.array([left, right], dtype=float) + float(pitch)
         if self._last is not None:
             d_left, d_right = self.radius * (ground - self._last)
@@ -94,7 +94,8 @@ class RobotFrames:
         self.joints = [(j.get('name'), j.get('type'), j.find('parent').get('link'),
                         j.find('child').get('link')) for j in root.findall('joint')]
         self.links = [link.get('name') for link in root.findall('link')]
-        self._frame = {name: self.model.getFrameId(name, pin.FrameType.BODY) for name in self.links}
+        self._frame = {name: self.model.getFrameId(name, pin.FrameType.BODY)
+                       for name in self.links}
         self._joint_id = {self.model.names[j]: j for j in range(1, self.model.njoints)}
         self.q = pin.neutral(self.model)
         pin.framesForwardKinematics(self.model, self.data, self.q)
@@ -107,7 +108,7 @@ class RobotFrames:
 
     @staticmethod
     def _wheel_geometry(root):
-        """Wheel radius (collision cylinder) and track (joint origins), as krang_model reads them."""
+        """Wheel radius (collision cylinder), track (joint origins): as krang_model reads them."""
         joints = {j.get('name'): j for j in root.findall('joint')}
         links = [joints[w].find('child').get('link') for w in WHEELS]
         radius = float(root.find(f"link[@name='{links[0]}']/collision/geometry/cylinder")

@@ -1,4 +1,4 @@
-"""state_publisher: robot_state_publisher's job for Krang (thin shell over robot_frames.RobotFrames).
+"""state_publisher: robot_state_publisher's job for Krang (a shell over robot_frames.RobotFrames).
 
 Publishes
 - /robot_description (std_msgs/String, transient local): the URDF text (krang_model/krang.urdf);

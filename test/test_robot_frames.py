@@ -1,21 +1,32 @@
 """REP-103/105/145 frames: the published IMU orientation, the URDF's base_link/imu_link and the tf
 tree of krang_ros.robot_frames agree with the model and with physics (no ROS graph needed)."""
 import math
+import time
 import xml.etree.ElementTree as ET
 from types import SimpleNamespace
 
 import numpy as np
 import pinocchio as pin
 import pytest
+import rclpy
 from builtin_interfaces.msg import Time
+from rclpy.executors import SingleThreadedExecutor
+from std_msgs.msg import String
 
 from krang_can_bridge.imu_filter import sensor_vectors
 from krang_can_bridge.node import CanBridgeNode
 from krang_model import com
 from krang_model.robot import KRANG_URDF, load_krang
 from krang_ros import messages
-from krang_ros.robot_frames import (BASE_FOOTPRINT, BASE_LINK, IMU_LINK, ODOM, RobotFrames,
-                                    matrix_from_quaternion)
+from krang_ros.robot_frames import (
+    BASE_FOOTPRINT,
+    BASE_LINK,
+    IMU_LINK,
+    ODOM,
+    RobotFrames,
+    matrix_from_quaternion,
+)
+from krang_ros.state_publisher import LATCHED, ROBOT_DESCRIPTION, StatePublisherNode
 
 G = 9.81
 SIT = -1.76
@@ -163,3 +174,28 @@ def test_joint_transform_follows_the_joint():
     np.testing.assert_allclose(after.translation, before.translation)
     turn = before.rotation.T @ after.rotation
     assert math.acos((np.trace(turn) - 1) / 2) == pytest.approx(1.0)
+
+
+@pytest.mark.ros
+def test_state_publisher_latches_the_urdf():
+    """A late subscriber gets /robot_description (transient local); without tf2_msgs the node
+    still comes up (and says in its log that /tf is not published)."""
+    rclpy.init()
+    try:
+        node = StatePublisherNode()
+        listener = rclpy.create_node('listener')
+        got = []
+        listener.create_subscription(String, ROBOT_DESCRIPTION, lambda m: got.append(m.data),
+                                     LATCHED)
+        executor = SingleThreadedExecutor()
+        executor.add_node(node)
+        executor.add_node(listener)
+        deadline = time.monotonic() + 10.0
+        while not got and time.monotonic() < deadline:
+            executor.spin_once(timeout_sec=0.1)
+        assert got and got[0] == KRANG_URDF.read_text()
+        executor.shutdown()
+        node.destroy_node()
+        listener.destroy_node()
+    finally:
+        rclpy.try_shutdown()

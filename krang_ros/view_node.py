@@ -1,0 +1,65 @@
+"""The ROS side of `krang view`: subscribes to the robot's topics and feeds
+krang_ros.foxglove_view.LiveView, which serves them to Foxglove over a WebSocket.
+
+Subscribes /joint_states, /imu/data, /com_estimator/beta, /com_estimator/com, /diagnostics (the
+controller's 'mode' value) and the latched /adrc_controller/mode (std_msgs/String) if a controller
+publishes one. Publishes nothing on ROS.
+"""
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import PointStamped
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import Imu, JointState
+from std_msgs.msg import Float64MultiArray, String
+
+from krang_ros import messages, names, topics
+from krang_ros.foxglove_view import LiveView
+
+CONTROLLER_MODE = '/adrc_controller/mode'
+LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                     durability=DurabilityPolicy.TRANSIENT_LOCAL)
+
+
+class LiveViewNode(Node):
+    def __init__(self, port, host='127.0.0.1', rate_hz=20.0):
+        super().__init__('krang_view')
+        self.view = LiveView()
+        self.port = self.view.start(port, host)
+        qos = topics.QOS
+        sub = self.create_subscription
+        sub(JointState, names.JOINT_STATES, self.on_joint_states, qos[names.JOINT_STATES])
+        sub(Imu, names.IMU, self.on_imu, qos[names.IMU])
+        sub(Float64MultiArray, names.BETA, self.on_beta, qos[names.BETA])
+        sub(PointStamped, names.COM, self.on_com, qos[names.COM])
+        sub(DiagnosticArray, names.DIAGNOSTICS, self.on_diagnostics, qos[names.DIAGNOSTICS])
+        sub(String, CONTROLLER_MODE, lambda msg: self.view.on_mode(msg.data), LATCHED)
+        self.create_timer(1.0 / rate_hz, self.view.publish)
+        self.create_timer(1.0, self.view.publish_scene)
+        self.view.publish_scene()
+        self.get_logger().info(f'Foxglove WebSocket server on ws://{host}:{self.port} '
+                               '(Foxglove: Open connection -> Foxglove WebSocket)')
+
+    def on_joint_states(self, msg):
+        self.view.on_joints(dict(zip(msg.name, msg.position)))
+
+    def on_imu(self, msg):
+        q = msg.orientation
+        self.view.on_imu((q.x, q.y, q.z, q.w))
+
+    def on_beta(self, msg):
+        beta = messages.array_values(msg, self.view.robot.n_beta)
+        if beta is not None:
+            self.view.on_beta(beta)
+
+    def on_com(self, msg):
+        p = msg.point
+        self.view.on_learned_com((p.x, p.y, p.z))
+
+    def on_diagnostics(self, msg):
+        for status in msg.status:
+            for kv in status.values:
+                if kv.key == 'mode':
+                    self.view.on_mode(kv.value)
+
+    def close(self):
+        self.view.stop()
