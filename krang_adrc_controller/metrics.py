@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import csv
 import math
+import warnings
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Callable
@@ -108,14 +109,45 @@ def load_hardware_csv(path) -> BalancingRun:
     """A kit balancing log (balancing_runs/*/*.csv, 33-beta-testing state dump + header)."""
     path = Path(path)
     with open(path, newline='') as f:
-        header = next(csv.reader(f))
+        header = next(csv.reader(f), None)
+    if not header:
+        raise ValueError(f'{path}: empty file, not a balancing log')
     missing = [c for c in HARDWARE_CSV_COLUMNS if c not in header and c != 'q_base_rad']
     if missing:
         raise ValueError(f'{path}: not a balancing log, missing columns {missing}')
-    data = np.loadtxt(path, delimiter=',', skiprows=1, ndmin=2)
+    try:
+        with warnings.catch_warnings():     # a header-only file is reported below, in one line
+            warnings.simplefilter('ignore', UserWarning)
+            data = np.loadtxt(path, delimiter=',', skiprows=1, ndmin=2)
+    except ValueError as err:
+        raise ValueError(f'{path}: unreadable row ({err})') from None
+    if data.shape[0] < 2 or data.shape[1] != len(header):
+        raise ValueError(f'{path}: {data.shape[0]} data rows of {len(header)} columns; a run needs '
+                         'at least two')
     cols = {HARDWARE_CSV_COLUMNS[c]: data[:, i] for i, c in enumerate(header)
             if c in HARDWARE_CSV_COLUMNS}
+    for name, column in zip(header, data.T):
+        bad = np.flatnonzero(~np.isfinite(column))
+        if name in HARDWARE_CSV_COLUMNS and bad.size:
+            raise ValueError(f'{path}: {name} is NaN or infinite in {bad.size} rows (first: data '
+                             f'row {bad[0] + 1})')
     return BalancingRun(t=np.cumsum(cols['dt']), name=path.stem, source=str(path), **cols)
+
+
+def run_from_record(rec, drive: Drivetrain | None = None) -> BalancingRun:
+    """A BalancingRun from a measured record (krang_discrepancy.record.Record: a bag of ours).
+
+    The commanded currents are the recorded wheel-torque commands, held until the next one and
+    divided by Kt x gear; x_wheel is the ground-referenced wheel angle (encoders + IMU pitch), as
+    in the hardware logs."""
+    drive = drive or drivetrain(load_krang())
+    held = np.searchsorted(rec.cmd_t, rec.t, side='right') - 1
+    torque = np.where(held[:, None] >= 0, rec.cmd_torque[np.maximum(held, 0)], 0.0)
+    current = torque / (drive.torque_constant * drive.gear_ratio)
+    return BalancingRun(t=rec.t, i_left=current[:, 0], i_right=current[:, 1],
+                        x_wheel_rad=rec.wheel + rec.q_base,
+                        dx_wheel_rad_s=rec.wheel_rate + rec.pitch_rate, q_base_rad=rec.q_base,
+                        name=rec.name, source=rec.source)
 
 
 #: suffix -> loader(path) -> BalancingRun. Add bag readers with ``register_loader``.

@@ -5,7 +5,7 @@ import math
 
 DESCRIPTION = """\
 Compute the five Table II figures of one balancing log (a kit CSV from
-krang_data/balancing_runs/, or any format a registered loader reads), in two definitions.
+krang_data/balancing_runs/, or one of our MCAP bags), in two definitions.
 
 Paper definitions (exactly as the authors' analysis, quirks kept; krang_data/README.md):
   motion start = first sample where the 20-sample centred moving average of the LEFT commanded
@@ -32,7 +32,7 @@ def register(subparsers):
     p = subparsers.add_parser(
         'metrics', help="Table II metrics of one balancing run (paper's and physical definitions)",
         description=DESCRIPTION, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument('run', metavar='RUN', help='balancing log: kit CSV (or a format with a registered loader)')
+    p.add_argument('run', metavar='RUN', help='balancing log: kit CSV or our MCAP bag')
     p.add_argument('--json', action='store_true',
                    help='print the result as one JSON object on the last stdout line: '
                         '{"max_position_m", "resting_position_m", "time_until_resting_s", '
@@ -54,8 +54,16 @@ def _fmt(v, unit=''):
     return f'{v}{unit}'
 
 
+def load_bag_run(path):
+    """One of our MCAP bags as a balancing run (the discrepancy workflow's bag loader)."""
+    from krang_adrc_controller.metrics import run_from_record
+    from krang_discrepancy.loaders import load_bag_record
+    return run_from_record(load_bag_record(path))
+
+
 def run(args):
-    from krang_adrc_controller.metrics import PAPER_KEYS, compute_metrics, load_run
+    from krang_adrc_controller.metrics import PAPER_KEYS, compute_metrics, load_run, register_loader
+    register_loader('.mcap', load_bag_run)
     log = load_run(args.run)
     result = compute_metrics(log, args.wheel_radius, settle_band_m=args.settle_band)
     if args.json:
