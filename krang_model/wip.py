@@ -45,12 +45,10 @@ class WipBody:
     com_distance: float  # m, axle to body CoM
     com_offset: float  # rad, theta (CoM angle from vertical) = q_base + com_offset
     inertia_axle: float  # kg m^2 about the axle
-    yaw_inertia: float = (
-        math.nan
-    )  # kg m^2 about the vertical through the axle midpoint, wheels incl.
-    com_offset_full: float = (
-        math.nan
-    )  # rad, the same for the whole robot incl. wheels (what learning balances)
+    # kg m^2 about the vertical through the axle midpoint, wheels included
+    yaw_inertia: float = math.nan
+    # rad, com_offset of the whole robot incl. wheels (what learning balances)
+    com_offset_full: float = math.nan
 
     def __getitem__(self, i):
         values = np.broadcast_arrays(
@@ -112,9 +110,8 @@ def reduce_placements(robot, rot, trans, beta):
     # in base coordinates, with o = -offset the balance pitch
     s, c = np.sin(-offset)[:, None], np.cos(-offset)[:, None]
     x0 = s * com[..., 1] - c * com[..., 2]
-    vertical = (
-        c[..., None] * rot_b[..., 1, :] + s[..., None] * rot_b[..., 2, :]
-    )  # in body coordinates
+    # frame-0 z in body coordinates
+    vertical = c[..., None] * rot_b[..., 1, :] + s[..., None] * rot_b[..., 2, :]
     yaw = _sum_bodies(_quadratic(inert, vertical) + m * (x0**2 + com[..., 0] ** 2))
     for i in wheels:
         yaw = yaw + (robot.body_inertias[i][1, 1] + m_all[i] * trans[:, i, 0] ** 2)
