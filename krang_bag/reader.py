@@ -27,8 +27,9 @@ from krang_ros.names import JOINT_STATES
 RECOVER_HINT = 'it was probably never finished (recorder killed?); try `krang bag recover {path}`'
 
 
-class BagError(Exception):
-    """A bag cannot be read as asked (broken file, missing topic, wrong type)."""
+class BagError(ValueError):
+    """A bag cannot be read as asked (broken file, missing topic, wrong type): bad input, so the
+    command line reports it in one line like any other bad input file."""
 
 
 class BagNotFoundError(BagError, FileNotFoundError):
