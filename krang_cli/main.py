@@ -2,7 +2,12 @@
 import argparse
 import importlib
 import logging
+import os
 import sys
+
+# Before numpy is imported, as in krang_ros/entry.py (the nodes): single-threaded OpenBLAS, which
+# is faster for our small matrices and keeps the offline closed loop from stalling under load.
+os.environ.setdefault('OPENBLAS_NUM_THREADS', '1')
 
 # Order here is the order in `krang --help`.
 COMMAND_MODULES = (

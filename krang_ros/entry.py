@@ -5,8 +5,14 @@ pinocchio ends it quietly with exit code 0 instead of a KeyboardInterrupt traceb
 prints what the node does and its parameters without starting it (no bus is opened, no node joins
 the graph)."""
 import importlib
+import os
 import signal
 import sys
+
+# Before numpy is imported: our linear algebra is on 4x4 to 92x92 matrices, where OpenBLAS's
+# thread pool gains nothing and, on a loaded machine, turned a 1 ms LQR redesign into 20-65 ms
+# and stalled the control loop. A user's own setting wins.
+os.environ.setdefault('OPENBLAS_NUM_THREADS', '1')
 
 #: executable -> module with the node's `main()` and a docstring that lists its parameters.
 NODE_MODULES = {

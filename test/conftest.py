@@ -7,6 +7,8 @@ import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 
+# Single-threaded OpenBLAS before numpy is imported, as every node and `krang` run (krang_ros/entry.py).
+os.environ.setdefault('OPENBLAS_NUM_THREADS', '1')
 # Every test process gets its own DDS domain and stays on localhost, so parallel runs never cross-talk.
 os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
 os.environ.setdefault('ROS_DOMAIN_ID', str(random.Random(os.getpid()).randint(1, 100)))
