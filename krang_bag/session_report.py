@@ -1,12 +1,17 @@
-"""The report of an online session: learning curve and CoM error against the hidden true model."""
+"""The report of an online session: learning curve and CoM error against the hidden true model,
+and the session timeline (torque, controller modes, pose moves, learned poses)."""
 import math
+from pathlib import Path
 
 import numpy as np
+from matplotlib.figure import Figure
+from matplotlib.ticker import MaxNLocator
 
 from krang_model.com import com_error, lateral_com_error
-from krang_ros.names import BALANCED_POSE, BETA, WHEEL_EFFORT_CMD
+from krang_model.files import save_figure
+from krang_ros.names import BALANCED_POSE, BETA, DIAGNOSTICS, POSE_TARGET, WHEEL_EFFORT_CMD
 
-from .reader import read_float_arrays, read_joint_states
+from .reader import iter_messages, read_float_arrays, read_joint_states
 
 
 def held_out_configurations(robot, n=2000, seed=12345):
@@ -26,48 +31,95 @@ def learning_curve(robot, betas, true_beta, n_configs=2000):
     return forward, lateral
 
 
+MODE_COLORS = {'sit': '#bdbdbd', 'stand_up': '#f4a261', 'balance': '#a8dadc',
+               'sit_down': '#cdb4db', 'safe_stop': '#e63946'}
+CONTROLLER = 'adrc_controller'       # the /diagnostics status that reports the controller's mode
+
+
+def read_modes(bag):
+    """(times_s, modes) of the controller's /diagnostics reports (its 'mode' value), in order."""
+    times, modes = [], []
+    for _, t_ns, msg in iter_messages(bag, [DIAGNOSTICS]):
+        for status in msg.status:
+            if status.name.endswith(CONTROLLER):
+                mode = next((kv.value for kv in status.values if kv.key == 'mode'), None)
+                if mode is not None:
+                    times.append(t_ns * 1e-9)
+                    modes.append(mode)
+    return np.array(times), modes
+
+
+def mode_segments(times, modes, t_end):
+    """[(start, end, mode)]: each report holds until the next report of a different mode."""
+    segments = []
+    for t, mode in zip(times, modes):
+        if segments and segments[-1][2] == mode:
+            continue
+        if segments:
+            segments[-1][1] = t
+        segments.append([t, t_end, mode])
+    return [tuple(s) for s in segments if s[1] > s[0]]
+
+
+def message_times(bag, topic):
+    return np.array([t_ns * 1e-9 for _, t_ns, _ in iter_messages(bag, [topic])])
+
+
 def session_figures(bag, robot, true_beta, out_dir):
     """learning_curve.png and session_timeline.png; returns ((forward, lateral) curves, paths)."""
-    import matplotlib
-    matplotlib.use('Agg')
-    import matplotlib.pyplot as plt
-    from matplotlib.ticker import MaxNLocator
     betas = read_float_arrays(bag, BETA).rows
     betas = [b for b in betas if len(b) == robot.n_beta]
     curve, lateral = learning_curve(robot, betas, true_beta)
     paths = []
-    fig, ax = plt.subplots(figsize=(6, 3.5))
+    fig = Figure(figsize=(6, 3.5))
+    ax = fig.add_subplot()
     ax.plot(np.arange(len(curve)), 1000 * curve, 'o-',
             label='forward (x_com: what balancing observes)')
     ax.plot(np.arange(len(lateral)), 1000 * lateral, 's--', color='grey',
             label='sideways (unobservable in pitch)')
     ax.xaxis.set_major_locator(MaxNLocator(integer=True))
-    ax.set_xlabel('balanced poses learned')
+    ax.set_xlabel('balanced poses learned (0: the initial beta)')
     ax.set_ylabel('mean CoM error (mm)')
     ax.set_title('Online learning against the hidden true model')
-    ax.legend(fontsize=8)
+    ax.legend(fontsize=8, title='CoM error of each beta over 2000 held-out poses',
+              title_fontsize=8)
     ax.grid(True, alpha=0.3)
     fig.tight_layout()
-    paths.append(out_dir / 'learning_curve.png')
-    fig.savefig(paths[-1], dpi=120)
-    plt.close(fig)
+    paths.append(save_figure(fig, out_dir / 'learning_curve.png', dpi=120))
 
     effort = read_float_arrays(bag, WHEEL_EFFORT_CMD)
-    poses = read_joint_states(bag, BALANCED_POSE)
     if len(effort.t):
-        t0 = effort.t[0]
-        fig, ax = plt.subplots(figsize=(8, 3.5))
-        ax.plot(effort.t - t0, np.nansum(effort.rows, axis=1), lw=0.6,
-                label='total wheel torque (N m)')
-        for k, t in enumerate(poses.t):
-            ax.axvline(t - t0, color='g', lw=0.8, alpha=0.6,
-                       label='balanced pose learned' if k == 0 else None)
-        ax.set_xlabel('time (s)')
-        ax.set_ylabel('N m')
-        ax.legend(loc='upper right')
-        ax.grid(True, alpha=0.3)
-        fig.tight_layout()
-        paths.append(out_dir / 'session_timeline.png')
-        fig.savefig(paths[-1], dpi=120)
-        plt.close(fig)
+        paths.append(save_figure(timeline_figure(bag, effort), out_dir / 'session_timeline.png',
+                                 dpi=120))
     return (curve, lateral), paths
+
+
+def timeline_figure(bag, effort):
+    """Wheel torque over the session, the controller's modes as bands, the pose moves and the
+    learned balanced poses as lines; the legend names every mark."""
+    t0 = effort.t[0]
+    t_end = effort.t[-1] - t0
+    fig = Figure(figsize=(9, 4.2))
+    ax = fig.add_subplot()
+    times, modes = read_modes(bag)
+    seen = set()
+    for start, end, mode in mode_segments(times - t0, modes, t_end):
+        ax.axvspan(max(start, 0.0), end, color=MODE_COLORS.get(mode, '#ffe08a'), alpha=0.45,
+                   lw=0, label=None if mode in seen else f'controller mode: {mode}')
+        seen.add(mode)
+    ax.plot(effort.t - t0, np.nansum(effort.rows, axis=1), color='k', lw=0.6,
+            label='total wheel torque command (N m)')
+    for k, t in enumerate(message_times(bag, POSE_TARGET) - t0):
+        ax.axvline(t, color='tab:blue', ls='--', lw=0.9,
+                   label='pose move starts (new /pose_server/target)' if k == 0 else None)
+    for k, t in enumerate(read_joint_states(bag, BALANCED_POSE).t - t0):
+        ax.axvline(t, color='tab:green', lw=1.2,
+                   label='balanced pose detected and learned' if k == 0 else None)
+    ax.set_xlim(0.0, t_end)
+    ax.set_xlabel('time since the first wheel command (s)')
+    ax.set_ylabel('wheel torque (N m)')
+    ax.set_title(f'Session timeline: {Path(bag).name}')
+    ax.grid(True, alpha=0.3)
+    ax.legend(loc='upper left', bbox_to_anchor=(1.01, 1.0), fontsize=8, borderaxespad=0.0)
+    fig.tight_layout()
+    return fig
