@@ -1,17 +1,7 @@
 """mcap_recorder: record every topic discovered at run time into one MCAP bag
 (our `ros2 bag record -a`).
 
-Parameters:
-  output         bag file, or a directory (trailing '/' or existing) to put krang_<timestamp>.mcap
-  in;
-                 default ./krang_<timestamp>.mcap. An existing file is never overwritten.
-  topics         include list of topic names or shell globs (empty = every topic)
-  exclude        topic names or globs never recorded
-  include_hidden record hidden topics (a name token starting with '_') too
-  poll_period_s  how often the graph is polled for new topics and the file is flushed
-  queue_depth    minimum subscription depth (keep_last), raised to the publishers' depth
-  chunk_size     bytes per MCAP chunk: the most a SIGKILL can lose (`krang bag recover` keeps the
-  rest) compression    zstd | lz4 | none
+Parameters: see `mcap_recorder --help` (krang_bag/recording.py RecorderConfig).
 
 A topic is subscribed once it has a publisher, so the offers are known; the QoS request and the
 topic selection are the plain functions of krang_bag/recording.py.
@@ -29,24 +19,28 @@ import time
 from datetime import datetime
 
 import rclpy
-from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
-from rclpy.parameter import Parameter
 from rclpy.qos import (DurabilityPolicy, HistoryPolicy, LivelinessPolicy, QoSProfile,
                        ReliabilityPolicy)
 from rclpy.signals import SignalHandlerOptions
 
 from krang_bag import schemas
 from krang_bag.recording import (
+    RecorderConfig,
     RequestQos,
     choose_request_qos,
     plan_new_topics,
     resolve_output_path,
 )
-from krang_bag.writer import DEFAULT_CHUNK_SIZE, BagWriter, OfferedQos
+from krang_bag.writer import BagWriter, OfferedQos
+from krang_ros import params
 
 NODE_NAME = 'mcap_recorder'
+
+
+def describe_parameters():
+    return params.describe(RecorderConfig)
 
 
 # ---------------------------------------------------------------- rclpy conversions
@@ -95,23 +89,11 @@ class McapRecorder(Node):
     def __init__(self, **kwargs):
         super().__init__(NODE_NAME, **kwargs)
 
-        def param(name, default, description):
-            return self.declare_parameter(name, default,
-                                          ParameterDescriptor(description=description)).value
-
-        output = param('output', '', 'bag file, or directory for krang_<timestamp>.mcap')
-        string_list = Parameter.Type.STRING_ARRAY
-        self.include = list(param('topics', string_list,
-                                  'topics/globs to record; empty = all') or [])
-        self.exclude = list(param('exclude', string_list, 'topics/globs never recorded') or [])
-        self.include_hidden = bool(param('include_hidden', False, 'also record hidden topics'))
-        poll_period_s = float(param('poll_period_s', 0.5,
-                                    'graph polling and file flush period [s]'))
-        self.queue_depth = int(param('queue_depth', 100, 'minimum subscription keep_last depth'))
-        chunk_size = int(param('chunk_size', DEFAULT_CHUNK_SIZE, 'bytes per MCAP chunk'))
-        compression = str(param('compression', 'zstd', 'zstd | lz4 | none'))
-
-        self.bag = BagWriter(resolve_output_path(output, datetime.now()),
+        cfg = params.declare(self, RecorderConfig)
+        self.include, self.exclude = list(cfg.topics), list(cfg.exclude)
+        self.include_hidden, self.queue_depth = cfg.include_hidden, cfg.queue_depth
+        chunk_size, compression, poll_period_s = cfg.chunk_size, cfg.compression, cfg.poll_period_s
+        self.bag = BagWriter(resolve_output_path(cfg.output, datetime.now()),
                              chunk_size=chunk_size, compression=compression)
         self._subscriptions_by_topic = {}
         self._reported_skips: dict[str, str] = {}
@@ -233,6 +215,9 @@ def main(args=None) -> int:
             print(f'mcap_recorder: refusing to overwrite an existing bag: {err.filename}',
                   file=sys.stderr)
             return 1
+        except params.ParameterError as err:
+            print(f'error: {err}', file=sys.stderr)
+            return 2
         executor = SingleThreadedExecutor()
         executor.add_node(node)
         while not stop.is_set() and rclpy.ok():

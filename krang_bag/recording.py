@@ -8,13 +8,51 @@ them.
 from __future__ import annotations
 
 import fnmatch
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from datetime import datetime
 from pathlib import Path
 from collections.abc import Iterable, Sequence
 
 from krang_bag import schemas
-from krang_bag.writer import OfferedQos
+from krang_bag.writer import DEFAULT_CHUNK_SIZE, OfferedQos
+
+COMPRESSIONS = ('zstd', 'lz4', 'none')
+
+
+def _doc(text):
+    return field(metadata={'doc': text})
+
+
+@dataclass(frozen=True)
+class RecorderConfig:
+    """The recorder's parameters (ROS parameters of the same names)."""
+
+    output: str = field(default='', metadata={'doc': (
+        "bag file, or a directory (trailing '/' or existing) for krang_<timestamp>.mcap; default "
+        './krang_<timestamp>.mcap. An existing file is never overwritten')})
+    topics: tuple[str, ...] = field(default=(), metadata={
+        'doc': 'topic names or shell globs to record (empty = every topic)'})
+    exclude: tuple[str, ...] = field(default=(), metadata={
+        'doc': 'topic names or globs never recorded'})
+    include_hidden: bool = field(default=False, metadata={
+        'doc': "record hidden topics (a name token starting with '_') too"})
+    poll_period_s: float = field(default=0.5, metadata={
+        'doc': 'how often the graph is polled for new topics and the file flushed [s], > 0'})
+    queue_depth: int = field(default=100, metadata={
+        'doc': "minimum subscription depth (keep_last), raised to the publishers' depth, >= 1"})
+    chunk_size: int = field(default=DEFAULT_CHUNK_SIZE, metadata={
+        'doc': 'bytes per MCAP chunk: the most a SIGKILL can lose (krang bag recover keeps the '
+               'rest), > 0'})
+    compression: str = field(default='zstd', metadata={'doc': ' | '.join(COMPRESSIONS)})
+
+    def __post_init__(self):
+        if not self.poll_period_s > 0:
+            raise ValueError(f'poll_period_s must be > 0, got {self.poll_period_s}')
+        if self.queue_depth < 1 or self.chunk_size < 1:
+            raise ValueError('queue_depth and chunk_size must be >= 1')
+        if self.compression not in COMPRESSIONS:
+            raise ValueError(f'compression must be one of {COMPRESSIONS}, got '
+                             f'{self.compression!r}')
 
 
 @dataclass(frozen=True)

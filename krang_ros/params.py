@@ -19,14 +19,20 @@ from dataclasses import dataclass
 from typing import Any
 
 
+class ParameterError(ValueError):
+    """A node's parameters are invalid (unknown name, wrong type, out of range): the node reports
+    it in one line and exits (krang_ros/spin.py) instead of running half-configured."""
+
+
 @dataclass(frozen=True)
 class Leaf:
     """One parameter: its dotted name, value type (bool, int, float, str or tuple), default and
-    description."""
+    description; ``item`` is a tuple's element type (float or str)."""
     name: str
     kind: type
     default: Any
     doc: str
+    item: type = float
 
 
 def leaves(cls, prefix: str = '') -> list[Leaf]:
@@ -39,12 +45,22 @@ def leaves(cls, prefix: str = '') -> list[Leaf]:
         if dataclasses.is_dataclass(kind):
             out += leaves(kind, name + '.')
             continue
+        item = (typing.get_args(kind) or (float,))[0]
         kind = typing.get_origin(kind) or kind
-        if kind not in (bool, int, float, str, tuple):
-            raise TypeError(f'{name}: parameters are bool, int, float, str or tuple, not {kind}')
+        if kind not in (bool, int, float, str, tuple) or item not in (float, str):
+            raise TypeError(f'{name}: parameters are bool, int, float, str or a tuple of float or '
+                            f'str, not {kind}')
         default = f.default if f.default is not dataclasses.MISSING else f.default_factory()
-        out.append(Leaf(name, kind, default, f.metadata.get('doc', '')))
+        out.append(Leaf(name, kind, default, f.metadata.get('doc', ''), item))
     return out
+
+
+def describe(cls, prefix: str = '') -> list[str]:
+    """One line per parameter, 'name (type, default): description', for a node's --help."""
+    def type_name(leaf):
+        return f'list of {leaf.item.__name__}' if leaf.kind is tuple else leaf.kind.__name__
+    return [f'{prefix}{leaf.name} ({type_name(leaf)}, {leaf.default!r}): {leaf.doc}'
+            for leaf in leaves(cls)]
 
 
 def flatten(config) -> dict[str, Any]:
@@ -67,12 +83,13 @@ def _coerce(leaf: Leaf, v):
           else isinstance(v, int) and not isinstance(v, bool) if k is int
           else isinstance(v, (int, float)) and not isinstance(v, bool) if k is float
           else isinstance(v, str) if k is str
-          else isinstance(v, (list, tuple, array.array))
-          and all(isinstance(e, (int, float)) and not isinstance(e, bool) for e in v))
+          else isinstance(v, (list, tuple, array.array)) and all(
+              isinstance(e, str) if leaf.item is str
+              else isinstance(e, (int, float)) and not isinstance(e, bool) for e in v))
     if not ok:
-        raise TypeError(f'parameter {leaf.name} must be {k.__name__}'
-                        f'{" of numbers" if k is tuple else ""}, got {v!r}')
-    return tuple(float(e) for e in v) if k is tuple else k(v)
+        of = {float: ' of numbers', str: ' of strings'}[leaf.item] if k is tuple else ''
+        raise TypeError(f'parameter {leaf.name} must be {k.__name__}{of}, got {v!r}')
+    return tuple(leaf.item(e) for e in v) if k is tuple else k(v)
 
 
 def build(cls, values: Mapping[str, Any], base=None):
@@ -122,17 +139,23 @@ def nested_to_dotted(doc: Mapping[str, Any], prefix: str = '') -> dict[str, Any]
 
 
 def declare(node, cls, prefix: str = ''):
-    """Declare every parameter of ``cls`` on ``node`` (default, type, description; read only: the
-    nodes read their configuration once, at start) and build ``cls`` from their values."""
+    """Declare every parameter of ``cls`` on ``node`` (default, description; read only: the nodes
+    read their configuration once, at start, so a change at run time is refused with that reason)
+    and build ``cls`` from their values.
+
+    The ROS type is not enforced by rclpy (dynamic typing) but by ``build``, so that ``rate_hz: 100``
+    in a YAML file is the float 100.0 rather than an InvalidParameterTypeException, and a wrong type
+    or range is a ParameterError naming the parameter."""
     # imported here so that the core above stays importable and testable without ROS
-    from rcl_interfaces.msg import ParameterDescriptor, ParameterType
-    types = {bool: ParameterType.PARAMETER_BOOL, int: ParameterType.PARAMETER_INTEGER,
-             float: ParameterType.PARAMETER_DOUBLE, str: ParameterType.PARAMETER_STRING,
-             tuple: ParameterType.PARAMETER_DOUBLE_ARRAY}
+    from rcl_interfaces.msg import ParameterDescriptor
     values = {}
     for leaf in leaves(cls):
         default = list(leaf.default) if leaf.kind is tuple else leaf.default
-        descriptor = ParameterDescriptor(name=prefix + leaf.name, type=types[leaf.kind],
-                                         description=leaf.doc, read_only=True)
-        values[leaf.name] = node.declare_parameter(prefix + leaf.name, default, descriptor).value
-    return build(cls, values)
+        descriptor = ParameterDescriptor(name=prefix + leaf.name, description=leaf.doc,
+                                         read_only=True, dynamic_typing=True)
+        value = node.declare_parameter(prefix + leaf.name, default, descriptor).value
+        values[leaf.name] = list(value) if isinstance(value, (tuple, array.array)) else value
+    try:
+        return build(cls, values)
+    except (TypeError, ValueError) as err:
+        raise ParameterError(f'{node.get_name()}: {err}') from None

@@ -1,7 +1,11 @@
 """The one way our nodes run: init, spin until Ctrl-C or shutdown, then close and shut down
 cleanly, with exit code 0 and no traceback however early the signal comes."""
+import sys
+
 import rclpy
 from rclpy.executors import ExternalShutdownException
+
+from .params import ParameterError
 
 
 def run_node(node_class, args=None):
@@ -15,6 +19,9 @@ def run_node(node_class, args=None):
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except ParameterError as err:
+        print(f'error: {err}', file=sys.stderr)
+        return 2
     except Exception:
         if rclpy.ok():
             raise
