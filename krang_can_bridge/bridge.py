@@ -8,8 +8,18 @@ Safety rules, all enforced here so the ROS shell cannot get them wrong:
 - a command beyond the configured limits never reaches the bus: wheel currents are clamped to the
   configured limit and the drive's peak, joint targets to the joint limits (in module coordinates,
   after float32 rounding), module speeds and accelerations to the module's datasheet limits;
-- NaN/inf commands are rejected with a logged reason: zero current for a wheel, no frame for a
-  joint;
+- NaN/inf commands are rejected with a logged reason: no frame for a joint; the two wheel efforts
+  are one command (the wheels are one machine), so unless both are finite and there are exactly
+  two, BOTH wheels get zero current; every rejection is counted, its reason kept, and
+  `diagnostics` WARNs for REJECTION_WARN_S after it;
+- a FAULT statusword or an EMCY (error code not 0) of ANY drive, or a started drive leaving
+  OPERATION_ENABLED, latches a drive fault (`fault_reason`): zero current on both wheels and no
+  joint motion until `clear_fault`, which the node calls only after a DS402 fault reset and enable
+  sequence left every drive OPERATION_ENABLED again (`recover_status`);
+- the watchdog frames the drives consume (`watchdog_frames`: heartbeat or node-guarding requests,
+  see config.WatchdogConfig) are produced only while the wheel command loop ran within
+  `wheels.watchdog.alive_timeout_s`: a hung bridge stops beating and the drives stop by
+  themselves;
 - `motion_allowed(now)` is False while any required device is silent, the IMU filter is not
   initialised, or an `inhibit` is set (e.g. by the node until the AMC start-up succeeded); then
   wheel commands are zero current and joint commands produce no frames;
@@ -36,12 +46,14 @@ from krang_can_bridge.protocols import ProtocolError, load_dbc
 from krang_can_bridge.protocols import amc as amc_proto
 from krang_can_bridge.protocols import powercube as pc
 from krang_can_bridge.protocols.dmu_imu import DmuAccelerations, DmuCodec, DmuRates
+from krang_ros.names import BRIDGE_RECOVER
 
 logger = logging.getLogger('krang_can_bridge')
 
 OK, WARN, ERROR, STALE = 0, 1, 2, 3     # diagnostic_msgs/DiagnosticStatus levels
 NMT_ID = 0x000
 EMCY_BASE, SDO_RESPONSE_BASE, SDO_REQUEST_BASE, HEARTBEAT_BASE = 0x080, 0x580, 0x600, 0x700
+REJECTION_WARN_S = 10.0     # /diagnostics WARNs this long after a rejected command
 
 
 class BusFrame(NamedTuple):
@@ -104,7 +116,10 @@ class _WheelState:
     velocity: float | None = None
     current: float | None = None
     statusword: int | None = None
+    statusword_at: float | None = None
     emcy: str | None = None
+    started: bool = False       # the node's start-up (or recovery) sequence enabled this drive
+    armed: bool = False         # started and seen OPERATION_ENABLED: leaving it is a fault
 
 
 @dataclass
@@ -120,6 +135,8 @@ class _Counters:
     last_malformed: str = ''
     last_unknown: str = ''
     last_rejection: str = ''
+    last_rejection_at: float | None = None
+    drive_faults: int = 0
 
 
 def _float32_within(value: float, lower: float, upper: float) -> float:
@@ -161,7 +178,10 @@ class BridgeCore:
             self._canopen_ids |= {SDO_RESPONSE_BASE + drive.node_id,
                                   HEARTBEAT_BASE + drive.node_id}
         self._emcy_ids = {EMCY_BASE + s.codec.drive.node_id: s for s in self._wheels.values()}
+        self._wheel_echo_ids.add(amc_proto.HEARTBEAT_BASE + w.watchdog.node_id)   # our heartbeat
         self._wheel_command: tuple[float, float, float] | None = None   # (left, right, time)
+        self._command_loop_at: float | None = None
+        self._fault = ''
 
         self._imu_device = _Device('imu', config.imu.required, config.imu.silence_timeout_s)
         self._imu_estimator = ImuPitchEstimator(config.imu)
@@ -220,10 +240,7 @@ class BridgeCore:
                     and (bus, aid & pc.MODULE_ID_MASK) in self._modules:
                 self._on_module(self._modules[(bus, aid & pc.MODULE_ID_MASK)], msg, now)
             elif bus == self.config.wheels.bus and aid in self._emcy_ids:
-                state = self._emcy_ids[aid]
-                state.emcy = bytes(msg.data).hex()
-                self._log(f'emcy{aid}', f'{state.codec.drive.joint}: EMCY {state.emcy}',
-                          logging.ERROR)
+                self._on_emcy(self._emcy_ids[aid], msg)
             elif self._is_echo(bus, aid):
                 c.echoes += 1
             elif bus == self.config.wheels.bus and aid in self._canopen_ids:
@@ -257,6 +274,8 @@ class BridgeCore:
             state.device.malformed += 1
             raise
         state.statusword = reading.statusword
+        state.statusword_at = now
+        self._check_drive_state(state)
         if reading.kind == 'position':
             state.position = reading.value
         elif reading.kind == 'velocity':
@@ -264,6 +283,79 @@ class BridgeCore:
         elif reading.kind == 'current':
             state.current = reading.value
         state.device.last_seen = now
+
+    def _on_emcy(self, state: _WheelState, msg: can.Message) -> None:
+        """An EMCY latches a drive fault unless its error code is 0 (DS301 "error reset")."""
+        data = bytes(msg.data)
+        state.emcy = data.hex()
+        code = int.from_bytes(data[:2], 'little') if len(data) >= 2 else None
+        joint = state.codec.drive.joint
+        if code == 0:
+            self._log(f'emcy{joint}', f'{joint}: EMCY error reset', logging.INFO)
+            return
+        text = f'0x{code:04X}' if code is not None else f'malformed ({data.hex()})'
+        self._latch_fault(f'{joint}: EMCY {text}, data {data.hex()}')
+
+    def _check_drive_state(self, state: _WheelState) -> None:
+        joint, sw = state.codec.drive.joint, state.statusword
+        name = amc_proto.drive_state(sw)
+        if name == 'FAULT':
+            state.armed = False
+            self._latch_fault(f'{joint}: drive in FAULT (statusword 0x{sw:04X})')
+        elif name == 'OPERATION_ENABLED':
+            state.armed = state.started
+        elif state.armed:
+            state.armed = False
+            self._latch_fault(f'{joint}: drive left OPERATION_ENABLED for {name} (statusword '
+                              f'0x{sw:04X})')
+
+    def _latch_fault(self, reason: str) -> None:
+        """The first reason stays until clear_fault; later ones are logged."""
+        if not self._fault:
+            self._fault = reason
+            self.counters.drive_faults += 1
+            logger.error(f'drive fault latched, both wheels at zero current: {reason}')
+        else:
+            self._log(f'fault:{reason}', f'drive fault (already latched): {reason}',
+                      logging.ERROR, 5.0)
+
+    # ---- drive faults ---------------------------------------------------------------------------
+    @property
+    def fault_reason(self) -> str:
+        """The latched drive fault, '' when none."""
+        return self._fault
+
+    def drive_started(self, joint: str, started: bool) -> None:
+        """The node's start-up/recovery sequence for `joint` finished (True) or is about to run
+        (False: its transitions are not faults)."""
+        state = self._wheels[joint]
+        state.started = started
+        state.armed = False
+
+    def recover_status(self, since: float) -> tuple[bool | None, str]:
+        """After a fault reset and enable sequence that ended at `since`: (True, '') once every
+        drive has reported OPERATION_ENABLED since; (False, reason) as soon as one reports FAULT;
+        (None, what is awaited) otherwise."""
+        waiting = []
+        for joint, w in self._wheels.items():
+            if w.statusword_at is None or w.statusword_at < since:
+                waiting.append(f'{joint}: no statusword since the enable sequence')
+                continue
+            name = amc_proto.drive_state(w.statusword)
+            if name == 'FAULT':
+                return False, (f'{joint} still reports FAULT (statusword 0x{w.statusword:04X}) '
+                               'after the fault reset')
+            if name != 'OPERATION_ENABLED':
+                waiting.append(f'{joint}: {name} after the enable sequence')
+        return (None, '; '.join(waiting)) if waiting else (True, '')
+
+    def clear_fault(self) -> None:
+        """Unlatch (only after recover_status said True: see the node's recover service)."""
+        if self._fault:
+            logger.warning(f'drive fault cleared by recover: {self._fault}')
+        self._fault = ''
+        for w in self._wheels.values():
+            w.emcy = None
 
     def _on_imu(self, msg: can.Message, now: float) -> None:
         try:
@@ -317,7 +409,7 @@ class BridgeCore:
 
     def motion_allowed(self, now: float | None = None) -> bool:
         now = self._now(now)
-        if self._inhibits:
+        if self._fault or self._inhibits:
             return False
         if any(d.required and d.silent(now) for d in self.devices):
             return False
@@ -333,25 +425,47 @@ class BridgeCore:
         return min(self.config.wheels.drivetrain.current_limit,
                    self._wheels[joint].codec.drive.peak_current_a)
 
+    def _reject(self, reason: str, now: float) -> None:
+        c = self.counters
+        c.rejected_commands += 1
+        c.last_rejection, c.last_rejection_at = reason, now
+        self._log(f'reject:{reason.split(":")[0]}', f'rejected command: {reason}')
+
+    def _wheel_efforts(self, efforts, now: float) -> tuple[float, ...] | None:
+        """The efforts as floats if they are one valid command (one finite value per wheel), else
+        None with the rejection recorded."""
+        joints = self.config.wheel_joint_names
+        try:
+            values = list(efforts)
+        except TypeError:
+            values = None
+        if values is None or len(values) != len(joints):
+            n = 'no sequence' if values is None else f'{len(values)} values'
+            self._reject(f'wheels: need [{", ".join(joints)}], got {n} -> 0 A on both', now)
+            return None
+        out = []
+        for joint, v in zip(joints, values):
+            try:
+                x = float(v)
+            except (TypeError, ValueError, OverflowError):
+                x = math.nan
+            if not math.isfinite(x):
+                self._reject(f'wheels: {joint} effort {v!r} is not finite -> 0 A on both', now)
+                return None
+            out.append(x)
+        return tuple(out)
+
     def wheel_current_frames(self, effort_left_Nm: float, effort_right_Nm: float,
                              now: float | None = None) -> list[BusFrame]:
-        """RPDO current frames for efforts at the wheels [N m], clamped; zero current when motion
-        is not allowed."""
+        """RPDO current frames for efforts at the wheels [N m], clamped; zero current on both when
+        motion is not allowed or either effort is invalid."""
         now = self._now(now)
-        allowed = self.motion_allowed(now)
+        efforts = self._wheel_efforts((effort_left_Nm, effort_right_Nm), now)
+        allowed = efforts is not None and self.motion_allowed(now)
         frames = []
-        for joint, effort in zip(self.config.wheel_joint_names, (effort_left_Nm, effort_right_Nm)):
+        for joint, effort in zip(self.config.wheel_joint_names, efforts or (0.0, 0.0)):
             amps = 0.0
-            try:
-                effort = float(effort)
-            except (TypeError, ValueError):
-                effort = math.nan
-            if not math.isfinite(effort):
-                self.counters.rejected_commands += 1
-                self.counters.last_rejection = f'{joint}: non-finite effort {effort!r} -> 0 A'
-                self._log(f'reject{joint}',
-                          f'rejected wheel command: {self.counters.last_rejection}')
-            elif allowed:
+            if allowed:
                 requested = self.config.wheels.effort_to_current(effort)
                 limit = self.wheel_current_limit_a(joint)
                 amps = min(limit, max(-limit, requested))
@@ -363,16 +477,19 @@ class BridgeCore:
                                    self._wheels[joint].codec.encode_current_command(amps)))
         return frames
 
-    def set_wheel_effort_command(self, effort_left_Nm: float, effort_right_Nm: float,
-                                 now: float | None = None) -> None:
-        """Remember the latest effort command (sent by `wheel_command_frames` while it is
-        fresh)."""
-        self._wheel_command = (effort_left_Nm, effort_right_Nm, self._now(now))
+    def set_wheel_effort_command(self, efforts, now: float | None = None) -> None:
+        """Remember the latest effort command [left, right] N m (sent by `wheel_command_frames`
+        while it is fresh); an invalid one is rejected and replaced by zero on both wheels."""
+        now = self._now(now)
+        valid = self._wheel_efforts(efforts, now)
+        left, right = valid if valid is not None else (0.0, 0.0)
+        self._wheel_command = (left, right, now)
 
     def wheel_command_frames(self, now: float | None = None) -> list[BusFrame]:
         """Periodic refresh: the latest command if younger than command_timeout_s, else zero
         current."""
         now = self._now(now)
+        self._command_loop_at = now
         cmd = self._wheel_command
         if cmd is None or now - cmd[2] > self.config.wheels.command_timeout_s:
             return self.wheel_current_frames(0.0, 0.0, now)
@@ -411,10 +528,7 @@ class BridgeCore:
             except (TypeError, ValueError):
                 q = math.nan
             if not math.isfinite(q):
-                self.counters.rejected_commands += 1
-                self.counters.last_rejection = f'{name}: non-finite target {q!r} -> no motion'
-                self._log(f'reject{name}',
-                          f'rejected joint command: {self.counters.last_rejection}')
+                self._reject(f'{name}: non-finite target {q!r} -> no motion', now)
                 continue
             if joint.clamp(q) != q:
                 self.counters.clamped_commands += 1
@@ -430,6 +544,20 @@ class BridgeCore:
                            BusFrame(m.bus, pc.set_motion(m.module_id, pc.FRAMP_ACK,
                                                          self._module_target(joint, m, q)))]
         return frames
+
+    def watchdog_frames(self, now: float | None = None) -> list[BusFrame]:
+        """The frames the drives' watchdog consumes (the bridge's heartbeat, or a guarding request
+        per drive), or [] when the wheel command loop has not run within alive_timeout_s: a beat
+        proves the control path is alive, not just that this process is."""
+        now = self._now(now)
+        wd, bus = self.config.wheels.watchdog, self.config.wheels.bus
+        if (wd.mechanism == 'none' or self._command_loop_at is None
+                or now - self._command_loop_at > wd.alive_timeout_s):
+            return []
+        if wd.mechanism == 'heartbeat':
+            return [BusFrame(bus, amc_proto.heartbeat_frame(wd))]
+        return [BusFrame(bus, amc_proto.guarding_request(d.node_id))
+                for d in self.config.wheels.drives]
 
     def poll_frames(self) -> list[BusFrame]:
         """GET_PARAM ACT_FPOS and ACT_FVEL for every module (modules only speak when asked)."""
@@ -510,6 +638,8 @@ class BridgeCore:
         c = self.counters
         silent = [d for d in self.devices if d.silent(now)]
         allowed = self.motion_allowed(now)
+        fault = [f'drive fault latched: {self._fault} (call {BRIDGE_RECOVER})'] \
+            if self._fault else []
         reports = [
             DiagnosticReport(
                 'can_bridge: motion',
@@ -519,7 +649,7 @@ class BridgeCore:
                 else 'motion disabled (zero wheel current, no joint motion): '
                 + (
                     '; '.join(
-                        list(self._inhibits.values())
+                        fault + list(self._inhibits.values())
                         + [f'{d.name} silent' for d in silent if d.required]
                     )
                     or 'IMU filter not initialised'
@@ -527,17 +657,38 @@ class BridgeCore:
                 {
                     'silent_devices': ', '.join(d.name for d in silent),
                     'inhibits': '; '.join(self._inhibits.values()),
+                    'drive_fault': self._fault,
+                    'drive_faults_latched': str(c.drive_faults),
                 },
             )
         ]
+        recent = c.last_rejection_at is not None and now - c.last_rejection_at <= REJECTION_WARN_S
+        reports.append(DiagnosticReport(
+            'can_bridge: commands', WARN if recent else OK,
+            (f'{c.rejected_commands} rejected commands, last: {c.last_rejection}' if recent
+             else f'{c.rejected_commands} rejected commands, none in the last '
+                  f'{REJECTION_WARN_S:.0f} s' if c.rejected_commands else 'no rejected commands'),
+            {'rejected_commands': str(c.rejected_commands), 'last_rejection': c.last_rejection,
+             'last_rejection_age_s': '' if c.last_rejection_at is None
+             else f'{now - c.last_rejection_at:.3f}',
+             'clamped_commands': str(c.clamped_commands)}))
         reports.append(DiagnosticReport(
             'can_bridge: frames', WARN if c.malformed or c.unknown else OK,
             f'{c.malformed} malformed, {c.unknown} unknown of {c.frames}',
             {'frames': str(c.frames), 'malformed': str(c.malformed), 'unknown': str(c.unknown),
              'echoes': str(c.echoes), 'canopen': str(c.canopen),
-             'rejected_commands': str(c.rejected_commands),
-             'clamped_commands': str(c.clamped_commands), 'last_malformed': c.last_malformed,
-             'last_unknown': c.last_unknown, 'last_rejection': c.last_rejection}))
+             'last_malformed': c.last_malformed, 'last_unknown': c.last_unknown}))
+        wd = self.config.wheels.watchdog
+        beating = wd.mechanism != 'none' and self._command_loop_at is not None \
+            and now - self._command_loop_at <= wd.alive_timeout_s
+        reports.append(DiagnosticReport(
+            'can_bridge: drive watchdog', OK if beating or wd.mechanism == 'none' else WARN,
+            'off (mechanism none): the drives hold their last current if the bridge dies'
+            if wd.mechanism == 'none'
+            else f'{wd.mechanism} every {wd.period_ms} ms, drives stop {wd.timeout_ms} ms after '
+                 'the last' + ('' if beating else ': WITHHELD, wheel command loop quiet'),
+            {'mechanism': wd.mechanism, 'node_id': str(wd.node_id),
+             'abort_connection_option': str(wd.abort_connection_option)}))
         for bus in self.config.buses_in_use():
             n = c.error_frames.get(bus, 0)
             reports.append(DiagnosticReport(f'can_bridge: bus {bus}', WARN if n else OK,
@@ -546,7 +697,8 @@ class BridgeCore:
         for joint, w in self._wheels.items():
             state = amc_proto.drive_state(w.statusword) if w.statusword is not None else 'unknown'
             level = (
-                STALE if w.device.silent(now) else (OK if state == 'OPERATION_ENABLED' else WARN)
+                STALE if w.device.silent(now)
+                else OK if state == 'OPERATION_ENABLED' else ERROR if state == 'FAULT' else WARN
             )
             reports.append(DiagnosticReport(f'can_bridge: {w.device.name}', level,
                                             f'drive {state}',

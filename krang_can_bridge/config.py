@@ -21,7 +21,9 @@ from krang_model.config import config_path
 from krang_model.drivetrain import Drivetrain, drivetrain
 from krang_model.robot import load_krang
 
-DEVICES_FILE_NAME = 'can_devices.yaml'
+DEVICES_FILE_NAME = 'can_devices.yaml'                 # the simulated robot (udp_multicast)
+ROBOT_DEVICES_FILE_NAME = 'can_devices_robot.yaml'     # the robot (SocketCAN): bridge default
+WATCHDOG_MECHANISMS = ('heartbeat', 'guarding', 'none')
 
 
 class ConfigError(ValueError):
@@ -60,6 +62,38 @@ class WheelDriveConfig:
 
 
 @dataclass(frozen=True)
+class WatchdogConfig:
+    """What stops the drives by themselves when the bridge dies or hangs (docs/can.md, "Drive-side
+    watchdog").
+
+    heartbeat: the bridge produces heartbeats (0x700 + node_id) every period_s; each drive
+    consumes them (0x1016) and takes `abort_connection_option` (0x6007) when none came for
+    timeout_s. guarding: the bridge sends node-guarding requests every period_s (guard time 0x100C)
+    and a drive that hears none for timeout_s (guard time x life time factor 0x100D) takes 0x6007.
+    The bridge beats only while its command loop ran within alive_timeout_s.
+    """
+
+    mechanism: str
+    node_id: int
+    period_s: float
+    timeout_s: float
+    alive_timeout_s: float
+    abort_connection_option: int
+
+    @property
+    def period_ms(self) -> int:
+        return round(self.period_s * 1000.0)
+
+    @property
+    def timeout_ms(self) -> int:
+        return round(self.timeout_s * 1000.0)
+
+    @property
+    def life_time_factor(self) -> int:
+        return round(self.timeout_s / self.period_s)
+
+
+@dataclass(frozen=True)
 class WheelsConfig:
     """The AMC drives; `drivetrain` is the robot's (krang_model.drivetrain), not the YAML's."""
 
@@ -71,6 +105,7 @@ class WheelsConfig:
     required: bool
     drives: tuple[WheelDriveConfig, ...]
     drivetrain: Drivetrain
+    watchdog: WatchdogConfig
 
     @property
     def counts_per_wheel_rad(self) -> float:
@@ -198,9 +233,23 @@ class CanDevicesConfig:
 
 
 def default_devices_file() -> Path:
-    """config/can_devices.yaml of the config directory robot.yaml comes from (the source tree's,
-    else the installed share/krang_com/config), so the map and the drive train always match."""
+    """The simulated robot's map, config/can_devices.yaml of the config directory robot.yaml comes
+    from (the source tree's, else the installed share/krang_com/config), so the map and the drive
+    train always match."""
     return config_path(DEVICES_FILE_NAME)
+
+
+def robot_devices_file() -> Path:
+    """The robot's SocketCAN map (config/can_devices_robot.yaml): what can_bridge uses unless told
+    otherwise."""
+    return config_path(ROBOT_DEVICES_FILE_NAME)
+
+
+def resolve_devices_file(name: str | Path) -> Path:
+    """A `devices_file` value: a bare file name is looked up in config/, anything else is a
+    path."""
+    path = Path(name)
+    return config_path(str(path)) if len(path.parts) == 1 and not path.exists() else path
 
 
 def _read_yaml(path: Path, seen: tuple[Path, ...] = ()) -> tuple[dict, dict]:
@@ -260,6 +309,42 @@ def _check_drivetrain(d: Mapping, drive: Drivetrain, source: Path) -> None:
                 'from the device map or make the two agree')
 
 
+def _parse_watchdog(d: Any, drives: list[WheelDriveConfig],
+                    command_rate_hz: float) -> WatchdogConfig:
+    """wheels.watchdog, checked so that a drive can never trip on a healthy bridge nor wait
+    forever on a dead one."""
+    where = 'wheels.watchdog'
+    if not isinstance(d, Mapping):
+        raise ConfigError(f'{where}: missing (a mapping: mechanism, node_id, period_s, ...)')
+    mechanism = str(_req(d, 'mechanism', where))
+    if mechanism not in WATCHDOG_MECHANISMS:
+        raise ConfigError(f'{where}.mechanism must be one of {WATCHDOG_MECHANISMS}, got '
+                          f'{mechanism!r}')
+    node_id = int(_req(d, 'node_id', where))
+    if not 1 <= node_id <= 0x7F or node_id in {x.node_id for x in drives}:
+        raise ConfigError(f'{where}.node_id {node_id} must be in 1..127 and not a drive\'s')
+    cfg = WatchdogConfig(
+        mechanism=mechanism, node_id=node_id,
+        period_s=_positive(_req(d, 'period_s', where), f'{where}.period_s'),
+        timeout_s=_positive(_req(d, 'timeout_s', where), f'{where}.timeout_s'),
+        alive_timeout_s=_positive(_req(d, 'alive_timeout_s', where), f'{where}.alive_timeout_s'),
+        abort_connection_option=int(_req(d, 'abort_connection_option', where)))
+    if not -0x8000 <= cfg.abort_connection_option <= 3:
+        raise ConfigError(f'{where}.abort_connection_option (0x6007) must be 0..3 (DS402) or a '
+                          f'negative manufacturer code, got {cfg.abort_connection_option}')
+    if cfg.period_s * 3 > cfg.timeout_s:
+        raise ConfigError(f'{where}: period_s {cfg.period_s} must be at most a third of timeout_s '
+                          f'{cfg.timeout_s} (a late beat must not trip the drives)')
+    if not (1 <= cfg.period_ms and cfg.timeout_ms <= 0xFFFF):
+        raise ConfigError(f'{where}: period_s and timeout_s must be 1 ms .. 65.535 s')
+    if mechanism == 'guarding' and not 1 <= cfg.life_time_factor <= 0xFF:
+        raise ConfigError(f'{where}: timeout_s / period_s (life time factor) must be 1..255')
+    if cfg.alive_timeout_s * command_rate_hz < 2:
+        raise ConfigError(f'{where}.alive_timeout_s {cfg.alive_timeout_s} must span at least two '
+                          f'wheel command periods (1/{command_rate_hz} s)')
+    return cfg
+
+
 def _parse_wheels(d: Mapping, buses: Mapping, drive: Drivetrain, source: Path) -> WheelsConfig:
     where = 'wheels'
     _check_drivetrain(d, drive, source)
@@ -287,7 +372,9 @@ def _parse_wheels(d: Mapping, buses: Mapping, drive: Drivetrain, source: Path) -
         command_timeout_s=_positive(_req(d, 'command_timeout_s', where),
                                     'wheels.command_timeout_s'),
         command_rate_hz=_positive(_req(d, 'command_rate_hz', where), 'wheels.command_rate_hz'),
-        required=bool(d.get('required', True)), drives=tuple(drives), drivetrain=drive)
+        required=bool(d.get('required', True)), drives=tuple(drives), drivetrain=drive,
+        watchdog=_parse_watchdog(d.get('watchdog'), drives,
+                                 _positive(_req(d, 'command_rate_hz', where), 'command_rate_hz')))
     if cfg.bus not in buses:
         raise ConfigError(f'{where}: unknown bus {cfg.bus!r}')
     return cfg

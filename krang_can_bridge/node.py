@@ -1,15 +1,24 @@
 """can_bridge: the thin rclpy shell around krang_can_bridge.bridge.BridgeCore.
 
-Buses come from the device map (parameter `devices_file`, default the installed
-config/can_devices.yaml). Each bus has a python-can Notifier thread that feeds frames to the core
-(under a lock), so the executor never blocks on CAN; the AMC start-up (blocking SDO transfers
-through canopen) runs in its own thread.
+Buses come from the device map (parameter `devices_file`, default the robot's SocketCAN map
+config/can_devices_robot.yaml; a bare file name is looked up in config/, so the simulated node set
+passes `can_devices.yaml` in config/sim_params.yaml). A bus that cannot be opened ends the node
+with one line naming the interface (and, for SocketCAN, the `ip link` command) and exit code 1.
+Each bus has a python-can Notifier thread that feeds frames to the core (under a lock), so the
+executor never blocks on CAN; the AMC start-up and the recovery (blocking SDO transfers through
+canopen) run in their own threads, and so does the drive-side watchdog's heartbeat, which the core
+withholds when the wheel command loop (the executor) stops running (docs/can.md).
 
 Topics:
 - publishes /joint_states (sensor_msgs/JointState: body joints + JLWheel/JRWheel, URDF names; only
   joints with data), /imu/data (sensor_msgs/Imu, sensor-data QoS), /diagnostics (1 Hz);
 - subscribes /wheel_effort_cmd (std_msgs/Float64MultiArray [left, right] N m at the wheel,
-  reliable) and /joint_position_cmd (sensor_msgs/JointState, positions by name).
+  reliable) and /joint_position_cmd (sensor_msgs/JointState, positions by name);
+- publishes /can_bridge/drive_fault (std_msgs/String, latched): the latched drive fault's reason,
+  '' when clear (BridgeCore: a FAULT or EMCY of any drive stops both wheels);
+- serves ~/recover (std_srvs/Trigger, /can_bridge/recover): DS402 fault reset and the enable
+  sequence (the start-up again), then unlatches only if every drive reports OPERATION_ENABLED;
+  refused with the reason otherwise.
 
 /imu/data: orientation = rotation by q_base (hardware IMU pitch, positive = top tilting forward)
 about +y, the axle pointing left; angular_velocity.y = the filtered pitch rate; the other
@@ -22,7 +31,8 @@ than wheels.command_timeout_s, a malformed one, a silent device, or an AMC start
 or whose drive constants disagree with the config gives zero current (see BridgeCore).
 
 Parameters: devices_file, publish_rate_hz (200), amc_startup (True: configure the drives through
-SDO, as amciod did), sdo_timeout_s (0.3), startup_retry_s (2.0), send_timeout_s (0.002),
+SDO, as amciod did), sdo_timeout_s (0.3), startup_retry_s (2.0), recover_timeout_s (1.0: how long
+recover waits for the drives to report OPERATION_ENABLED), send_timeout_s (0.002),
 imu_sample_period_s (0: DMU samples timed by arrival; > 0: by their sequence counter at this
 period). With use_sim_time every time of the core (IMU filter steps, silence and command timeouts)
 is the simulator's /clock, not wall time.
@@ -30,19 +40,22 @@ is the simulator's /clock, not wall time.
 from __future__ import annotations
 
 import logging
-import math
+import sys
 import threading
 import time
 
 import can
 import canopen
 from diagnostic_msgs.msg import DiagnosticArray
+import rclpy
 from rclpy.node import Node
 from sensor_msgs.msg import Imu, JointState
-from std_msgs.msg import Float64MultiArray
+from std_msgs.msg import Float64MultiArray, String
+from std_srvs.srv import Trigger
 
 from krang_can_bridge.bridge import BridgeCore, BusFrame
-from krang_can_bridge.config import default_devices_file, load_devices
+from krang_can_bridge.config import BusConfig, load_devices, resolve_devices_file, \
+    robot_devices_file
 from krang_can_bridge.imu_filter import pitch_axis, tilt_direction
 from krang_can_bridge.protocols import amc as amc_proto
 from krang_can_bridge.sample_clock import SampleClock
@@ -51,6 +64,24 @@ from krang_ros.spin import run_node
 
 SIM_TIME_SLACK_S = 0.025     # with use_sim_time: checks run at most this far past the newest frame
 HARDWARE_ID = 'krang_can'
+CAN_BITRATE = 1000000        # every Krang net runs at 1 Mbit/s (docs/can.md)
+
+
+class BusOpenError(RuntimeError):
+    """A CAN bus of the device map cannot be opened (the message says what to do)."""
+
+
+def open_bus(bus: BusConfig) -> can.BusABC:
+    """can.Bus for one bus of the map, or BusOpenError with one line naming the interface and, for
+    SocketCAN, the command that brings it up."""
+    try:
+        return can.Bus(**bus.bus_kwargs())
+    except (OSError, can.CanError, ValueError) as exc:
+        text = f'cannot open CAN bus {bus.name} ({bus.interface} {bus.channel}): {exc}'
+        if bus.interface == 'socketcan':
+            text += (f'; is the CAN driver loaded and the interface up? sudo ip link set '
+                     f'{bus.channel} up type can bitrate {CAN_BITRATE}')
+        raise BusOpenError(text) from exc
 
 
 class _RosLogHandler(logging.Handler):
@@ -84,15 +115,16 @@ class _BusListener(can.Listener):
 class CanBridgeNode(Node):
     def __init__(self, **kwargs):
         super().__init__('can_bridge', **kwargs)
-        self.declare_parameter('devices_file', str(default_devices_file()))
+        self.declare_parameter('devices_file', str(robot_devices_file()))
         self.declare_parameter('publish_rate_hz', 200.0)
         self.declare_parameter('amc_startup', True)
         self.declare_parameter('sdo_timeout_s', 0.3)
         self.declare_parameter('startup_retry_s', 2.0)
+        self.declare_parameter('recover_timeout_s', 1.0)
         self.declare_parameter('send_timeout_s', 0.002)
         self.declare_parameter('imu_sample_period_s', 0.0)
         p = self.get_parameter
-        self.config = load_devices(p('devices_file').value)
+        self.config = load_devices(resolve_devices_file(p('devices_file').value))
         # The core's time base (IMU filter dt, silence and command timeouts) is the time of the
         # devices: wall time (monotonic) on the robot; with use_sim_time the simulator's /clock,
         # because a simulated DMU samples in simulated time. A simulator starved of CPU runs slower
@@ -128,6 +160,10 @@ class CanBridgeNode(Node):
         self._send_errors: dict[str, int] = {}
         self._receive_errors: dict[str, str] = {}
         self._startup_status: dict[str, str] = {}
+        self._sdo_lock = threading.Lock()        # one SDO user at a time: start-up or recover
+        self._sdo_timeout = float(p('sdo_timeout_s').value)
+        self._recover_timeout = float(p('recover_timeout_s').value)
+        self._published_fault: str | None = None
 
         self._log_handler = _RosLogHandler(self.get_logger())
         logging.getLogger('krang_can_bridge').addHandler(self._log_handler)
@@ -135,8 +171,14 @@ class CanBridgeNode(Node):
 
         self.buses: dict[str, can.BusABC] = {}
         self.notifiers: list[can.Notifier] = []
-        for name in self.config.buses_in_use():
-            self.buses[name] = can.Bus(**self.config.buses[name].bus_kwargs())
+        try:
+            for name in self.config.buses_in_use():
+                self.buses[name] = open_bus(self.config.buses[name])
+        except BusOpenError:
+            for b in self.buses.values():
+                b.shutdown()
+            logging.getLogger('krang_can_bridge').removeHandler(self._log_handler)
+            raise
         self.canopen = canopen.Network(self.buses[self.config.wheels.bus])
         for name, bus in self.buses.items():
             self.notifiers.append(can.Notifier(bus, [_BusListener(self, name)], timeout=0.1))
@@ -147,6 +189,9 @@ class CanBridgeNode(Node):
         self.imu_pub = self.create_publisher(Imu, names.IMU, qos[names.IMU])
         self.diag_pub = self.create_publisher(DiagnosticArray, names.DIAGNOSTICS,
                                               qos[names.DIAGNOSTICS])
+        self.fault_pub = self.create_publisher(String, names.DRIVE_FAULT, topics.LATCHED)
+        self.publish_fault()
+        self.create_service(Trigger, '~/recover', self.on_recover)
         self.create_subscription(Float64MultiArray, names.WHEEL_EFFORT_CMD, self.on_wheel_effort,
                                  qos[names.WHEEL_EFFORT_CMD])
         self.create_subscription(JointState, names.JOINT_POSITION_CMD, self.on_joint_position,
@@ -165,9 +210,10 @@ class CanBridgeNode(Node):
                                   f'{drive.joint}: AMC start-up not done')
         self._startup_thread = threading.Thread(
             target=self._startup_worker, args=(bool(p('amc_startup').value),
-                                               float(p('sdo_timeout_s').value),
                                                float(p('startup_retry_s').value)), daemon=True)
         self._startup_thread.start()
+        self._watchdog_thread = threading.Thread(target=self._watchdog_worker, daemon=True)
+        self._watchdog_thread.start()
         self.get_logger().info(
             'can_bridge on '
             + ', '.join(
@@ -178,6 +224,8 @@ class CanBridgeNode(Node):
 
     # ---- CAN I/O --------------------------------------------------------------------------------
     def on_received(self, bus: str, msg: can.Message) -> None:
+        if self._stop.is_set():          # closing: the drives' reaction to our silence is expected
+            return
         with self._lock:
             now = self._frame_time()
             if now > self._newest_frame:
@@ -215,7 +263,31 @@ class CanBridgeNode(Node):
                 self.get_logger().warning(f'send on {bus} failed: {exc}',
                                           throttle_duration_sec=1.0)
 
-    def _startup_worker(self, amc_startup: bool, sdo_timeout: float, retry_s: float) -> None:
+    def _watchdog_worker(self) -> None:
+        """Send the drives' watchdog frames every period; the core withholds them when the wheel
+        command loop is quiet, and a hung core (lock held) stops them too."""
+        period = self.config.wheels.watchdog.period_s
+        if self.config.wheels.watchdog.mechanism == 'none':
+            return
+        due = time.monotonic()
+        while not self._stop.wait(max(0.0, due - time.monotonic())):
+            due = max(due + period, time.monotonic())
+            with self._lock:
+                frames = self.core.watchdog_frames(self._device_time())
+            self.send(frames)
+
+    def _enable_drive(self, drive) -> list[str]:
+        """The start-up sequence (fault reset, watchdog, enable) of one drive; its mismatches."""
+        with self._lock:
+            self.core.drive_started(drive.joint, False)
+        with self._sdo_lock:
+            mismatches = amc_proto.run_startup(self.canopen, drive, self._sdo_timeout,
+                                               self.config.wheels.watchdog)
+        with self._lock:
+            self.core.drive_started(drive.joint, not mismatches)
+        return mismatches
+
+    def _startup_worker(self, amc_startup: bool, retry_s: float) -> None:
         with self._lock:
             frames = self.core.startup_frames()
         self.send(frames)
@@ -225,7 +297,7 @@ class CanBridgeNode(Node):
             key = f'startup/{drive.joint}'
             while not self._stop.is_set():
                 try:
-                    mismatches = amc_proto.run_startup(self.canopen, drive, sdo_timeout)
+                    mismatches = self._enable_drive(drive)
                 except Exception as exc:  # noqa: BLE001 - SDO timeout/abort or bus error: retry
                     self._startup_status[drive.joint] = f'failed: {type(exc).__name__}: {exc}'
                     self.get_logger().warning(f'{drive.joint} start-up failed ({exc}); retrying',
@@ -244,17 +316,66 @@ class CanBridgeNode(Node):
                         self.core.inhibit(key, None)
                 break
 
+    # ---- drive faults ---------------------------------------------------------------------------
+    def publish_fault(self) -> None:
+        """The latched drive fault on DRIVE_FAULT, whenever it changes ('' once at start-up)."""
+        with self._lock:
+            reason = self.core.fault_reason
+        if reason != self._published_fault:
+            self._published_fault = reason
+            self.fault_pub.publish(String(data=reason))
+
+    def on_recover(self, request, response):
+        """Runs the recovery in a thread and, until it ends, keeps the wheel command loop going
+        (zero current while latched), so the drives' watchdog goes on seeing a live bridge. The
+        other callbacks wait (rclpy's executor would starve them while a coroutine awaits a
+        thread's result)."""
+        result = []
+        worker = threading.Thread(target=lambda: result.append(self._recover()), daemon=True)
+        worker.start()
+        period = 1.0 / self.config.wheels.command_rate_hz
+        while worker.is_alive():
+            self.send_wheel_commands()
+            worker.join(period)
+        response.success, response.message = result[0] if result else (False, 'recover failed')
+        if response.success:
+            self.get_logger().info(f'recover: {response.message}')
+        else:
+            self.get_logger().warning(f'recover: {response.message}')
+        self.publish_fault()
+        return response
+
+    def _recover(self) -> tuple[bool, str]:
+        """DS402 fault reset and enable sequence on every drive, then unlatch if all report
+        OPERATION_ENABLED (BridgeCore.recover_status)."""
+        with self._lock:
+            reason = self.core.fault_reason
+        if not reason:
+            return True, 'no drive fault latched'
+        for drive in self.config.wheels.drives:
+            try:
+                mismatches = self._enable_drive(drive)
+            except Exception as exc:  # noqa: BLE001 - SDO timeout/abort or bus error
+                return False, (f'{drive.joint}: fault reset and enable failed '
+                               f'({type(exc).__name__}: {exc}); fault still latched: {reason}')
+            if mismatches:
+                return False, '; '.join(mismatches)
+        since = self._frame_time()
+        deadline = time.monotonic() + self._recover_timeout
+        while True:
+            with self._lock:
+                ok, why = self.core.recover_status(since)
+                if ok:
+                    self.core.clear_fault()
+                    return True, f'recovered from: {reason}'
+            if ok is False or time.monotonic() > deadline:
+                return False, f'refused: {why}; fault still latched: {reason}'
+            time.sleep(0.01)
+
     # ---- commands -------------------------------------------------------------------------------
     def on_wheel_effort(self, msg: Float64MultiArray) -> None:
-        data = list(msg.data)
-        left, right = (data[0], data[1]) if len(data) == 2 else (math.nan, math.nan)
-        if len(data) != 2:
-            self.get_logger().warning(
-                f'{names.WHEEL_EFFORT_CMD} needs [left, right], got {len(data)} values: zero '
-                'current',
-                throttle_duration_sec=1.0)
         with self._lock:
-            self.core.set_wheel_effort_command(left, right, self._device_time())
+            self.core.set_wheel_effort_command(list(msg.data), self._device_time())
             frames = self.core.wheel_command_frames(self._device_time())
         self.send(frames)
 
@@ -273,6 +394,7 @@ class CanBridgeNode(Node):
         with self._lock:
             frames = self.core.wheel_command_frames(self._device_time())
         self.send(frames)
+        self.publish_fault()
 
     def poll_modules(self) -> None:
         with self._lock:
@@ -345,8 +467,14 @@ class CanBridgeNode(Node):
 
 
 def main(args=None):
-    return run_node(CanBridgeNode, args)
+    """Exit code 1 with one line on stderr when a bus cannot be opened (no traceback)."""
+    try:
+        return run_node(CanBridgeNode, args)
+    except BusOpenError as exc:
+        print(f'can_bridge: {exc}', file=sys.stderr)
+        rclpy.try_shutdown()
+        return 1
 
 
 if __name__ == '__main__':
-    main()
+    sys.exit(main())

@@ -1,8 +1,6 @@
 """krang bringup: start the node set (with the simulated robot under --sim) until Ctrl-C."""
 import logging
 
-from krang_model.config import config_path
-
 from .node_set import RECORDER, STOP_ORDER, node_set, params_files
 from .processes import NodeSet, wait_forever
 
@@ -14,8 +12,10 @@ def register(subparsers):
         'bringup', help='start the node set (real robot, or --sim)',
         description='Starts can_bridge, adrc_controller, pose_server and com_estimator as processes '
                     '(and sim_krang with --sim, mcap_recorder with --record), with parameters from '
-                    'config/krang_params.yaml plus --params files. Without --sim the bridge talks to the '
-                    'CAN buses of config/can_devices_robot.yaml (socketcan). Ctrl-C stops everything '
+                    'config/krang_params.yaml plus --params files. The bridge talks to the '
+                    'CAN buses of config/can_devices_robot.yaml (socketcan), with --sim to '
+                    'those of config/can_devices.yaml (config/sim_params.yaml). Ctrl-C stops '
+                    'everything '
                     'cleanly, the recorder last.')
     p.add_argument('--sim', action='store_true', help='start sim_krang and use the simulated buses')
     p.add_argument('--params', action='append', default=[], metavar='FILE',
@@ -37,8 +37,7 @@ def start_node_set(sim, extra_params=(), record=None, log_dir=None, env=None, ov
 
 
 def run(args):
-    overrides = {} if args.sim else {'can_bridge': {'devices_file': config_path('can_devices_robot.yaml')}}
-    nodes = start_node_set(args.sim, args.params, args.record, args.log_dir, overrides=overrides)
+    nodes = start_node_set(args.sim, args.params, args.record, args.log_dir)
     try:
         code = wait_forever(nodes)
     finally:

@@ -5,15 +5,19 @@ Device traffic is built by hand with struct from docs/can.md (not with the codec
 every command frame the core produces is decoded by hand and checked against the limits of
 config/can_devices.yaml.
 """
+import dataclasses
 import math
 import random
 import struct
 
 import can
 import pytest
+import yaml
 
+from krang_can_bridge import bridge
 from krang_can_bridge.bridge import BridgeCore
-from krang_can_bridge.config import load_devices
+from krang_can_bridge.config import ConfigError, load_devices
+from krang_can_bridge.protocols import amc as amc_proto
 from krang_model.drivetrain import drivetrain
 from krang_model.robot import load_krang
 
@@ -70,6 +74,14 @@ def healthy_core():
         dev.feed(t)
     assert core.motion_allowed(t), core.diagnostics(t)[0]
     return core, dev, t
+
+
+def finite_float(value):
+    try:
+        x = float(value)
+    except (TypeError, ValueError):
+        return None
+    return x if math.isfinite(x) else None
 
 
 def wheel_amps_by_hand(frame):
@@ -136,16 +148,13 @@ def test_wheel_commands_never_exceed_the_limit():
         right = rng.choice(values)
         frames = core.wheel_current_frames(left, right, t)
         assert len(frames) == 2
+        finite = [finite_float(e) is not None for e in (left, right)]
         for f, effort in zip(frames, (left, right)):
             amps = wheel_amps_by_hand(f)
             assert abs(amps) <= limit
-            try:
-                e = float(effort)
-            except (TypeError, ValueError):
-                e = math.nan
-            if not math.isfinite(e):
-                assert amps == 0.0                                   # rejected -> zero current
-            elif abs(e) > 100:
+            if not all(finite):
+                assert amps == 0.0                      # either one rejected -> zero on both
+            elif abs(float(effort)) > 100:
                 assert abs(amps) == pytest.approx(limit, abs=60.0 / 2 ** 15)
     assert core.counters.rejected_commands > 0 and core.counters.clamped_commands > 0
 
@@ -210,7 +219,7 @@ def test_nothing_moves_before_every_device_was_heard():
 
 def test_stale_effort_command_becomes_zero():
     core, dev, t = healthy_core()
-    core.set_wheel_effort_command(10.0, 10.0, t)
+    core.set_wheel_effort_command([10.0, 10.0], t)
     assert wheel_amps_by_hand(core.wheel_command_frames(t + 0.01)[0]) > 5
     dev.feed(t + CFG.wheels.command_timeout_s * 0.5)
     later = t + CFG.wheels.command_timeout_s * 1.01
@@ -283,3 +292,195 @@ def test_inhibit_blocks_motion_and_is_reported():
     assert 'constants mismatch' in core.diagnostics(t)[0].message
     core.inhibit('startup/JLWheel', None)
     assert core.motion_allowed(t)
+
+
+# ---- the two wheels are one machine (issue 10.3) ------------------------------------------------
+def test_half_invalid_wheel_command_gives_zero_on_both_and_is_reported():
+    core, _, t = healthy_core()
+    frames = core.wheel_current_frames(math.nan, 20.0, t)
+    assert [wheel_amps_by_hand(f) for f in frames] == [0.0, 0.0]
+    assert core.counters.rejected_commands == 1
+    assert 'JLWheel' in core.counters.last_rejection and 'both' in core.counters.last_rejection
+    # the stored command: a rejected one replaces the last valid one by zero on both
+    core.set_wheel_effort_command([10.0, 10.0], t)
+    assert all(wheel_amps_by_hand(f) > 5 for f in core.wheel_command_frames(t))
+    for bad in ([20.0, math.inf], [20.0], [20.0, 20.0, 20.0], [], None, [20.0, 'x']):
+        core.set_wheel_effort_command(bad, t)
+        assert [wheel_amps_by_hand(f) for f in core.wheel_command_frames(t)] == [0.0, 0.0], bad
+    assert core.counters.rejected_commands == 7
+    assert 'got 3 values' in core.counters.last_rejection or 'x' in core.counters.last_rejection
+
+
+def test_fuzzed_half_invalid_pairs_never_drive_one_wheel():
+    core, _, t = healthy_core()
+    rng = random.Random(10)
+    bad = [math.nan, math.inf, -math.inf, None, 'nan', float('-nan')]
+    n = 0
+    for _ in range(400):
+        good = rng.uniform(-300.0, 300.0)
+        kind = rng.random()
+        if kind < 0.4:
+            cmd = [rng.choice(bad), good]
+        elif kind < 0.8:
+            cmd = [good, rng.choice(bad)]
+        else:
+            cmd = [good] * rng.choice([0, 1, 3, 4])
+        core.set_wheel_effort_command(cmd, t)
+        frames = core.wheel_command_frames(t)
+        if len(cmd) == 2:
+            frames += core.wheel_current_frames(cmd[0], cmd[1], t)
+        for pair in (frames[i:i + 2] for i in range(0, len(frames), 2)):
+            amps = [wheel_amps_by_hand(f) for f in pair]
+            assert amps == [0.0, 0.0], (cmd, amps)             # never one-sided
+        n += 1 + (len(cmd) == 2)
+    assert core.counters.rejected_commands == n
+
+
+def test_rejected_commands_make_diagnostics_warn_with_count_and_reason():
+    core, _, t = healthy_core()
+    report = {r.name: r for r in core.diagnostics(t)}['can_bridge: commands']
+    assert report.level == 0 and report.values['rejected_commands'] == '0'
+    core.set_wheel_effort_command([math.nan, 20.0], t)
+    core.joint_position_frames({'LJ2': math.inf}, t)
+    report = {r.name: r for r in core.diagnostics(t + 1.0)}['can_bridge: commands']
+    assert report.level == 1 and report.values['rejected_commands'] == '2'
+    assert 'LJ2' in report.message and 'LJ2' in report.values['last_rejection']
+    later = {r.name: r for r in core.diagnostics(t + bridge.REJECTION_WARN_S + 0.1)}
+    assert later['can_bridge: commands'].level == 0
+    assert '2 rejected' in later['can_bridge: commands'].message
+
+
+# ---- a faulted drive stops both wheels (issue 10.4) ---------------------------------------------
+RIGHT = CFG.wheels.drive('JRWheel').node_id
+
+
+def statusword(core, node_id, sw, t):
+    core.on_frame(msg(0x200 + 7 * node_id + 6, struct.pack('<H', sw)), t, 'can3')
+
+
+def test_drive_fault_statusword_latches_zero_current_on_both_until_recovered():
+    core, dev, t = healthy_core()
+    assert all(abs(wheel_amps_by_hand(f)) > 10 for f in core.wheel_current_frames(20, 20, t))
+    statusword(core, RIGHT, 0x0008, t)                          # FAULT
+    assert 'JRWheel' in core.fault_reason and 'FAULT' in core.fault_reason
+    assert [wheel_amps_by_hand(f) for f in core.wheel_current_frames(20, 20, t)] == [0.0, 0.0]
+    assert core.joint_position_frames({'JTorso': 0.3}, t) == []
+    motion = core.diagnostics(t)[0]
+    assert motion.level == 2 and 'JRWheel' in motion.message and '/can_bridge/recover' in \
+        motion.message
+    # the drive reporting OPERATION_ENABLED again does not unlatch: only a recover does
+    t += 0.01
+    dev.feed(t)
+    assert core.fault_reason and not core.motion_allowed(t)
+    # recovery refused while a drive still reports FAULT after the reset
+    since = t
+    statusword(core, RIGHT, 0x0008, t + 0.001)
+    ok, why = core.recover_status(since)
+    assert ok is False and 'JRWheel' in why
+    # pending until every drive reported since the enable sequence, then OK
+    since = t + 0.002
+    assert core.recover_status(since)[0] is None
+    dev.feed(t + 0.003)
+    assert core.recover_status(since) == (True, '')
+    core.clear_fault()
+    assert core.fault_reason == '' and core.motion_allowed(t + 0.003)
+    assert all(abs(wheel_amps_by_hand(f)) > 10 for f in core.wheel_current_frames(20, 20,
+                                                                                   t + 0.003))
+
+
+def test_emcy_of_either_drive_latches_a_fault_but_error_reset_does_not():
+    core, _, t = healthy_core()
+    core.on_frame(msg(0x80 + RIGHT, struct.pack('<HB5s', 0x0000, 0, bytes(5))), t, 'can3')
+    assert core.fault_reason == '' and core.motion_allowed(t)
+    core.on_frame(msg(0x80 + RIGHT, struct.pack('<HB5s', 0x2310, 0x03, bytes(5))), t, 'can3')
+    assert 'JRWheel' in core.fault_reason and '0x2310' in core.fault_reason
+    assert [wheel_amps_by_hand(f) for f in core.wheel_current_frames(-20, 20, t)] == [0.0, 0.0]
+    core2, _, t2 = healthy_core()
+    core2.on_frame(msg(0x80 + 0x20, b'\x01'), t2, 'can3')            # malformed EMCY: a fault too
+    assert 'JLWheel' in core2.fault_reason
+
+
+def test_a_started_drive_leaving_operation_enabled_is_a_fault():
+    core, dev, t = healthy_core()
+    statusword(core, RIGHT, 0x0040, t)            # not started: start-up transitions are no fault
+    assert core.fault_reason == ''
+    for joint in CFG.wheel_joint_names:
+        core.drive_started(joint, True)
+    dev.feed(t + 0.001)                           # seen OPERATION_ENABLED: armed
+    statusword(core, RIGHT, 0x0040, t + 0.002)    # e.g. its watchdog disabled the voltage
+    assert 'left OPERATION_ENABLED' in core.fault_reason
+    assert not core.motion_allowed(t + 0.002)
+
+
+# ---- the drive-side watchdog (issue 10.2) -------------------------------------------------------
+def test_heartbeat_only_while_the_command_loop_runs():
+    core, _, t = healthy_core()
+    wd = CFG.wheels.watchdog
+    assert wd.mechanism == 'heartbeat'
+    assert core.watchdog_frames(t) == []                          # the loop never ran
+    core.wheel_command_frames(t)
+    frames = core.watchdog_frames(t + wd.alive_timeout_s * 0.9)
+    assert [(f.bus, f.msg.arbitration_id, bytes(f.msg.data)) for f in frames] == [
+        ('can3', 0x700 + wd.node_id, b'\x05')]
+    assert core.watchdog_frames(t + wd.alive_timeout_s * 1.1) == []   # hung loop: no beat
+    level = {r.name: r for r in core.diagnostics(t + 1.0)}['can_bridge: drive watchdog'].level
+    assert level == 1
+    # our own heartbeat looped back is an echo, not an unknown frame
+    n = core.counters.unknown
+    core.on_frame(frames[0].msg, t, 'can3')
+    assert core.counters.unknown == n
+
+
+def test_guarding_requests_and_no_watchdog():
+    guarding = dataclasses.replace(CFG.wheels.watchdog, mechanism='guarding')
+    cfg = dataclasses.replace(CFG, wheels=dataclasses.replace(CFG.wheels, watchdog=guarding))
+    core = BridgeCore(cfg, clock=lambda: 0.0)
+    core.wheel_command_frames(0.0)
+    frames = core.watchdog_frames(0.01)
+    assert [(f.msg.arbitration_id, f.msg.is_remote_frame) for f in frames] == [(0x720, True),
+                                                                               (0x721, True)]
+    off = dataclasses.replace(CFG.wheels.watchdog, mechanism='none')
+    core = BridgeCore(dataclasses.replace(CFG, wheels=dataclasses.replace(CFG.wheels,
+                                                                          watchdog=off)))
+    core.wheel_command_frames(0.0)
+    assert core.watchdog_frames(0.01) == []
+
+
+def test_startup_configures_the_drive_watchdog_before_the_drive_starts():
+    wd = CFG.wheels.watchdog
+    steps = amc_proto.startup_sequence(CFG.wheels.drive('JLWheel'), wd)
+    keys = [(s.action, s.index, s.subindex, s.value) for s in steps]
+    consumer = ('write', 0x1016, 1, (wd.node_id << 16) | round(wd.timeout_s * 1000))
+    abort = ('write', 0x6007, 0, wd.abort_connection_option)
+    start = ('nmt', 0, 0, 0x01)
+    assert keys.index(consumer) < keys.index(start) and keys.index(abort) < keys.index(start)
+    guarding = dataclasses.replace(wd, mechanism='guarding')
+    keys = [(s.index, s.value) for s in amc_proto.startup_sequence(CFG.wheels.drive('JLWheel'),
+                                                                   guarding)]
+    assert (0x100C, round(wd.period_s * 1000)) in keys
+    assert (0x100D, round(wd.timeout_s / wd.period_s)) in keys
+    # without a watchdog the sequence is the 2018 one
+    assert amc_proto.startup_sequence(CFG.wheels.drive('JLWheel'))[-1].value == 0x0F
+
+
+@pytest.mark.parametrize('change, complaint', [
+    ({'mechanism': 'heartbeats'}, 'mechanism'),
+    ({'node_id': 0x20}, 'node_id'),
+    ({'node_id': 0}, 'node_id'),
+    ({'period_s': 0.1}, 'third'),
+    ({'abort_connection_option': 4}, '0x6007'),
+    ({'alive_timeout_s': 0.005}, 'alive_timeout_s'),
+    ({'timeout_s': 70.0}, '65.535'),
+    (None, 'watchdog'),
+])
+def test_watchdog_settings_are_validated_at_load(tmp_path, change, complaint):
+    data = yaml.safe_load(CFG.path.read_text())
+    if change is None:
+        del data['wheels']['watchdog']
+    else:
+        data['wheels']['watchdog'].update(change)
+    data['dbc_file'] = str(CFG.dbc_path)
+    path = tmp_path / 'devices.yaml'
+    path.write_text(yaml.safe_dump(data))
+    with pytest.raises(ConfigError, match=complaint):
+        load_devices(path)

@@ -42,7 +42,7 @@ import can
 import canopen
 from canopen import objectdictionary as od
 
-from krang_can_bridge.config import WheelDriveConfig, WheelsConfig
+from krang_can_bridge.config import WatchdogConfig, WheelDriveConfig, WheelsConfig
 from krang_can_bridge.protocols import (
     UnknownFrame,
     ValueOutOfRange,
@@ -71,6 +71,14 @@ VELOCITY_ACTUAL = 0x606C
 TARGET_CURRENT = 0x6071
 CURRENT_ACTUAL = 0x6078
 HEARTBEAT_TIME = 0x1017
+# Drive-side watchdog (DS301 0x100C/0x100D/0x1016, DS402 0x6007; docs/can.md)
+GUARD_TIME = 0x100C
+LIFE_TIME_FACTOR = 0x100D
+CONSUMER_HEARTBEAT_TIME = 0x1016
+ABORT_CONNECTION_OPTION = 0x6007
+ABORT_NO_ACTION, ABORT_FAULT, ABORT_DISABLE_VOLTAGE, ABORT_QUICK_STOP = 0, 1, 2, 3
+HEARTBEAT_BASE = 0x700
+NMT_STATE_OPERATIONAL = 0x05         # the bridge's heartbeat payload
 # AMC manufacturer objects (amccan.h)
 BOARD_INFO = 0x20D8
 BOARD_INFO_MAX_PEAK_CURRENT = 0x0C   # Kp, 0.1 A
@@ -307,7 +315,7 @@ class AmcDriveCodec:
         return object_dictionary(self.drive)
 
     def startup_sequence(self) -> list[StartupStep]:
-        return startup_sequence(self.drive)
+        return startup_sequence(self.drive, self.wheels.watchdog)
 
 
 def _var(index: int, subindex: int, name: str, data_type: int, access: str = 'rw',
@@ -341,6 +349,12 @@ def object_dictionary(drive: WheelDriveConfig) -> od.ObjectDictionary:
     d = od.ObjectDictionary()
     d.node_id = drive.node_id
     d.add_object(_var(HEARTBEAT_TIME, 0, 'Producer heartbeat time', od.UNSIGNED16, 'rw', 0))
+    d.add_object(_var(GUARD_TIME, 0, 'Guard time', od.UNSIGNED16, 'rw', 0))
+    d.add_object(_var(LIFE_TIME_FACTOR, 0, 'Life time factor', od.UNSIGNED8, 'rw', 0))
+    d.add_object(_record(CONSUMER_HEARTBEAT_TIME, 'Consumer heartbeat time', [
+        _var(CONSUMER_HEARTBEAT_TIME, 1, 'Consumer heartbeat time 1', od.UNSIGNED32, 'rw', 0)]))
+    d.add_object(_var(ABORT_CONNECTION_OPTION, 0, 'Abort connection option code', od.INTEGER16,
+                      'rw', ABORT_FAULT))
     d.add_object(_var(CONTROLWORD, 0, 'Controlword', od.UNSIGNED16, 'rw', 0))
     d.add_object(_var(STATUSWORD, 0, 'Statusword', od.UNSIGNED16, 'ro',
                       STATUSWORD_OF_STATE['SWITCH_ON_DISABLED']))
@@ -376,13 +390,45 @@ def object_dictionary(drive: WheelDriveConfig) -> od.ObjectDictionary:
     return d
 
 
-def startup_sequence(drive: WheelDriveConfig) -> list[StartupStep]:
-    """amcdrive_init_drive + amcdrive_start as data: configure the PDOs and the 1 kHz timer, enter
-    current mode.
+def watchdog_steps(watchdog: WatchdogConfig) -> list[StartupStep]:
+    """The drive side of the watchdog: heartbeat consumer 0x1016.1 = (bridge node id << 16) | ms,
+    or node guarding 0x100C/0x100D, and what to do on a loss (0x6007). Nothing for 'none'."""
+    if watchdog.mechanism == 'none':
+        return []
+    if watchdog.mechanism == 'heartbeat':
+        steps = [StartupStep('write', CONSUMER_HEARTBEAT_TIME, 1,
+                             (watchdog.node_id << 16) | watchdog.timeout_ms,
+                             f'heartbeat consumer: node 0x{watchdog.node_id:02X}, '
+                             f'{watchdog.timeout_ms} ms')]
+    else:
+        steps = [StartupStep('write', GUARD_TIME, 0, watchdog.period_ms, 'guard time'),
+                 StartupStep('write', LIFE_TIME_FACTOR, 0, watchdog.life_time_factor,
+                             'life time factor')]
+    return steps + [StartupStep('write', ABORT_CONNECTION_OPTION, 0,
+                                watchdog.abort_connection_option, 'abort connection option')]
+
+
+def heartbeat_frame(watchdog: WatchdogConfig) -> can.Message:
+    """The bridge's heartbeat (DS301: 0x700 + node id, one byte NMT state, here OPERATIONAL)."""
+    return frame(HEARTBEAT_BASE + watchdog.node_id, bytes([NMT_STATE_OPERATIONAL]))
+
+
+def guarding_request(node_id: int) -> can.Message:
+    """A node-guarding request: a remote frame on 0x700 + the drive's node id (DS301)."""
+    return can.Message(arbitration_id=HEARTBEAT_BASE + node_id, is_remote_frame=True, dlc=1,
+                       is_extended_id=False)
+
+
+def startup_sequence(drive: WheelDriveConfig,
+                     watchdog: WatchdogConfig | None = None) -> list[StartupStep]:
+    """amcdrive_init_drive + amcdrive_start as data: configure the PDOs and the 1 kHz timer (and
+    the drive-side `watchdog`), enter current mode.
 
     Only the current RPDO is enabled (position/velocity RPDOs stay disabled, as in amciod); all
     four TPDOs are enabled (amciod left the current TPDO off; we want the measured current in
-    diagnostics).
+    diagnostics). The fault reset (0x80 after 0x06) runs in PRE-OPERATIONAL, where the drive
+    ignores the RPDOs (whose controlword 0x008F would mask the rising edge of bit 7), so the same
+    sequence is the recovery after a fault.
     """
     n = drive.node_id
     steps = [StartupStep('nmt', value=NMT_PRE_OPERATIONAL, what='pre-operational'),
@@ -408,6 +454,7 @@ def startup_sequence(drive: WheelDriveConfig) -> list[StartupStep]:
                                  f'TPDO COB-ID 0x{cob_id(n, offset):03X}'))
     for index in list(RPDO_COMM.values()) + list(TPDO_COMM.values()):
         steps.append(StartupStep('write', index, 2, PDO_TRANS_ASYNC, 'async transmission'))
+    steps += watchdog_steps(watchdog) if watchdog is not None else []
     steps += [StartupStep('write', TIMER1_CYCLE, 0, 1, 'timer 1 = 1 ms'),
               StartupStep('write', TIMER1_TPDOS, 0, TIMER1_TPDO_BITS,
                           'timer 1 drives TPDO 1/3/4/5'),
@@ -421,8 +468,8 @@ def startup_sequence(drive: WheelDriveConfig) -> list[StartupStep]:
     return steps
 
 
-def run_startup(network: canopen.Network, drive: WheelDriveConfig,
-                sdo_timeout_s: float = 0.3) -> list[str]:
+def run_startup(network: canopen.Network, drive: WheelDriveConfig, sdo_timeout_s: float = 0.3,
+                watchdog: WatchdogConfig | None = None) -> list[str]:
     """Execute `startup_sequence` through canopen (blocking SDO transfers; run it off the ROS
     executor).
 
@@ -437,7 +484,7 @@ def run_startup(network: canopen.Network, drive: WheelDriveConfig,
     network.add_node(node)
     mismatches = []
     try:
-        for step in startup_sequence(drive):
+        for step in startup_sequence(drive, watchdog):
             if step.action == 'nmt':
                 node.nmt.send_command(step.value)
             elif step.action == 'write':
@@ -462,5 +509,5 @@ def codecs_from_config(wheels: WheelsConfig, dbc) -> dict[str, AmcDriveCodec]:
 
 
 __all__ = ['AmcDriveCodec', 'AmcReading', 'StartupStep', 'codecs_from_config', 'cob_id',
-           'drive_state',
-           'object_dictionary', 'run_startup', 'startup_sequence']
+           'drive_state', 'guarding_request', 'heartbeat_frame',
+           'object_dictionary', 'run_startup', 'startup_sequence', 'watchdog_steps']

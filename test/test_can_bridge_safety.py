@@ -1,0 +1,272 @@
+"""The bridge next to a 162 kg robot, over real processes: can_bridge (started as `krang bringup`
+starts it) against an independent DS402 peer drive process (test/ds402_peer_drive.py, canopen
+LocalNodes on a udp_multicast bus), a ROS probe in this process.
+
+- A SIGKILLed bridge: the drives' heartbeat consumer (configured by the bridge's start-up from
+  wheels.watchdog) expires and the abort connection option zeroes the current within 0.3 s.
+- A drive in FAULT with an EMCY while both wheels are driven: both currents go to zero, the fault
+  is latched on /can_bridge/drive_fault, recover is refused while the drive still faults and
+  succeeds once its cause is gone.
+- No parameters: the bridge takes the robot's SocketCAN map and, with no SocketCAN here, ends with
+  one line naming can0 and the `ip link` command.
+"""
+import json
+import os
+import random
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import pytest
+import yaml
+
+pytestmark = pytest.mark.ros
+
+rclpy = pytest.importorskip('rclpy')
+pytest.importorskip('msgpack')                      # python-can's udp_multicast needs it
+
+from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
+from rclpy.executors import SingleThreadedExecutor  # noqa: E402
+from std_msgs.msg import Float64MultiArray, String  # noqa: E402
+from std_srvs.srv import Trigger  # noqa: E402
+
+from krang_can_bridge.config import default_devices_file, load_devices, \
+    resolve_devices_file  # noqa: E402
+from krang_cli.node_set import params_files  # noqa: E402
+from krang_cli.processes import NodeSet  # noqa: E402
+from krang_model.config import load_config  # noqa: E402
+from krang_model.drivetrain import drivetrain  # noqa: E402
+from krang_model.robot import load_krang  # noqa: E402
+from krang_ros import names, topics  # noqa: E402
+
+PEER = Path(__file__).with_name('ds402_peer_drive.py')
+KILL_DEADLINE_S = 0.3
+EFFORT_NM = 8.0
+
+
+@pytest.fixture
+def peer_map(tmp_path):
+    """The shipped map (its watchdog included) on private multicast ports. Only the wheels are
+    required (no IMU or arm here), and the peer's 200 Hz TPDOs and this probe's commands get a
+    0.5 s silence and command timeout, so that a loaded machine does not stop the wheels early."""
+    base = load_devices()
+    data = yaml.safe_load(base.path.read_text())
+    rng = random.Random()
+    group, port = f'239.74.{rng.randint(100, 250)}', rng.randrange(20000, 60000, 16)
+    for i, name in enumerate(data['buses']):
+        data['buses'][name] = {'interface': 'udp_multicast', 'channel': f'{group}.{i + 1}',
+                               'options': {'port': port + i}}
+    data['dbc_file'] = str(base.dbc_path)
+    data['imu']['required'] = data['powercube']['required'] = False
+    data['wheels'].update(silence_timeout_s=0.5, command_timeout_s=0.5)
+    path = tmp_path / 'can_devices.yaml'
+    path.write_text(yaml.safe_dump(data))
+    return path, load_devices(path)
+
+
+class Peer:
+    """The peer drive process and the events it printed (see ds402_peer_drive.py)."""
+
+    def __init__(self, cfg):
+        bus = cfg.buses[cfg.wheels.bus]
+        nodes = ','.join(f'{d.node_id}:{d.sign}' for d in cfg.wheels.drives)
+        self.ids = {d.joint: d.node_id for d in cfg.wheels.drives}
+        self.proc = subprocess.Popen(
+            [sys.executable, str(PEER), '--channel', bus.channel, '--port',
+             str(bus.options['port']), '--nodes', nodes, '--fault-node',
+             str(self.ids['JRWheel'])], stdout=subprocess.PIPE, text=True)
+        self.events, self.lock = [], threading.RLock()
+        threading.Thread(target=self._read, daemon=True).start()
+        assert self.wait(lambda: any(e.get('event') == 'ready' for e in self.events), 10.0)
+
+    def _read(self):
+        for line in self.proc.stdout:
+            with self.lock:
+                self.events.append(json.loads(line))
+
+    def wait(self, cond, timeout):
+        end = time.monotonic() + timeout
+        while time.monotonic() < end:
+            with self.lock:
+                if cond():
+                    return True
+            time.sleep(0.01)
+        with self.lock:
+            return cond()
+
+    def amps(self, joint, at=None):
+        """The drive's applied current at time `at` (default now) from its event log."""
+        value = 0.0
+        with self.lock:
+            for e in self.events:
+                if e.get('node') == self.ids[joint] and 'amps' in e and (at is None or
+                                                                         e['t'] <= at):
+                    value = e['amps']
+        return value
+
+    def first_zero_after(self, joint, t):
+        with self.lock:
+            return next((e['t'] for e in self.events if e.get('node') == self.ids[joint]
+                         and 'amps' in e and e['t'] > t and e['amps'] == 0.0), None)
+
+    def signal(self, sig):
+        self.proc.send_signal(sig)
+
+    def close(self):
+        self.proc.terminate()
+        try:
+            self.proc.wait(5.0)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+
+
+class Probe:
+    """A ROS node in this process: publishes wheel efforts, calls recover, watches the fault."""
+
+    def __init__(self):
+        self.context = rclpy.Context()
+        rclpy.init(context=self.context)
+        self.node = rclpy.create_node('safety_probe', context=self.context)
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.node)
+        self.effort = self.node.create_publisher(Float64MultiArray, names.WHEEL_EFFORT_CMD,
+                                                 topics.QOS[names.WHEEL_EFFORT_CMD])
+        self.fault, self.diag = None, {}
+        self.node.create_subscription(String, names.DRIVE_FAULT,
+                                      lambda m: setattr(self, 'fault', m.data), topics.LATCHED)
+        self.node.create_subscription(DiagnosticArray, names.DIAGNOSTICS, self._on_diag, 10)
+        self.recover_client = self.node.create_client(Trigger, names.BRIDGE_RECOVER)
+        self.command = None
+
+    def _on_diag(self, msg):
+        for s in msg.status:
+            self.diag[s.name] = s
+
+    def spin(self, seconds, until=None):
+        """Spin (publishing the current command at 100 Hz) until `until()` or the time is up."""
+        end = time.monotonic() + seconds
+        while time.monotonic() < end:
+            if self.command is not None:
+                self.effort.publish(Float64MultiArray(data=list(self.command)))
+            self.executor.spin_once(timeout_sec=0.01)
+            if until is not None and until():
+                return True
+        return until() if until is not None else True
+
+    def recover(self, timeout=15.0):
+        assert self.recover_client.wait_for_service(timeout_sec=10.0)
+        future = self.recover_client.call_async(Trigger.Request())
+        assert self.spin(timeout, future.done), 'recover did not answer'
+        return future.result()
+
+    def close(self):
+        self.executor.shutdown()
+        self.node.destroy_node()
+        rclpy.try_shutdown(context=self.context)
+
+
+@pytest.fixture
+def rig(peer_map, tmp_path):
+    path, cfg = peer_map
+    peer = Peer(cfg)
+    nodes = NodeSet([], log_dir=tmp_path / 'logs')
+    bridge = nodes.start('can_bridge', {'devices_file': path})
+    probe = Probe()
+    try:
+        yield peer, bridge, probe
+    finally:
+        probe.close()
+        nodes.stop()
+        peer.close()
+
+
+def expected_amps():
+    drive = drivetrain(load_krang())
+    return EFFORT_NM / (drive.torque_constant * drive.gear_ratio)
+
+
+def both_driven(peer, at=None):
+    return all(abs(peer.amps(j, at) - expected_amps()) < 0.05 for j in ('JLWheel', 'JRWheel'))
+
+
+@pytest.mark.timeout(120)
+def test_sigkilled_bridge_zero_current_within_0_3_s(rig):
+    peer, bridge, probe = rig
+    probe.command = (EFFORT_NM, EFFORT_NM)
+    assert probe.spin(30.0, lambda: both_driven(peer)), peer.events[-6:]
+    probe.spin(0.5)
+    killed_at = time.monotonic()
+    bridge.kill()                                  # SIGKILL: the bridge sends nothing more
+    bridge.wait(5.0)
+    assert both_driven(peer, killed_at), peer.events[-6:]
+    time.sleep(1.0)
+    for joint in ('JLWheel', 'JRWheel'):
+        zero_at = peer.first_zero_after(joint, killed_at)
+        assert zero_at is not None, peer.events[-6:]
+        assert zero_at - killed_at < KILL_DEADLINE_S, (joint, zero_at - killed_at)
+        print(f'{joint}: zero current {zero_at - killed_at:.3f} s after the SIGKILL')
+    lost = [e for e in peer.events if e.get('event') == 'heartbeat lost']
+    assert {e['node'] for e in lost} == set(peer.ids.values())
+
+
+@pytest.mark.timeout(120)
+def test_faulted_drive_stops_both_wheels_until_recovered(rig):
+    peer, bridge, probe = rig
+    probe.command = (EFFORT_NM, EFFORT_NM)
+    assert probe.spin(30.0, lambda: both_driven(peer)), peer.events[-6:]
+    assert probe.spin(5.0, lambda: probe.fault == '')
+    faulted_at = time.monotonic()
+    peer.signal(signal.SIGUSR1)                    # the right drive: FAULT + EMCY, cause stays
+    assert probe.spin(5.0, lambda: bool(probe.fault)), probe.fault
+    assert 'JRWheel' in probe.fault
+    # the left wheel, still commanded, got zero current too (from the bridge: it has no fault)
+    assert peer.wait(lambda: peer.first_zero_after('JLWheel', faulted_at) is not None, 2.0)
+    assert peer.first_zero_after('JLWheel', faulted_at) - faulted_at < 1.0
+    probe.spin(1.0)
+    assert peer.amps('JLWheel') == 0.0 and peer.amps('JRWheel') == 0.0
+    motion = probe.diag.get('can_bridge: motion')
+    assert motion is not None and motion.level == b'\x02' and 'JRWheel' in motion.message
+    refused = probe.recover()
+    assert not refused.success and 'FAULT' in refused.message, refused.message
+    probe.spin(1.0)
+    assert probe.fault and peer.amps('JLWheel') == 0.0 and peer.amps('JRWheel') == 0.0
+    peer.signal(signal.SIGUSR2)                    # the cause is gone; the drive still in FAULT
+    assert peer.wait(lambda: any(e.get('event') == 'fault cause removed'
+                                 for e in peer.events), 5.0)
+    probe.spin(0.5)
+    assert peer.amps('JLWheel') == 0.0 and peer.amps('JRWheel') == 0.0
+    accepted = probe.recover()
+    assert accepted.success, accepted.message
+    assert probe.spin(5.0, lambda: probe.fault == '')
+    assert probe.spin(10.0, lambda: both_driven(peer)), peer.events[-6:]
+
+
+@pytest.mark.timeout(60)
+def test_without_parameters_the_bridge_takes_the_robots_socketcan_map():
+    """No SocketCAN on this machine: the robot map's can0 cannot open -> one clear line, exit 1."""
+    proc = subprocess.run([sys.executable, '-m', 'krang_can_bridge.node'], capture_output=True,
+                          text=True, timeout=50, env=dict(os.environ))
+    out = (proc.stdout + proc.stderr).strip()
+    assert proc.returncode == 1, out
+    assert 'Traceback' not in out
+    lines = [line for line in out.splitlines() if line.strip()]
+    assert len(lines) == 1, out
+    assert 'can0' in lines[0] and 'sudo ip link set can0 up type can bitrate 1000000' in lines[0]
+
+
+def test_the_simulated_node_set_chooses_the_simulator_map():
+    """--sim and launch/sim.launch.py load sim_params.yaml, which names the multicast map; the
+    robot's parameter files leave the bridge's default (the SocketCAN map) alone."""
+    chosen = []
+    for sim in (False, True):
+        value = None
+        for path in params_files(sim):
+            section = load_config(path).get('can_bridge', {}).get('ros__parameters', {})
+            value = section.get('devices_file', value)
+        chosen.append(value)
+    assert chosen[0] is None
+    assert resolve_devices_file(chosen[1]) == default_devices_file()
+    assert load_devices(resolve_devices_file(chosen[1])).buses['can3'].interface == 'udp_multicast'
