@@ -32,7 +32,7 @@ from .phases import PHASES
 from .record import CHANNEL_UNITS, CHANNELS, resample
 from .replay import Replay, ReplayConfig, gap_metrics
 from .effects import ModelTerms, apply_effects, get_effect, library
-from .locate import locate, plot_location, shade_phases
+from .locate import PHASE_COLOURS, locate, plot_location, shade_phases
 from .naming import NamingConfig, name_effects
 
 FORMAT = 'krang_discrepancy/extended_model/1'
@@ -203,9 +203,16 @@ def _plot_gap(replay: Replay, base, ext, out_dir, record_index, t_span=8.0):
     axes[1].set_xlabel('time (s)')
     axes[0].set_title(f'{rec.name}: {replay.horizon:.2f} s predictions from measured states '
                       '(multiple shooting), before and after')
+    from matplotlib.patches import Patch
+    in_view = ((replay.win_record == record_index) & (replay.win_t <= t0 + t_span + 0.5)
+               & (replay.win_t >= t0 - 0.2 - replay.horizon))
+    shown = set(replay.win_phase[in_view])
+    bands = [Patch(facecolor=PHASE_COLOURS[p], edgecolor='0.6', label=f'phase: {p}')
+             for p in PHASES if p in shown]       # the background bands (shade_phases)
     for ax in axes:
         shade_phases(ax, replay, record_index)
-        ax.legend(fontsize=8, loc='upper right')
+        ax.legend(handles=ax.get_legend_handles_labels()[0] + bands, fontsize=8,
+                  loc='upper right')
         ax.set_xlim(t0 - 0.2, t0 + t_span + 0.5)
     fig.tight_layout()
     fig.savefig(out_dir / 'gap_timeseries.png', dpi=90)
