@@ -52,7 +52,7 @@ setup(
             'com_estimator = krang_ros.entry:com_estimator',
             'mcap_recorder = krang_ros.entry:mcap_recorder',
             'sim_krang = krang_ros.entry:sim_krang',
-            'state_publisher = krang_ros.state_publisher:main',
+            'state_publisher = krang_ros.entry:state_publisher',
         ],
     },
 )

@@ -14,7 +14,7 @@ import sys
 # and stalled the control loop. A user's own setting wins.
 os.environ.setdefault('OPENBLAS_NUM_THREADS', '1')
 
-#: executable -> module with the node's `main()` and a docstring that lists its parameters.
+#: executable -> module with the node's `main()`, a docstring and `describe_parameters()`.
 NODE_MODULES = {
     'sim_krang': 'krang_sim.node',
     'can_bridge': 'krang_can_bridge.node',
@@ -22,6 +22,7 @@ NODE_MODULES = {
     'pose_server': 'krang_pose_server.node',
     'com_estimator': 'krang_com_estimator.node',
     'mcap_recorder': 'krang_bag.node',
+    'state_publisher': 'krang_ros.state_publisher',
 }
 
 
@@ -48,12 +49,11 @@ def run(executable, argv=None):
 
 
 def help_text(executable, module):
-    """The node's docstring, then its parameters if the module describes them (`PARAMETERS`)."""
+    """The node's docstring, then its parameters (the module's `describe_parameters()`)."""
     lines = [f'usage: {executable} [--help] [--ros-args -p NAME:=VALUE ... --params-file FILE]',
              '', (module.__doc__ or '').strip()]
-    described = getattr(module, 'describe_parameters', None)
-    if described is not None:
-        lines += ['', 'parameters:'] + [f'  {line}' for line in described()]
+    described = module.describe_parameters()
+    lines += ['', 'parameters:'] + ([f'  {line}' for line in described] or ['  (none)'])
     return '\n'.join(lines)
 
 
@@ -79,6 +79,10 @@ def com_estimator():
 
 def mcap_recorder():
     return run('mcap_recorder')
+
+
+def state_publisher():
+    return run('state_publisher')
 
 
 if __name__ == '__main__':

@@ -42,6 +42,11 @@ def transform_stamped(stamp, t):
     return msg
 
 
+def describe_parameters():
+    """No parameters of its own: the URDF is the package's, the topics are remappable."""
+    return []
+
+
 class StatePublisherNode(Node):
     def __init__(self):
         super().__init__('state_publisher')

@@ -16,10 +16,10 @@ import pytest
 
 from conftest import REPO
 from krang_cli.node_set import node_set, params_files
+from krang_ros.entry import NODE_MODULES
 
-EXECUTABLES = ('krang', 'can_bridge', 'adrc_controller', 'pose_server', 'com_estimator',
-               'mcap_recorder', 'sim_krang')
-NODES = EXECUTABLES[1:]
+NODES = tuple(sorted(NODE_MODULES))
+EXECUTABLES = ('krang',) + NODES
 COLCON = Path(sys.executable).parent / 'colcon'
 
 #: Import name -> rosdep key of package.xml, for every third-party module the package imports.
