@@ -115,8 +115,11 @@ class _WheelState:
     position: float | None = None
     velocity: float | None = None
     current: float | None = None
-    statusword: int | None = None
-    statusword_at: float | None = None
+    statusword: int | None = None      # the leading bytes of any TPDO (diagnostics)
+    # The statusword TPDO alone (mapped to 0x6041 by the driver; that the other TPDOs lead with it
+    # is our reading, so no fault decision rests on them)
+    drive_status: int | None = None
+    drive_status_at: float | None = None
     emcy: str | None = None
     started: bool = False       # the node's start-up (or recovery) sequence enabled this drive
     armed: bool = False         # started and seen OPERATION_ENABLED: leaving it is a fault
@@ -274,8 +277,9 @@ class BridgeCore:
             state.device.malformed += 1
             raise
         state.statusword = reading.statusword
-        state.statusword_at = now
-        self._check_drive_state(state)
+        if reading.kind == 'statusword':
+            state.drive_status, state.drive_status_at = reading.statusword, now
+            self._check_drive_state(state)
         if reading.kind == 'position':
             state.position = reading.value
         elif reading.kind == 'velocity':
@@ -297,7 +301,7 @@ class BridgeCore:
         self._latch_fault(f'{joint}: EMCY {text}, data {data.hex()}')
 
     def _check_drive_state(self, state: _WheelState) -> None:
-        joint, sw = state.codec.drive.joint, state.statusword
+        joint, sw = state.codec.drive.joint, state.drive_status
         name = amc_proto.drive_state(sw)
         if name == 'FAULT':
             state.armed = False
@@ -338,12 +342,12 @@ class BridgeCore:
         (None, what is awaited) otherwise."""
         waiting = []
         for joint, w in self._wheels.items():
-            if w.statusword_at is None or w.statusword_at < since:
+            if w.drive_status_at is None or w.drive_status_at < since:
                 waiting.append(f'{joint}: no statusword since the enable sequence')
                 continue
-            name = amc_proto.drive_state(w.statusword)
+            name = amc_proto.drive_state(w.drive_status)
             if name == 'FAULT':
-                return False, (f'{joint} still reports FAULT (statusword 0x{w.statusword:04X}) '
+                return False, (f'{joint} still reports FAULT (statusword 0x{w.drive_status:04X}) '
                                'after the fault reset')
             if name != 'OPERATION_ENABLED':
                 waiting.append(f'{joint}: {name} after the enable sequence')

@@ -361,6 +361,9 @@ def statusword(core, node_id, sw, t):
 def test_drive_fault_statusword_latches_zero_current_on_both_until_recovered():
     core, dev, t = healthy_core()
     assert all(abs(wheel_amps_by_hand(f)) > 10 for f in core.wheel_current_frames(20, 20, t))
+    # the leading bytes of the position TPDO are only our reading of AMC's mapping: no decision
+    core.on_frame(msg(0x200 + 7 * RIGHT + 3, struct.pack('<Hi', 0x0008, 0)), t, 'can3')
+    assert core.fault_reason == ''
     statusword(core, RIGHT, 0x0008, t)                          # FAULT
     assert 'JRWheel' in core.fault_reason and 'FAULT' in core.fault_reason
     assert [wheel_amps_by_hand(f) for f in core.wheel_current_frames(20, 20, t)] == [0.0, 0.0]

@@ -19,12 +19,13 @@ from rclpy.parameter import Parameter  # noqa: E402
 from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data  # noqa: E402
 from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
 from sensor_msgs.msg import Imu, JointState  # noqa: E402
-from std_msgs.msg import Float64MultiArray  # noqa: E402
+from std_msgs.msg import Float64MultiArray, String  # noqa: E402
 
 from krang_can_bridge.config import load_devices  # noqa: E402
 from krang_can_bridge.node import CanBridgeNode  # noqa: E402
 from krang_model.drivetrain import drivetrain  # noqa: E402
 from krang_model.robot import load_krang  # noqa: E402
+from krang_ros import names, topics  # noqa: E402
 from krang_sim.devices import KrangCanDevices  # noqa: E402
 
 
@@ -106,6 +107,8 @@ def test_node_bridges_states_and_commands(devices_file):
                               qos_profile_sensor_data)
     probe.create_subscription(DiagnosticArray, '/diagnostics', lambda m: got.__setitem__('diag',
                                                                                          m), 10)
+    probe.create_subscription(String, names.DRIVE_FAULT, lambda m: got.__setitem__('fault', m),
+                              topics.LATCHED)
     effort_pub = probe.create_publisher(Float64MultiArray, '/wheel_effort_cmd',
                                         QoSProfile(depth=10,
                                                    reliability=ReliabilityPolicy.RELIABLE))
@@ -149,6 +152,18 @@ def test_node_bridges_states_and_commands(devices_file):
             effort_pub.publish(Float64MultiArray(data=[8.0, 8.0]))
             c = robot.devices.wheel_currents()
             return abs(c['JLWheel'] - expected) < 0.01 and abs(c['JRWheel'] - expected) < 0.01
+        assert spin_until(current_arrived, 5.0), robot.devices.wheel_currents()
+        assert got['fault'].data == ''                     # latched '' from the start: no fault
+
+        # half-invalid: both wheels stop, and /diagnostics WARNs with the count and the reason
+        def both_zero_and_warned():
+            effort_pub.publish(Float64MultiArray(data=[math.nan, 20.0]))
+            d = got.get('diag')
+            warned = d is not None and any(
+                s.name == 'can_bridge: commands' and s.level == b'\x01' and 'JLWheel' in s.message
+                for s in d.status)
+            return warned and robot.devices.wheel_currents() == {'JLWheel': 0.0, 'JRWheel': 0.0}
+        assert spin_until(both_zero_and_warned, 5.0), robot.devices.wheel_currents()
         assert spin_until(current_arrived, 5.0), robot.devices.wheel_currents()
 
         joint_pub.publish(JointState(name=['JTorso'], position=[0.1]))

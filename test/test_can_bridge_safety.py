@@ -4,6 +4,7 @@ LocalNodes on a udp_multicast bus), a ROS probe in this process.
 
 - A SIGKILLed bridge: the drives' heartbeat consumer (configured by the bridge's start-up from
   wheels.watchdog) expires and the abort connection option zeroes the current within 0.3 s.
+- A hung bridge (its executor stops, its threads live on): the heartbeat stops all the same.
 - A drive in FAULT with an EMCY while both wheels are driven: both currents go to zero, the fault
   is latched on /can_bridge/drive_fault, recover is refused while the drive still faults and
   succeeds once its cause is gone.
@@ -30,11 +31,13 @@ pytest.importorskip('msgpack')                      # python-can's udp_multicast
 
 from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
 from rclpy.executors import SingleThreadedExecutor  # noqa: E402
+from rclpy.parameter import Parameter  # noqa: E402
 from std_msgs.msg import Float64MultiArray, String  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
 
 from krang_can_bridge.config import default_devices_file, load_devices, \
     resolve_devices_file  # noqa: E402
+from krang_can_bridge.node import CanBridgeNode  # noqa: E402
 from krang_cli.node_set import params_files  # noqa: E402
 from krang_cli.processes import NodeSet  # noqa: E402
 from krang_model.config import load_config  # noqa: E402
@@ -210,6 +213,43 @@ def test_sigkilled_bridge_zero_current_within_0_3_s(rig):
         print(f'{joint}: zero current {zero_at - killed_at:.3f} s after the SIGKILL')
     lost = [e for e in peer.events if e.get('event') == 'heartbeat lost']
     assert {e['node'] for e in lost} == set(peer.ids.values())
+
+
+@pytest.mark.timeout(120)
+def test_hung_command_loop_stops_the_beat_and_the_drives(peer_map):
+    """The bridge in this process: its executor stops (a hung main loop) while the process, its
+    CAN receive threads and its heartbeat thread live on. The beat stops, and the drives zero the
+    current within alive_timeout_s + timeout_s of the last command loop run."""
+    path, cfg = peer_map
+    wd = cfg.wheels.watchdog
+    peer = Peer(cfg)
+    probe = Probe()
+    bridge = CanBridgeNode(context=probe.context, parameter_overrides=[
+        Parameter('devices_file', value=str(path))])
+    probe.executor.add_node(bridge)
+    try:
+        probe.command = (EFFORT_NM, EFFORT_NM)
+        assert probe.spin(30.0, lambda: both_driven(peer)), peer.events[-6:]
+        probe.spin(0.5)
+        hung_at = time.monotonic()                 # the executor stops: no callback runs from here
+        frames = bridge.core.counters.frames
+        time.sleep(1.0)
+        assert bridge.core.counters.frames > frames + 100        # frames still come in
+        assert bridge._watchdog_thread.is_alive()
+        assert both_driven(peer, hung_at)
+        for joint in ('JLWheel', 'JRWheel'):
+            zero_at = peer.first_zero_after(joint, hung_at)
+            assert zero_at is not None, peer.events[-6:]
+            # + 0.1 s: the peer process's own lateness on a loaded machine
+            assert zero_at - hung_at < wd.alive_timeout_s + wd.timeout_s + 0.1, \
+                (joint, zero_at - hung_at)
+            print(f'{joint}: zero current {zero_at - hung_at:.3f} s after the loop hung')
+    finally:
+        bridge.close()
+        probe.executor.remove_node(bridge)
+        bridge.destroy_node()
+        probe.close()
+        peer.close()
 
 
 @pytest.mark.timeout(120)
