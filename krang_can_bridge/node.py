@@ -30,19 +30,18 @@ Wheel currents are refreshed at wheels.command_rate_hz from the latest command; 
 than wheels.command_timeout_s, a malformed one, a silent device, or an AMC start-up not (yet) done
 or whose drive constants disagree with the config gives zero current (see BridgeCore).
 
-Parameters: devices_file, publish_rate_hz (200), amc_startup (True: configure the drives through
-SDO, as amciod did), sdo_timeout_s (0.3), startup_retry_s (2.0), recover_timeout_s (1.0: how long
-recover waits for the drives to report OPERATION_ENABLED), send_timeout_s (0.002),
-imu_sample_period_s (0: DMU samples timed by arrival; > 0: by their sequence counter at this
-period). With use_sim_time every time of the core (IMU filter steps, silence and command timeouts)
-is the simulator's /clock, not wall time.
+Parameters: BridgeParams below (`can_bridge --help`), read once at start. With use_sim_time every
+time of the core (IMU filter steps, silence and command timeouts) is the simulator's /clock, not
+wall time.
 """
 from __future__ import annotations
 
 import logging
+import math
 import sys
 import threading
 import time
+from dataclasses import dataclass, field
 
 import can
 import canopen
@@ -59,12 +58,52 @@ from krang_can_bridge.config import BusConfig, load_devices, resolve_devices_fil
 from krang_can_bridge.imu_filter import pitch_axis, tilt_direction
 from krang_can_bridge.protocols import amc as amc_proto
 from krang_can_bridge.sample_clock import SampleClock
-from krang_ros import messages, names, topics
+from krang_ros import messages, names, params, topics
 from krang_ros.spin import run_node
 
 SIM_TIME_SLACK_S = 0.025     # with use_sim_time: checks run at most this far past the newest frame
 HARDWARE_ID = 'krang_can'
 CAN_BITRATE = 1000000        # every Krang net runs at 1 Mbit/s (docs/can.md)
+
+
+def _doc(text: str) -> dict:
+    return {'doc': text}
+
+
+@dataclass(frozen=True)
+class BridgeParams:
+    """The node's ROS parameters (krang_ros.params: descriptions, read only, checked at start)."""
+
+    devices_file: str = field(default_factory=lambda: str(robot_devices_file()), metadata=_doc(
+        "CAN device map; a bare name is looked up in config/ (default: the robot's SocketCAN "
+        'map; the simulated node set sets can_devices.yaml)'))
+    publish_rate_hz: float = field(default=200.0, metadata=_doc(
+        '/joint_states and /imu/data rate [Hz]'))
+    amc_startup: bool = field(default=True, metadata=_doc(
+        'configure and enable the AMC drives through SDO at start (as amciod did)'))
+    sdo_timeout_s: float = field(default=0.3, metadata=_doc('SDO response timeout [s]'))
+    startup_retry_s: float = field(default=2.0, metadata=_doc(
+        'wait before retrying a failed drive start-up [s]'))
+    recover_timeout_s: float = field(default=1.0, metadata=_doc(
+        '~/recover: how long to wait for every drive to report OPERATION_ENABLED [s]'))
+    send_timeout_s: float = field(default=0.002, metadata=_doc('CAN send timeout [s]'))
+    imu_sample_period_s: float = field(default=0.0, metadata=_doc(
+        '0: DMU samples timed by arrival; > 0: by their sequence counter at this period [s]'))
+
+    def __post_init__(self):
+        for name in ('publish_rate_hz', 'sdo_timeout_s', 'startup_retry_s', 'recover_timeout_s'):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value > 0):
+                raise ValueError(f'{name} must be a positive number, got {value!r}')
+        for name in ('send_timeout_s', 'imu_sample_period_s'):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value >= 0):
+                raise ValueError(f'{name} must be a number >= 0, got {value!r}')
+
+
+def describe_parameters():
+    """One line per parameter (for `can_bridge --help`)."""
+    return params.describe(BridgeParams)
 
 
 class BusOpenError(RuntimeError):
@@ -115,16 +154,9 @@ class _BusListener(can.Listener):
 class CanBridgeNode(Node):
     def __init__(self, **kwargs):
         super().__init__('can_bridge', **kwargs)
-        self.declare_parameter('devices_file', str(robot_devices_file()))
-        self.declare_parameter('publish_rate_hz', 200.0)
-        self.declare_parameter('amc_startup', True)
-        self.declare_parameter('sdo_timeout_s', 0.3)
-        self.declare_parameter('startup_retry_s', 2.0)
-        self.declare_parameter('recover_timeout_s', 1.0)
-        self.declare_parameter('send_timeout_s', 0.002)
-        self.declare_parameter('imu_sample_period_s', 0.0)
-        p = self.get_parameter
-        self.config = load_devices(resolve_devices_file(p('devices_file').value))
+        self.params = params.declare(self, BridgeParams)
+        p = self.params
+        self.config = load_devices(resolve_devices_file(p.devices_file))
         # The core's time base (IMU filter dt, silence and command timeouts) is the time of the
         # devices: wall time (monotonic) on the robot; with use_sim_time the simulator's /clock,
         # because a simulated DMU samples in simulated time. A simulator starved of CPU runs slower
@@ -139,7 +171,7 @@ class CanBridgeNode(Node):
         # are stamped with /clock, but the checks (silence, command age) run at most
         # SIM_TIME_SLACK_S past the newest frame stamped: a device silent while others talk is
         # still caught, and when the simulator stops, its /clock stops too.
-        if p('use_sim_time').value:
+        if self.get_parameter('use_sim_time').value:
             clock = self.get_clock()
             self._frame_time = lambda: clock.now().nanoseconds * 1e-9
             self._newest_frame = self._frame_time()
@@ -152,17 +184,17 @@ class CanBridgeNode(Node):
         # imu_sample_period_s > 0: DMU samples are timed by their sequence counter
         # (sample_clock.py); kept within 0.04 s of the clock, inside the IMU's 0.05 s silence
         # timeout
-        period = float(p('imu_sample_period_s').value)
+        period = p.imu_sample_period_s
         self._imu_clock = SampleClock(period, lag_max_s=0.04) if period > 0 else None
         self._lock = threading.Lock()
-        self._send_timeout = float(p('send_timeout_s').value)
+        self._send_timeout = p.send_timeout_s
         self._stop = threading.Event()
         self._send_errors: dict[str, int] = {}
         self._receive_errors: dict[str, str] = {}
         self._startup_status: dict[str, str] = {}
         self._sdo_lock = threading.Lock()        # one SDO user at a time: start-up or recover
-        self._sdo_timeout = float(p('sdo_timeout_s').value)
-        self._recover_timeout = float(p('recover_timeout_s').value)
+        self._sdo_timeout = p.sdo_timeout_s
+        self._recover_timeout = p.recover_timeout_s
         self._published_fault: str | None = None
 
         self._log_handler = _RosLogHandler(self.get_logger())
@@ -197,7 +229,7 @@ class CanBridgeNode(Node):
         self.create_subscription(JointState, names.JOINT_POSITION_CMD, self.on_joint_position,
                                  qos[names.JOINT_POSITION_CMD])
 
-        self.create_timer(1.0 / float(p('publish_rate_hz').value), self.publish_state)
+        self.create_timer(1.0 / p.publish_rate_hz, self.publish_state)
         self.create_timer(1.0 / self.config.wheels.command_rate_hz, self.send_wheel_commands)
         self.create_timer(1.0 / self.config.powercube.poll_rate_hz, self.poll_modules)
         self.create_timer(0.5 * self.config.imu.stream_toggle_retry_s, self.check_imu_stream)
@@ -205,12 +237,11 @@ class CanBridgeNode(Node):
 
         for drive in self.config.wheels.drives:
             self._startup_status[drive.joint] = 'pending'
-            if p('amc_startup').value:
+            if p.amc_startup:
                 self.core.inhibit(f'startup/{drive.joint}',
                                   f'{drive.joint}: AMC start-up not done')
         self._startup_thread = threading.Thread(
-            target=self._startup_worker, args=(bool(p('amc_startup').value),
-                                               float(p('startup_retry_s').value)), daemon=True)
+            target=self._startup_worker, args=(p.amc_startup, p.startup_retry_s), daemon=True)
         self._startup_thread.start()
         self._watchdog_thread = threading.Thread(target=self._watchdog_worker, daemon=True)
         self._watchdog_thread.start()

@@ -310,3 +310,12 @@ def test_the_simulated_node_set_chooses_the_simulator_map():
     assert chosen[0] is None
     assert resolve_devices_file(chosen[1]) == default_devices_file()
     assert load_devices(resolve_devices_file(chosen[1])).buses['can3'].interface == 'udp_multicast'
+
+
+def test_help_lists_the_parameters_without_starting_the_bridge():
+    proc = subprocess.run([sys.executable, '-c', 'import sys; from krang_ros.entry import run; '
+                           "sys.exit(run('can_bridge', ['--help']))"],
+                          capture_output=True, text=True, timeout=50)
+    assert proc.returncode == 0, proc.stderr
+    assert 'devices_file' in proc.stdout and 'can_devices_robot.yaml' in proc.stdout
+    assert 'recover_timeout_s' in proc.stdout and 'cannot open' not in proc.stdout + proc.stderr
