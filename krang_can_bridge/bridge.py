@@ -20,8 +20,9 @@ Safety rules, all enforced here so the ROS shell cannot get them wrong:
   see config.WatchdogConfig) are produced only while the wheel command loop ran within
   `wheels.watchdog.alive_timeout_s`: a hung bridge stops beating and the drives stop by
   themselves;
-- `motion_allowed(now)` is False while any required device is silent, the IMU filter is not
-  initialised, or an `inhibit` is set (e.g. by the node until the AMC start-up succeeded); then
+- `motion_allowed(now)` is False while a drive fault is latched, any required device is silent,
+  the IMU filter is not initialised, or an `inhibit` is set (e.g. by the node until the AMC
+  start-up succeeded); then
   wheel commands are zero current and joint commands produce no frames;
 - an effort command older than `wheels.command_timeout_s` is replaced by zero current
   (`wheel_command_frames`), because an AMC drive holds its last current forever.
