@@ -9,6 +9,10 @@ of the workflow. The workflow runs as the CLI would, with the whole library, plo
 --csv runs the workflow on a hardware log instead (e.g. balancing_runs/table2/beta190_trial0.csv).
 --validate prints the per-effect validation table of docs/discrepancy.md instead (the settings of
 test/test_discrepancy.py: 22 s records, seed 3, one hidden effect each, plus no effect).
+--hidden runs krang_discrepancy.synthetic.VALIDATION_SUITE (no-effect seeds and noise levels,
+small effects, pairs, effects outside the library): answer, values, 2-sigma coverage, false names.
+--real DIR runs the baseline on all Table II runs of the kit at DIR (balancing_runs/table2) and
+judges one new-tyre run against it, timed.
 """
 import argparse
 import json
@@ -28,9 +32,15 @@ def main(argv=None):
     ap.add_argument('--csv', default=None)
     ap.add_argument('--seed', type=int, default=1)
     ap.add_argument('--validate', action='store_true')
+    ap.add_argument('--hidden', action='store_true')
+    ap.add_argument('--real', metavar='KIT', default=None)
     args = ap.parse_args(argv)
     if args.validate:
         return validate(args.seed if args.seed != 1 else 3)
+    if args.hidden:
+        return hidden()
+    if args.real:
+        return real(Path(args.real))
 
     from krang_discrepancy.loaders import load_csv_record
     from krang_discrepancy.replay import ReplayConfig
@@ -117,6 +127,94 @@ def validate(seed):
               f'(x{g["before"]["gap"] / g["after"]["gap"]:.1f}) | {dt:.1f} |')
     return 0
 
+
+def hidden_case(case, seconds=22.0):
+    """Run one VALIDATION_SUITE case; returns a dict with the answer and the checks."""
+    import math
+    from dataclasses import replace
+    from krang_discrepancy.replay import ReplayConfig
+    from krang_discrepancy.report import run_discrepancy
+    from krang_discrepancy.synthetic import Unmodelled, simulate_record
+    from krang_sim.physics import SensorNoise, SimEffects
+    cid, fx, um, seed, noise_k, truth, equivalents = case
+    base = SensorNoise()
+    noise = replace(base, imu_pitch_std_rad=base.imu_pitch_std_rad * noise_k,
+                    gyro_std_rad_s=base.gyro_std_rad_s * noise_k,
+                    joint_std_rad=base.joint_std_rad * noise_k)
+    rec = simulate_record(SimEffects(**fx), seed=seed, seconds=seconds, hold_s=2.0, sit_down=False,
+                          unmodelled=Unmodelled(**um), noise=noise)
+    with tempfile.TemporaryDirectory() as out:
+        t0 = time.perf_counter()
+        res = run_discrepancy([rec], out, plots=False,
+                              replay_config=ReplayConfig(pose_delay_s=0.01, stride_s=0.1))
+        secs = time.perf_counter() - t0
+    js = res['json']
+    items = js.get('effects') or ([js] if js['effect'] not in ('none', 'unexplained') else [])
+    named = {e['effect']: e for e in items}
+    if truth:
+        expected = set(truth)
+        right = set(named) == expected
+    else:
+        expected = {'none'} if not um and not fx else {'unexplained', *equivalents}
+        answer = js['effect'] if js['effect'] in ('none', 'unexplained') else '+'.join(sorted(named))
+        right = answer in expected
+    checks = []
+    for name, true in truth.items():
+        if name in named:
+            e = named[name]
+            err = e['value'] - true
+            checks.append({'effect': name, 'true': true, 'value': e['value'], 'sigma': e['uncertainty'],
+                           'rel_err': err / true, 'z': err / e['uncertainty'] if e['uncertainty'] else math.inf})
+    false = sorted(set(named) - set(truth)) if truth else (sorted(named) if right is False else [])
+    return {'case': cid, 'answer': js['effect'] if not items else '+'.join(e['effect'] for e in items),
+            'right': right, 'checks': checks, 'false_names': false, 'seconds': secs,
+            'gap': (js['gap_before'], js['gap_after'])}
+
+
+def hidden():
+    from krang_discrepancy.synthetic import VALIDATION_SUITE
+    rows = []
+    print('| case | answer | right | values (rel. error, z = error/sigma) | gap | s |')
+    print('|---|---|---|---|---|---|')
+    for case in VALIDATION_SUITE:
+        r = hidden_case(case)
+        rows.append(r)
+        vals = '; '.join(f'{c["effect"]} {c["value"]:.4g} ({c["rel_err"]:+.1%}, z {c["z"]:+.1f})'
+                         for c in r['checks'])
+        print(f'| {r["case"]} | {r["answer"]} | {"yes" if r["right"] else "**no**"} | {vals} | '
+              f'{r["gap"][0]:.3g} -> {r["gap"][1]:.3g} | {r["seconds"]:.1f} |', flush=True)
+    checks = [c for r in rows for c in r['checks']]
+    print(f'named right {sum(r["right"] for r in rows)}/{len(rows)}; values within 5 %: '
+          f'{sum(abs(c["rel_err"]) <= 0.05 for c in checks)}/{len(checks)}; within 2 sigma: '
+          f'{sum(abs(c["z"]) <= 2 for c in checks)}/{len(checks)}; false names: '
+          f'{sum(len(r["false_names"]) for r in rows)} '
+          f'({", ".join(n for r in rows for n in r["false_names"]) or "-"})')
+    return 0
+
+
+def real(kit):
+    from krang_discrepancy.replay import ReplayConfig
+    from krang_discrepancy.report import run_discrepancy
+    cfg = ReplayConfig(stride_s=0.1)
+    runs = kit / 'balancing_runs'
+    with tempfile.TemporaryDirectory() as out:
+        t0 = time.perf_counter()
+        a = run_discrepancy([runs / 'table2'], Path(out) / 'table2', replay_config=cfg, plots=False)
+        t1 = time.perf_counter()
+        new = sorted((runs / 'new_tire').glob('*.csv'))[0]
+        b = run_discrepancy([new], Path(out) / 'new', replay_config=cfg, plots=False,
+                            baseline=Path(out) / 'table2' / 'extended_model.yaml')
+        t2 = time.perf_counter()
+    for label, res, secs in (('baseline: all Table II runs', a, t1 - t0),
+                             (f'judged: {new.name} against it', b, t2 - t1)):
+        print(f'{label}: {secs:.1f} s; ' + json.dumps(_brief(res['json'])))
+    return 0
+
+
+def _brief(js):
+    keep = ('effect', 'value', 'unit', 'uncertainty', 'effects', 'partial', 'gap_before',
+            'gap_after', 'reason')
+    return {k: js[k] for k in keep if k in js}
 
 if __name__ == '__main__':
     sys.exit(main())

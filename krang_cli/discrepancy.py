@@ -20,8 +20,17 @@ Steps:
   3. name     fit every effect of the library (and pairs), keep the one that improves predictions
               of HELD-OUT data (interleaved time blocks) by at least --min-improvement with a paired
               t over blocks >= --min-t; report "none" when nothing qualifies;
-  4. extend   write DIR/extended_model.yaml (the effects, their values and the matching
+  4. check    is what is left structured? Generic forces (torque, its sign, speeds, pitch, time)
+              fitted to the residual on held-out blocks: if they still predict it, or (with
+              --baseline) the model stays more than 2x its own typical error off, the answer is
+              "unexplained" with the residual's signature, never a wrong name or "none";
+  5. extend   write DIR/extended_model.yaml (the effects, their values and the matching
               krang_sim.physics.SimEffects arguments), re-simulate with it, report the gap.
+
+With --baseline EXTENDED_MODEL.yaml the new data are judged against the robot as earlier runs
+corrected it: the gap is in units of that model's typical error on its own data, the effects named
+are what changed (values physical: a torque constant in N m/A), and the extended model written is
+complete (baseline + new effects), so it can be the next baseline.
 
 Effects in the library: imu_pitch_bias (rad), floor_slope (rad), wheel_radius (m), payload (kg on
 lGripper / rGripper), wheel_viscous_friction (N m s), wheel_coulomb_friction (N m per wheel),
@@ -47,6 +56,8 @@ def register(subparsers):
                    help='print {"effect", "value", "unit", "uncertainty", "gap_before", "gap_after"} (or '
                         '{"effects": [...], ...} for a combination; effect "none" when nothing is found) '
                         'as the last stdout line')
+    p.add_argument('--baseline', metavar='YAML', default=None,
+                   help='an extended_model.yaml of earlier runs: judge the new data against it')
     p.add_argument('--beta', metavar='FILE', default=None,
                    help='mass model of the nominal robot (default: config/sim_true_beta.yaml, the fit to '
                         'the real balanced poses)')
@@ -69,7 +80,7 @@ def register(subparsers):
     p.add_argument('--min-improvement', type=float, default=None, metavar='F',
                    help='minimum share of the held-out loss an effect must remove (default 0.10)')
     p.add_argument('--min-t', type=float, default=None, metavar='T', help='minimum paired t over blocks (default 3)')
-    p.add_argument('--max-effects', type=int, default=None, metavar='N', help='largest combination (default 2)')
+    p.add_argument('--max-effects', type=int, default=None, metavar='N', help='largest combination (default 3)')
     p.add_argument('--folds', type=int, default=None, metavar='K', help='cross-validation folds (default 2)')
     p.add_argument('--block', type=float, default=None, metavar='S', help='cross-validation block length, s (default 2)')
     p.add_argument('--no-plots', action='store_true', help='skip the figures')
@@ -101,18 +112,23 @@ def run(args):
     if phases and not set(phases) <= set(PHASES):
         raise ValueError(f'unknown phases {sorted(set(phases) - set(PHASES))}; known: {", ".join(PHASES)}')
     cands = [s.strip() for s in args.effects.split(',')] if args.effects else None
-    model = NominalModel.default(args.beta)
+    model = NominalModel.default(args.beta) if args.beta or not args.baseline else None
 
     def say(msg):
         print(msg, file=sys.stderr if args.json else sys.stdout)
 
     out = run_discrepancy(args.measured, args.out, model=model, candidates=cands, replay_config=rcfg,
-                          naming_config=ncfg, phases=phases, plots=not args.no_plots, rate_hz=args.rate, log=say)
+                          naming_config=ncfg, phases=phases, plots=not args.no_plots, rate_hz=args.rate, log=say,
+                          baseline=args.baseline)
     js = out['json']
     if args.json:
         print_json(js)
     else:
-        if js.get('effect') == 'none':
+        if js.get('effect') == 'unexplained':
+            print(f'unexplained: {js["reason"]}')
+            print(f'gap {js["gap_before"]:.4g} -> {js["gap_after"]:.4g} with the partial library '
+                  'correction')
+        elif js.get('effect') == 'none':
             print(f'no significant missing effect; gap {js["gap_before"]:.4g} rad')
         elif 'effects' in js:
             print('missing effects: ' + ', '.join(f'{e["effect"]} = {e["value"]:.4g} ± {e["uncertainty"]:.2g} {e["unit"]}'

@@ -170,11 +170,12 @@ class Effect:
         """Keyword arguments of ``krang_sim.physics.SimEffects`` (None: not simulable)."""
         return None
 
-    def display(self, value: float) -> tuple[float, str]:
-        """The reported (value, unit) for a fitted parameter value (default: unchanged)."""
+    def display(self, value: float, base: ModelTerms | None = None) -> tuple[float, str]:
+        """The reported (value, unit) for a fitted parameter value applied on top of `base`
+        (default: unchanged)."""
         return value, self.unit
 
-    def display_scale(self) -> float:
+    def display_scale(self, base: ModelTerms | None = None) -> float:
         """d(displayed value)/d(parameter), to convert the parameter's uncertainty."""
         return 1.0
 
@@ -308,11 +309,13 @@ class TorqueConstant(Effect):
     def sim_effects(self, value):
         return {'torque_constant_scale': float(value)}
 
-    def display(self, value):
-        return value * self.nominal_kt, self.unit
+    def display(self, value, base=None):
+        """The torque constant itself (N m/A): the scale times the Kt of the model it extends
+        (a baseline may already have changed it)."""
+        return value * self.display_scale(base), self.unit
 
-    def display_scale(self):
-        return self.nominal_kt
+    def display_scale(self, base=None):
+        return self.nominal_kt if base is None else float(base.drive.torque_constant)
 
 
 class ActuationDelay(Effect):

@@ -48,9 +48,10 @@ class NamingConfig:
     block_s: float = 2.0
     min_improvement: float = 0.10       # minimum share of the held-out loss an effect must remove
     min_t: float = 3.0                  # minimum paired t over held-out blocks
-    max_effects: int = 2
+    max_effects: int = 3
     combo_candidates: int = 4           # partners tried for a combination (best singles first)
-    cluster_s: float = 1.0
+    cluster_s: float = 2.0              # = the block: errors stay correlated over ~1-2 s
+    min_weighted_blocks: float = 4.0    # effective blocks the evidence-weighted t needs
     max_nfev: int = 25                  # Levenberg-Marquardt iterations per fit
 
 
@@ -66,6 +67,8 @@ class Fit:
     improvement: float = math.nan       # vs the reference (nominal, or the smaller set)
     t: float = math.nan
     blocks_better: float = math.nan     # share of held-out blocks where it is better
+    t_weighted: float = math.nan        # paired t with blocks weighted by the effect's visibility
+    weighted_blocks: float = math.nan   # effective number of blocks of that test
     at_bound: bool = False
     nfev: int = 0
     seconds: float = 0.0
@@ -75,15 +78,17 @@ class Fit:
     def key(self):
         return '+'.join(e.key for e in self.effects)
 
-    def summary(self) -> dict:
+    def summary(self, base=None) -> dict:
         out = {'candidate': self.key, 'improvement': self.improvement, 't': self.t,
+               't_weighted': self.t_weighted, 'weighted_blocks': self.weighted_blocks,
                'blocks_better': self.blocks_better, 'at_bound': self.at_bound, 'reference': self.reference,
                'train_loss': self.train_loss, 'heldout_loss': float(np.nanmean(self.heldout_loss)),
                'effects': []}
         for e, v, u in zip(self.effects, self.values, self.uncertainty):
-            dv, unit = e.display(float(v))
+            dv, unit = e.display(float(v), base)
             out['effects'].append({'effect': e.name, 'key': e.key, 'value': dv, 'unit': unit,
-                                   'uncertainty': float(u) * e.display_scale(), 'parameter': float(v),
+                                   'uncertainty': float(u) * e.display_scale(base),
+                                   'parameter': float(v),
                                    **({'detail': e.detail} if e.detail else {})})
         return out
 
@@ -253,6 +258,12 @@ def start_value(effect: Effect, base: ModelTerms) -> float:
     return effect.nominal_value
 
 
+def scan_grid(effect: Effect, base: ModelTerms, n: int = 9) -> np.ndarray:
+    """n points over the effect's bounds plus its zero (the value that leaves `base` unchanged)."""
+    grid = np.linspace(effect.bounds[0], effect.bounds[1], n)
+    return np.unique(np.append(grid, start_value(effect, base)))
+
+
 def _scan(replay, base, effects, windows, n=9, with_loss=False):
     """Best point of a coarse grid over each effect's bounds, all effects in one batched
     prediction: the start of each single-effect fit, so that no fit begins far from its optimum
@@ -262,11 +273,15 @@ def _scan(replay, base, effects, windows, n=9, with_loss=False):
     terms = []
     grids = []
     for e in effects:
-        grid = np.linspace(e.bounds[0], e.bounds[1], n)
+        # the grid holds the effect's own zero (the value that leaves `base` unchanged): without
+        # it an effect whose zero falls between grid points (the wheel radius) starts every
+        # conditional scan worse than doing nothing and loses to partners that have theirs
+        grid = scan_grid(e, base, n)
         grids.append(grid)
         terms += [apply_effects(base, [e], [g]) for g in grid]
     pred = replay.predict(terms, w)
-    loss = replay.window_loss(replay.measured[w][None] - pred).mean(axis=1).reshape(len(effects), n)
+    flat = replay.window_loss(replay.measured[w][None] - pred).mean(axis=1)
+    loss = np.split(flat, np.cumsum([g.size for g in grids])[:-1])
     best = [float(g[int(np.argmin(l))]) for g, l in zip(grids, loss)]
     return (best, [float(l.min()) for l in loss]) if with_loss else best
 
@@ -279,12 +294,20 @@ def _blocks(replay: Replay, block_s: float, folds: int):
     return blocks, blocks % folds
 
 
-def _compare(ref_loss, new_loss, blocks, mask):
-    """(improvement, t, share of blocks better) of new vs ref on the masked held-out windows.
+def _compare(ref_loss, new_loss, blocks, mask, weight=None):
+    """(improvement, t, share of blocks better) of new vs ref on the masked held-out windows;
+    with `weight` (per window), also (t_weighted, effective blocks).
 
     improvement = 1 - sum(new) / sum(ref); t = paired t over blocks of log(ref_b / new_b), the
     per-block log loss ratio (a real effect shrinks the loss by a similar FACTOR in every block,
-    while the absolute differences are dominated by the most excited blocks)."""
+    while the absolute differences are dominated by the most excited blocks).
+
+    t_weighted: the same log ratios, each block weighted by how much the effect changes the
+    predictions there (``weight``: the squared whitened change, summed over the block). An effect
+    that only shows at speed (the wheel radius) leaves the quiet blocks' ratios at noise; counting
+    them equally drowns its evidence, while a block where the effect changes nothing holds no
+    evidence for or against it. The effective number of blocks, (sum w)^2 / sum w^2, sets the
+    standard error; the selection requires at least ``min_weighted_blocks`` of them."""
     bl = blocks[mask]
     ub, inv = np.unique(bl, return_inverse=True)
     new = np.zeros(ub.size)
@@ -294,17 +317,33 @@ def _compare(ref_loss, new_loss, blocks, mask):
     tot = ref.sum()
     imp = float(1.0 - new.sum() / tot) if tot > 0 else 0.0
     d = np.log(np.maximum(ref, 1e-300) / np.maximum(new, 1e-300))
-    if ub.size > 1 and np.std(d, ddof=1) > 0:
-        t = float(np.mean(d) / (np.std(d, ddof=1) / math.sqrt(ub.size)))
-    else:
-        t = math.inf if d.sum() > 0 else 0.0
-    return imp, t, float(np.mean(d > 0))
+    t = _t_stat(d, np.ones_like(d))[0]
+    if weight is None:
+        return imp, t, float(np.mean(d > 0))
+    w = np.zeros(ub.size)
+    np.add.at(w, inv, weight[mask])
+    return imp, t, float(np.mean(d > 0)), *_t_stat(d, w)
+
+
+def _t_stat(d, w):
+    """Weighted paired t of the values d (weights w) and its effective sample size."""
+    sw = w.sum()
+    if sw <= 0 or d.size < 2:
+        return (math.inf if d.sum() > 0 else 0.0), 0.0
+    n_eff = sw ** 2 / float(np.sum(w ** 2))
+    m = float(np.sum(w * d) / sw)
+    var = float(np.sum(w * (d - m) ** 2) / sw) * n_eff / max(n_eff - 1.0, 1e-9)
+    if var <= 0:
+        return (math.inf if m > 0 else 0.0), n_eff
+    return m / math.sqrt(var / n_eff), n_eff
 
 
 def fit_candidates(replay: Replay, base: ModelTerms, candidate_sets, cfg: NamingConfig, folds, blocks,
-                   x0s, ref_losses) -> list:
+                   x0s, ref_losses, ref_terms: ModelTerms | None = None) -> list:
     """Full-data fit (value, uncertainty) and K-fold held-out losses of several candidate sets,
-    all fitted together (batched Levenberg-Marquardt)."""
+    all fitted together (batched Levenberg-Marquardt). `ref_terms` is the model the reference
+    losses belong to (default `base`): the evidence weights are the candidates' changes to its
+    predictions."""
     t0 = time.perf_counter()
     active = replay.active
     wsets = [np.flatnonzero(active)] + [np.flatnonzero(active & (folds != f)) for f in range(cfg.folds)]
@@ -335,6 +374,11 @@ def fit_candidates(replay: Replay, base: ModelTerms, candidate_sets, cfg: Naming
             terms.append(apply_effects(base, j.effects, j.x))
     pred = replay.predict(terms, idx)
     loss = replay.window_loss(replay.measured[idx][None] - pred).reshape(len(candidate_sets), cfg.folds, -1)
+    # evidence weights: how much each full-data fit changes the reference's predictions
+    ref = base if ref_terms is None else ref_terms
+    pw = replay.predict([ref] + [apply_effects(base, jobs[c * n].effects, jobs[c * n].x)
+                                 for c in range(len(candidate_sets))], idx)
+    change = np.sum(((pw[1:] - pw[:1]) / replay.scales) ** 2, axis=(2, 3))
     e_per = replay.measured.shape[1] * replay.measured.shape[2]
     clusters = (np.floor(replay.win_t[idx] / cfg.cluster_s).astype(int)
                 + 100000 * replay.win_record[idx])
@@ -344,7 +388,8 @@ def fit_candidates(replay: Replay, base: ModelTerms, candidate_sets, cfg: Naming
         held = np.full(len(replay), np.nan)
         held[idx] = loss[c, folds[idx], np.arange(idx.size)]
         cov = _cluster_cov(full.jac, full.res, clusters, e_per)
-        unc = np.sqrt(np.clip(np.diag(cov), 0, None))
+        fold_x = np.array([jobs[c * n + 1 + f].x for f in range(cfg.folds)])
+        unc = _uncertainty(cov, fold_x)
         span = full.hi - full.lo
         start = np.array([start_value(e, base) for e in effs])
         near_lo = (full.x - full.lo < 1e-3 * span) & (np.abs(full.lo - start) > 1e-12)
@@ -353,7 +398,10 @@ def fit_candidates(replay: Replay, base: ModelTerms, candidate_sets, cfg: Naming
                   np.array([jobs[c * n + 1 + f].x for f in range(cfg.folds)]),
                   at_bound=bool(np.any(near_lo | near_hi)),
                   nfev=sum(jobs[c * n + k].nfev for k in range(n)))
-        fit.improvement, fit.t, fit.blocks_better = _compare(ref_losses[c], held, blocks, active)
+        weight = np.zeros(len(replay))
+        weight[idx] = change[c]
+        (fit.improvement, fit.t, fit.blocks_better, fit.t_weighted,
+         fit.weighted_blocks) = _compare(ref_losses[c], held, blocks, active, weight)
         fits.append(fit)
     dt = time.perf_counter() - t0
     for f in fits:
@@ -361,13 +409,33 @@ def fit_candidates(replay: Replay, base: ModelTerms, candidate_sets, cfg: Naming
     return fits
 
 
+def _uncertainty(cov, fold_x):
+    """One standard deviation per parameter: the larger of the cluster-robust sandwich and the
+    delete-a-fold jackknife, (K-1)/K sum_f (x_f - mean)^2. The sandwich sees only the noise the
+    clusters carry; the jackknife also sees how the value moves between halves of the record
+    (model differences that are not noise, a value that drifts with the excitation) but has only
+    K-1 degrees of freedom, so neither alone is trusted."""
+    sand = np.clip(np.diag(cov), 0, None)
+    k = fold_x.shape[0]
+    jack = (k - 1) / k * np.sum((fold_x - fold_x.mean(axis=0)) ** 2, axis=0) if k > 1 else 0 * sand
+    return np.sqrt(np.maximum(np.nan_to_num(sand, nan=np.inf), jack))
+
+
 def _accept(fit: Fit, cfg: NamingConfig) -> bool:
-    return fit.improvement >= cfg.min_improvement and fit.t >= cfg.min_t
+    """The selection rule: the effect removes at least ``min_improvement`` of the held-out loss,
+    and the per-block evidence is significant, either counting every block alike (t) or weighting
+    the blocks by the effect's visibility (t_weighted over at least ``min_weighted_blocks``
+    effective blocks; see ``_compare``)."""
+    if fit.improvement < cfg.min_improvement:
+        return False
+    return fit.t >= cfg.min_t or (fit.t_weighted >= cfg.min_t
+                                  and fit.weighted_blocks >= cfg.min_weighted_blocks)
 
 
 def name_effects(replay: Replay, base: ModelTerms | None = None, candidates=None,
-                 config: NamingConfig | None = None, progress=None) -> NamingResult:
-    """Run steps 1-6 of the module docstring on the replay's active windows."""
+                 config: NamingConfig | None = None, progress=None, scales=None) -> NamingResult:
+    """Run steps 1-6 of the module docstring on the replay's active windows. `scales` (E, 4):
+    whiten with these (a baseline's own error scales) instead of the base model's errors here."""
     cfg = config or NamingConfig()
     base = base if base is not None else replay.model.terms()
     cands = library() if candidates is None else list(candidates)
@@ -377,7 +445,10 @@ def name_effects(replay: Replay, base: ModelTerms | None = None, candidates=None
         raise ValueError('no windows to fit: the data have no standing/balancing phase '
                          f'(phases found: {sorted(set(replay.win_phase))})')
     r0 = replay.residuals([base])[0]
-    replay.set_scales(r0)
+    if scales is None:
+        replay.set_scales(r0)
+    else:
+        replay.scales = np.asarray(scales, float).reshape(replay.measured.shape[1:])
     blocks, folds = _blocks(replay, cfg.block_s, cfg.folds)
     if len(np.unique(folds[replay.active])) < cfg.folds:
         raise ValueError(f'too little data for {cfg.folds} folds of {cfg.block_s} s blocks')
@@ -416,7 +487,7 @@ def name_effects(replay: Replay, base: ModelTerms | None = None, candidates=None
             sets = [selected.effects + p.effects for p in partners]
             x0s = [list(selected.values) + [starts[i]] for i in order]
             fits = fit_candidates(replay, base, sets, cfg, folds, blocks, x0s,
-                                  [selected.heldout_loss] * len(sets))
+                                  [selected.heldout_loss] * len(sets), ref_terms=cond)
             best = None
             for fit in fits:
                 fit.reference = selected.key

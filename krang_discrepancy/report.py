@@ -33,7 +33,8 @@ from .record import CHANNEL_UNITS, CHANNELS, resample
 from .replay import Replay, ReplayConfig, gap_metrics
 from .effects import ModelTerms, apply_effects, get_effect, library
 from .locate import PHASE_COLOURS, locate, plot_location, shade_phases
-from .naming import NamingConfig, name_effects
+from .naming import NamingConfig, extended_terms, name_effects
+from .verdict import MAX_GAP, residual_structure
 
 FORMAT = 'krang_discrepancy/extended_model/1'
 
@@ -42,27 +43,38 @@ FORMAT = 'krang_discrepancy/extended_model/1'
 
 
 def effect_entries(fit, base: ModelTerms) -> list:
-    """One dict per effect of a fit: name, key, value (reported units), parameter, uncertainty."""
+    """One dict per effect of a fit: name, key, value (reported units, physical: a torque
+    constant in N m/A of the robot with `base`'s Kt times the fitted scale), parameter,
+    uncertainty."""
     out = []
     if fit is None:
         return out
     for e, v, u in zip(fit.effects, fit.values, fit.uncertainty):
-        dv, unit = e.display(float(v))
+        dv, unit = e.display(float(v), base)
         out.append({'effect': e.name, 'key': e.key, 'value': float(dv), 'unit': unit,
-                    'uncertainty': float(u) * e.display_scale(), 'parameter': float(v),
+                    'uncertainty': float(u) * e.display_scale(base), 'parameter': float(v),
                     **({'detail': e.detail} if e.detail else {})})
     return out
 
 
-def write_extended_model(path, fit, model: NominalModel, *, sources=(), gaps=None) -> dict:
+def write_extended_model(path, fit, model: NominalModel, *, sources=(), gaps=None, base=None,
+                         baseline=None, extra=None) -> dict:
     """The extended model as YAML: the nominal model it extends, the effects (value, unit,
     uncertainty, fitted parameter) and ``sim_effects``, the keyword arguments of
-    ``krang_sim.physics.SimEffects`` that make the simulator carry them."""
-    base = model.terms()
-    entries = effect_entries(fit, base)
+    ``krang_sim.physics.SimEffects`` that make the simulator carry them.
+
+    With ``baseline`` (the document of an earlier extended model, whose terms are `base`) the file
+    is complete: the baseline's effects first (marked with the file they came from), then the new
+    ones, so that it can serve as the next baseline (the effects apply in order)."""
+    base = model.terms() if base is None else base
+    new = effect_entries(fit, base)
+    old = [dict(e, **({} if 'from' in e else {'from': baseline.get('path', '')}))
+           for e in (baseline or {}).get('effects', [])]
+    entries = old + new
     sim = {}
     not_simulable = []
-    for e, ent in zip(fit.effects if fit else [], entries):
+    for ent in entries:
+        e = get_effect(ent['key'])
         kw = e.sim_effects(ent['parameter'])
         if kw is None:
             not_simulable.append(e.key)
@@ -73,7 +85,8 @@ def write_extended_model(path, fit, model: NominalModel, *, sources=(), gaps=Non
                 for field_name, amount in v.items():
                     merged[field_name] = merged.get(field_name, 0.0) + amount
                 sim[k] = merged
-            elif k in sim and isinstance(v, (int, float)) and k not in ('torque_constant_scale',):
+            elif k in sim and isinstance(v, (int, float)) and k not in ('torque_constant_scale',
+                                                                          'wheel_radius_m'):
                 sim[k] = sim[k] + v
             elif k == 'torque_constant_scale' and k in sim:
                 sim[k] = sim[k] * v
@@ -91,6 +104,10 @@ def write_extended_model(path, fit, model: NominalModel, *, sources=(), gaps=Non
         'not_simulable': not_simulable,
         'data': [str(s) for s in sources],
     }
+    if baseline:
+        doc['baseline'] = baseline.get('path', '')
+    if extra:
+        doc.update(extra)
     if gaps:
         doc['gap'] = gaps
     with open(path, 'w') as f:
@@ -280,8 +297,11 @@ def contract(result, gaps_yaml, base) -> dict:
 
 def run_discrepancy(measured, out_dir, *, model: NominalModel | None = None, candidates=None,
                     replay_config: ReplayConfig | None = None, naming_config: NamingConfig | None = None,
-                    phases=None, plots: bool = True, rate_hz=None, log=None) -> dict:
+                    phases=None, plots: bool = True, rate_hz=None, log=None, baseline=None) -> dict:
     """The workflow (module docstring). `measured`: paths (files/folders) or Record objects.
+    `baseline`: an extended_model.yaml of earlier runs: the new data are compared with the robot as
+    that file corrects it, whitened by its own typical errors there (so the gap says how far off it
+    is), and the effects named are what changed.
     Returns {'json': contract, 'result': NamingResult, 'location': Location, 'replay': Replay,
     'timing': {stage: s}, 'files': [...]}."""
     say = log or (lambda msg: None)
@@ -297,8 +317,14 @@ def run_discrepancy(measured, out_dir, *, model: NominalModel | None = None, can
         # one clock for all: the slowest record's rate
         period = max(r.period for r in records)
         records = [_resample_record(r, period) for r in records]
+    base_doc = None
+    if baseline is not None:
+        with open(baseline) as f:
+            base_doc = yaml.safe_load(f)
+        base_doc['path'] = str(baseline)
+        model = model or NominalModel.default(base_doc.get('nominal', {}).get('beta') or None)
     model = model or NominalModel.default()
-    base = model.terms()
+    base = model.terms() if base_doc is None else load_extended_model(baseline, model.terms())[1]
     timing['load_s'] = time.perf_counter() - t
     say(f'loaded {len(records)} record(s), {sum(r.duration for r in records):.1f} s of data')
     t = time.perf_counter()
@@ -310,14 +336,20 @@ def run_discrepancy(measured, out_dir, *, model: NominalModel | None = None, can
     say('located: ' + '; '.join(loc.summary))
     t = time.perf_counter()
     cands = library() if candidates is None else library(candidates)
-    result = name_effects(replay, base, cands, naming_config,
+    ref_scales = _reference_scales(base_doc, replay, say)
+    result = name_effects(replay, base, cands, naming_config, scales=ref_scales,
                           progress=lambda f: say(f'  {f.key}: held-out improvement {f.improvement:+.3f}, t {f.t:.1f}'))
     timing['naming_s'] = time.perf_counter() - t
     say(f'named: {result.name}')
     t = time.perf_counter()
+    structure = residual_structure(replay, extended_terms(base, result.selected), result.folds,
+                                   result.blocks)
+    timing['structure_s'] = time.perf_counter() - t
+    t = time.perf_counter()
     ypath = out_dir / 'extended_model.yaml'
-    write_extended_model(ypath, result.selected, model, sources=[r.source or r.name for r in records])
-    _, ext_terms = load_extended_model(ypath, base)
+    sources = [r.source or r.name for r in records]
+    write_extended_model(ypath, result.selected, model, sources=sources, base=base, baseline=base_doc)
+    _, ext_terms = load_extended_model(ypath, model.terms())
     r0 = replay.residuals([base])[0]
     r1 = replay.residuals([ext_terms])[0]
     gaps_yaml = {'before': gap_metrics(replay, r0), 'after': gap_metrics(replay, r1)}
@@ -335,13 +367,25 @@ def run_discrepancy(measured, out_dir, *, model: NominalModel | None = None, can
     heldout = {'before': float(np.nanmean(result.nominal_heldout)),
                'after': float(np.nanmean(result.selected.heldout_loss)) if result.selected else
                float(np.nanmean(result.nominal_heldout))}
+    verdict, reason = _verdict(result, structure, gaps_yaml, ref_scales is not None)
+    say(f'verdict: {verdict}' + (f' ({reason})' if reason else ''))
+    r1a = r1[replay.active]
+    own = np.sqrt(np.median(r1a ** 2, axis=0) / 0.4549) + 1e-12
+    extra = {'verdict': verdict, 'verdict_reason': reason, 'signature': structure.as_dict(),
+             'reference': {'scales': own.tolist(), 'horizon_s': replay.horizon,
+                           'n_eval': int(replay.measured.shape[1]),
+                           'meaning': 'robust RMS error of this model on its own data, per '
+                                      'horizon point and signal: the yardstick of later runs'}}
     # rewrite the YAML with the gap figures
-    write_extended_model(ypath, result.selected, model, sources=[r.source or r.name for r in records],
-                         gaps={'metric': f'RMS whitened error of {replay.horizon:.3g} s predictions (4 signals)',
+    write_extended_model(ypath, result.selected, model, sources=sources, base=base,
+                         baseline=base_doc, extra=extra, gaps={'metric': f'RMS whitened error of {replay.horizon:.3g} s predictions (4 signals)',
                                'before': gaps_yaml['before']['gap'], 'after': gaps_yaml['after']['gap'],
                                'pitch_rad': [gaps_yaml['before']['rms_q_base'], gaps_yaml['after']['rms_q_base']],
                                'wheel_rad': [gaps_yaml['before']['rms_wheel'], gaps_yaml['after']['rms_wheel']]})
     js = contract(result, gaps_yaml, base)
+    js = _with_verdict(js, verdict, reason, structure, result, base)
+    if base_doc is not None:
+        js['baseline'] = str(baseline)
     timing['resimulate_s'] = time.perf_counter() - t
     files = []
     t = time.perf_counter()
@@ -362,8 +406,58 @@ def run_discrepancy(measured, out_dir, *, model: NominalModel | None = None, can
     with open(out_dir / 'result.json', 'w') as f:
         json.dump(_plain(js), f, indent=1)
     return {'json': js, 'result': result, 'location': loc, 'replay': replay, 'timing': timing,
+            'structure': structure, 'verdict': verdict,
             'files': files, 'gaps': gaps_yaml, 'per_phase': per_phase, 'heldout': heldout,
             'extended_terms': ext_terms}
+
+
+def _reference_scales(base_doc, replay, say):
+    """The baseline's own error scales, if they fit this replay's horizon points."""
+    ref = (base_doc or {}).get('reference')
+    if not ref:
+        if base_doc is not None:
+            say('baseline has no reference scales: the gap is in units of its errors on these data')
+        return None
+    sc = np.asarray(ref['scales'], float)
+    if sc.shape != replay.measured.shape[1:] or abs(ref['horizon_s'] - replay.horizon) > 1e-6:
+        say('baseline reference scales are for another horizon: not used')
+        return None
+    return sc
+
+
+def _verdict(result, structure, gaps_yaml, referenced: bool):
+    """('unexplained' | 'named' | 'none', reason). Unexplained when the residual after the
+    selected effects is still predictable by generic forces (verdict.py), or when, judged
+    against a baseline's own yardstick, the model is still more than MAX_GAP times its typical
+    error off."""
+    if structure.significant:
+        return 'unexplained', ('the residual after the library effects is still structured: '
+                               + structure.sentence())
+    gap = gaps_yaml['after']['gap']
+    if referenced and gap > MAX_GAP:
+        return 'unexplained', (f'the model is still {gap:.3g}x its own typical error off after the '
+                               'library effects (more than ' + f'{MAX_GAP:g}x)')
+    return ('none' if result.selected is None else 'named'), ''
+
+
+def _with_verdict(js, verdict, reason, structure, result, base):
+    """The JSON with the verdict: 'unexplained' replaces the name (the library effects that were
+    fitted are kept as 'partial', with the share they explain)."""
+    js = dict(js)
+    js['signature'] = structure.as_dict()
+    if verdict != 'unexplained':
+        return js
+    partial = js.get('effects') or ([{k: js[k] for k in ('effect', 'value', 'unit', 'uncertainty')}]
+                                    if js.get('effect') not in (None, 'none') else [])
+    out = {'effect': 'unexplained', 'value': None, 'unit': None, 'uncertainty': None,
+           'gap_before': js['gap_before'], 'gap_after': js['gap_after'],
+           'reason': reason, 'partial': partial,
+           'partial_heldout_improvement': (None if result.selected is None
+                                           else result.selected.improvement)}
+    for k, v in js.items():
+        if k not in out and k not in ('effect', 'effects', 'value', 'unit', 'uncertainty'):
+            out[k] = v
+    return out
 
 
 def _resample_record(rec, period):
@@ -386,7 +480,12 @@ def _write_report(path, records, replay, loc, result, gaps_yaml, per_phase, held
     L = []
     cfg = result.config
     L.append('# Discrepancy report: simulation vs measured data\n')
-    if result.selected is None:
+    if js.get('effect') == 'unexplained':
+        L.append('**Finding: unexplained** — ' + js['reason'] + '. The library effects fitted anyway '
+                 '(kept in extended_model.yaml as the best partial correction): '
+                 + (', '.join(f'{e["effect"]} = {e["value"]:.4g} {e["unit"]}' for e in js['partial'])
+                    or 'none') + '.\n')
+    elif result.selected is None:
         L.append('**Finding: none** — no effect of the library improves the held-out predictions by the minimum '
                  'effect size.\n')
     else:

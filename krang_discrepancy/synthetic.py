@@ -2,12 +2,15 @@
 
 ``simulate_record`` makes a record with ``KrangSim`` and the ADRC ``BalanceController`` (sit ->
 stand up -> balance, pose changes, a current excitation), with hidden ``SimEffects``; the record
-it returns carries no trace of those effects.
+it returns carries no trace of those effects. ``Unmodelled`` adds effects outside the discrepancy
+library (and outside ``SimEffects``), made around the simulator, to test the ``unexplained``
+answer.
 """
 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -16,7 +19,8 @@ from krang_model.beta import load_beta
 from krang_model.config import config_path
 from krang_model.robot import load_krang
 from krang_sim.closed_loop import TABLE2_POSE, FastKrangSim
-from krang_sim.physics import SensorNoise, SimConfig, SimEffects
+from krang_sim.physics import SensorNoise, SimConfig, SimEffects, payload_beta
+from krang_model.wip import WipDynamics, reduce_pose
 
 from .record import Record, resample
 
@@ -29,6 +33,19 @@ DEFAULT_POSE_PROGRAMME = (
     {'JWaist': -0.25, 'LJ2': -0.4, 'RJ4': -0.6},
     {},
 )
+
+
+@dataclass(frozen=True)
+class Unmodelled:
+    """Effects outside the library, applied around the simulated plant (all zero = none)."""
+
+    drive_deadband_a: float = 0.0       # the drives deliver nothing below this current, i - d beyond
+    gyro_scale: float = 0.0             # the gyro reads (1 + s) x the pitch rate (scale factor)
+    payload_growth_kg_s: float = 0.0    # a mass on lGripper (0, 0, 0.10) m growing from the start
+
+    def current(self, i: float) -> float:
+        d = self.drive_deadband_a
+        return i if d <= 0 else math.copysign(max(abs(i) - d, 0.0), i)
 
 
 def simulate_record(
@@ -46,6 +63,7 @@ def simulate_record(
     controller_config=None,
     true_beta=None,
     name: str = 'sim',
+    unmodelled: Unmodelled | None = None,
 ) -> Record:
     """A measured-looking record from the simulated Krang (krang_sim.physics) under the ADRC
     BalanceController with the NOMINAL model, with hidden ``effects`` (a SimEffects) in the plant.
@@ -56,7 +74,8 @@ def simulate_record(
     20 s or more) return to the start pose and sit down for the last part. The record logs what the
     controller and the hardware would: the noisy sensor samples at the controller rate (or
     ``log_rate_hz``) and the commanded currents (controller output + excitation) as wheel torques,
-    every control step. Nothing in the record says which effect was hidden."""
+    every control step. Nothing in the record says which effect was hidden. ``unmodelled``: effects
+    outside the library (drive deadband, gyro scale factor, growing payload)."""
     robot = load_krang()
     beta = load_beta(config_path('sim_true_beta.yaml'), robot)
     truth = beta if true_beta is None else np.asarray(true_beta, float)
@@ -85,10 +104,19 @@ def simulate_record(
     next_pose_t = math.inf
     sat_down = False
     modes = {'safe_stop': -1, 'sit': 0, 'stand_up': 1, 'balance': 2, 'sit_down': 3}
+    um = unmodelled or Unmodelled()
+    grow_next = 0.0
     for k in range(steps):
+        if um.payload_growth_kg_s and sim.t >= grow_next:   # re-reduce the heavier body
+            grow = SimEffects(payload_kg=um.payload_growth_kg_s * sim.t)
+            sim.true_beta = payload_beta(robot, truth, grow)
+            sim.dynamics = WipDynamics(reduce_pose(robot, sim.joints, sim.true_beta), sim.drive)
+            grow_next = sim.t + 0.1
         if k * ctl.h >= 1.0 and not ctl.enabled and not sat_down:
             ctl.set_enabled(True)
         s = sim.control_sample()
+        if um.gyro_scale:
+            s = replace(s, pitch_rate=s.pitch_rate * (1.0 + um.gyro_scale))
         out = ctl.step(s, now=sim.t)
         t = sim.t
         if out.mode == 'balance' and t_balance is None:
@@ -118,7 +146,7 @@ def simulate_record(
                 exc = excitation_a * rng.choice([-1.0, 1.0])
                 exc_until = t + rng.uniform(0.1, 0.5)
             il, ir = il + exc, ir + exc
-        sim.command_currents(il, ir)
+        sim.command_currents(um.current(il), um.current(ir))
         log['t'][k], log['q'][k], log['r'][k] = s.t, s.q_base, s.pitch_rate
         log['w'][k] = 0.5 * (s.wheel_left + s.wheel_right)
         log['wr'][k] = 0.5 * (s.wheel_left_rate + s.wheel_right_rate)
@@ -165,3 +193,44 @@ def simulate_record(
             'stood_up_s': t_balance,
         },
     )
+
+
+# ------------------------------------------------------------------------- validation suite
+# (case id, SimEffects kwargs, Unmodelled kwargs, seed, noise factor, {expected effect name:
+# true value in the reported unit}, other acceptable answers). Expected 'none' for no effect and
+# 'unexplained' for effects outside the library, unless a physically equivalent library effect is
+# listed as acceptable. Values are checked against `truth`; the workflow is told none of this.
+_KT = 0.0847
+VALIDATION_SUITE = (
+    ('none seed 11', {}, {}, 11, 1.0, {}, ()),
+    ('none seed 12', {}, {}, 12, 1.0, {}, ()),
+    ('none seed 13, noise x2', {}, {}, 13, 2.0, {}, ()),
+    ('none seed 14, noise x0.5', {}, {}, 14, 0.5, {}, ()),
+    ('small floor_slope', {'floor_slope_rad': 0.003}, {}, 21, 1.0, {'floor_slope': 0.003}, ()),
+    ('small imu_pitch_bias', {'imu_pitch_bias_rad': 0.004}, {}, 22, 1.0,
+     {'imu_pitch_bias': 0.004}, ()),
+    ('small payload', {'payload_kg': 1.0}, {}, 23, 1.0, {'payload': 1.0}, ()),
+    ('small torque_constant', {'torque_constant_scale': 0.95}, {}, 24, 1.0,
+     {'torque_constant': 0.95 * _KT}, ()),
+    ('small actuation_delay', {'actuation_delay_s': 0.008}, {}, 25, 1.0,
+     {'actuation_delay': 0.008}, ()),
+    ('small wheel_coulomb_friction', {'wheel_coulomb_Nm': 0.8}, {}, 26, 1.0,
+     {'wheel_coulomb_friction': 0.8}, ()),
+    ('small wheel_radius', {'wheel_radius_m': 0.258}, {}, 27, 1.0, {'wheel_radius': 0.258}, ()),
+    ('small encoder_offset', {'encoder_offset_rad': 0.012}, {}, 28, 1.0,
+     {'encoder_offset': 0.012}, ()),
+    ('pair torque_constant + wheel_radius', {'torque_constant_scale': 0.85, 'wheel_radius_m': 0.25},
+     {}, 31, 1.0, {'torque_constant': 0.85 * _KT, 'wheel_radius': 0.25}, ()),
+    ('pair floor_slope + actuation_delay', {'floor_slope_rad': 0.015, 'actuation_delay_s': 0.02},
+     {}, 32, 1.0, {'floor_slope': 0.015, 'actuation_delay': 0.02}, ()),
+    ('pair payload + wheel_coulomb_friction', {'payload_kg': 5.0, 'wheel_coulomb_Nm': 2.0}, {}, 33,
+     1.0, {'payload': 5.0, 'wheel_coulomb_friction': 2.0}, ()),
+    ('pair viscous + imu_pitch_bias', {'wheel_viscous_Nm_s': 2.0, 'imu_pitch_bias_rad': 0.02}, {},
+     34, 1.0, {'wheel_viscous_friction': 2.0, 'imu_pitch_bias': 0.02}, ()),
+    ('out: drive deadband 2 A', {}, {'drive_deadband_a': 2.0}, 41, 1.0, {}, ()),
+    ('out: gyro scale factor +10 %', {}, {'gyro_scale': 0.1}, 42, 1.0, {}, ()),
+    ('out: LJ2 (arm) encoder offset 0.1 rad',
+     {'encoder_offset_rad': 0.1, 'encoder_offset_joint': 'LJ2'}, {}, 43, 1.0, {}, ('payload',)),
+    ('out: payload growing 0.3 kg/s', {}, {'payload_growth_kg_s': 0.3}, 44, 1.0, {},
+     ('payload',)),
+)

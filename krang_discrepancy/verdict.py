@@ -1,0 +1,211 @@
+"""Is what is left explained? The residual-structure test behind the ``unexplained`` answer.
+
+The library can only name what it holds. After the best library effects are fitted, the residual
+(measured - predicted, whitened) is either noise the data cannot explain, or it still has
+structure: then the missing physics is outside the library (a drive deadband, an IMU scale-factor
+error, a mass that grows, ...) or the library effect that was named absorbed part of something
+else. A library-free test tells the two apart: generic generalised forces on the wheel and on the pitch
+equation, each a fixed shape of the state and command (a constant, the torque, its sign, its
+square, the wheel-to-body and ground speeds and their sign, the pitch, the pitch rate, the time)
+times a free coefficient, and scale factors of the gyro and the wheel-rate sensor, are linearised about the model (one batched prediction), fitted to the
+whitened residual on the training folds (robust least squares) and judged on the held-out blocks
+with the same rule as an effect (improvement >= ``min_improvement`` of the held-out loss, paired t
+over blocks >= ``min_t``). Noise cannot be predicted by forces; a missing dynamic effect can.
+
+``residual_structure`` returns the test and the residual's signature: which signals carry the
+predictable part, which phases, which features predict it, and the lag structure (decorrelation
+time, dominant frequency) of the residual sequence.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .phases import PHASES
+from .record import CHANNELS
+from .replay import Replay
+
+#: minimum share of the held-out loss the residual predictor must remove to call it structure
+MIN_STRUCTURE = 0.10
+#: a comparison model (a baseline) whose gap after the named effects is still above this many
+#: times its own typical error is far off: its residual is reported as unexplained
+MAX_GAP = 2.0
+TORQUE_SIGN_SCALE = 5.0             # N m: the width of the smooth sign of the commanded torque
+
+
+@dataclass
+class Structure:
+    """The residual-structure test and the residual's signature."""
+
+    improvement: float
+    t: float
+    significant: bool
+    signals: dict = field(default_factory=dict)        # channel -> share explained (held out)
+    phases: dict = field(default_factory=dict)         # phase -> {windows, loss, share explained}
+    features: list = field(default_factory=list)       # [(feature, share of the fitted variance)]
+    decorrelation_s: dict = field(default_factory=dict)  # channel -> s
+    dominant_hz: dict = field(default_factory=dict)      # channel -> Hz of the largest peak
+    low_share: dict = field(default_factory=dict)        # channel -> power share below 0.5 Hz
+
+    def as_dict(self) -> dict:
+        return {'improvement': self.improvement, 't': self.t, 'significant': self.significant,
+                'signals': self.signals, 'phases': self.phases,
+                'features': [{'feature': f, 'share': s} for f, s in self.features],
+                'decorrelation_s': self.decorrelation_s, 'dominant_hz': self.dominant_hz,
+                'power_below_0_5_hz': self.low_share}
+
+    def sentence(self) -> str:
+        """The signature in words."""
+        sig = sorted(self.signals.items(), key=lambda kv: -kv[1])
+        ph = sorted(((p, v['loss']) for p, v in self.phases.items()), key=lambda kv: -kv[1])
+        feats = ', '.join(f'{f} ({s:.0%})' for f, s in self.features[:3])
+        lags = ', '.join(f'{c} {self.decorrelation_s.get(c, math.nan):.2f} s' for c, _ in sig[:2])
+        return (f'the residual is {"" if self.significant else "not "}predictable from the measured '
+                f'state and commands (held-out improvement {self.improvement:.2f}, t {self.t:.1f}); '
+                f'signals: ' + ', '.join(f'{c} {v:.0%}' for c, v in sig) + '; worst phases: '
+                + ', '.join(f'{p} (loss {v:.2g})' for p, v in ph[:2]) + f'; predicted by: {feats}; '
+                f'decorrelation time {lags}')
+
+
+#: generic generalised-force shapes g(s) (each O(1)); each acts on the wheel equation and, as a
+#: separate term, on the pitch equation: the linearised space of unmodelled dynamic effects
+FORCE_SHAPES = (
+    ('constant', lambda s: np.ones_like(s.q_base)),
+    ('torque', lambda s: s.tau / 20.0),
+    ('torque sign', lambda s: np.tanh(s.tau / TORQUE_SIGN_SCALE)),
+    ('torque squared', lambda s: s.tau * np.abs(s.tau) / 400.0),
+    ('wheel-to-body speed', lambda s: (s.dphi - s.dq_base) / 2.0),
+    ('sign of wheel-to-body speed', lambda s: np.tanh((s.dphi - s.dq_base) / 0.05)),
+    ('ground speed', lambda s: s.dphi / 2.0),
+    ('pitch', lambda s: (s.q_base + 1.55) / 0.1),
+    ('pitch rate', lambda s: s.dq_base),
+    ('time', lambda s: s.t / 30.0),
+)
+FORCE_STEP = 0.5                    # N m per unit shape: the finite-difference amplitude
+
+
+def _force(shape, equation, amount):
+    if equation == 0:
+        return lambda s: (amount * shape(s), 0.0 * s.q_base)
+    return lambda s: (0.0 * s.q_base, amount * shape(s))
+
+
+#: sensor scale factors tried besides the forces: (channel index, name); a scale factor s makes
+#: the measured initial state and the measured outputs (1 + s) x the truth
+SENSOR_SCALES = ((1, 'pitch-rate (gyro) scale factor'), (3, 'wheel-rate scale factor'))
+
+
+def force_sensitivities(replay: Replay, terms, windows) -> tuple[np.ndarray, list]:
+    """(K, S, E, 4) whitened change of the predictions per unit of each generic force (N m) or
+    sensor scale factor, and their names: batched predictions of the K forces plus one
+    initial-state perturbation per sensor scale."""
+    sets, names = [terms], []
+    for eq, eq_name in ((0, 'wheel'), (1, 'pitch')):
+        for nm, shape in FORCE_SHAPES:
+            tm = terms.copy()
+            tm.extra_forces.append(_force(shape, eq, FORCE_STEP))
+            sets.append(tm)
+            names.append(f'{nm} on the {eq_name} equation')
+    pred = replay.predict(sets, windows)
+    out = list((pred[1:] - pred[:1]) / FORCE_STEP)
+    sel = np.arange(len(replay))[windows]
+    init = replay.init
+    for ch, nm in SENSOR_SCALES:
+        step = 0.01 * max(float(np.std(init[sel, ch])), 1e-6)
+        replay.init = init.copy()
+        replay.init[:, ch] += step
+        try:
+            p1 = replay.predict([terms], windows)[0]
+        finally:
+            replay.init = init
+        jac = (p1 - pred[0]) / step
+        # truth = measured / (1 + s): the initial state moves by -s x0, the outputs read (1 + s)
+        out.append(-jac * init[sel, ch][:, None, None] + pred[0] * (np.arange(4) == ch))
+        names.append(nm)
+    return np.array(out) / replay.scales, names
+
+
+FORCE_PRIOR = 2.0                   # N m per unit force shape: the ridge's prior scale
+
+
+def _robust_ridge(x, y, iters=4):
+    """Coefficients c of y ~ x c under the soft-L1 loss (IRLS), with a ridge that is a prior of
+    FORCE_PRIOR N m per force (the residual is whitened: unit noise)."""
+    w = np.ones(len(y))
+    k = x.shape[1]
+    c = np.zeros(k)
+    for _ in range(iters):
+        xw = x * w[:, None]
+        c = np.linalg.solve(xw.T @ x + np.eye(k) / FORCE_PRIOR ** 2, xw.T @ y)
+        w = 1.0 / np.sqrt(1.0 + (y - x @ c) ** 2)
+    return c
+
+
+def residual_structure(replay: Replay, terms, folds, blocks, *, min_improvement=MIN_STRUCTURE,
+                       min_t=3.0) -> Structure:
+    """The residual-structure test (module docstring) of the model `terms` on the replay's active
+    windows, with the naming step's folds and blocks."""
+    from .locate import _acf
+    from .naming import _compare
+    act = np.flatnonzero(replay.active)
+    r = replay.residuals([terms], act)[0]
+    z = (r / replay.scales).reshape(-1)
+    sens, names = force_sensitivities(replay, terms, act)
+    x = sens.reshape(len(names), -1).T                  # (S*E*4, K)
+    per = r[0].size
+    win_fold = folds[act]
+    pred = np.zeros_like(z)
+    for f in np.unique(win_fold):
+        tr = np.repeat(win_fold != f, per)
+        te = ~tr
+        if te.any() and tr.any():
+            pred[te] = x[te] @ _robust_ridge(x[tr], z[tr])
+    z = z.reshape(act.size, -1)
+    pred = pred.reshape(act.size, -1)
+    shape = (act.size,) + replay.measured.shape[1:]
+    scales = replay.scales
+    loss_ref = np.full(len(replay), np.nan)
+    loss_new = np.full(len(replay), np.nan)
+    loss_ref[act] = replay.window_loss(r[None])[0]
+    loss_new[act] = replay.window_loss(((z - pred).reshape(shape) * scales)[None])[0]
+    imp, t, _ = _compare(loss_ref, loss_new, blocks, replay.active)
+    st = Structure(imp, t, bool(imp >= min_improvement and t >= min_t))
+    zr, pr = z.reshape(shape), pred.reshape(shape)
+    for c, ch in enumerate(CHANNELS):
+        v = float(np.mean(zr[:, :, c] ** 2))
+        st.signals[ch] = float(1.0 - np.mean((zr[:, :, c] - pr[:, :, c]) ** 2) / v) if v > 0 else 0.0
+    for ph in PHASES:
+        m = replay.win_phase[act] == ph
+        if m.any():
+            st.phases[ph] = {'windows': int(m.sum()), 'loss': float(np.mean(loss_ref[act][m])),
+                             'explained': float(1.0 - loss_new[act][m].sum()
+                                                / max(loss_ref[act][m].sum(), 1e-300))}
+    # which forces carry the prediction (full-data fit, share of the fitted variance)
+    c = _robust_ridge(x, z.reshape(-1))
+    contrib = np.array([np.var(x[:, i] * c[i]) for i in range(len(names))])
+    if contrib.sum() > 0:
+        order = np.argsort(-contrib)
+        st.features = [(names[i], float(contrib[i] / contrib.sum())) for i in order[:5]]
+    # lag structure of the residual at the horizon, per record on the window sequence
+    dt = float(np.median(np.diff(replay.win_t[act]))) if act.size > 1 else 1.0
+    for c, ch in enumerate(CHANNELS):
+        lags, spec = [], []
+        for ri in np.unique(replay.win_record[act]):
+            m = replay.win_record[act] == ri
+            seq = zr[m, -1, c]
+            if seq.size < 16:
+                continue
+            a = _acf(seq, min(seq.size - 1, int(5.0 / dt)))
+            below = np.flatnonzero(a < 1 / math.e)
+            lags.append((below[0] if below.size else a.size) * dt)
+            p = np.abs(np.fft.rfft(seq - seq.mean())) ** 2
+            spec.append((np.fft.rfftfreq(seq.size, dt), p))
+        st.decorrelation_s[ch] = float(np.median(lags)) if lags else math.nan
+        if spec:
+            f = np.concatenate([s[0][1:] for s in spec])
+            p = np.concatenate([s[1][1:] for s in spec])
+            st.dominant_hz[ch] = float(f[np.argmax(p)]) if p.size else math.nan
+            st.low_share[ch] = float(p[f < 0.5].sum() / max(p.sum(), 1e-300))
+    return st
