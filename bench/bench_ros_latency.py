@@ -1,43 +1,315 @@
-"""Latency from a sensor frame on the CAN bus to the wheel-command frame on the bus, through can_bridge
-and adrc_controller (real processes, DDS, udp_multicast CAN), and the control rate achieved.
+"""Latency from a sensor frame on the CAN bus to the wheel-command frame on the bus, through
+can_bridge and adrc_controller (real processes, DDS, udp_multicast CAN), and the control rate.
 
-The benchmark plays the robot: it answers the bridge as the devices do (emulators of krang_sim/devices.py),
-keeps the robot sitting, and toggles the wheel-velocity feedback (AMC TPDO) every 0.5 s. In SIT the
-controller's ground PD commands -10 A per rad/s of wheel speed, so the first current frame that changes
-after a toggle marks the end of the path: frame in -> bridge -> /joint_states -> controller tick ->
-/wheel_effort_cmd -> bridge -> current RPDO out.
+--robot: the robot's configuration. Wall clock, no simulator, the robot's parameter files
+(krang_cli.node_set.params_files(sim=False)) with the device map on private udp_multicast ports,
+DMU samples and the controller at --rate-hz (500) by parameter. A separate process plays the
+devices (bench/device_player.py: DMU, AMC start-up and TPDOs, PowerCube modules); the robot sits,
+the controller is enabled and asked to stand up, the player pitches the robot up to the nominal
+balance pitch and holds it there quietly (white sensor noise, no physics), the controller goes
+through STAND_UP to BALANCE by its own mode machine, and the measurement runs while it balances.
+In the same run, the bare reference chain (bench/ref_chain.py: CAN -> process 1 -> topic ->
+process 2 -> topic -> process 1 -> CAN, SingleThreadedExecutor) is played at the same rate, so
+the ratios compare the two under the same load. --load N adds N busy-loop processes during the
+measurement.
 
-    .venv/bin/python bench/bench_ros_latency.py [--seconds 30]
+Matching a wheel command to its sample: every 5th DMU sample is a probe (a 0.03 rad/s step of the
+pitch rate, taken back over the next 4 samples, alternating in sign); its answer is the first
+current RPDO after the probe frame that moves with it by more than half the probes' response, so
+it is found even when it comes after the next samples (up to two probe spacings, 20 ms; a later
+answer counts as none). p50/p99 are the probes' latencies. The timing match (the first new RPDO
+after a sample frame) is printed too: it cannot tell an answer later than the next sample from
+that sample's own, so it reads short when the latency nears the sample period. An RPDO that
+repeats the drive's previous payload is the bridge's periodic refresh, not an answer (the noise
+makes every answer differ). The rate counts the new RPDOs that follow distinct samples (the
+newest sample before each), per second of the window. Times are kernel receive stamps on the
+player's socket: the bus as the devices see it.
+
+Default (no --robot): the simulated node set's parameters (config/sim_params.yaml: 100 Hz) on
+wall time, the robot sitting, the wheel velocity toggled every 0.5 s: the first current frame
+that changes after a toggle ends the path (in SIT the ground PD commands -10 A per rad/s).
+
+    .venv/bin/python bench/bench_ros_latency.py --robot [--seconds 20] [--load 2] [--json]
+    .venv/bin/python bench/bench_ros_latency.py [--seconds 20]
 """
 import argparse
+import json
 import os
+import random
+import subprocess
+import sys
 import tempfile
 import threading
 import time
+from pathlib import Path
 
 import can
 import numpy as np
 import rclpy
 from std_msgs.msg import Float64MultiArray
+from std_srvs.srv import SetBool
 
 from krang_can_bridge.config import load_devices
-from krang_can_bridge.protocols.amc import AmcDriveCodec
 from krang_can_bridge.protocols import load_dbc
+from krang_can_bridge.protocols.amc import AmcDriveCodec
 from krang_cli.node_set import params_files
 from krang_cli.processes import NodeSet
 from krang_model.robot import load_krang
-from krang_ros import topics
-from krang_ros.session_client import open_session_client
+from krang_ros import names, topics
+from krang_ros.session_client import SessionError, open_session_client
 from krang_sim.devices import KrangCanDevices
 from krang_sim.session_config import session_devices_file
 
+BENCH = Path(__file__).resolve().parent
+#: The controller's parameters that differ from the robot's here. Without physics a command has
+#: no effect: the ESO reads that as a disturbance and winds the current up to its clamp, where
+#: every answer is the same frame, so BALANCE runs the LQR law the ADRC wraps (the observers still
+#: run: the same computation). And the machine running the benchmark is loaded by design (--load):
+#: sensor data 0.1 s old would stop the measurement in SAFE_STOP, so 0.5 s (sim_params.yaml).
+CONTROLLER_OVERRIDES = {'adrc.use_disturbance_rejection': False, 'safety.stale_timeout_s': 0.5}
+MIN_PROBES = 20           # answered probes needed for percentiles by probe
+JSON_KEYS = ('p50_ms', 'p99_ms', 'rate_hz', 'configured_rate_hz', 'ref_p50_ms', 'ref_p99_ms')
 
-def main():
-    parser = argparse.ArgumentParser(description=__doc__.split('\n')[0])
-    parser.add_argument('--seconds', type=float, default=30.0)
-    args = parser.parse_args()
-    os.environ.setdefault('ROS_DOMAIN_ID', str(180 + os.getpid() % 50))
-    os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
+
+# ---- analysis (plain numpy) ---------------------------------------------------------------------
+def new_commands(t, value):
+    """The RPDOs of one drive that carry a new current (a repeat of the previous payload is the
+    bridge's periodic refresh); sorted by time."""
+    order = np.argsort(t, kind='stable')
+    t, value = np.asarray(t, float)[order], np.asarray(value, float)[order]
+    keep = np.ones(len(t), bool)
+    keep[1:] = value[1:] != value[:-1]
+    return t[keep], value[keep]
+
+
+def timing_match(sample_t, cmd_t):
+    """Each command answers the newest sample before it; a sample's latency is its first such
+    command. Returns (latencies of the answered samples [s], number of distinct samples answered).
+    """
+    idx = np.searchsorted(sample_t, cmd_t, side='right') - 1
+    ok = idx >= 0
+    idx, ct = idx[ok], cmd_t[ok]
+    first = np.unique(idx, return_index=True)[1]
+    return ct[first] - sample_t[idx[first]], len(first)
+
+
+def probe_match(sample_t, probe, cmd_t, cmd_v):
+    """Latencies of the probe samples [s] and the probes' response (DC2 units).
+
+    `probe`: per sample, the probe's sign (+1, -1; 0 = not a probe). For each probe: baseline =
+    the last new command before it, changes = (command - baseline) * sign up to the probe after
+    next (the next one moves the other way, so no command before that one's answer is confused
+    with this one's). The response is the median of the larger half of the probes' largest
+    changes (the probes whose sample reached the controller). A probe's answer is the first
+    command whose change exceeds half the response."""
+    idx = np.flatnonzero(probe)
+    if len(idx) < 3:
+        return np.array([]), 0.0
+    starts, signs = sample_t[idx], probe[idx].astype(float)
+    spacing = float(np.median(np.diff(starts)))
+    ends = np.append(starts[2:], starts[-2:] + 2.0 * spacing)
+    base_idx = np.searchsorted(cmd_t, starts, side='right') - 1
+    windows = []
+    for t0, t1, sign, b in zip(starts, ends, signs, base_idx):
+        hi = np.searchsorted(cmd_t, t1, side='right')
+        if b >= 0 and hi > b + 1:
+            windows.append((t0, cmd_t[b + 1:hi], sign * (cmd_v[b + 1:hi] - cmd_v[b])))
+    if not windows:
+        return np.array([]), 0.0
+    largest = np.array([d.max() for _, _, d in windows])
+    response = float(np.median(np.sort(largest)[len(largest) // 2:]))
+    latencies = []
+    for t0, ts, d in windows:
+        hit = np.flatnonzero(d > 0.5 * response)
+        if hit.size and response > 0:
+            latencies.append(ts[hit[0]] - t0)
+    return np.array(latencies), response
+
+
+def noise_level(cmd_t, cmd_v, before, seconds=1.0):
+    """Robust standard deviation of the new commands in the `seconds` before `before` (the first
+    probe), DC2 units."""
+    v = cmd_v[(cmd_t >= before - seconds) & (cmd_t < before)]
+    return 1.4826 * float(np.median(np.abs(v - np.median(v)))) if len(v) else float('inf')
+
+
+def reference_latencies(req, ans, window):
+    """(latencies [s] of the reference frames sent in the window, number of them unanswered)."""
+    req = req[(req[:, 0] >= window[0]) & (req[:, 0] <= window[1])]
+    answers = {}
+    for t, n in ans:
+        answers.setdefault(int(n), t)
+    lat = np.array([answers[int(n)] - t for t, n in req if int(n) in answers])
+    return lat, len(req) - len(lat)
+
+
+def analyse(record, window, rate_hz):
+    """Figures of one --robot run from the player's record (see the module docstring)."""
+    w0, w1 = window
+    duration = w1 - w0
+    left = record['cmd_id'] == int(record['left_id'])
+    cmd_t, cmd_v = new_commands(record['cmd_t'][left], record['cmd_value'][left])
+    st, probe = record['sample_t'], record['sample_probe']
+    inside = (st >= w0) & (st <= w1)
+    period = 1.0 / rate_hz
+    in_cmd = (cmd_t >= w0) & (cmd_t <= w1 + 10 * period)
+    t_lat, answered = timing_match(st[inside], cmd_t[in_cmd])
+    p_lat, response = probe_match(st[inside], probe[inside], cmd_t, cmd_v)
+    noise = noise_level(cmd_t, cmd_v, st[probe != 0][0]) if probe.any() else float('inf')
+    probes = int(np.count_nonzero(probe[inside]))
+    # a probe's answer must stand well above the command noise to carry its identity
+    by_probe = len(p_lat) >= MIN_PROBES and abs(response) > 5.0 * noise
+    lat = p_lat if by_probe else t_lat
+    ref_lat, ref_lost = reference_latencies(record['ref_req'], record['ref_ans'], window)
+    cmd_in = (cmd_t >= w0) & (cmd_t <= w1)
+    ms = lambda x, q: float(1e3 * np.percentile(x, q)) if len(x) else float('nan')  # noqa: E731
+    out = {'p50_ms': ms(lat, 50), 'p99_ms': ms(lat, 99),
+           'rate_hz': answered / duration, 'configured_rate_hz': rate_hz,
+           'ref_p50_ms': ms(ref_lat, 50), 'ref_p99_ms': ms(ref_lat, 99)}
+    out.update({'p50_ratio': out['p50_ms'] / out['ref_p50_ms'],
+                'p99_ratio': out['p99_ms'] / out['ref_p99_ms'],
+                'rate_ratio': out['rate_hz'] / rate_hz,
+                'match': 'probe' if by_probe else 'timing',
+                'timing_p50_ms': ms(t_lat, 50), 'timing_p99_ms': ms(t_lat, 99),
+                'max_ms': float(1e3 * lat.max()) if len(lat) else float('nan'),
+                'probes': probes, 'probes_answered': len(p_lat),
+                'probe_response_dc2': response, 'command_noise_dc2': noise,
+                'dmu_rate_hz': int(inside.sum()) / duration,
+                'new_commands_hz': int(cmd_in.sum()) / duration,
+                'ref_frames': len(ref_lat) + ref_lost, 'ref_lost': ref_lost,
+                'seconds': duration})
+    return out
+
+
+# ---- --robot: the run ---------------------------------------------------------------------------
+def _start(cmd, log_dir, name, **kwargs):
+    log = open(os.path.join(log_dir, f'{name}.log'), 'w')
+    return subprocess.Popen(cmd, stdout=kwargs.pop('stdout', log), stderr=log, **kwargs), log
+
+
+def _stop(proc, timeout=5.0):
+    if proc.poll() is None:
+        proc.terminate()
+        try:
+            proc.wait(timeout)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+
+
+def bring_to_balance(client, tell, timeout):
+    """Enable the controller, ask it to stand once it sits with fresh data, start the player's
+    stand-up ramp when it enters STAND_UP, until it balances. A fall back to SAFE_STOP (stale data
+    on a loaded machine) starts over from sitting."""
+    deadline = time.monotonic() + timeout
+    ramp = False
+    while client.mode != 'balance':
+        if time.monotonic() > deadline:
+            raise SessionError(f'no BALANCE within {timeout:.0f} s (modes seen: {client.modes})')
+        mode = client.mode
+        if mode in (None, 'safe_stop'):
+            if ramp:
+                tell('sit')
+                ramp = False
+            client.call(client.enable, SetBool.Request(data=True),
+                        timeout=max(1.0, deadline - time.monotonic()))
+            client.pause(1.0)
+        elif mode == 'sit':
+            client.pause(1.0)              # the controller's pose from complete joint states
+            if client.mode == 'sit':
+                client.operate(names.STAND_UP)
+                client.pause(0.2)
+        elif mode == 'stand_up' and not ramp:
+            tell('stand')
+            ramp = True
+        else:
+            client.pause(0.05)
+
+
+def run_robot(seconds, rate_hz, load, tpdo_hz):
+    """Start the player, the reference chain and the node set; measure `seconds` while the
+    controller balances; return the figures of `analyse`."""
+    tmp = tempfile.mkdtemp(prefix='krang_latency_')
+    logs = os.path.join(tmp, 'logs')
+    os.makedirs(logs)
+    port = random.Random().randrange(20000, 60000, 16)
+    devices_file = session_devices_file(tmp, port)
+    record_file = os.path.join(tmp, 'record.npz')
+    py = sys.executable
+    player, player_log = _start(
+        [py, str(BENCH / 'device_player.py'), '--devices', str(devices_file),
+         '--ref-port', str(port + 15), '--rate-hz', str(rate_hz), '--tpdo-hz', str(tpdo_hz),
+         '--out', record_file], logs, 'device_player', stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE, text=True)
+    children = [(player, player_log)]
+    busy = []
+    nodes = NodeSet(params_files(sim=False), log_dir=logs)
+    client = context = None
+
+    def tell(word):
+        player.stdin.write(word + '\n')
+        player.stdin.flush()
+    try:
+        if player.stdout.readline().strip() != 'ready':
+            raise RuntimeError(f'device player did not start (see {logs}/device_player.log)')
+        for role in ('can', 'relay'):
+            children.append(_start([py, str(BENCH / 'ref_chain.py'), role,
+                                    '--port', str(port + 15)], logs, f'ref_{role}'))
+        nodes.start('can_bridge', {'devices_file': devices_file, 'publish_rate_hz': rate_hz})
+        nodes.start('adrc_controller', CONTROLLER_OVERRIDES | {'rate_hz': rate_hz})
+        client, context = open_session_client()
+        bring_to_balance(client, tell, 120.0)
+        modes_before = len(client.modes)
+        tell('probe')
+        busy = [subprocess.Popen([py, '-c', 'while True: pass']) for _ in range(load)]
+        client.pause(1.0)
+        window = (time.time(), None)
+        client.pause(seconds)
+        window = (window[0], time.time())
+        left = sorted(set(client.modes[modes_before:]) - {'balance'})
+        if left:
+            print(f'warning: the controller left BALANCE during the measurement for {left} '
+                  f'(logs in {logs})', file=sys.stderr)
+    finally:
+        for proc in busy:
+            _stop(proc)
+        if client is not None:
+            client.close()
+            rclpy.try_shutdown(context=context)
+        if player.poll() is None:
+            tell('quit')
+            try:
+                player.wait(20.0)
+            except subprocess.TimeoutExpired:
+                pass
+        nodes.stop()
+        for proc, log in children:
+            _stop(proc)
+            log.close()
+    with np.load(record_file) as record:
+        return analyse(record, window, rate_hz)
+
+
+def print_robot(fig, load):
+    print(f'robot configuration, wall clock, {fig["configured_rate_hz"]:.0f} Hz configured, '
+          f'{load} busy loop(s), {fig["seconds"]:.1f} s balancing')
+    print(f'sensor frame -> wheel command frame (can_bridge + adrc_controller): '
+          f'p50 {fig["p50_ms"]:.2f} ms, p99 {fig["p99_ms"]:.2f} ms, max {fig["max_ms"]:.2f} ms '
+          f'(matched by {fig["match"]}; {fig["probes_answered"]} of {fig["probes"]} probes '
+          f'answered)')
+    print(f'  by timing alone (first new RPDO after the sample): p50 {fig["timing_p50_ms"]:.2f} '
+          f'ms, p99 {fig["timing_p99_ms"]:.2f} ms')
+    print(f'control rate: {fig["rate_hz"]:.1f} Hz of commands answering distinct samples, '
+          f'{fig["configured_rate_hz"]:.0f} Hz configured ({100 * fig["rate_ratio"]:.1f} %; DMU '
+          f'played at {fig["dmu_rate_hz"]:.1f} Hz)')
+    print(f'reference (bare rclpy chain, same run): p50 {fig["ref_p50_ms"]:.2f} ms, '
+          f'p99 {fig["ref_p99_ms"]:.2f} ms, {fig["ref_lost"]} of {fig["ref_frames"]} lost')
+    print(f'ratio to the reference: p50 {fig["p50_ratio"]:.2f}x, p99 {fig["p99_ratio"]:.2f}x')
+
+
+# ---- default: the simulated node set's parameters ---------------------------------------------
+def run_sim_params(seconds):
+    """The robot sitting, the wheel velocity toggled every 0.5 s (see the module docstring)."""
     robot = load_krang()
     tmp = tempfile.mkdtemp(prefix='krang_latency_')
     devices_file = session_devices_file(tmp)
@@ -67,7 +339,8 @@ def main():
                 buses[reply.bus].send(reply.msg)
     notifiers = [can.Notifier(bus, [Devices(name)], timeout=0.05) for name, bus in buses.items()]
 
-    # the simulated node set's parameters, but on wall time: this benchmark plays the robot, with no /clock
+    # the simulated node set's parameters, but on wall time: this benchmark plays the robot, with
+    # no /clock
     nodes = NodeSet(params_files(True, []), log_dir=os.path.join(tmp, 'logs'))
     nodes.start('can_bridge', {'devices_file': devices_file, 'use_sim_time': False})
     nodes.start('adrc_controller', {'modes.auto_stand': False, 'use_sim_time': False})
@@ -94,11 +367,12 @@ def main():
     thread = threading.Thread(target=robot_loop, daemon=True)
     thread.start()
     client, context = open_session_client()
-    client.create_subscription(Float64MultiArray, topics.WHEEL_EFFORT_CMD, lambda m: efforts.append(time.perf_counter()),
+    client.create_subscription(Float64MultiArray, topics.WHEEL_EFFORT_CMD,
+                               lambda m: efforts.append(time.perf_counter()),
                                topics.QOS[topics.WHEEL_EFFORT_CMD])
     try:
         client.enable_controller(timeout=60.0)
-        client.pause(args.seconds)
+        client.pause(seconds)
     finally:
         stop.set()
         client.close()
@@ -122,10 +396,38 @@ def main():
     window = eff[eff > eff[0] + 2.0] if len(eff) else eff
     rate = (len(window) - 1) / (window[-1] - window[0]) if len(window) > 1 else float('nan')
     lat = 1000 * np.array(latencies)
-    print(f'sensor frame -> wheel command frame over {len(lat)} steps: p50 {np.percentile(lat, 50):.1f} ms, '
-          f'p99 {np.percentile(lat, 99):.1f} ms, max {lat.max():.1f} ms')
-    print(f'control rate achieved: {rate:.1f} Hz /wheel_effort_cmd (configured: see config/sim_params.yaml); '
-          f'{len(toggles) - len(lat)} of {len(toggles)} steps not seen within 0.5 s')
+    print(f'sensor frame -> wheel command frame over {len(lat)} steps: '
+          f'p50 {np.percentile(lat, 50):.1f} ms, p99 {np.percentile(lat, 99):.1f} ms, '
+          f'max {lat.max():.1f} ms')
+    print(f'control rate achieved: {rate:.1f} Hz /wheel_effort_cmd (configured: see '
+          f'config/sim_params.yaml); {len(toggles) - len(lat)} of {len(toggles)} steps not seen '
+          f'within 0.5 s')
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.split('\n')[0])
+    parser.add_argument('--robot', action='store_true',
+                        help="the robot's configuration (default: the simulated node set's)")
+    parser.add_argument('--seconds', type=float, default=20.0, help='measured seconds')
+    parser.add_argument('--rate-hz', type=float, default=500.0,
+                        help='--robot: DMU sample rate and the controller rate_hz')
+    parser.add_argument('--tpdo-hz', type=float, default=500.0,
+                        help='--robot: AMC TPDO sets per second (1 kHz on the robot)')
+    parser.add_argument('--load', type=int, default=0,
+                        help='--robot: busy-loop processes during the measurement')
+    parser.add_argument('--json', action='store_true',
+                        help='--robot: print the figures as JSON on the last line')
+    args = parser.parse_args()
+    os.environ.setdefault('ROS_DOMAIN_ID', str(180 + os.getpid() % 50))
+    os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
+    if not args.robot:
+        run_sim_params(args.seconds)
+        return
+    fig = run_robot(args.seconds, args.rate_hz, args.load, args.tpdo_hz)
+    print_robot(fig, args.load)
+    if args.json:
+        print(json.dumps({k: fig[k] for k in JSON_KEYS}
+                         | {k: v for k, v in fig.items() if k not in JSON_KEYS}))
 
 
 if __name__ == '__main__':

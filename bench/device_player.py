@@ -1,0 +1,259 @@
+"""The robot's CAN devices in a process of their own, for `bench_ros_latency.py --robot`.
+
+It plays the buses of a device map (udp_multicast, e.g. krang_sim.session_config's private ports)
+with the emulators of krang_sim/devices.py, which speak through the bridge's own codecs: the DMU
+streams samples (0x40 rates + 0x50 accelerations, sequence counters) at --rate-hz, the AMC drives
+answer the bridge's start-up SDOs and send their TPDOs at --tpdo-hz, the PowerCube modules answer
+the polls. There is no physics: the robot sits on its caster (pitch -1.7628 rad in the pose
+below) and, on the command `stand`, pitches up to the nominal model's balance pitch in --ramp-s
+(a cosine ramp, the wheels rolling back so that the axle stays put), then holds it, with white
+gyro and accelerometer noise so that every sample gives a different wheel command.
+
+It also plays the reference chain's end: a frame 0x7E0 carrying a counter on its own bus
+(--ref-port) at --rate-hz, answered by 0x7E1 with the same counter (bench/ref_chain.py).
+
+Every time is the kernel's receive stamp of the frame on this process's own socket (the player
+hears its own frames too), so the figures are those of the bus. Commands on stdin, one a line:
+`stand`, `sit` (back on the caster at once), `probe` (from now on every --probe-every th sample
+is a probe, see below), `quit` (write --out and exit). Prints `ready` once the buses are open.
+
+Probes: the sample is sent with its pitch rate raised by --probe-rad-s and the following
+--probe-every - 1 samples lowered by a share of it each, so that the integrated pitch is
+unchanged; successive probes alternate in sign. The wheel command that answers a probe is the
+first one that moves with it by more than half the probes' response, which the other samples
+never do and the next probe does the other way, so a probe carries its identity into the command
+even when the answer comes later than the next samples (bench_ros_latency.py).
+"""
+import argparse
+import math
+import sys
+import threading
+import time
+
+import can
+import numpy as np
+
+from krang_can_bridge.config import load_devices
+from krang_can_bridge.protocols import load_dbc
+from krang_can_bridge.protocols import amc as amc_proto
+from krang_can_bridge.protocols.dmu_imu import ACCELERATIONS_ID
+from krang_model.com import base_regressor
+from krang_model.config import load_config
+from krang_model.robot import load_krang
+from krang_sim.devices import KrangCanDevices
+
+REF_REQUEST_ID, REF_ANSWER_ID = 0x7E0, 0x7E1
+SIT_PITCH = -1.7628       # on the caster in the pose below (config/sim_params.yaml)
+GYRO_NOISE_RAD_S = 0.001  # about 7 LSB of the DMU
+ACCEL_NOISE_M_S2 = 0.002
+
+
+def bench_pose():
+    """The Table II upper-body pose the simulated robot starts in (sim_params.yaml), as a dict."""
+    robot = load_krang()
+    pose = load_config('sim_params.yaml')['sim_krang']['ros__parameters']['initial_pose']
+    return robot, dict(zip(robot.pose_joints, pose))
+
+
+def balance_pitch(robot, joints):
+    """IMU pitch that puts the nominal model's CoM over the axle (the controller's theta = 0,
+    krang_adrc_controller/controller.py)."""
+    q = np.array([joints[j] for j in robot.pose_joints])
+    m = base_regressor(robot, q[None])[0] @ robot.nominal_beta
+    return -math.atan2(-m[2], m[1])
+
+
+class Pitch:
+    """The played pitch trajectory: sitting, then a cosine ramp to `target` over `ramp_s`."""
+
+    def __init__(self, sit, target, ramp_s):
+        self.sit, self.target, self.ramp_s = sit, target, ramp_s
+        self.start = None
+
+    def at(self, t):
+        if self.start is None or t <= self.start:
+            return self.sit, 0.0
+        s = (t - self.start) / self.ramp_s
+        if s >= 1.0:
+            return self.target, 0.0
+        d = self.target - self.sit
+        return (self.sit + d * 0.5 * (1.0 - math.cos(math.pi * s)),
+                d * 0.5 * math.pi * math.sin(math.pi * s) / self.ramp_s)
+
+
+class Player:
+    def __init__(self, args):
+        self.args = args
+        config = load_devices(args.devices)
+        self.config = config
+        self.robot, joints = bench_pose()
+        self.devices = KrangCanDevices(config, initial_joint_positions=joints,
+                                       imu_rate_noise_std_rad_s=GYRO_NOISE_RAD_S,
+                                       imu_accel_noise_std_m_s2=ACCEL_NOISE_M_S2, seed=args.seed)
+        self.pitch = Pitch(SIT_PITCH, balance_pitch(self.robot, joints), args.ramp_s)
+        dbc = load_dbc(config.dbc_path)
+        rpdo = amc_proto.RPDO_CURRENT
+        self.rpdo_ids = {amc_proto.AmcDriveCodec(d, config.wheels, dbc).ids[rpdo]: d.joint
+                         for d in config.wheels.drives}
+        # frames the devices on the wheel bus act on (the rest there is our own echo)
+        self.host_ids = {0, 0x90, *self.rpdo_ids,
+                         *(0x600 + d.node_id for d in config.wheels.drives)}
+        self.buses = {n: can.Bus(**config.buses[n].bus_kwargs()) for n in config.buses_in_use()}
+        self.ref_bus = can.Bus(interface='udp_multicast', channel=args.ref_channel,
+                               port=args.ref_port)
+        self.lock = threading.Lock()
+        self.stop = threading.Event()
+        self.probing = False
+        self.probe_sign = -1       # probes alternate in sign, the first is positive
+        self.samples = []      # (kernel time of the 0x50 frame, sequence)
+        self.sent = []         # (sequence, probe sign or 0) of every sample sent, in order
+        self.commands = []     # (kernel time, RPDO id, DC2 raw value)
+        self.ref = {REF_REQUEST_ID: [], REF_ANSWER_ID: []}   # (kernel time, counter)
+
+    # ---- receive -------------------------------------------------------------------------------
+    def receive(self, name, bus):
+        wheel_bus = name == self.config.wheels.bus
+        while not self.stop.is_set():
+            msg = bus.recv(0.05)
+            if msg is None:
+                continue
+            aid = msg.arbitration_id
+            if wheel_bus and aid == ACCELERATIONS_ID:
+                self.samples.append((msg.timestamp, msg.data[7]))
+                continue
+            if wheel_bus and aid in self.rpdo_ids and len(msg.data) == 4:
+                self.commands.append((msg.timestamp, aid,
+                                      int.from_bytes(msg.data[2:4], 'little', signed=True)))
+            elif wheel_bus and aid not in self.host_ids:
+                continue
+            with self.lock:
+                replies = self.devices.on_frame(name, msg)
+            for reply in replies:
+                self.buses[reply.bus].send(reply.msg)
+
+    def receive_ref(self):
+        while not self.stop.is_set():
+            msg = self.ref_bus.recv(0.05)
+            if msg is not None and msg.arbitration_id in self.ref and len(msg.data) == 4:
+                self.ref[msg.arbitration_id].append((msg.timestamp,
+                                                     int.from_bytes(msg.data, 'little')))
+
+    def commands_in(self):
+        for line in sys.stdin:
+            word = line.strip()
+            if word == 'stand':
+                self.pitch.start = time.monotonic()
+            elif word == 'sit':
+                self.pitch.start = None
+            elif word == 'probe':
+                self.probing = True
+            elif word == 'quit':
+                break
+        self.stop.set()
+
+    # ---- send ----------------------------------------------------------------------------------
+    def send(self, frames):
+        for f in frames:
+            self.buses[f.bus].send(f.msg)
+
+    def dmu_sample(self, probe_phase):
+        q, dq = self.pitch.at(time.monotonic())
+        probe = 0
+        kick = 0.0
+        if self.probing:
+            if probe_phase == 0:
+                self.probe_sign = -self.probe_sign
+                probe = self.probe_sign
+            n = self.args.probe_every
+            kick = self.probe_sign * self.args.probe_rad_s * (1.0 if probe else -1.0 / (n - 1))
+        with self.lock:
+            seq = self.devices.imu.sequence
+            frames = self.devices.imu_frames_from_pitch(q, dq + kick)
+        self.sent.append((seq, probe))
+        self.send(frames)
+
+    def tpdos(self, dt):
+        q, dq = self.pitch.at(time.monotonic())
+        wheel = SIT_PITCH - q          # the axle stays put while the body pitches
+        with self.lock:
+            self.devices.step(dt)
+            frames = self.devices.wheel_feedback_frames({j: wheel for j in self.devices.wheels},
+                                                        {j: -dq for j in self.devices.wheels})
+        self.send(frames)
+
+    def run(self):
+        threads = [threading.Thread(target=self.receive, args=item, daemon=True)
+                   for item in self.buses.items()]
+        threads += [threading.Thread(target=self.receive_ref, daemon=True),
+                    threading.Thread(target=self.commands_in, daemon=True)]
+        for t in threads:
+            t.start()
+        print('ready', flush=True)
+        a = self.args
+        period = 1.0 / a.rate_hz
+        # (next time, period, action): DMU samples, the reference frame a quarter period later,
+        # the TPDOs half a period later (free-running drives land anywhere in the period)
+        start = time.monotonic() + 0.1
+        jobs = [[start, period, 'dmu'], [start + 0.25 * period, period, 'ref'],
+                [start + 0.5 * period, 1.0 / a.tpdo_hz, 'tpdo']]
+        k = ref = 0
+        while not self.stop.is_set():
+            job = min(jobs, key=lambda j: j[0])
+            delay = job[0] - time.monotonic()
+            if delay > 0:
+                time.sleep(delay)
+            if job[2] == 'dmu':
+                self.dmu_sample(k % a.probe_every)
+                k += 1
+            elif job[2] == 'ref':
+                self.ref_bus.send(can.Message(arbitration_id=REF_REQUEST_ID, is_extended_id=False,
+                                              data=ref.to_bytes(4, 'little')))
+                ref += 1
+            else:
+                self.tpdos(job[1])
+            job[0] += job[1]
+            behind = time.monotonic() - job[0]
+            if behind > job[1]:            # descheduled: skip what is missed, no burst
+                job[0] += math.ceil(behind / job[1]) * job[1]
+        for t in threads[:-1]:
+            t.join(1.0)
+        self.save(a.out)
+        for bus in [*self.buses.values(), self.ref_bus]:
+            bus.shutdown()
+
+    def save(self, path):
+        """The record, with each received sample frame tagged with its probe sign (samples and
+        their echoes are matched in order by sequence counter)."""
+        probe = np.zeros(len(self.samples), np.int8)
+        i = 0
+        for n, (_, seq) in enumerate(self.samples):
+            while i < len(self.sent) and self.sent[i][0] != seq:
+                i += 1
+            if i < len(self.sent):
+                probe[n] = self.sent[i][1]
+                i += 1
+        cmd = np.array(self.commands, float).reshape(-1, 3)
+        np.savez(path, sample_t=np.array([s[0] for s in self.samples]), sample_probe=probe,
+                 cmd_t=cmd[:, 0], cmd_id=cmd[:, 1].astype(int), cmd_value=cmd[:, 2],
+                 left_id=next(i for i, j in self.rpdo_ids.items() if j == 'JLWheel'),
+                 ref_req=np.array(self.ref[REF_REQUEST_ID], float).reshape(-1, 2),
+                 ref_ans=np.array(self.ref[REF_ANSWER_ID], float).reshape(-1, 2))
+
+
+def main():
+    p = argparse.ArgumentParser(description=__doc__.split('\n')[0])
+    p.add_argument('--devices', required=True, help='device map (udp_multicast buses)')
+    p.add_argument('--ref-channel', default='239.74.163.99')
+    p.add_argument('--ref-port', type=int, required=True)
+    p.add_argument('--rate-hz', type=float, default=500.0, help='DMU samples per second')
+    p.add_argument('--tpdo-hz', type=float, default=500.0, help='AMC TPDO sets per second')
+    p.add_argument('--ramp-s', type=float, default=1.0)
+    p.add_argument('--probe-every', type=int, default=5, help='at least 2')
+    p.add_argument('--probe-rad-s', type=float, default=0.03)
+    p.add_argument('--seed', type=int, default=0)
+    p.add_argument('--out', required=True, help='record (.npz)')
+    Player(p.parse_args()).run()
+
+
+if __name__ == '__main__':
+    main()

@@ -1,0 +1,98 @@
+"""The bare reference chain of `bench_ros_latency.py --robot`: the physical limit of rclpy here.
+
+    can:   a frame 0x7E0 [counter] on a udp_multicast bus, received (python-can Notifier thread,
+           as in can_bridge) and published as std_msgs/Float64MultiArray [counter] with the QoS of
+           /imu/data; its subscription callback sends 0x7E1 [counter] back on the bus.
+    relay: republishes each message from its subscription callback with the QoS of
+           /wheel_effort_cmd.
+
+Each runs in its own process on a SingleThreadedExecutor; the device player (device_player.py)
+sends 0x7E0 and times the answer on the bus.
+
+    .venv/bin/python bench/ref_chain.py can --channel 239.74.163.99 --port 45000
+    .venv/bin/python bench/ref_chain.py relay
+"""
+import argparse
+import signal
+
+import can
+import rclpy
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.node import Node
+from std_msgs.msg import Float64MultiArray
+
+from krang_ros import names, topics
+
+REF_REQUEST_ID, REF_ANSWER_ID = 0x7E0, 0x7E1
+OUT, BACK = '/krang_bench/ref_sample', '/krang_bench/ref_command'
+
+
+class _Listener(can.Listener):
+    def __init__(self, node):
+        self.node = node
+
+    def on_message_received(self, msg):
+        self.node.on_frame(msg)
+
+
+class CanEnd(Node):
+    """Process 1: CAN in -> topic, topic -> CAN out."""
+
+    def __init__(self, channel, port):
+        super().__init__('bench_ref_can')
+        self.bus = can.Bus(interface='udp_multicast', channel=channel, port=port)
+        self.pub = self.create_publisher(Float64MultiArray, OUT, topics.QOS[names.IMU])
+        self.create_subscription(Float64MultiArray, BACK, self.on_back,
+                                 topics.QOS[names.WHEEL_EFFORT_CMD])
+        self.notifier = can.Notifier(self.bus, [_Listener(self)], timeout=0.1)
+
+    def on_frame(self, msg):
+        if msg.arbitration_id == REF_REQUEST_ID and len(msg.data) == 4:
+            self.pub.publish(Float64MultiArray(data=[float(int.from_bytes(msg.data, 'little'))]))
+
+    def on_back(self, msg):
+        counter = int(msg.data[0]) & 0xFFFFFFFF
+        self.bus.send(can.Message(arbitration_id=REF_ANSWER_ID, is_extended_id=False,
+                                  data=counter.to_bytes(4, 'little')))
+
+    def close(self):
+        self.notifier.stop()
+        self.bus.shutdown()
+
+
+class Relay(Node):
+    """Process 2: republish from the subscription callback."""
+
+    def __init__(self):
+        super().__init__('bench_ref_relay')
+        self.pub = self.create_publisher(Float64MultiArray, BACK,
+                                         topics.QOS[names.WHEEL_EFFORT_CMD])
+        self.create_subscription(Float64MultiArray, OUT, self.pub.publish, topics.QOS[names.IMU])
+
+    def close(self):
+        pass
+
+
+def main():
+    p = argparse.ArgumentParser(description=__doc__.split('\n')[0])
+    p.add_argument('role', choices=('can', 'relay'))
+    p.add_argument('--channel', default='239.74.163.99')
+    p.add_argument('--port', type=int, default=0)
+    args = p.parse_args()
+    signal.signal(signal.SIGTERM, signal.default_int_handler)
+    rclpy.init()
+    node = CanEnd(args.channel, args.port) if args.role == 'can' else Relay()
+    executor = SingleThreadedExecutor()
+    executor.add_node(node)
+    try:
+        executor.spin()
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        node.close()
+        node.destroy_node()
+        rclpy.try_shutdown()
+
+
+if __name__ == '__main__':
+    main()

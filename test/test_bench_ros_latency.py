@@ -1,0 +1,114 @@
+"""bench/bench_ros_latency.py: the matching of wheel commands to sensor samples (fast, synthetic
+frame times) and a short --robot run (ros, slow) that must print its figures as JSON."""
+import importlib.util
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytest.importorskip('rclpy')
+pytest.importorskip('msgpack')                      # python-can's udp_multicast needs it
+
+BENCH = Path(__file__).resolve().parents[1] / 'bench' / 'bench_ros_latency.py'
+PERIOD = 0.002
+
+
+@pytest.fixture(scope='module')
+def bench():
+    spec = importlib.util.spec_from_file_location('bench_ros_latency', BENCH)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def played(n=2000, latency=0.003, probe_every=5, response=900.0, noise=10.0, seed=1):
+    """Samples every PERIOD, from sample 500 on every probe_every-th one a probe of alternating
+    sign (its command +-response, the others -+response/(probe_every-1)), each answered
+    `latency` later and repeated by a refresh 0.5 ms after that."""
+    rng = np.random.default_rng(seed)
+    t = 100.0 + PERIOD * np.arange(n)
+    k = np.arange(n) - 500
+    sign = np.where((k // probe_every) % 2 == 0, 1.0, -1.0)
+    phase0 = k % probe_every == 0
+    kick = sign * np.where(phase0, response, -response / (probe_every - 1))
+    kick[k < 0] = 0.0
+    probe = np.where(phase0 & (k >= 0), sign, 0).astype(np.int8)
+    value = -200.0 + kick + rng.normal(0.0, noise, n)     # no two alike
+    cmd_t = np.concatenate([t + latency, t + latency + 0.0005])
+    cmd_v = np.concatenate([value, value])
+    return t, probe, cmd_t, cmd_v
+
+
+def test_refreshes_are_not_answers(bench):
+    t, v = bench.new_commands([3.0, 1.0, 2.0, 4.0], [5, 5, 5, 6])
+    assert list(t) == [1.0, 4.0] and list(v) == [5, 6]
+
+
+def test_timing_reads_short_when_the_answer_comes_after_the_next_sample(bench):
+    t, probe, cmd_t, cmd_v = played(latency=0.0013)
+    ct, _ = bench.new_commands(cmd_t, cmd_v)
+    lat, answered = bench.timing_match(t, ct)
+    assert np.allclose(lat, 0.0013) and answered == len(t)
+    t, probe, cmd_t, cmd_v = played(latency=0.0031)
+    lat, _ = bench.timing_match(t, bench.new_commands(cmd_t, cmd_v)[0])
+    assert np.allclose(lat, 0.0011)          # 3.1 ms read as 3.1 - 2 ms
+
+
+def test_probes_carry_the_sample_identity(bench):
+    t, probe, cmd_t, cmd_v = played(latency=0.0031)
+    ct, cv = bench.new_commands(cmd_t, cmd_v)
+    lat, response = bench.probe_match(t, probe, ct, cv)
+    assert response == pytest.approx(0.75 * 900.0, abs=50.0)   # from the last compensation
+    assert len(lat) == np.count_nonzero(probe) and np.allclose(lat, 0.0031)
+    assert bench.noise_level(ct, cv, t[probe != 0][0]) == pytest.approx(10.0, rel=0.3)
+
+
+def test_dropped_probe_samples_are_not_answered(bench):
+    t, probe, cmd_t, cmd_v = played(latency=0.0025)
+    keep = np.ones(len(cmd_t), bool)
+    lost = np.flatnonzero(probe > 0)                      # the positive probes never answered
+    keep[lost] = keep[lost + len(t)] = False
+    ct, cv = bench.new_commands(cmd_t[keep], cmd_v[keep])
+    lat, _ = bench.probe_match(t, probe, ct, cv)
+    assert len(lat) == np.count_nonzero(probe) - len(lost) and np.allclose(lat, 0.0025)
+
+
+def test_reference_pairs_frames_by_counter(bench):
+    req = np.array([[1.0, 7], [1.002, 8], [1.004, 9], [5.0, 10]])
+    ans = np.array([[1.0011, 7], [1.0052, 9]])
+    lat, lost = bench.reference_latencies(req, ans, (0.5, 2.0))
+    assert np.allclose(lat, [0.0011, 0.0012]) and lost == 1
+
+
+def test_analyse_gives_the_json_keys_first(bench):
+    t, probe, cmd_t, cmd_v = played(latency=0.0031)
+    record = {'sample_t': t, 'sample_probe': probe, 'cmd_t': cmd_t,
+              'cmd_id': np.full(len(cmd_t), 0x220), 'cmd_value': cmd_v, 'left_id': 0x220,
+              'ref_req': np.column_stack([t, np.arange(len(t))]),
+              'ref_ans': np.column_stack([t + 0.001, np.arange(len(t))])}
+    fig = bench.analyse(record, (t[600], t[-20]), 500.0)
+    assert tuple(fig)[:6] == bench.JSON_KEYS
+    assert fig['match'] == 'probe' and fig['p50_ms'] == pytest.approx(3.1, abs=1e-6)
+    assert fig['rate_hz'] == pytest.approx(500.0, rel=0.01)
+    assert fig['ref_p50_ms'] == pytest.approx(1.0, abs=1e-6)
+
+
+@pytest.mark.ros
+@pytest.mark.slow
+def test_robot_run_prints_the_figures_as_json():
+    env = dict(os.environ, ROS_DOMAIN_ID=str(100 + os.getpid() % 80),
+               ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST')
+    run = subprocess.run([sys.executable, str(BENCH), '--robot', '--seconds', '3', '--json'],
+                         capture_output=True, text=True, timeout=280, env=env,
+                         cwd=BENCH.parents[1])
+    assert run.returncode == 0, run.stderr[-3000:]
+    fig = json.loads(run.stdout.strip().splitlines()[-1])
+    assert list(fig)[:6] == ['p50_ms', 'p99_ms', 'rate_hz', 'configured_rate_hz', 'ref_p50_ms',
+                             'ref_p99_ms']
+    assert fig['configured_rate_hz'] == 500.0
+    assert fig['ref_p50_ms'] > 0.0 and fig['ref_p99_ms'] >= fig['ref_p50_ms']
+    assert fig['p50_ms'] > 0.0 and fig['rate_hz'] > 0.0
