@@ -17,6 +17,7 @@ curves). It prints and plots:
 * the RMS pitch error under test_imu_filter's harsh profile (3 m/s^2 at 0.7 Hz, limit 5 mrad).
 The filter without bias tracking (bias noise 1e-20) is printed and drawn for reference.
 """
+
 import argparse
 import dataclasses
 import math
@@ -33,11 +34,11 @@ from krang_model.config import config_path
 from krang_model.robot import load_krang
 from krang_sim.closed_loop import TABLE2_POSE, ClosedLoop
 
-DT = 0.005                                   # sim_krang's DMU sample period
+DT = 0.005  # sim_krang's DMU sample period
 RATE_LSB, ACCEL_LSB = math.radians(0.008), 0.0003 * 9.80665
-BIAS = 0.01                                  # rad/s, the unannounced gyro-bias step
-STEP_AT = 10.0                               # s
-SETTLE = 120.0                               # s after the step where the "steady" error is read
+BIAS = 0.01  # rad/s, the unannounced gyro-bias step
+STEP_AT = 10.0  # s
+SETTLE = 120.0  # s after the step where the "steady" error is read
 
 
 def imu_with(bias_process_noise, imu=None):
@@ -53,8 +54,9 @@ def feed(imu, pitch, rate, accel, bias):
     axis, known = pitch_axis(imu.mount_angle_rad), np.asarray(imu.gyro_bias_rad_s)
     err, bias_est = np.full(len(pitch), np.nan), np.zeros(len(pitch))
     for k in range(len(pitch)):
-        f, w = sensor_vectors(pitch[k], rate[k], imu.mount_angle_rad,
-                              forward_specific_force=accel[k])
+        f, w = sensor_vectors(
+            pitch[k], rate[k], imu.mount_angle_rad, forward_specific_force=accel[k]
+        )
         w = np.round((w + known + bias[k] * axis) / RATE_LSB) * RATE_LSB
         f = np.round(f / ACCEL_LSB) * ACCEL_LSB
         e = est.update(w, f, k * DT)
@@ -126,23 +128,57 @@ def plot(out, rows, chosen, reference):
     q, tau, steady, peak, bal, hr = (np.array(c) for c in zip(*rows))
     fig = Figure(figsize=(9, 7.2))
     ax = fig.subplots()
-    ax.loglog(q, steady * 1e3, 'o-', color='C0', label=f'sitting: max |pitch error| 90-120 s '
-              f'after an unannounced {BIAS} rad/s gyro-bias step')
-    ax.loglog(q, peak * 1e3, 's:', color='C0', alpha=0.6,
-              label='sitting: peak |pitch error| after that step')
-    ax.loglog(q, bal * 1e3, '^-', color='C1', label='balancing (closed loop, +-10 cm at 0.1 Hz, '
-              'perfect gyro): peak |pitch error|')
-    ax.loglog(q, hr * 1e3, 'v-', color='C2',
-              label='harsh profile (3 m/s^2 at 0.7 Hz): RMS pitch error')
+    ax.loglog(
+        q,
+        steady * 1e3,
+        'o-',
+        color='C0',
+        label=f'sitting: max |pitch error| 90-120 s '
+        f'after an unannounced {BIAS} rad/s gyro-bias step',
+    )
+    ax.loglog(
+        q,
+        peak * 1e3,
+        's:',
+        color='C0',
+        alpha=0.6,
+        label='sitting: peak |pitch error| after that step',
+    )
+    ax.loglog(
+        q,
+        bal * 1e3,
+        '^-',
+        color='C1',
+        label='balancing (closed loop, +-10 cm at 0.1 Hz, perfect gyro): peak |pitch error|',
+    )
+    ax.loglog(
+        q, hr * 1e3, 'v-', color='C2', label='harsh profile (3 m/s^2 at 0.7 Hz): RMS pitch error'
+    )
     ax.axhline(2.0, color='k', ls='--', lw=1, label='requirement: steady error <= 2 mrad')
-    ax.axhline(5.0, color='C2', ls='--', lw=1,
-               label='harsh-profile limit of test_imu_filter: 5 mrad RMS')
-    ax.axhline(reference[0] * 1e3, color='C3', ls='-.', lw=1,
-               label='no bias tracking: max |pitch error| 90-120 s after the step')
-    ax.axhline(reference[1] * 1e3, color='C1', ls='-.', lw=1,
-               label='no bias tracking: balancing peak |pitch error|')
-    ax.axvline(chosen, color='C4', lw=3, alpha=0.4,
-               label=f'configured imu.kalman.bias_process_noise = {chosen:.0e}')
+    ax.axhline(
+        5.0, color='C2', ls='--', lw=1, label='harsh-profile limit of test_imu_filter: 5 mrad RMS'
+    )
+    ax.axhline(
+        reference[0] * 1e3,
+        color='C3',
+        ls='-.',
+        lw=1,
+        label='no bias tracking: max |pitch error| 90-120 s after the step',
+    )
+    ax.axhline(
+        reference[1] * 1e3,
+        color='C1',
+        ls='-.',
+        lw=1,
+        label='no bias tracking: balancing peak |pitch error|',
+    )
+    ax.axvline(
+        chosen,
+        color='C4',
+        lw=3,
+        alpha=0.4,
+        label=f'configured imu.kalman.bias_process_noise = {chosen:.0e}',
+    )
     ax.set_xlabel('bias process noise, imu.kalman.bias_process_noise [(rad/s)^2/s]')
     ax.set_ylabel('pitch error [mrad]')
     top = ax.secondary_xaxis('top')
@@ -158,8 +194,10 @@ def plot(out, rows, chosen, reference):
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
-    ap.add_argument('--out', default=str(Path(__file__).resolve().parents[1] / 'docs'
-                                         / 'imu_bias_tradeoff.png'))
+    ap.add_argument(
+        '--out',
+        default=str(Path(__file__).resolve().parents[1] / 'docs' / 'imu_bias_tradeoff.png'),
+    )
     args = ap.parse_args(argv)
     base = load_devices().imu
     chosen = base.kalman.bias_process_noise
@@ -167,20 +205,26 @@ def main(argv=None):
     sweep = sorted(sweep + [chosen])
     traj = balancing_trajectory()
     print(f'balancing: peak axle acceleration {np.max(np.abs(traj[2][traj[3]])):.2f} m/s^2')
-    print(f'{"bias noise":>11} {"tau [s]":>8} {"90-120 s":>9} {"peak":>7} {"balancing":>10} '
-          f'{"harsh rms":>9}   (errors in mrad)')
+    print(
+        f'{"bias noise":>11} {"tau [s]":>8} {"90-120 s":>9} {"peak":>7} {"balancing":>10} '
+        f'{"harsh rms":>9}   (errors in mrad)'
+    )
     rows = []
     for q in sweep:
         imu = imu_with(q, base)
         tau, steady, peak = sitting(imu)
         bal, hr = balancing(imu, traj), harsh(imu)
         rows.append((q, tau, steady, peak, bal, hr))
-        print(f'{q:11.1e} {tau:8.1f} {steady * 1e3:9.2f} {peak * 1e3:7.1f} {bal * 1e3:10.2f} '
-              f'{hr * 1e3:9.2f}' + ('  <- configured' if q == chosen else ''))
+        print(
+            f'{q:11.1e} {tau:8.1f} {steady * 1e3:9.2f} {peak * 1e3:7.1f} {bal * 1e3:10.2f} '
+            f'{hr * 1e3:9.2f}' + ('  <- configured' if q == chosen else '')
+        )
     off = imu_with(1e-20, base)
     reference = sitting(off)[1], balancing(off, traj)
-    print(f'no bias tracking: {reference[0] * 1e3:.1f} mrad 90-120 s after the step, balancing '
-          f'peak {reference[1] * 1e3:.2f} mrad, harsh rms {harsh(off) * 1e3:.2f} mrad')
+    print(
+        f'no bias tracking: {reference[0] * 1e3:.1f} mrad 90-120 s after the step, balancing '
+        f'peak {reference[1] * 1e3:.2f} mrad, harsh rms {harsh(off) * 1e3:.2f} mrad'
+    )
     plot(args.out, rows, chosen, reference)
     print(f'wrote {args.out}')
 

@@ -1,7 +1,9 @@
-"""phi(q) throughput: batched numpy kinematics vs pinocchio one pose at a time. Target >= 100,000 poses/s.
+"""phi(q) throughput: batched numpy kinematics vs pinocchio one pose at a time. Target >= 100,000
+poses/s.
 
-    .venv/bin/python bench/bench_phi.py
+.venv/bin/python bench/bench_phi.py
 """
+
 import time
 
 import numpy as np
@@ -22,7 +24,7 @@ def main():
     for _ in range(3):
         t0 = time.perf_counter()
         for start in range(0, n, 20_000):
-            phi(robot, q_base[start:start + 20_000], joints[start:start + 20_000])
+            phi(robot, q_base[start : start + 20_000], joints[start : start + 20_000])
         best = min(best, time.perf_counter() - t0)
     batched = n / best
 
@@ -33,7 +35,10 @@ def main():
     t0 = time.perf_counter()
     for i in range(m):
         pin.framesForwardKinematics(robot.model, data, robot.pin_configuration(joints[i]))
-        rows = [np.concatenate(([data.oMf[f].translation[1]], data.oMf[f].rotation[1])) for f in frame_ids]
+        rows = [
+            np.concatenate(([data.oMf[f].translation[1]], data.oMf[f].rotation[1]))
+            for f in frame_ids
+        ]
     per_pose = m / (time.perf_counter() - t0)
     print(f'phi batched (numpy, 20k-pose batches): {batched:,.0f} poses/s  (target >= 100,000)')
     print(f'pinocchio per pose (framesForwardKinematics + frames): {per_pose:,.0f} poses/s')

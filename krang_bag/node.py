@@ -9,6 +9,7 @@ topic selection are the plain functions of krang_bag/recording.py.
 SIGINT and SIGTERM only set a flag: the writer is never interrupted half-way through a message. The
 loop then drains the messages already received and finishes the bag (summary and statistics).
 """
+
 from __future__ import annotations
 
 import importlib
@@ -21,8 +22,13 @@ from datetime import datetime
 import rclpy
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
-from rclpy.qos import (DurabilityPolicy, HistoryPolicy, LivelinessPolicy, QoSProfile,
-                       ReliabilityPolicy)
+from rclpy.qos import (
+    DurabilityPolicy,
+    HistoryPolicy,
+    LivelinessPolicy,
+    QoSProfile,
+    ReliabilityPolicy,
+)
 from rclpy.signals import SignalHandlerOptions
 
 from krang_bag import schemas
@@ -45,8 +51,10 @@ def describe_parameters():
 
 # ---------------------------------------------------------------- rclpy conversions
 
+
 def offered_qos_from_profile(profile) -> OfferedQos:
     """OfferedQos from an rclpy QoSProfile as returned in publisher endpoint info."""
+
     def name(policy_enum, value) -> str:
         try:
             return policy_enum(int(value)).name.lower()
@@ -54,13 +62,16 @@ def offered_qos_from_profile(profile) -> OfferedQos:
             return 'unknown'
 
     return OfferedQos(
-        history=name(HistoryPolicy, profile.history), depth=int(profile.depth),
+        history=name(HistoryPolicy, profile.history),
+        depth=int(profile.depth),
         reliability=name(ReliabilityPolicy, profile.reliability),
         durability=name(DurabilityPolicy, profile.durability),
-        deadline_ns=profile.deadline.nanoseconds, lifespan_ns=profile.lifespan.nanoseconds,
+        deadline_ns=profile.deadline.nanoseconds,
+        lifespan_ns=profile.lifespan.nanoseconds,
         liveliness=name(LivelinessPolicy, profile.liveliness),
         liveliness_lease_duration_ns=profile.liveliness_lease_duration.nanoseconds,
-        avoid_ros_namespace_conventions=bool(profile.avoid_ros_namespace_conventions))
+        avoid_ros_namespace_conventions=bool(profile.avoid_ros_namespace_conventions),
+    )
 
 
 def to_rclpy_qos(request: RequestQos) -> QoSProfile:
@@ -83,6 +94,7 @@ def message_class(type_name: str):
 
 # ---------------------------------------------------------------- thin ROS shell
 
+
 class McapRecorder(Node):
     """Subscribes (raw CDR) to each selected topic as it appears and appends it to the bag."""
 
@@ -93,18 +105,22 @@ class McapRecorder(Node):
         self.include, self.exclude = list(cfg.topics), list(cfg.exclude)
         self.include_hidden, self.queue_depth = cfg.include_hidden, cfg.queue_depth
         chunk_size, compression, poll_period_s = cfg.chunk_size, cfg.compression, cfg.poll_period_s
-        self.bag = BagWriter(resolve_output_path(cfg.output, datetime.now()),
-                             chunk_size=chunk_size, compression=compression)
+        self.bag = BagWriter(
+            resolve_output_path(cfg.output, datetime.now()),
+            chunk_size=chunk_size,
+            compression=compression,
+        )
         self._subscriptions_by_topic = {}
         self._reported_skips: dict[str, str] = {}
         self.get_logger().info(
             f'recording to {self.bag.path.resolve()} (topics: {self.include or "all"}, exclude: '
-            f'{self.exclude or "none"}, chunk {chunk_size} B, {compression})')
+            f'{self.exclude or "none"}, chunk {chunk_size} B, {compression})'
+        )
         try:
             self.poll_topics()
             self.create_timer(poll_period_s, self._on_poll_timer)
         except BaseException:
-            self.bag.close()   # main() never sees this node: leave a finished (empty) bag behind
+            self.bag.close()  # main() never sees this node: leave a finished (empty) bag behind
             raise
 
     @property
@@ -116,14 +132,18 @@ class McapRecorder(Node):
         self.bag.flush()
 
     def poll_topics(self):
-        to_add, skipped = plan_new_topics(self.get_topic_names_and_types(),
-                                          self._subscriptions_by_topic,
-                                          self.include, self.exclude, self.include_hidden)
+        to_add, skipped = plan_new_topics(
+            self.get_topic_names_and_types(),
+            self._subscriptions_by_topic,
+            self.include,
+            self.exclude,
+            self.include_hidden,
+        )
         for topic, reason in skipped.items():
             self._skip_once(topic, reason)
         for topic, type_name in to_add:
             publishers = self.get_publishers_info_by_topic(topic)
-            if publishers:   # else wait for one, so that its QoS offer is known
+            if publishers:  # else wait for one, so that its QoS offer is known
                 self._subscribe(topic, type_name, publishers)
 
     def _skip_once(self, topic, reason):
@@ -147,25 +167,35 @@ class McapRecorder(Node):
             self.get_logger().warning(
                 f'{topic}: publishers use {type_name} with hash(es) {sorted(offered_hashes)}, but '
                 f'the installed definition has {installed_hash}; recording it with the installed '
-                'schema')
+                'schema'
+            )
         type_hash = offered_hashes.pop() if len(offered_hashes) == 1 else installed_hash
         request = choose_request_qos(offers, self.queue_depth)
-        self.bag.add_topic(topic, type_name, offered_qos=offers, type_hash=type_hash,
-                           definition=definition)
+        self.bag.add_topic(
+            topic, type_name, offered_qos=offers, type_hash=type_hash, definition=definition
+        )
         self._subscriptions_by_topic[topic] = self.create_subscription(
-            cls, topic, self._writer_for(topic), to_rclpy_qos(request), raw=True)
+            cls, topic, self._writer_for(topic), to_rclpy_qos(request), raw=True
+        )
         self.get_logger().info(
             f'recording {topic} [{type_name}] from {len(publishers)} publisher(s), '
             f'{"reliable" if request.reliable else "best_effort"}, '
             f'{"transient_local" if request.transient_local else "volatile"}, depth '
-            f'{request.depth}')
+            f'{request.depth}'
+        )
 
     def _writer_for(self, topic):
         write, clock = self.bag.write, self.get_clock()
 
         def on_message(data: bytes, info: dict):
-            write(topic, data, clock.now().nanoseconds, info.get('source_timestamp') or None,
-                  info.get('publication_sequence_number'))
+            write(
+                topic,
+                data,
+                clock.now().nanoseconds,
+                info.get('source_timestamp') or None,
+                info.get('publication_sequence_number'),
+            )
+
         return on_message
 
     def close(self):
@@ -175,8 +205,10 @@ class McapRecorder(Node):
         counts = self.bag.message_counts
         self.bag.close()
         lines = ''.join(f'\n  {topic}: {count}' for topic, count in sorted(counts.items()))
-        self.get_logger().info(f'finished {self.bag.path} with {sum(counts.values())} messages on '
-                               f'{len(counts)} topics:{lines}')
+        self.get_logger().info(
+            f'finished {self.bag.path} with {sum(counts.values())} messages on '
+            f'{len(counts)} topics:{lines}'
+        )
 
 
 def _install_stop_handlers() -> threading.Event:
@@ -212,8 +244,10 @@ def main(args=None) -> int:
         try:
             node = McapRecorder()
         except FileExistsError as err:
-            print(f'mcap_recorder: refusing to overwrite an existing bag: {err.filename}',
-                  file=sys.stderr)
+            print(
+                f'mcap_recorder: refusing to overwrite an existing bag: {err.filename}',
+                file=sys.stderr,
+            )
             return 1
         except params.ParameterError as err:
             print(f'error: {err}', file=sys.stderr)

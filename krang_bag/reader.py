@@ -8,6 +8,7 @@ field names.
 Times are MCAP log times: when the recorder received the message, in ns of the recorder's clock
 (sim time if it ran with use_sim_time). The helpers return them in seconds.
 """
+
 from __future__ import annotations
 
 import contextlib
@@ -45,7 +46,7 @@ class TopicInfo:
     topic: str
     type_name: str
     message_count: int
-    offered_qos: list = field(default_factory=list)   # dicts as in offered_qos_profiles
+    offered_qos: list = field(default_factory=list)  # dicts as in offered_qos_profiles
     type_hash: str = ''
 
 
@@ -103,9 +104,12 @@ def _open_bag(path):
         try:
             summary = reader.get_summary()
         except Exception as err:  # mcap raises struct/EOF/magic errors on a torn tail
-            raise BagCorruptError(f'{path} has no valid footer/summary: '
-                                  + RECOVER_HINT.format(path=path) + f' ({type(err).__name__}: '
-                                                                     f'{err})') from None
+            raise BagCorruptError(
+                f'{path} has no valid footer/summary: '
+                + RECOVER_HINT.format(path=path)
+                + f' ({type(err).__name__}: '
+                f'{err})'
+            ) from None
         yield reader, header, summary
 
 
@@ -128,13 +132,17 @@ class _Decoders:
     @staticmethod
     def _make(schema, channel) -> Callable[[bytes], object]:
         if schema is None or channel.message_encoding != 'cdr':
-            raise BagError(f'{channel.topic}: cannot decode {channel.message_encoding!r} messages '
-                           'without a schema')
+            raise BagError(
+                f'{channel.topic}: cannot decode {channel.message_encoding!r} messages '
+                'without a schema'
+            )
         rclpy_class = _installed_class(schema.name, _channel_type_hash(channel))
         if rclpy_class is not None:
             from rclpy.serialization import deserialize_message
+
             return lambda data: deserialize_message(data, rclpy_class)
         from mcap_ros2.decoder import DecoderFactory
+
         decode = DecoderFactory().decoder_for('cdr', schema)
         if decode is None:
             raise BagError(f'{channel.topic}: no decoder for schema encoding {schema.encoding!r}')
@@ -166,8 +174,9 @@ def _iter_records(path, topics: Iterable[str] | str | None):
             raise BagCorruptError(f'{path}: damaged data ({type(err).__name__}: {err})') from None
 
 
-def iter_messages(path, topics: Iterable[str] | str | None = None) -> Iterator[tuple[str, int,
-                                                                                     object]]:
+def iter_messages(
+    path, topics: Iterable[str] | str | None = None
+) -> Iterator[tuple[str, int, object]]:
     """(topic, log_time_ns, message) for every message, in log-time order; `topics` filters."""
     decoders = _Decoders()
     for schema, channel, message in _iter_records(path, topics):
@@ -176,9 +185,11 @@ def iter_messages(path, topics: Iterable[str] | str | None = None) -> Iterator[t
         except BagError:
             raise
         except Exception as err:
-            raise BagCorruptError(f'{path}: cannot decode a {schema.name if schema else "?"} '
-                                  f'message on {channel.topic} at {message.log_time} ns '
-                                  f'({type(err).__name__}: {err})') from None
+            raise BagCorruptError(
+                f'{path}: cannot decode a {schema.name if schema else "?"} '
+                f'message on {channel.topic} at {message.log_time} ns '
+                f'({type(err).__name__}: {err})'
+            ) from None
         yield channel.topic, message.log_time, msg
 
 
@@ -216,18 +227,30 @@ def bag_info(path) -> BagInfo:
             if previous is not None:  # several channels on one topic (e.g. merged bags): sum them
                 count += previous.message_count
             try:
-                qos = yaml.safe_load(channel.metadata.get('offered_qos_profiles',
-                                                          '') or '[]') or []
+                qos = (
+                    yaml.safe_load(channel.metadata.get('offered_qos_profiles', '') or '[]') or []
+                )
             except yaml.YAMLError:
                 qos = []
             topics[channel.topic] = TopicInfo(
-                channel.topic, schema.name if schema else '', count, qos,
-                _channel_type_hash(channel))
+                channel.topic,
+                schema.name if schema else '',
+                count,
+                qos,
+                _channel_type_hash(channel),
+            )
         return BagInfo(
-            path=path, size_bytes=path.stat().st_size, profile=header.profile,
+            path=path,
+            size_bytes=path.stat().st_size,
+            profile=header.profile,
             library=header.library,
-            message_count=total, start_ns=start, end_ns=end, chunk_count=chunk_count,
-            compression=tuple(sorted(compression)), topics=dict(sorted(topics.items())))
+            message_count=total,
+            start_ns=start,
+            end_ns=end,
+            chunk_count=chunk_count,
+            compression=tuple(sorted(compression)),
+            topics=dict(sorted(topics.items())),
+        )
 
 
 def message_counts(path) -> dict[str, int]:
@@ -238,11 +261,13 @@ def message_counts(path) -> dict[str, int]:
 def _require_topic(path, topic: str, type_names: tuple[str, ...]) -> None:
     topics = bag_info(path).topics
     if topic not in topics:
-        raise BagError(f'topic {topic} is not in {path}; it has: '
-                       f'{", ".join(topics) or "no topics"}')
+        raise BagError(
+            f'topic {topic} is not in {path}; it has: {", ".join(topics) or "no topics"}'
+        )
     if topics[topic].type_name not in type_names:
-        raise BagError(f'{topic} in {path} is {topics[topic].type_name}, expected '
-                       f'{" or ".join(type_names)}')
+        raise BagError(
+            f'{topic} in {path} is {topics[topic].type_name}, expected {" or ".join(type_names)}'
+        )
 
 
 def read_joint_states(path, topic: str = JOINT_STATES) -> JointStateSeries:
@@ -259,8 +284,8 @@ def read_joint_states(path, topic: str = JOINT_STATES) -> JointStateSeries:
     velocities = np.full((len(samples), len(column)), np.nan)
     for row, (names, position, velocity) in enumerate(samples):
         index = [column[name] for name in names]
-        positions[row, index[:len(position)]] = position[:len(index)]
-        velocities[row, index[:len(velocity)]] = velocity[:len(index)]
+        positions[row, index[: len(position)]] = position[: len(index)]
+        velocities[row, index[: len(velocity)]] = velocity[: len(index)]
     return JointStateSeries(np.asarray(times, float) / 1e9, list(column), positions, velocities)
 
 
@@ -273,5 +298,5 @@ def read_float_arrays(path, topic: str) -> FloatArraySeries:
         data.append(np.asarray(msg.data, float))
     rows = np.full((len(data), max((len(d) for d in data), default=0)), np.nan)
     for row, values in enumerate(data):
-        rows[row, :len(values)] = values
+        rows[row, : len(values)] = values
     return FloatArraySeries(np.asarray(times, float) / 1e9, rows)

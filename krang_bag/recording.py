@@ -5,6 +5,7 @@ The subscription QoS follows rosbag2's rule: reliable only if every publisher of
 transient_local only if every publisher does; otherwise the subscription would not match some of
 them.
 """
+
 from __future__ import annotations
 
 import fnmatch
@@ -27,22 +28,46 @@ def _doc(text):
 class RecorderConfig:
     """The recorder's parameters (ROS parameters of the same names)."""
 
-    output: str = field(default='', metadata={'doc': (
-        "bag file, or a directory (trailing '/' or existing) for krang_<timestamp>.mcap; default "
-        './krang_<timestamp>.mcap. An existing file is never overwritten')})
-    topics: tuple[str, ...] = field(default=(), metadata={
-        'doc': 'topic names or shell globs to record (empty = every topic)'})
-    exclude: tuple[str, ...] = field(default=(), metadata={
-        'doc': 'topic names or globs never recorded'})
-    include_hidden: bool = field(default=False, metadata={
-        'doc': "record hidden topics (a name token starting with '_') too"})
-    poll_period_s: float = field(default=0.5, metadata={
-        'doc': 'how often the graph is polled for new topics and the file flushed [s], > 0'})
-    queue_depth: int = field(default=100, metadata={
-        'doc': "minimum subscription depth (keep_last), raised to the publishers' depth, >= 1"})
-    chunk_size: int = field(default=DEFAULT_CHUNK_SIZE, metadata={
-        'doc': 'bytes per MCAP chunk: the most a SIGKILL can lose (krang bag recover keeps the '
-               'rest), > 0'})
+    output: str = field(
+        default='',
+        metadata={
+            'doc': (
+                "bag file, or a directory (trailing '/' or existing) for krang_<timestamp>.mcap; "
+                'default '
+                './krang_<timestamp>.mcap. An existing file is never overwritten'
+            )
+        },
+    )
+    topics: tuple[str, ...] = field(
+        default=(), metadata={'doc': 'topic names or shell globs to record (empty = every topic)'}
+    )
+    exclude: tuple[str, ...] = field(
+        default=(), metadata={'doc': 'topic names or globs never recorded'}
+    )
+    include_hidden: bool = field(
+        default=False,
+        metadata={'doc': "record hidden topics (a name token starting with '_') too"},
+    )
+    poll_period_s: float = field(
+        default=0.5,
+        metadata={
+            'doc': 'how often the graph is polled for new topics and the file flushed [s], > 0'
+        },
+    )
+    queue_depth: int = field(
+        default=100,
+        metadata={
+            'doc': "minimum subscription depth (keep_last), raised to the publishers' depth, >= 1"
+        },
+    )
+    chunk_size: int = field(
+        default=DEFAULT_CHUNK_SIZE,
+        metadata={
+            'doc': 'bytes per MCAP chunk: the most a SIGKILL can lose (krang bag recover keeps '
+            'the '
+            'rest), > 0'
+        },
+    )
     compression: str = field(default='zstd', metadata={'doc': ' | '.join(COMPRESSIONS)})
 
     def __post_init__(self):
@@ -51,8 +76,9 @@ class RecorderConfig:
         if self.queue_depth < 1 or self.chunk_size < 1:
             raise ValueError('queue_depth and chunk_size must be >= 1')
         if self.compression not in COMPRESSIONS:
-            raise ValueError(f'compression must be one of {COMPRESSIONS}, got '
-                             f'{self.compression!r}')
+            raise ValueError(
+                f'compression must be one of {COMPRESSIONS}, got {self.compression!r}'
+            )
 
 
 @dataclass(frozen=True)
@@ -70,7 +96,7 @@ def choose_request_qos(offers: Sequence[OfferedQos], min_depth: int = 100) -> Re
     A reliable request does not match a best-effort publisher, and a transient_local request does
     not match a volatile one, so each is requested only when every publisher offers it.
     """
-    if not offers:   # rosbag2's default request: reliable, volatile
+    if not offers:  # rosbag2's default request: reliable, volatile
         return RequestQos(True, False, min_depth)
     reliable = all(qos.reliability == 'reliable' for qos in offers)
     transient_local = all(qos.durability == 'transient_local' for qos in offers)
@@ -82,8 +108,12 @@ def is_hidden(topic: str) -> bool:
     return any(token.startswith('_') for token in topic.split('/'))
 
 
-def topic_selected(topic: str, include: Iterable[str] = (), exclude: Iterable[str] = (),
-                   include_hidden: bool = False) -> bool:
+def topic_selected(
+    topic: str,
+    include: Iterable[str] = (),
+    exclude: Iterable[str] = (),
+    include_hidden: bool = False,
+) -> bool:
     """Include list empty = everything; entries are exact names or fnmatch globs ('/imu/*')."""
     include, exclude = list(include), list(exclude)
     if not include_hidden and is_hidden(topic) and topic not in include:
@@ -93,8 +123,13 @@ def topic_selected(topic: str, include: Iterable[str] = (), exclude: Iterable[st
     return not any(fnmatch.fnmatchcase(topic, pattern) for pattern in exclude)
 
 
-def plan_new_topics(discovered: Iterable[tuple[str, Sequence[str]]], recorded: Iterable[str],
-                    include=(), exclude=(), include_hidden: bool = False):
+def plan_new_topics(
+    discovered: Iterable[tuple[str, Sequence[str]]],
+    recorded: Iterable[str],
+    include=(),
+    exclude=(),
+    include_hidden: bool = False,
+):
     """Split the discovered graph into ([(topic, type)] to subscribe now, {topic: why skipped})."""
     recorded = set(recorded)
     to_add, skipped = [], {}

@@ -7,6 +7,7 @@ schemas, channels and messages that can be read sequentially. We stream through 
 the torn tail, and write the contents to a new, finished bag (summary, statistics, indexes).
 Schemas, channel metadata (QoS, type hash) and message timestamps are copied unchanged.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -23,13 +24,13 @@ from krang_bag.writer import LIBRARY, start_mcap_writer
 class RecoveryReport:
     source: Path
     output: Path
-    messages: int = 0                      # messages written to `output`
-    chunks: int = 0                        # chunks recovered
-    bad_chunks: int = 0                    # complete chunks skipped (CRC or decompression failure)
-    truncated: bool = False                # the file ended before its footer
-    data_complete: bool = False            # the data section ended cleanly: nothing was lost
-    stop_reason: str = ''                  # what ended the scan early, if anything
-    topics: dict = field(default_factory=dict)   # topic -> messages recovered
+    messages: int = 0  # messages written to `output`
+    chunks: int = 0  # chunks recovered
+    bad_chunks: int = 0  # complete chunks skipped (CRC or decompression failure)
+    truncated: bool = False  # the file ended before its footer
+    data_complete: bool = False  # the data section ended cleanly: nothing was lost
+    stop_reason: str = ''  # what ended the scan early, if anything
+    topics: dict = field(default_factory=dict)  # topic -> messages recovered
 
     def summary(self) -> str:
         if not self.truncated:
@@ -39,8 +40,10 @@ class RecoveryReport:
         else:
             tail = f'tail truncated ({self.stop_reason}); the unfinished last chunk is lost'
         skipped = f', {self.bad_chunks} damaged chunk(s) skipped' if self.bad_chunks else ''
-        return (f'recovered {self.messages} messages on {len(self.topics)} topics from '
-                f'{self.chunks} chunk(s) of {self.source} into {self.output}; {tail}{skipped}')
+        return (
+            f'recovered {self.messages} messages on {len(self.topics)} topics from '
+            f'{self.chunks} chunk(s) of {self.source} into {self.output}; {tail}{skipped}'
+        )
 
 
 def default_output(source) -> Path:
@@ -68,7 +71,7 @@ class _Copier:
 
     def _message(self, message: Message) -> None:
         channel = self.channels.get(message.channel_id)
-        if channel is None:   # a message before its channel: cannot be interpreted, skip it
+        if channel is None:  # a message before its channel: cannot be interpreted, skip it
             return
         if channel.id not in self.new_channel_ids:
             schema_id = 0
@@ -78,15 +81,22 @@ class _Copier:
                     return
                 if schema.id not in self.new_schema_ids:
                     self.new_schema_ids[schema.id] = self.writer.register_schema(
-                        name=schema.name, encoding=schema.encoding, data=schema.data)
+                        name=schema.name, encoding=schema.encoding, data=schema.data
+                    )
                 schema_id = self.new_schema_ids[schema.id]
             self.new_channel_ids[channel.id] = self.writer.register_channel(
-                topic=channel.topic, message_encoding=channel.message_encoding,
-                schema_id=schema_id, metadata=dict(channel.metadata))
-        self.writer.add_message(channel_id=self.new_channel_ids[channel.id],
-                                log_time=message.log_time,
-                                data=message.data, publish_time=message.publish_time,
-                                sequence=message.sequence)
+                topic=channel.topic,
+                message_encoding=channel.message_encoding,
+                schema_id=schema_id,
+                metadata=dict(channel.metadata),
+            )
+        self.writer.add_message(
+            channel_id=self.new_channel_ids[channel.id],
+            log_time=message.log_time,
+            data=message.data,
+            publish_time=message.publish_time,
+            sequence=message.sequence,
+        )
         self.report.messages += 1
         self.report.topics[channel.topic] = self.report.topics.get(channel.topic, 0) + 1
 
@@ -105,13 +115,15 @@ def recover(source, output=None, *, overwrite: bool = False) -> RecoveryReport:
         raise ValueError('the recovered bag must not overwrite its source')
     report = RecoveryReport(source=source, output=output)
     with open(source, 'rb') as stream:
-        records = StreamReader(stream, emit_chunks=True,
-                               record_size_limit=source.stat().st_size).records
+        records = StreamReader(
+            stream, emit_chunks=True, record_size_limit=source.stat().st_size
+        ).records
         header = _first_header(records, source)
         output.parent.mkdir(parents=True, exist_ok=True)
         with open(output, 'wb' if overwrite else 'xb') as out:
-            writer = start_mcap_writer(out,
-                                       library=f'{LIBRARY} recover (from {header.library or "?"})')
+            writer = start_mcap_writer(
+                out, library=f'{LIBRARY} recover (from {header.library or "?"})'
+            )
             copier = _Copier(writer, report)
             try:
                 _copy_records(records, copier, report, stream)
@@ -155,8 +167,9 @@ def _copy_records(records, copier: _Copier, report: RecoveryReport, stream) -> N
                 report.truncated, report.stop_reason = False, ''
                 return
             else:
-                copier.add(record)   # schemas/channels/messages written outside chunks
+                copier.add(record)  # schemas/channels/messages written outside chunks
     except Exception as err:  # EndOfFile, short or garbled record: the torn tail
         report.truncated = True
-        report.stop_reason = (f'{type(err).__name__} after byte {intact_until} of '
-                              f'{report.source.stat().st_size}')
+        report.stop_reason = (
+            f'{type(err).__name__} after byte {intact_until} of {report.source.stat().st_size}'
+        )

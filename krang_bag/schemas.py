@@ -9,6 +9,7 @@ the same `share/<pkg>/msg/*.msg` files that rosbag2 reads, mirroring its depende
 The PyPI wheels install `share/` next to `lib/` without setting AMENT_PREFIX_PATH, so the share
 directory is found through ament_index when it is configured, else next to the installed package.
 """
+
 from __future__ import annotations
 
 import functools
@@ -23,9 +24,25 @@ SCHEMA_ENCODING = 'ros2msg'
 SEPARATOR = '=' * 80
 
 # Same primitive set as rosbag2, plus wstring which rosbag2 forgets.
-_PRIMITIVES = frozenset({
-    'bool', 'byte', 'char', 'float32', 'float64', 'int8', 'uint8', 'int16', 'uint16',
-    'int32', 'uint32', 'int64', 'uint64', 'string', 'wstring'})
+_PRIMITIVES = frozenset(
+    {
+        'bool',
+        'byte',
+        'char',
+        'float32',
+        'float64',
+        'int8',
+        'uint8',
+        'int16',
+        'uint16',
+        'int32',
+        'uint32',
+        'int64',
+        'uint64',
+        'string',
+        'wstring',
+    }
+)
 # First token of a field line: "pkg/Type[] name", "Type[<=3] name", "string<=10 name", "int32 X=1".
 _FIELD_TYPE = re.compile(r'^\s*([A-Za-z][A-Za-z0-9_/]*)(?:<=\d+)?(?:\[[^\]]*\])?\s+\S')
 _NAME = r'[A-Za-z][A-Za-z0-9_]*'
@@ -37,8 +54,9 @@ class SchemaNotFoundError(LookupError):
 
 def split_type_name(type_name: str) -> tuple[str, str, str]:
     """('pkg', 'msg', 'Type') from 'pkg/msg/Type' or 'pkg/Type' (the .msg spelling)."""
-    match = (re.fullmatch(rf'({_NAME})/({_NAME})/({_NAME})', type_name)
-             or re.fullmatch(rf'({_NAME})/()({_NAME})', type_name))
+    match = re.fullmatch(rf'({_NAME})/({_NAME})/({_NAME})', type_name) or re.fullmatch(
+        rf'({_NAME})/()({_NAME})', type_name
+    )
     if not match:
         raise ValueError(f'not a ROS 2 type name: {type_name!r} (expected pkg/msg/Type)')
     package, interface, name = match.groups()
@@ -67,6 +85,7 @@ def package_share_directory(package: str) -> Path:
     if os.environ.get('AMENT_PREFIX_PATH'):
         try:
             from ament_index_python.packages import get_package_share_directory
+
             candidates.append(Path(get_package_share_directory(package)))
         except (LookupError, OSError, ImportError, ValueError):
             pass
@@ -80,9 +99,11 @@ def package_share_directory(package: str) -> Path:
     for candidate in candidates:
         if candidate.is_dir():
             return candidate
-    raise SchemaNotFoundError(f'share directory of ROS package {package!r} not found (is it '
-                              'installed? '
-                              f'AMENT_PREFIX_PATH={os.environ.get("AMENT_PREFIX_PATH")!r})')
+    raise SchemaNotFoundError(
+        f'share directory of ROS package {package!r} not found (is it '
+        'installed? '
+        f'AMENT_PREFIX_PATH={os.environ.get("AMENT_PREFIX_PATH")!r})'
+    )
 
 
 def interface_file(type_name: str, suffix: str) -> Path:
@@ -121,8 +142,9 @@ def message_definition(type_name: str) -> str:
             key = normalize_type_name(dependency)
             if key not in seen:
                 seen.add(key)
-                text += f'\n{SEPARATOR}\nMSG: {dependency}\n' + text_with_dependencies(dependency,
-                                                                                       depth - 1)
+                text += f'\n{SEPARATOR}\nMSG: {dependency}\n' + text_with_dependencies(
+                    dependency, depth - 1
+                )
         return text
 
     return text_with_dependencies(normalize_type_name(type_name), 50)

@@ -1,5 +1,6 @@
 """The report of an online session: learning curve and CoM error against the hidden true model,
 and the session timeline (torque, controller modes, pose moves, learned poses)."""
+
 import math
 from pathlib import Path
 
@@ -31,9 +32,14 @@ def learning_curve(robot, betas, true_beta, n_configs=2000):
     return forward, lateral
 
 
-MODE_COLORS = {'sit': '#bdbdbd', 'stand_up': '#f4a261', 'balance': '#a8dadc',
-               'sit_down': '#cdb4db', 'safe_stop': '#e63946'}
-CONTROLLER = 'adrc_controller'       # the /diagnostics status that reports the controller's mode
+MODE_COLORS = {
+    'sit': '#bdbdbd',
+    'stand_up': '#f4a261',
+    'balance': '#a8dadc',
+    'sit_down': '#cdb4db',
+    'safe_stop': '#e63946',
+}
+CONTROLLER = 'adrc_controller'  # the /diagnostics status that reports the controller's mode
 
 
 def read_modes(bag):
@@ -73,24 +79,32 @@ def session_figures(bag, robot, true_beta, out_dir):
     paths = []
     fig = Figure(figsize=(6, 3.5))
     ax = fig.add_subplot()
-    ax.plot(np.arange(len(curve)), 1000 * curve, 'o-',
-            label='forward (x_com: what balancing observes)')
-    ax.plot(np.arange(len(lateral)), 1000 * lateral, 's--', color='grey',
-            label='sideways (unobservable in pitch)')
+    ax.plot(
+        np.arange(len(curve)), 1000 * curve, 'o-', label='forward (x_com: what balancing observes)'
+    )
+    ax.plot(
+        np.arange(len(lateral)),
+        1000 * lateral,
+        's--',
+        color='grey',
+        label='sideways (unobservable in pitch)',
+    )
     ax.xaxis.set_major_locator(MaxNLocator(integer=True))
     ax.set_xlabel('balanced poses learned (0: the initial beta)')
     ax.set_ylabel('mean CoM error (mm)')
     ax.set_title('Online learning against the hidden true model')
-    ax.legend(fontsize=8, title='CoM error of each beta over 2000 held-out poses',
-              title_fontsize=8)
+    ax.legend(
+        fontsize=8, title='CoM error of each beta over 2000 held-out poses', title_fontsize=8
+    )
     ax.grid(True, alpha=0.3)
     fig.tight_layout()
     paths.append(save_figure(fig, out_dir / 'learning_curve.png', dpi=120))
 
     effort = read_float_arrays(bag, WHEEL_EFFORT_CMD)
     if len(effort.t):
-        paths.append(save_figure(timeline_figure(bag, effort), out_dir / 'session_timeline.png',
-                                 dpi=120))
+        paths.append(
+            save_figure(timeline_figure(bag, effort), out_dir / 'session_timeline.png', dpi=120)
+        )
     return (curve, lateral), paths
 
 
@@ -104,17 +118,37 @@ def timeline_figure(bag, effort):
     times, modes = read_modes(bag)
     seen = set()
     for start, end, mode in mode_segments(times - t0, modes, t_end):
-        ax.axvspan(max(start, 0.0), end, color=MODE_COLORS.get(mode, '#ffe08a'), alpha=0.45,
-                   lw=0, label=None if mode in seen else f'controller mode: {mode}')
+        ax.axvspan(
+            max(start, 0.0),
+            end,
+            color=MODE_COLORS.get(mode, '#ffe08a'),
+            alpha=0.45,
+            lw=0,
+            label=None if mode in seen else f'controller mode: {mode}',
+        )
         seen.add(mode)
-    ax.plot(effort.t - t0, np.nansum(effort.rows, axis=1), color='k', lw=0.6,
-            label='total wheel torque command (N m)')
+    ax.plot(
+        effort.t - t0,
+        np.nansum(effort.rows, axis=1),
+        color='k',
+        lw=0.6,
+        label='total wheel torque command (N m)',
+    )
     for k, t in enumerate(message_times(bag, POSE_TARGET) - t0):
-        ax.axvline(t, color='tab:blue', ls='--', lw=0.9,
-                   label='pose move starts (new /pose_server/target)' if k == 0 else None)
+        ax.axvline(
+            t,
+            color='tab:blue',
+            ls='--',
+            lw=0.9,
+            label='pose move starts (new /pose_server/target)' if k == 0 else None,
+        )
     for k, t in enumerate(read_joint_states(bag, BALANCED_POSE).t - t0):
-        ax.axvline(t, color='tab:green', lw=1.2,
-                   label='balanced pose detected and learned' if k == 0 else None)
+        ax.axvline(
+            t,
+            color='tab:green',
+            lw=1.2,
+            label='balanced pose detected and learned' if k == 0 else None,
+        )
     ax.set_xlim(0.0, t_end)
     ax.set_xlabel('time since the first wheel command (s)')
     ax.set_ylabel('wheel torque (N m)')

@@ -9,6 +9,7 @@ Crash behaviour: messages live in an in-memory chunk until it reaches `chunk_siz
 is written out. A process killed with SIGKILL loses the open chunk and never writes the summary;
 `krang_bag.recover` restores every completed chunk. A clean `close()` loses nothing.
 """
+
 from __future__ import annotations
 
 import os
@@ -27,8 +28,11 @@ DEFAULT_CHUNK_SIZE = 1024 * 1024
 # RMW_DURATION_INFINITE: what rclpy reports for an unset deadline/lifespan/lease, as rosbag2 stores
 # it.
 DURATION_INFINITE_NS = 9223372036854775807
-_COMPRESSION = {'zstd': CompressionType.ZSTD, 'lz4': CompressionType.LZ4,
-                'none': CompressionType.NONE}
+_COMPRESSION = {
+    'zstd': CompressionType.ZSTD,
+    'lz4': CompressionType.LZ4,
+    'none': CompressionType.NONE,
+}
 
 
 @dataclass(frozen=True)
@@ -64,21 +68,33 @@ def _duration_yaml(nanoseconds: int) -> dict:
 
 def offered_qos_yaml(offers: list[OfferedQos] | tuple[OfferedQos, ...]) -> str:
     """The `offered_qos_profiles` channel metadata: a YAML list in rosbag2's v9 string form."""
-    return yaml.safe_dump([{
-        'history': qos.history,
-        'depth': int(qos.depth),
-        'reliability': qos.reliability,
-        'durability': qos.durability,
-        'deadline': _duration_yaml(qos.deadline_ns),
-        'lifespan': _duration_yaml(qos.lifespan_ns),
-        'liveliness': qos.liveliness,
-        'liveliness_lease_duration': _duration_yaml(qos.liveliness_lease_duration_ns),
-        'avoid_ros_namespace_conventions': bool(qos.avoid_ros_namespace_conventions),
-    } for qos in offers], sort_keys=False, default_flow_style=False)
+    return yaml.safe_dump(
+        [
+            {
+                'history': qos.history,
+                'depth': int(qos.depth),
+                'reliability': qos.reliability,
+                'durability': qos.durability,
+                'deadline': _duration_yaml(qos.deadline_ns),
+                'lifespan': _duration_yaml(qos.lifespan_ns),
+                'liveliness': qos.liveliness,
+                'liveliness_lease_duration': _duration_yaml(qos.liveliness_lease_duration_ns),
+                'avoid_ros_namespace_conventions': bool(qos.avoid_ros_namespace_conventions),
+            }
+            for qos in offers
+        ],
+        sort_keys=False,
+        default_flow_style=False,
+    )
 
 
-def start_mcap_writer(stream, *, chunk_size: int = DEFAULT_CHUNK_SIZE, compression: str = 'zstd',
-                      library: str = LIBRARY) -> Writer:
+def start_mcap_writer(
+    stream,
+    *,
+    chunk_size: int = DEFAULT_CHUNK_SIZE,
+    compression: str = 'zstd',
+    library: str = LIBRARY,
+) -> Writer:
     """An mcap Writer already started with the ros2 profile; shared by the recorder and
     recovery."""
     if compression not in _COMPRESSION:
@@ -102,15 +118,23 @@ class BagWriter:
     (statistics, indexes) without which rosbag2, rosbags and mcap's seeking reader refuse the file.
     """
 
-    def __init__(self, path, *, chunk_size: int = DEFAULT_CHUNK_SIZE, compression: str = 'zstd',
-                 overwrite: bool = False, library: str = LIBRARY):
+    def __init__(
+        self,
+        path,
+        *,
+        chunk_size: int = DEFAULT_CHUNK_SIZE,
+        compression: str = 'zstd',
+        overwrite: bool = False,
+        library: str = LIBRARY,
+    ):
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         # 'xb' by default: an existing recording is never clobbered by a new one.
         self._file = open(self.path, 'wb' if overwrite else 'xb')
         try:
-            self._writer = start_mcap_writer(self._file, chunk_size=chunk_size,
-                                             compression=compression, library=library)
+            self._writer = start_mcap_writer(
+                self._file, chunk_size=chunk_size, compression=compression, library=library
+            )
         except BaseException:
             self._file.close()
             raise
@@ -134,9 +158,15 @@ class BagWriter:
         """Messages written per topic (for logging; readers must count the file, not this)."""
         return {topic: channel.message_count for topic, channel in self._channels.items()}
 
-    def add_topic(self, topic: str, type_name: str, *, offered_qos=None,
-                  type_hash: str | None = None,
-                  definition: str | None = None) -> int:
+    def add_topic(
+        self,
+        topic: str,
+        type_name: str,
+        *,
+        offered_qos=None,
+        type_hash: str | None = None,
+        definition: str | None = None,
+    ) -> int:
         """Register a topic's channel (and its type's schema once); returns the channel id.
 
         offered_qos: the publishers' OfferedQos list; None records one default reliable profile.
@@ -147,26 +177,37 @@ class BagWriter:
         if topic in self._channels:
             known = self._channels[topic]
             if known.type_name != type_name:
-                raise ValueError(f'{topic} is already recorded as {known.type_name}, not '
-                                 f'{type_name}')
+                raise ValueError(
+                    f'{topic} is already recorded as {known.type_name}, not {type_name}'
+                )
             return known.channel_id
         if type_name not in self._schema_ids:
             text = definition if definition is not None else schemas.message_definition(type_name)
             self._schema_ids[type_name] = self._writer.register_schema(
-                name=type_name, encoding=schemas.SCHEMA_ENCODING, data=text.encode('utf-8'))
+                name=type_name, encoding=schemas.SCHEMA_ENCODING, data=text.encode('utf-8')
+            )
         offers = list(offered_qos) if offered_qos is not None else [OfferedQos()]
         metadata = {
             'offered_qos_profiles': offered_qos_yaml(offers),
             'topic_type_hash': type_hash or schemas.type_hash(type_name),
         }
         channel_id = self._writer.register_channel(
-            topic=topic, message_encoding=MESSAGE_ENCODING,
-            schema_id=self._schema_ids[type_name], metadata=metadata)
+            topic=topic,
+            message_encoding=MESSAGE_ENCODING,
+            schema_id=self._schema_ids[type_name],
+            metadata=metadata,
+        )
         self._channels[topic] = _Channel(channel_id, type_name)
         return channel_id
 
-    def write(self, topic: str, data: bytes, log_time_ns: int, publish_time_ns: int | None = None,
-              sequence: int | None = None) -> None:
+    def write(
+        self,
+        topic: str,
+        data: bytes,
+        log_time_ns: int,
+        publish_time_ns: int | None = None,
+        sequence: int | None = None,
+    ) -> None:
         """Append one serialized (CDR) message to an added topic."""
         self._check_open()
         channel = self._channels.get(topic)
@@ -174,15 +215,25 @@ class BagWriter:
             raise KeyError(f'topic {topic!r} was not added to the bag (call add_topic first)')
         channel.message_count += 1
         self._writer.add_message(
-            channel_id=channel.channel_id, log_time=int(log_time_ns), data=bytes(data),
+            channel_id=channel.channel_id,
+            log_time=int(log_time_ns),
+            data=bytes(data),
             publish_time=int(log_time_ns if publish_time_ns is None else publish_time_ns),
-            sequence=(channel.message_count if sequence is None else int(sequence)) & 0xFFFFFFFF)
+            sequence=(channel.message_count if sequence is None else int(sequence)) & 0xFFFFFFFF,
+        )
 
-    def write_message(self, topic: str, msg, log_time_ns: int, publish_time_ns: int | None = None,
-                      offered_qos=None) -> None:
+    def write_message(
+        self,
+        topic: str,
+        msg,
+        log_time_ns: int,
+        publish_time_ns: int | None = None,
+        offered_qos=None,
+    ) -> None:
         """Serialize an rclpy message and write it, adding its topic on first use (offline
         tools)."""
         from rclpy.serialization import serialize_message
+
         if topic not in self._channels:
             self.add_topic(topic, schemas.type_name_of(msg), offered_qos=offered_qos)
         self.write(topic, serialize_message(msg), log_time_ns, publish_time_ns)

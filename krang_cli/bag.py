@@ -3,6 +3,7 @@
 The dispatcher (krang_cli.main) calls register(subparsers); `python -m krang_cli.bag ...` runs the
 same commands standalone.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -28,26 +29,36 @@ modified. Also works on a finished bag, as a validating copy."""
 def register(subparsers) -> argparse.ArgumentParser:
     """Add `bag info` and `bag recover` to the krang CLI."""
     parser = subparsers.add_parser(
-        'bag', help='inspect and recover MCAP bags',
-        description='Inspect recorded MCAP bags (`info`) and rescue unfinished ones (`recover`).')
+        'bag',
+        help='inspect and recover MCAP bags',
+        description='Inspect recorded MCAP bags (`info`) and rescue unfinished ones (`recover`).',
+    )
     commands = parser.add_subparsers(dest='bag_command', metavar='{info,recover}', required=True)
 
-    info = commands.add_parser('info', help='topics, types, counts and duration of a bag',
-                               description=_INFO_HELP)
+    info = commands.add_parser(
+        'info', help='topics, types, counts and duration of a bag', description=_INFO_HELP
+    )
     info.add_argument('bag', metavar='BAG', help='the .mcap file')
     info.add_argument('--json', action='store_true', help='print the information as one JSON line')
     info.set_defaults(func=run_info)
 
-    rescue = commands.add_parser('recover',
-                                 help='rescue the messages of an unfinished (killed) bag',
-                                 description=_RECOVER_HELP)
+    rescue = commands.add_parser(
+        'recover',
+        help='rescue the messages of an unfinished (killed) bag',
+        description=_RECOVER_HELP,
+    )
     rescue.add_argument('bag', metavar='BAG', help='the unfinished .mcap file')
-    rescue.add_argument('--out', metavar='FILE', default=None,
-                        help='where to write the rescued bag (default: BAG with .recovered.mcap); '
-                             'an existing file is not overwritten unless --force')
+    rescue.add_argument(
+        '--out',
+        metavar='FILE',
+        default=None,
+        help='where to write the rescued bag (default: BAG with .recovered.mcap); '
+        'an existing file is not overwritten unless --force',
+    )
     rescue.add_argument('--force', action='store_true', help='overwrite --out if it exists')
-    rescue.add_argument('--json', action='store_true',
-                        help='print the recovery report as one JSON line')
+    rescue.add_argument(
+        '--json', action='store_true', help='print the recovery report as one JSON line'
+    )
     rescue.set_defaults(func=run_recover)
     return parser
 
@@ -70,19 +81,39 @@ def run_info(args) -> int:
         print(f'krang bag info: {err}', file=sys.stderr)
         return 1
     if getattr(args, 'json', False):
-        print(json.dumps({
-            'path': str(info.path), 'size_bytes': info.size_bytes, 'profile': info.profile,
-            'messages': info.message_count, 'duration_s': info.duration_s,
-            'start_ns': info.start_ns, 'end_ns': info.end_ns, 'chunks': info.chunk_count,
-            'compression': list(info.compression),
-            'topics': {t.topic: {'type': t.type_name, 'count': t.message_count,
-                                 'type_hash': t.type_hash,
-                                 'offered_qos': t.offered_qos} for t in info.topics.values()}}))
+        print(
+            json.dumps(
+                {
+                    'path': str(info.path),
+                    'size_bytes': info.size_bytes,
+                    'profile': info.profile,
+                    'messages': info.message_count,
+                    'duration_s': info.duration_s,
+                    'start_ns': info.start_ns,
+                    'end_ns': info.end_ns,
+                    'chunks': info.chunk_count,
+                    'compression': list(info.compression),
+                    'topics': {
+                        t.topic: {
+                            'type': t.type_name,
+                            'count': t.message_count,
+                            'type_hash': t.type_hash,
+                            'offered_qos': t.offered_qos,
+                        }
+                        for t in info.topics.values()
+                    },
+                }
+            )
+        )
         return 0
-    print(f'Bag:         {info.path}  ({info.size_bytes / 1e6:.2f} MB, profile '
-          f'{info.profile or "-"}, written by {info.library or "?"})')
-    print(f'Messages:    {info.message_count} in {info.chunk_count} chunk(s), '
-          f'compression {", ".join(info.compression) or "none"}')
+    print(
+        f'Bag:         {info.path}  ({info.size_bytes / 1e6:.2f} MB, profile '
+        f'{info.profile or "-"}, written by {info.library or "?"})'
+    )
+    print(
+        f'Messages:    {info.message_count} in {info.chunk_count} chunk(s), '
+        f'compression {", ".join(info.compression) or "none"}'
+    )
     print(f'Duration:    {info.duration_s:.3f} s')
     if info.message_count:
         print(f'Start / end: {_stamp(info.start_ns)} / {_stamp(info.end_ns)}')
@@ -91,8 +122,10 @@ def run_info(args) -> int:
     width_type = max([len(t.type_name) for t in info.topics.values()] + [4])
     print(f'  {"topic":<{width_topic}}  {"type":<{width_type}}  {"count":>8}  offered QoS')
     for topic in info.topics.values():
-        print(f'  {topic.topic:<{width_topic}}  {topic.type_name:<{width_type}}  '
-              f'{topic.message_count:>8}  {_qos_word(topic.offered_qos)}')
+        print(
+            f'  {topic.topic:<{width_topic}}  {topic.type_name:<{width_type}}  '
+            f'{topic.message_count:>8}  {_qos_word(topic.offered_qos)}'
+        )
     return 0
 
 
@@ -101,17 +134,29 @@ def run_recover(args) -> int:
     try:
         report = recover(args.bag, out, overwrite=getattr(args, 'force', False))
     except FileExistsError:
-        print(f'krang bag recover: {out} exists; choose another --out or pass --force',
-              file=sys.stderr)
+        print(
+            f'krang bag recover: {out} exists; choose another --out or pass --force',
+            file=sys.stderr,
+        )
         return 1
     except (BagError, ValueError) as err:
         print(f'krang bag recover: {err}', file=sys.stderr)
         return 1
     if getattr(args, 'json', False):
-        print(json.dumps({'source': str(report.source), 'output': str(report.output),
-                          'messages': report.messages, 'chunks': report.chunks,
-                          'bad_chunks': report.bad_chunks, 'truncated': report.truncated,
-                          'data_complete': report.data_complete, 'topics': report.topics}))
+        print(
+            json.dumps(
+                {
+                    'source': str(report.source),
+                    'output': str(report.output),
+                    'messages': report.messages,
+                    'chunks': report.chunks,
+                    'bad_chunks': report.bad_chunks,
+                    'truncated': report.truncated,
+                    'data_complete': report.data_complete,
+                    'topics': report.topics,
+                }
+            )
+        )
     else:
         print(report.summary())
         for topic, count in sorted(report.topics.items()):

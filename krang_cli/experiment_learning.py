@@ -45,7 +45,7 @@ def _add_arguments(p):
 
 _DESCRIPTION = (
     "Reproduces the paper's simulation (Algorithm 1 on a pool of 20,000 poses with 500 erroneous "
-    "betas, "
+    'betas, '
     'x_tol = 2 mm: filtered poses versus random order), learning curves with 0.1 deg IMU noise '
     '(paper-GD on the '
     'filtered poses, paper-GD on random poses, our MAP on D-optimal poses; error = the horizontal '

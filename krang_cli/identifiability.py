@@ -5,15 +5,21 @@ from .common import print_json
 
 def register(subparsers):
     p = subparsers.add_parser(
-        'identifiability', help='rank and base parameters of the CoM regressor, in words',
-        description='Stacks phi(q) over many random configurations (balanced poses, and arbitrary base pitch for '
-                    'comparison), finds its rank and base parameters by QR with column pivoting (Gautier & Khalil), '
-                    'and prints which beta entries the data can never fix (phi always 0), which only in '
-                    'combination with others, and why balanced poses cannot fix the scale of the mass moments '
-                    '(the known total mass does not help: the Base and wheel masses never appear in phi).')
+        'identifiability',
+        help='rank and base parameters of the CoM regressor, in words',
+        description='Stacks phi(q) over many random configurations (balanced poses, and arbitrary '
+        'base pitch for '
+        'comparison), finds its rank and base parameters by QR with column pivoting (Gautier & '
+        'Khalil), '
+        'and prints which beta entries the data can never fix (phi always 0), which only in '
+        'combination with others, and why balanced poses cannot fix the scale of the mass moments '
+        '(the known total mass does not help: the Base and wheel masses never appear in phi).',
+    )
     p.add_argument('--n', type=int, default=2000, help='random configurations (default 2000)')
     p.add_argument('--seed', type=int, default=0, help='random seed (default 0)')
-    p.add_argument('--pool', default=None, help='use the joints of this pose CSV instead of uniform samples')
+    p.add_argument(
+        '--pool', default=None, help='use the joints of this pose CSV instead of uniform samples'
+    )
     p.add_argument('--json', action='store_true', help='print the result as JSON on the last line')
     p.set_defaults(func=run)
 

@@ -1,4 +1,6 @@
-"""`krang`: the user-facing command line. Each subcommand lives in its own module with `register()`."""
+"""`krang`: the user-facing command line. Each subcommand lives in its own module with
+`register()`."""
+
 import argparse
 import importlib
 import logging
@@ -11,18 +13,30 @@ os.environ.setdefault('OPENBLAS_NUM_THREADS', '1')
 
 # Order here is the order in `krang --help`.
 COMMAND_MODULES = (
-    'demo', 'bringup', 'evaluate', 'learn', 'relearn', 'identifiability', 'poses', 'metrics',
-    'experiment', 'discrepancy', 'bag', 'view',
+    'demo',
+    'bringup',
+    'evaluate',
+    'learn',
+    'relearn',
+    'identifiability',
+    'poses',
+    'metrics',
+    'experiment',
+    'discrepancy',
+    'bag',
+    'view',
 )
 
 
 def build_parser():
     parser = argparse.ArgumentParser(
         prog='krang',
-        description='Golem Krang online CoM estimation: evaluate and learn mass models, build and filter '
-                    'pose sets, run the simulated robot end to end, compute balancing metrics, find '
-                    'sim-vs-real discrepancies, and work with MCAP bags.',
-        epilog='Run `krang <command> --help` for the options of each command.')
+        description='Golem Krang online CoM estimation: evaluate and learn mass models, build and '
+        'filter '
+        'pose sets, run the simulated robot end to end, compute balancing metrics, find '
+        'sim-vs-real discrepancies, and work with MCAP bags.',
+        epilog='Run `krang <command> --help` for the options of each command.',
+    )
     parser.add_argument('-v', '--verbose', action='store_true', help='debug logging')
     subparsers = parser.add_subparsers(dest='command', metavar='<command>')
     for name in COMMAND_MODULES:
@@ -39,14 +53,20 @@ def build_parser():
 def main(argv=None):
     parser = build_parser()
     args = parser.parse_args(argv)
-    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
-                        format='%(asctime)s %(levelname)s %(name)s: %(message)s', stream=sys.stderr)
+    logging.basicConfig(
+        level=logging.DEBUG if args.verbose else logging.INFO,
+        format='%(asctime)s %(levelname)s %(name)s: %(message)s',
+        stream=sys.stderr,
+    )
     if not getattr(args, 'func', None):
         parser.print_help()
         return 2
     try:
         return args.func(args) or 0
-    except (ValueError, FileNotFoundError) as err:  # bad input files: a clear message, no traceback
+    except (
+        ValueError,
+        FileNotFoundError,
+    ) as err:  # bad input files: a clear message, no traceback
         print(f'krang {args.command}: error: {err}', file=sys.stderr)
         return 1
 

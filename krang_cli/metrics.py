@@ -1,4 +1,5 @@
 """krang metrics: the paper's Table II figures for one balancing run, plus physical versions."""
+
 import argparse
 import json
 import math
@@ -30,17 +31,33 @@ ratio and torque constant from config/robot.yaml, wheel radius from the URDF or 
 
 def register(subparsers):
     p = subparsers.add_parser(
-        'metrics', help="Table II metrics of one balancing run (paper's and physical definitions)",
-        description=DESCRIPTION, formatter_class=argparse.RawDescriptionHelpFormatter)
+        'metrics',
+        help="Table II metrics of one balancing run (paper's and physical definitions)",
+        description=DESCRIPTION,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     p.add_argument('run', metavar='RUN', help='balancing log: kit CSV or our MCAP bag')
-    p.add_argument('--json', action='store_true',
-                   help='print the result as one JSON object on the last stdout line: '
-                        '{"max_position_m", "resting_position_m", "time_until_resting_s", '
-                        '"max_power_w", "avg_resting_power_mw", "physical": {...}}')
-    p.add_argument('--wheel-radius', type=float, default=None, metavar='M',
-                   help='wheel radius in m for the physical metrics (default: the URDF wheel)')
-    p.add_argument('--settle-band', type=float, default=0.08, metavar='M',
-                   help='physical settle band around the resting point, m (default 0.08)')
+    p.add_argument(
+        '--json',
+        action='store_true',
+        help='print the result as one JSON object on the last stdout line: '
+        '{"max_position_m", "resting_position_m", "time_until_resting_s", '
+        '"max_power_w", "avg_resting_power_mw", "physical": {...}}',
+    )
+    p.add_argument(
+        '--wheel-radius',
+        type=float,
+        default=None,
+        metavar='M',
+        help='wheel radius in m for the physical metrics (default: the URDF wheel)',
+    )
+    p.add_argument(
+        '--settle-band',
+        type=float,
+        default=0.08,
+        metavar='M',
+        help='physical settle band around the resting point, m (default 0.08)',
+    )
     p.set_defaults(func=run)
 
 
@@ -58,11 +75,18 @@ def load_bag_run(path):
     """One of our MCAP bags as a balancing run (the discrepancy workflow's bag loader)."""
     from krang_adrc_controller.metrics import run_from_record
     from krang_discrepancy.loaders import load_bag_record
+
     return run_from_record(load_bag_record(path))
 
 
 def run(args):
-    from krang_adrc_controller.metrics import PAPER_KEYS, compute_metrics, load_run, register_loader
+    from krang_adrc_controller.metrics import (
+        PAPER_KEYS,
+        compute_metrics,
+        load_run,
+        register_loader,
+    )
+
     register_loader('.mcap', load_bag_run)
     log = load_run(args.run)
     result = compute_metrics(log, args.wheel_radius, settle_band_m=args.settle_band)

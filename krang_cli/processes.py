@@ -1,4 +1,5 @@
 """Start the node set as child processes and stop it cleanly (our stand-in for ros2 launch)."""
+
 import logging
 import os
 import signal
@@ -29,8 +30,16 @@ class NodeSet:
             os.makedirs(self.log_dir, exist_ok=True)
             out = open(os.path.join(self.log_dir, f'{name}.log'), 'w')
         log.info('starting %s', name)
-        self.procs[name] = (subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT if out else None,
-                                             env=self.env, start_new_session=True), out)
+        self.procs[name] = (
+            subprocess.Popen(
+                cmd,
+                stdout=out,
+                stderr=subprocess.STDOUT if out else None,
+                env=self.env,
+                start_new_session=True,
+            ),
+            out,
+        )
         return self.procs[name][0]
 
     def dead(self):
@@ -74,6 +83,7 @@ def wait_forever(node_set, poll=0.5):
 
     def on_signal(signum, frame):
         stop['flag'] = True
+
     signal.signal(signal.SIGTERM, on_signal)
     try:
         while not stop['flag']:

@@ -1,7 +1,8 @@
 """krang view: the robot live in Foxglove (krang_ros.foxglove_view describes the channels)."""
+
 import argparse
 
-DEFAULT_PORT = 8765      # foxglove_bridge's and the Foxglove app's default
+DEFAULT_PORT = 8765  # foxglove_bridge's and the Foxglove app's default
 
 DESCRIPTION = """\
 Serve the running robot (real or simulated: whatever publishes /joint_states, /imu/data and the
@@ -15,15 +16,27 @@ beta's learning curve, one point per learned balanced pose (/learning) and the c
 
 
 def register(subparsers):
-    p = subparsers.add_parser('view', help='serve the robot live to Foxglove (WebSocket)',
-                              description=DESCRIPTION,
-                              formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument('--port', type=int, default=DEFAULT_PORT,
-                   help=f'WebSocket port (default {DEFAULT_PORT})')
-    p.add_argument('--host', default='127.0.0.1',
-                   help='address to listen on (default 127.0.0.1: this computer only)')
-    p.add_argument('--rate', type=float, default=20.0, metavar='HZ',
-                   help='how often the pose and the CoM are sent (default 20 Hz)')
+    p = subparsers.add_parser(
+        'view',
+        help='serve the robot live to Foxglove (WebSocket)',
+        description=DESCRIPTION,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument(
+        '--port', type=int, default=DEFAULT_PORT, help=f'WebSocket port (default {DEFAULT_PORT})'
+    )
+    p.add_argument(
+        '--host',
+        default='127.0.0.1',
+        help='address to listen on (default 127.0.0.1: this computer only)',
+    )
+    p.add_argument(
+        '--rate',
+        type=float,
+        default=20.0,
+        metavar='HZ',
+        help='how often the pose and the CoM are sent (default 20 Hz)',
+    )
     p.set_defaults(func=run)
 
 
@@ -33,4 +46,5 @@ def run(args):
     # imported here: rclpy, pinocchio and foxglove would slow every other `krang` command
     from krang_ros.spin import run_node
     from krang_ros.view_node import LiveViewNode
+
     return run_node(lambda: LiveViewNode(args.port, args.host, args.rate), ['krang'])

@@ -188,7 +188,7 @@ def report(result, out_dir):
         'Robot: simulated Krang, hidden truth `config/sim_true_beta.yaml`; the controller uses '
         'the truth with '
         f"the Base mass moment shifted so the paper's x_com is off by {100 * params.shift:.1f} cm "
-        "in the Table II "
+        'in the Table II '
         'pose (theta error '
         f'{results["plain LQR"]["phases"][0]["theta_error_rad"]:.3f} rad). Sensor noise on. '
         'Stand-up uses the hardware stand PD in every variant; the compared law acts from BALANCE '

@@ -412,10 +412,10 @@ def report(result, out_dir):
         '* theta error = model CoM angle - true CoM angle at rest in the Table II pose; theta on '
         'caster = the '
         "model's CoM angle while sitting (the stand-up PD's first error); I0 = its first stand-up "
-        "current.",
+        'current.',
         '',
         "## Paper's definitions (quirks kept: Max Pos is 0.27 x a current; resting power is mJ "
-        "per 33 ms step)",
+        'per 33 ms step)',
         '',
         '| beta | stood | theta error (rad) | theta on caster (rad) | I0 (A) | '
         + ' | '.join(PAPER_HEAD)

@@ -1,4 +1,5 @@
 """Beta files: the authors' text format (one 4B-vector per line) and our labelled YAML/JSON."""
+
 import json
 from pathlib import Path
 
@@ -26,15 +27,21 @@ def load_beta(path, robot, row=None):
         try:
             rows = np.atleast_2d(np.loadtxt(path, ndmin=2))
         except ValueError as err:
-            raise BetaFileError(f'{path}: not a whitespace-separated numeric file ({err})') from None
+            raise BetaFileError(
+                f'{path}: not a whitespace-separated numeric file ({err})'
+            ) from None
         k = 0 if row is None else int(row)
         if not 0 <= k < rows.shape[0]:
-            raise BetaFileError(f'{path}: --row {k} out of range, the file has {rows.shape[0]} rows')
+            raise BetaFileError(
+                f'{path}: --row {k} out of range, the file has {rows.shape[0]} rows'
+            )
         beta = rows[k]
     beta = np.asarray(beta, dtype=float)
     if beta.shape != (robot.n_beta,):
-        raise BetaFileError(f'{path}: {beta.size} numbers per beta, {robot.name} needs {robot.n_beta} '
-                            f'(4 per body x {robot.n_bodies} bodies)')
+        raise BetaFileError(
+            f'{path}: {beta.size} numbers per beta, {robot.name} needs {robot.n_beta} '
+            f'(4 per body x {robot.n_bodies} bodies)'
+        )
     if not np.all(np.isfinite(beta)):
         raise BetaFileError(f'{path}: beta contains NaN or inf')
     return beta
@@ -62,12 +69,21 @@ def beta_document(beta, robot, **meta):
     beta = np.asarray(beta, dtype=float)
     bodies = []
     for i, name in enumerate(robot.body_names):
-        m, *mc = beta[4 * i:4 * i + 4]
+        m, *mc = beta[4 * i : 4 * i + 4]
         com = [v / m for v in mc] if m != 0 else [None] * 3
-        bodies.append({'name': name, 'm': float(m), 'm_com': [float(v) for v in mc],
-                       'com': [None if v is None else float(v) for v in com]})
-    doc = {'robot': robot.name, 'layout': '[m, m*x, m*y, m*z] per body, CoM in the body frame (kg, kg*m)',
-           'total_mass': float(beta[0::4].sum())}
+        bodies.append(
+            {
+                'name': name,
+                'm': float(m),
+                'm_com': [float(v) for v in mc],
+                'com': [None if v is None else float(v) for v in com],
+            }
+        )
+    doc = {
+        'robot': robot.name,
+        'layout': '[m, m*x, m*y, m*z] per body, CoM in the body frame (kg, kg*m)',
+        'total_mass': float(beta[0::4].sum()),
+    }
     doc.update(meta)
     doc['bodies'] = bodies
     return doc

@@ -9,6 +9,7 @@ For body i with beta_i = [m, m c] (c in the body frame) the mass-weighted positi
 m p_i + R_i (m c) = [p_i, R_i] beta_i, which is linear in beta. Stacking over bodies gives the
 (3, 4B) regressor; its x row divided by the nominal total mass is the paper's phi(q).
 """
+
 import numpy as np
 
 from .kinematics import body_placements, projected_body_placements
@@ -74,19 +75,27 @@ def balance_pitch(robot, joints, beta):
     return np.arctan2(moment[:, 2], moment[:, 1])
 
 
-# ---- how wrong a beta is, against a known truth (simulation) ----------------------------------------------
+# ---- how wrong a beta is, against a known truth (simulation) ------------------------------------
 def com_error(robot, beta, true_beta, joints):
-    """Mean |x_com| (m, the paper's phi(q)^T beta) that `beta` predicts at the TRUE balance pitch of each
-    pose (rows of `joints`): the forward CoM error, the one balancing observes; 0 for a perfect model."""
+    """Mean |x_com| (m, the paper's phi(q)^T beta) that `beta` predicts at the TRUE balance pitch
+    of each pose (rows of `joints`): the forward CoM error, the one balancing observes; 0 for a
+    perfect model."""
     joints = np.atleast_2d(np.asarray(joints, float))
     q_base = balance_pitch(robot, joints, true_beta)
     return float(np.mean(np.abs(x_com(robot, q_base, joints, beta))))
 
 
 def lateral_com_error(robot, beta, true_beta, joints):
-    """Mean sideways (frame-0 y) distance (m) between the CoM of `beta` and the true CoM, each pose at its
-    true balance pitch. A robot balancing in pitch never observes it: learning leaves it at the prior."""
+    """Mean sideways (frame-0 y) distance (m) between the CoM of `beta` and the true CoM, each pose
+    at its true balance pitch. A robot balancing in pitch never observes it: learning leaves it at
+    the prior."""
     joints = np.atleast_2d(np.asarray(joints, float))
     q_base = balance_pitch(robot, joints, true_beta)
-    return float(np.mean(np.abs(com_frame0(robot, q_base, joints, beta)[:, 1]
-                                - com_frame0(robot, q_base, joints, true_beta)[:, 1])))
+    return float(
+        np.mean(
+            np.abs(
+                com_frame0(robot, q_base, joints, beta)[:, 1]
+                - com_frame0(robot, q_base, joints, true_beta)[:, 1]
+            )
+        )
+    )

@@ -1,4 +1,5 @@
 """Where the installed package keeps its config, and the robot's drive-train/contact parameters."""
+
 import os
 import sys
 from functools import lru_cache
@@ -19,8 +20,10 @@ def config_dir():
         candidate = Path(prefix) / 'share' / PACKAGE_NAME / 'config'
         if candidate.is_dir():
             return candidate
-    raise FileNotFoundError(f'cannot find the {PACKAGE_NAME} config directory (looked in {REPO_CONFIG} '
-                            f'and share/{PACKAGE_NAME}/config under {prefixes})')
+    raise FileNotFoundError(
+        f'cannot find the {PACKAGE_NAME} config directory (looked in {REPO_CONFIG} '
+        f'and share/{PACKAGE_NAME}/config under {prefixes})'
+    )
 
 
 def config_path(name):

@@ -1,6 +1,7 @@
 """Files a user keeps are written atomically: into a temporary file beside the target, flushed to
 disk, then renamed over it. A reader sees the old file or the new one, never a partial one, and a
 process killed while saving leaves the old file (or none) behind."""
+
 import contextlib
 import os
 import tempfile

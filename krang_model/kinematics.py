@@ -4,6 +4,7 @@ pinocchio evaluates one configuration per call (tens of microseconds from Python
 and the pose filter need phi at 10^5 poses, so the same joint chain (placements and axes read from
 pinocchio) is evaluated here with stacked numpy rotations. Tests check it against pinocchio.
 """
+
 import numpy as np
 
 
@@ -18,7 +19,8 @@ def axis_rotations(axis, angles):
 
 
 def joint_placements(robot, joints):
-    """World (base-frame) rotation (N, nj, 3, 3) and translation (N, nj, 3) of every joint frame."""
+    """World (base-frame) rotation (N, nj, 3, 3) and translation (N, nj, 3) of every joint
+    frame."""
     joints = np.atleast_2d(np.asarray(joints, dtype=float))
     n = joints.shape[0]
     chain = robot.chain
@@ -32,7 +34,7 @@ def joint_placements(robot, joints):
     for j in range(1, nj):
         p = chain.parents[j]
         r_parent = rot[:, p]
-        r_fixed = r_parent @ chain.rotations[j]               # (N,3,3)
+        r_fixed = r_parent @ chain.rotations[j]  # (N,3,3)
         trans[:, j] = trans[:, p] + r_parent @ chain.translations[j]
         if np.any(q_full[:, j]):
             rot[:, j] = r_fixed @ axis_rotations(chain.axes[j], q_full[:, j])
@@ -42,7 +44,8 @@ def joint_placements(robot, joints):
 
 
 def body_placements(robot, joints):
-    """Rotation (N, B, 3, 3) and translation (N, B, 3) of each beta body frame in the base frame."""
+    """Rotation (N, B, 3, 3) and translation (N, B, 3) of each beta body frame in the base
+    frame."""
     rot_j, trans_j = joint_placements(robot, joints)
     n = rot_j.shape[0]
     rot = np.empty((n, robot.n_bodies, 3, 3))
@@ -71,15 +74,19 @@ def projected_body_placements(robot, joints, direction):
     n = joints.shape[0]
     q_full = np.zeros((n, nj))
     q_full[:, robot.pose_joint_ids] = joints
-    row = np.empty((nj, n, 3))      # d^T R_j
-    offset = np.empty((nj, n))      # d . p_j
+    row = np.empty((nj, n, 3))  # d^T R_j
+    offset = np.empty((nj, n))  # d . p_j
     row[0] = direction
     offset[0] = 0.0
     for j in range(1, nj):
         p = chain.parents[j]
         offset[j] = offset[p] + row[p] @ chain.translations[j]
         fixed = row[p] @ chain.rotations[j]
-        row[j] = rotate_rows_by_axis(fixed, chain.axes[j], q_full[:, j]) if np.any(q_full[:, j]) else fixed
+        row[j] = (
+            rotate_rows_by_axis(fixed, chain.axes[j], q_full[:, j])
+            if np.any(q_full[:, j])
+            else fixed
+        )
     body_offset = np.empty((n, robot.n_bodies))
     body_row = np.empty((n, robot.n_bodies, 3))
     for b, frame in enumerate(robot.body_frames):

@@ -1,4 +1,5 @@
 """Pose CSV files: q_base plus the body joints in pose order (columns of the hardware CSV)."""
+
 import csv
 from pathlib import Path
 
@@ -29,10 +30,13 @@ def load_poses(path, robot_columns, limits=None):
         rows = list(reader)
     short = [i + 2 for i, r in enumerate(rows) if any(r.get(c) in (None, '') for c in needed)]
     if short:
-        raise PoseFileError(f'{path}: line {short[0]} has fewer values than the header '
-                            f'(truncated file?)')
+        raise PoseFileError(
+            f'{path}: line {short[0]} has fewer values than the header (truncated file?)'
+        )
     try:
-        table = np.array([[float(r[c]) for c in needed] for r in rows], dtype=float).reshape(-1, len(needed))
+        table = np.array([[float(r[c]) for c in needed] for r in rows], dtype=float).reshape(
+            -1, len(needed)
+        )
     except ValueError as err:
         raise PoseFileError(f'{path}: non-numeric value ({err})') from None
     bad = ~np.all(np.isfinite(table), axis=1)
@@ -47,9 +51,11 @@ def _check_limits(path, joints, columns, lower, upper, tol=1e-9):
     outside = (joints < np.asarray(lower) - tol) | (joints > np.asarray(upper) + tol)
     if outside.any():
         i, j = np.argwhere(outside)[0]
-        raise PoseFileError(f'{path}: line {i + 2}: {columns[j]} = {joints[i, j]:.6g} rad is outside '
-                            f'the joint limits [{lower[j]:.6g}, {upper[j]:.6g}] '
-                            f'({int(outside.any(axis=1).sum())} poses outside)')
+        raise PoseFileError(
+            f'{path}: line {i + 2}: {columns[j]} = {joints[i, j]:.6g} rad is outside '
+            f'the joint limits [{lower[j]:.6g}, {upper[j]:.6g}] '
+            f'({int(outside.any(axis=1).sum())} poses outside)'
+        )
 
 
 def save_poses(path, q_base, joints, robot_columns, extra=None):

@@ -3,6 +3,7 @@
 Everything downstream (phi, the WIP reduction, the pose pool, the simulator) reads the robot from
 here, so the URDF stays the one source of truth.
 """
+
 from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
@@ -18,18 +19,54 @@ WIP7_URDF = PACKAGE_DIR / 'wip7.urdf'
 
 # The authors' body order (krang_data/README.md): beta entry 4*i + k is body i, quantity k.
 KRANG_BODIES = (
-    'Base', 'LWheel', 'RWheel', 'Spine', 'Bracket',
-    'L1', 'L2', 'L3', 'L4', 'L5', 'L6', 'lGripper', 'lgPlate1', 'lgPlate2',
-    'R1', 'R2', 'R3', 'R4', 'R5', 'R6', 'rGripper', 'rgPlate1', 'rgPlate2',
+    'Base',
+    'LWheel',
+    'RWheel',
+    'Spine',
+    'Bracket',
+    'L1',
+    'L2',
+    'L3',
+    'L4',
+    'L5',
+    'L6',
+    'lGripper',
+    'lgPlate1',
+    'lgPlate2',
+    'R1',
+    'R2',
+    'R3',
+    'R4',
+    'R5',
+    'R6',
+    'rGripper',
+    'rgPlate1',
+    'rgPlate2',
 )
 # Pose order of the hardware CSVs: waist, torso, left arm 1..7, right arm 1..7.
 KRANG_POSE_JOINTS = (
-    'JWaist', 'JTorso',
-    'LJ1', 'LJ2', 'LJ3', 'LJ4', 'LJ5', 'LJ6', 'LJFT',
-    'RJ1', 'RJ2', 'RJ3', 'RJ4', 'RJ5', 'RJ6', 'RJFT',
+    'JWaist',
+    'JTorso',
+    'LJ1',
+    'LJ2',
+    'LJ3',
+    'LJ4',
+    'LJ5',
+    'LJ6',
+    'LJFT',
+    'RJ1',
+    'RJ2',
+    'RJ3',
+    'RJ4',
+    'RJ5',
+    'RJ6',
+    'RJFT',
 )
-KRANG_POSE_COLUMNS = ('q_waist', 'q_torso') + tuple(f'q_left_{i}' for i in range(1, 8)) + tuple(
-    f'q_right_{i}' for i in range(1, 8))
+KRANG_POSE_COLUMNS = (
+    ('q_waist', 'q_torso')
+    + tuple(f'q_left_{i}' for i in range(1, 8))
+    + tuple(f'q_right_{i}' for i in range(1, 8))
+)
 BETA_QUANTITIES = ('m', 'm*x', 'm*y', 'm*z')
 
 
@@ -37,10 +74,10 @@ BETA_QUANTITIES = ('m', 'm*x', 'm*y', 'm*z')
 class JointChain:
     """Per pinocchio joint (index 1..n): parent index, placement in parent and unit axis."""
 
-    parents: np.ndarray        # (njoints,) int, parents[0] = 0 (universe)
-    rotations: np.ndarray      # (njoints, 3, 3) jointPlacement rotation
-    translations: np.ndarray   # (njoints, 3)
-    axes: np.ndarray           # (njoints, 3) revolute axis in the joint frame
+    parents: np.ndarray  # (njoints,) int, parents[0] = 0 (universe)
+    rotations: np.ndarray  # (njoints, 3, 3) jointPlacement rotation
+    translations: np.ndarray  # (njoints, 3)
+    axes: np.ndarray  # (njoints, 3) revolute axis in the joint frame
 
 
 class RobotModel:
@@ -69,7 +106,9 @@ class RobotModel:
         for body in self.body_names:
             if not self.model.existFrame(body, pin.FrameType.BODY):
                 raise ValueError(f'{self.urdf_path.name}: body {body!r} not in the URDF')
-            self.body_frames.append(self.model.frames[self.model.getFrameId(body, pin.FrameType.BODY)])
+            self.body_frames.append(
+                self.model.frames[self.model.getFrameId(body, pin.FrameType.BODY)]
+            )
         self._urdf = ET.parse(self.urdf_path).getroot()
         self.nominal_beta, self.body_inertias = self._inertials_from_urdf()
         self.wheel_body_ids = [self.body_names.index(w) for w in self.wheels]
@@ -82,8 +121,9 @@ class RobotModel:
             upper.append(self.model.upperPositionLimit[idx])
         self.lower = np.array(lower)
         self.upper = np.array(upper)
-        self.velocity_limit = np.array([self.model.velocityLimit[self.model.joints[j].idx_v]
-                                        for j in self.pose_joint_ids])
+        self.velocity_limit = np.array(
+            [self.model.velocityLimit[self.model.joints[j].idx_v] for j in self.pose_joint_ids]
+        )
 
     def _inertials_from_urdf(self):
         """beta = [m, m*c] and the inertia about the CoM per body, read from the URDF itself
@@ -94,16 +134,22 @@ class RobotModel:
             inertial = self._urdf.find(f"link[@name='{body}']/inertial")
             m = float(inertial.find('mass').get('value'))
             c = np.array([float(v) for v in inertial.find('origin').get('xyz').split()])
-            beta[4 * i:4 * i + 4] = [m, *(m * c)]
+            beta[4 * i : 4 * i + 4] = [m, *(m * c)]
             a = {k: float(v) for k, v in inertial.find('inertia').attrib.items()}
-            inertias[i] = [[a['ixx'], a['ixy'], a['ixz']], [a['ixy'], a['iyy'], a['iyz']],
-                           [a['ixz'], a['iyz'], a['izz']]]
+            inertias[i] = [
+                [a['ixx'], a['ixy'], a['ixz']],
+                [a['ixy'], a['iyy'], a['iyz']],
+                [a['ixz'], a['iyz'], a['izz']],
+            ]
         return beta, inertias
 
     def _wheel_geometry(self):
-        """Wheel radius from the wheels' collision cylinders, track width from their joint origins."""
-        radii = [float(self._urdf.find(f"link[@name='{w}']/collision/geometry/cylinder").get('radius'))
-                 for w in self.wheels]
+        """Wheel radius from the wheels' collision cylinders, track width from their joint
+        origins."""
+        radii = [
+            float(self._urdf.find(f"link[@name='{w}']/collision/geometry/cylinder").get('radius'))
+            for w in self.wheels
+        ]
         xs = []
         for joint in self._urdf.findall('joint'):
             if joint.find('child').get('link') in self.wheels:
@@ -118,7 +164,7 @@ class RobotModel:
         for jid, angle in zip(self.pose_joint_ids, np.asarray(joints, dtype=float)):
             jm = self.model.joints[jid]
             if jm.nq == 2:
-                q[jm.idx_q:jm.idx_q + 2] = np.cos(angle), np.sin(angle)
+                q[jm.idx_q : jm.idx_q + 2] = np.cos(angle), np.sin(angle)
             else:
                 q[jm.idx_q] = angle
         return q
@@ -138,7 +184,8 @@ def _joint_chain(model):
     for j in range(1, n):
         rotations[j] = model.jointPlacements[j].rotation
         translations[j] = model.jointPlacements[j].translation
-        # The axis is what the joint's motion subspace says; works for RX/RY/RZ, unaligned and unbounded.
+        # The axis is what the joint's motion subspace says; works for RX/RY/RZ, unaligned and
+        # unbounded.
         jm = model.joints[j]
         q = pin.neutral(model)
         v = np.zeros(model.nv)

@@ -4,6 +4,7 @@ It is deliberately light: Ctrl-C or SIGTERM while a node is still importing nump
 pinocchio ends it quietly with exit code 0 instead of a KeyboardInterrupt traceback, and `--help`
 prints what the node does and its parameters without starting it (no bus is opened, no node joins
 the graph)."""
+
 import importlib
 import os
 import signal
@@ -35,23 +36,29 @@ def run(executable, argv=None):
     argv = sys.argv[1:] if argv is None else list(argv)
     signal.signal(signal.SIGINT, _exit_quietly)
     signal.signal(signal.SIGTERM, _exit_quietly)
-    ros_args = argv[argv.index('--ros-args'):] if '--ros-args' in argv else []
-    own = argv[:len(argv) - len(ros_args)]
+    ros_args = argv[argv.index('--ros-args') :] if '--ros-args' in argv else []
+    own = argv[: len(argv) - len(ros_args)]
     module = importlib.import_module(NODE_MODULES[executable])
     if own and own[0] in ('-h', '--help'):
         print(help_text(executable, module))
         return 0
     if own:
-        print(f'{executable}: unknown arguments {own}; parameters go after --ros-args '
-              f'(-p name:=value, --params-file FILE). See {executable} --help.', file=sys.stderr)
+        print(
+            f'{executable}: unknown arguments {own}; parameters go after --ros-args '
+            f'(-p name:=value, --params-file FILE). See {executable} --help.',
+            file=sys.stderr,
+        )
         return 2
     return module.main([executable] + ros_args)
 
 
 def help_text(executable, module):
     """The node's docstring, then its parameters (the module's `describe_parameters()`)."""
-    lines = [f'usage: {executable} [--help] [--ros-args -p NAME:=VALUE ... --params-file FILE]',
-             '', (module.__doc__ or '').strip()]
+    lines = [
+        f'usage: {executable} [--help] [--ros-args -p NAME:=VALUE ... --params-file FILE]',
+        '',
+        (module.__doc__ or '').strip(),
+    ]
     described = module.describe_parameters()
     lines += ['', 'parameters:'] + ([f'  {line}' for line in described] or ['  (none)'])
     return '\n'.join(lines)

@@ -15,6 +15,7 @@ Channels (Foxglove topics):
                 size of the beta update), the learning curve
   /mode         JSON {mode}: the controller's mode
 """
+
 from __future__ import annotations
 
 import json
@@ -25,17 +26,35 @@ import foxglove
 import numpy as np
 import pinocchio as pin
 from foxglove.channels import FrameTransformsChannel, SceneUpdateChannel
-from foxglove.messages import (Color, CubePrimitive, CylinderPrimitive, FrameTransform,
-                               FrameTransforms, LinePrimitive, LinePrimitiveLineType, Point3, Pose,
-                               Quaternion, SceneEntity, SceneUpdate, SpherePrimitive,
-                               TextPrimitive, Vector3)
+from foxglove.messages import (
+    Color,
+    CubePrimitive,
+    CylinderPrimitive,
+    FrameTransform,
+    FrameTransforms,
+    LinePrimitive,
+    LinePrimitiveLineType,
+    Point3,
+    Pose,
+    Quaternion,
+    SceneEntity,
+    SceneUpdate,
+    SpherePrimitive,
+    TextPrimitive,
+    Vector3,
+)
 
 from krang_model import com
 from krang_model.robot import load_krang
 from krang_ros.robot_frames import BASE_FOOTPRINT, WHEELS, RobotFrames, quaternion_from_matrix
 
-COLORS = {'Base': (0.55, 0.55, 0.6), 'LWheel': (0.15, 0.15, 0.15), 'RWheel': (0.15, 0.15, 0.15),
-          'Spine': (0.45, 0.5, 0.6), 'Bracket': (0.45, 0.5, 0.6)}
+COLORS = {
+    'Base': (0.55, 0.55, 0.6),
+    'LWheel': (0.15, 0.15, 0.15),
+    'RWheel': (0.15, 0.15, 0.15),
+    'Spine': (0.45, 0.5, 0.6),
+    'Bracket': (0.45, 0.5, 0.6),
+}
 ARM_COLOR = (0.35, 0.55, 0.8)
 JSON_SCHEMAS = {
     '/com_live': {'q_base_rad': 'number', 'x_com_mm': 'number', 'x_com_nominal_mm': 'number'},
@@ -78,12 +97,21 @@ def robot_scene(frames):
                 cubes.append(CubePrimitive(pose=pose, size=_vec(size), color=_color(rgb, 0.8)))
             elif cyl is not None:
                 d, length = 2 * float(cyl.get('radius')), float(cyl.get('length'))
-                cylinders.append(CylinderPrimitive(pose=pose, size=Vector3(x=d, y=d, z=length),
-                                                   bottom_scale=1.0, top_scale=1.0,
-                                                   color=_color(rgb, 0.9)))
+                cylinders.append(
+                    CylinderPrimitive(
+                        pose=pose,
+                        size=Vector3(x=d, y=d, z=length),
+                        bottom_scale=1.0,
+                        top_scale=1.0,
+                        color=_color(rgb, 0.9),
+                    )
+                )
         if cubes or cylinders:
-            entities.append(SceneEntity(frame_id=name, id=name, frame_locked=True, cubes=cubes,
-                                        cylinders=cylinders))
+            entities.append(
+                SceneEntity(
+                    frame_id=name, id=name, frame_locked=True, cubes=cubes, cylinders=cylinders
+                )
+            )
     return SceneUpdate(entities=entities)
 
 
@@ -98,7 +126,7 @@ class LiveView:
         self.imu_orientation = None
         self.beta = self.robot.nominal_beta.copy()
         self.beta_seen = False
-        self.beta_step = None        # no update yet (JSON has no NaN)
+        self.beta_step = None  # no update yet (JSON has no NaN)
         self.poses_learned = 0
         self.mode = ''
         self.server = None
@@ -120,8 +148,11 @@ class LiveView:
     def on_learned_com(self, com_frame0):
         """/com_estimator/com: the estimator's CoM (frame 0) at a newly learned balanced pose."""
         self.poses_learned += 1
-        sample = {'pose': self.poses_learned, 'x_com_mm': 1000.0 * float(com_frame0[0]),
-                  'beta_step': self.beta_step}
+        sample = {
+            'pose': self.poses_learned,
+            'x_com_mm': 1000.0 * float(com_frame0[0]),
+            'beta_step': self.beta_step,
+        }
         if self.server is not None:
             self.channels['/learning'].log(sample)
         return sample
@@ -142,9 +173,11 @@ class LiveView:
         if self.imu_orientation is None or any(w not in self.joints for w in WHEELS):
             return None
         self.frames.set_joints(self.joints)
-        return (self.frames.static_transforms() + self.frames.joint_transforms()
-                + self.frames.base_transforms(self.imu_orientation,
-                                              *(self.joints[w] for w in WHEELS)))
+        return (
+            self.frames.static_transforms()
+            + self.frames.joint_transforms()
+            + self.frames.base_transforms(self.imu_orientation, *(self.joints[w] for w in WHEELS))
+        )
 
     def com_now(self):
         """(q_base, CoM of the estimated beta, CoM of the nominal beta), frame 0, or None."""
@@ -152,8 +185,10 @@ class LiveView:
         if joints is None or self.imu_orientation is None:
             return None
         _, q_base = self.frames.base_link_in_footprint(self.imu_orientation)
-        estimated, nominal = (com.com_frame0(self.robot, q_base, joints[None], beta)[0]
-                              for beta in (self.beta, self.robot.nominal_beta))
+        estimated, nominal = (
+            com.com_frame0(self.robot, q_base, joints[None], beta)[0]
+            for beta in (self.beta, self.robot.nominal_beta)
+        )
         return q_base, estimated, nominal
 
     def com_scene(self, q_base, estimated, nominal):
@@ -162,38 +197,75 @@ class LiveView:
         est, nom = estimated + axle, nominal + axle
         top = max(est[2], nom[2]) + 0.3
         lines = [
-            LinePrimitive(type=LinePrimitiveLineType.LineStrip, thickness=0.01,
-                          points=[Point3(x=0.0, y=0.0, z=r), Point3(x=0.0, y=0.0, z=top)],
-                          color=_color((0.1, 0.8, 0.2))),
-            LinePrimitive(type=LinePrimitiveLineType.LineStrip, thickness=0.008,
-                          points=[Point3(x=0.0, y=0.0, z=r), Point3(x=est[0], y=est[1], z=est[2])],
-                          color=_color((0.9, 0.15, 0.1))),
+            LinePrimitive(
+                type=LinePrimitiveLineType.LineStrip,
+                thickness=0.01,
+                points=[Point3(x=0.0, y=0.0, z=r), Point3(x=0.0, y=0.0, z=top)],
+                color=_color((0.1, 0.8, 0.2)),
+            ),
+            LinePrimitive(
+                type=LinePrimitiveLineType.LineStrip,
+                thickness=0.008,
+                points=[Point3(x=0.0, y=0.0, z=r), Point3(x=est[0], y=est[1], z=est[2])],
+                color=_color((0.9, 0.15, 0.1)),
+            ),
         ]
-        spheres = [SpherePrimitive(pose=_pose(est), size=Vector3(x=0.07, y=0.07, z=0.07),
-                                   color=_color((0.9, 0.15, 0.1))),
-                   SpherePrimitive(pose=_pose(nom), size=Vector3(x=0.05, y=0.05, z=0.05),
-                                   color=_color((0.6, 0.6, 0.6), 0.7))]
-        label = (f'CoM {1000 * estimated[0]:+.1f} mm ahead of the axle (estimated beta, red); '
-                 f'nominal {1000 * nominal[0]:+.1f} mm (grey); q_base {q_base:+.3f} rad; '
-                 f'mode {self.mode or "?"}')
-        texts = [TextPrimitive(pose=_pose(est + np.array([0.0, 0.0, 0.12])), billboard=True,
-                               font_size=14.0, scale_invariant=True,
-                               color=_color((1.0, 1.0, 1.0)), text=label)]
-        return SceneUpdate(entities=[SceneEntity(frame_id=BASE_FOOTPRINT, id='com', lines=lines,
-                                                 spheres=spheres, texts=texts)])
+        spheres = [
+            SpherePrimitive(
+                pose=_pose(est),
+                size=Vector3(x=0.07, y=0.07, z=0.07),
+                color=_color((0.9, 0.15, 0.1)),
+            ),
+            SpherePrimitive(
+                pose=_pose(nom),
+                size=Vector3(x=0.05, y=0.05, z=0.05),
+                color=_color((0.6, 0.6, 0.6), 0.7),
+            ),
+        ]
+        label = (
+            f'CoM {1000 * estimated[0]:+.1f} mm ahead of the axle (estimated beta, red); '
+            f'nominal {1000 * nominal[0]:+.1f} mm (grey); q_base {q_base:+.3f} rad; '
+            f'mode {self.mode or "?"}'
+        )
+        texts = [
+            TextPrimitive(
+                pose=_pose(est + np.array([0.0, 0.0, 0.12])),
+                billboard=True,
+                font_size=14.0,
+                scale_invariant=True,
+                color=_color((1.0, 1.0, 1.0)),
+                text=label,
+            )
+        ]
+        return SceneUpdate(
+            entities=[
+                SceneEntity(
+                    frame_id=BASE_FOOTPRINT, id='com', lines=lines, spheres=spheres, texts=texts
+                )
+            ]
+        )
 
     def start(self, port, host='127.0.0.1'):
         """Open the WebSocket server on host:port (0: any free port); returns the port."""
         self.context = foxglove.Context()
         ctx = self.context
-        self.channels = {'/transforms': FrameTransformsChannel('/transforms', context=ctx),
-                         '/robot': SceneUpdateChannel('/robot', context=ctx),
-                         '/com': SceneUpdateChannel('/com', context=ctx)}
+        self.channels = {
+            '/transforms': FrameTransformsChannel('/transforms', context=ctx),
+            '/robot': SceneUpdateChannel('/robot', context=ctx),
+            '/com': SceneUpdateChannel('/com', context=ctx),
+        }
         for topic, fields in JSON_SCHEMAS.items():
             schema = {'type': 'object', 'properties': {k: {'type': t} for k, t in fields.items()}}
-            self.channels[topic] = foxglove.Channel(topic, schema=foxglove.Schema(
-                name='krang' + topic.replace('/', '.'), encoding='jsonschema',
-                data=json.dumps(schema).encode()), message_encoding='json', context=ctx)
+            self.channels[topic] = foxglove.Channel(
+                topic,
+                schema=foxglove.Schema(
+                    name='krang' + topic.replace('/', '.'),
+                    encoding='jsonschema',
+                    data=json.dumps(schema).encode(),
+                ),
+                message_encoding='json',
+                context=ctx,
+            )
         self.server = foxglove.start_server(name='krang', host=host, port=port, context=ctx)
         return self.server.port
 
@@ -214,14 +286,27 @@ class LiveView:
         """The transforms, the CoM marker and the live CoM offset, as they are now."""
         transforms = self.transforms()
         if transforms is not None:
-            self.channels['/transforms'].log(FrameTransforms(transforms=[
-                FrameTransform(parent_frame_id=t.parent, child_frame_id=t.child,
-                               translation=_vec(t.translation), rotation=_quat(t.quaternion))
-                for t in transforms]))
+            self.channels['/transforms'].log(
+                FrameTransforms(
+                    transforms=[
+                        FrameTransform(
+                            parent_frame_id=t.parent,
+                            child_frame_id=t.child,
+                            translation=_vec(t.translation),
+                            rotation=_quat(t.quaternion),
+                        )
+                        for t in transforms
+                    ]
+                )
+            )
         now = self.com_now()
         if now is not None:
             q_base, estimated, nominal = now
             self.channels['/com'].log(self.com_scene(q_base, estimated, nominal))
-            self.channels['/com_live'].log({'q_base_rad': q_base,
-                                            'x_com_mm': 1000.0 * float(estimated[0]),
-                                            'x_com_nominal_mm': 1000.0 * float(nominal[0])})
+            self.channels['/com_live'].log(
+                {
+                    'q_base_rad': q_base,
+                    'x_com_mm': 1000.0 * float(estimated[0]),
+                    'x_com_nominal_mm': 1000.0 * float(nominal[0]),
+                }
+            )

@@ -1,4 +1,5 @@
 """Conversions between our plain-numpy core and ROS messages (no logic beyond packing)."""
+
 import math
 
 import numpy as np
@@ -9,10 +10,14 @@ from std_msgs.msg import Float64MultiArray, MultiArrayDimension
 # Re-exported only for krang_adrc_controller/node.py, which still spells it messages.BASE_PITCH.
 from .names import BASE_PITCH  # noqa: F401
 
-LEVEL = {'ok': DiagnosticStatus.OK, 'warn': DiagnosticStatus.WARN, 'error': DiagnosticStatus.ERROR,
-         'stale': DiagnosticStatus.STALE}
-LEVEL_NAMES = ('ok', 'warn', 'error', 'stale')     # by DiagnosticStatus level number
-UNOBSERVED_VARIANCE = 1e6      # REP-145: a large variance for an orientation axis not measured
+LEVEL = {
+    'ok': DiagnosticStatus.OK,
+    'warn': DiagnosticStatus.WARN,
+    'error': DiagnosticStatus.ERROR,
+    'stale': DiagnosticStatus.STALE,
+}
+LEVEL_NAMES = ('ok', 'warn', 'error', 'stale')  # by DiagnosticStatus level number
+UNOBSERVED_VARIANCE = 1e6  # REP-145: a large variance for an orientation axis not measured
 
 
 def joint_state(stamp, names, positions, velocities=None):
@@ -47,8 +52,11 @@ def labelled_array(values, labels, label='beta'):
     """Float64MultiArray whose layout names every entry ('Body.quantity'), so a bag is readable
     without this package."""
     msg = Float64MultiArray()
-    msg.layout.dim = [MultiArrayDimension(label=label + ':' + ','.join(labels), size=len(values),
-                                          stride=len(values))]
+    msg.layout.dim = [
+        MultiArrayDimension(
+            label=label + ':' + ','.join(labels), size=len(values), stride=len(values)
+        )
+    ]
     msg.data = [float(v) for v in values]
     return msg
 
@@ -83,8 +91,17 @@ def imu(stamp, frame_id, pitch, pitch_variance, angular_velocity, linear_acceler
     m.header.stamp = stamp
     m.header.frame_id = frame_id
     m.orientation.x, m.orientation.y, m.orientation.z, m.orientation.w = pitch_quaternion(pitch)
-    m.orientation_covariance = [UNOBSERVED_VARIANCE, 0.0, 0.0, 0.0, float(pitch_variance), 0.0,
-                                0.0, 0.0, UNOBSERVED_VARIANCE]
+    m.orientation_covariance = [
+        UNOBSERVED_VARIANCE,
+        0.0,
+        0.0,
+        0.0,
+        float(pitch_variance),
+        0.0,
+        0.0,
+        0.0,
+        UNOBSERVED_VARIANCE,
+    ]
     w, f = angular_velocity, linear_acceleration
     m.angular_velocity.x, m.angular_velocity.y, m.angular_velocity.z = (float(v) for v in w)
     m.linear_acceleration.x, m.linear_acceleration.y, m.linear_acceleration.z = (
@@ -95,8 +112,9 @@ def imu(stamp, frame_id, pitch, pitch_variance, angular_velocity, linear_acceler
 
 def diagnostic_status(name, level, message, values=None, hardware_id=''):
     """One DiagnosticStatus; `level` is a name of LEVEL ('ok', 'warn', 'error', 'stale')."""
-    status = DiagnosticStatus(level=LEVEL[level], name=name, message=message,
-                              hardware_id=hardware_id)
+    status = DiagnosticStatus(
+        level=LEVEL[level], name=name, message=message, hardware_id=hardware_id
+    )
     status.values = [KeyValue(key=str(k), value=str(v)) for k, v in (values or {}).items()]
     return status
 

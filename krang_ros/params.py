@@ -9,6 +9,7 @@ parameters, so a YAML file may write them nested or dotted. A field's descriptio
 The core (``flatten``, ``build``, ``override``, ``leaves``) is plain Python, so configurations are
 built and tested without ROS; ``declare`` is the thin rclpy part.
 """
+
 from __future__ import annotations
 
 import array
@@ -28,6 +29,7 @@ class ParameterError(ValueError):
 class Leaf:
     """One parameter: its dotted name, value type (bool, int, float, str or tuple), default and
     description; ``item`` is a tuple's element type (float or str)."""
+
     name: str
     kind: type
     default: Any
@@ -48,8 +50,10 @@ def leaves(cls, prefix: str = '') -> list[Leaf]:
         item = (typing.get_args(kind) or (float,))[0]
         kind = typing.get_origin(kind) or kind
         if kind not in (bool, int, float, str, tuple) or item not in (float, str):
-            raise TypeError(f'{name}: parameters are bool, int, float, str or a tuple of float or '
-                            f'str, not {kind}')
+            raise TypeError(
+                f'{name}: parameters are bool, int, float, str or a tuple of float or '
+                f'str, not {kind}'
+            )
         default = f.default if f.default is not dataclasses.MISSING else f.default_factory()
         out.append(Leaf(name, kind, default, f.metadata.get('doc', ''), item))
     return out
@@ -57,10 +61,14 @@ def leaves(cls, prefix: str = '') -> list[Leaf]:
 
 def describe(cls, prefix: str = '') -> list[str]:
     """One line per parameter, 'name (type, default): description', for a node's --help."""
+
     def type_name(leaf):
         return f'list of {leaf.item.__name__}' if leaf.kind is tuple else leaf.kind.__name__
-    return [f'{prefix}{leaf.name} ({type_name(leaf)}, {leaf.default!r}): {leaf.doc}'
-            for leaf in leaves(cls)]
+
+    return [
+        f'{prefix}{leaf.name} ({type_name(leaf)}, {leaf.default!r}): {leaf.doc}'
+        for leaf in leaves(cls)
+    ]
 
 
 def flatten(config) -> dict[str, Any]:
@@ -79,13 +87,23 @@ def _coerce(leaf: Leaf, v):
     """The value as the field's type; TypeError when it is not one (an int is a float, a bool is
     neither an int nor a float)."""
     k = leaf.kind
-    ok = (isinstance(v, bool) if k is bool
-          else isinstance(v, int) and not isinstance(v, bool) if k is int
-          else isinstance(v, (int, float)) and not isinstance(v, bool) if k is float
-          else isinstance(v, str) if k is str
-          else isinstance(v, (list, tuple, array.array)) and all(
-              isinstance(e, str) if leaf.item is str
-              else isinstance(e, (int, float)) and not isinstance(e, bool) for e in v))
+    ok = (
+        isinstance(v, bool)
+        if k is bool
+        else isinstance(v, int) and not isinstance(v, bool)
+        if k is int
+        else isinstance(v, (int, float)) and not isinstance(v, bool)
+        if k is float
+        else isinstance(v, str)
+        if k is str
+        else isinstance(v, (list, tuple, array.array))
+        and all(
+            isinstance(e, str)
+            if leaf.item is str
+            else isinstance(e, (int, float)) and not isinstance(e, bool)
+            for e in v
+        )
+    )
     if not ok:
         of = {float: ' of numbers', str: ' of strings'}[leaf.item] if k is tuple else ''
         raise TypeError(f'parameter {leaf.name} must be {k.__name__}{of}, got {v!r}')
@@ -143,16 +161,18 @@ def declare(node, cls, prefix: str = ''):
     read their configuration once, at start, so a change at run time is refused with that reason)
     and build ``cls`` from their values.
 
-    The ROS type is not enforced by rclpy (dynamic typing) but by ``build``, so that ``rate_hz: 100``
-    in a YAML file is the float 100.0 rather than an InvalidParameterTypeException, and a wrong type
-    or range is a ParameterError naming the parameter."""
+    The ROS type is not enforced by rclpy (dynamic typing) but by ``build``, so that ``rate_hz:
+    100`` in a YAML file is the float 100.0 rather than an InvalidParameterTypeException, and a
+    wrong type or range is a ParameterError naming the parameter."""
     # imported here so that the core above stays importable and testable without ROS
     from rcl_interfaces.msg import ParameterDescriptor
+
     values = {}
     for leaf in leaves(cls):
         default = list(leaf.default) if leaf.kind is tuple else leaf.default
-        descriptor = ParameterDescriptor(name=prefix + leaf.name, description=leaf.doc,
-                                         read_only=True, dynamic_typing=True)
+        descriptor = ParameterDescriptor(
+            name=prefix + leaf.name, description=leaf.doc, read_only=True, dynamic_typing=True
+        )
         value = node.declare_parameter(prefix + leaf.name, default, descriptor).value
         values[leaf.name] = list(value) if isinstance(value, (tuple, array.array)) else value
     try:

@@ -14,6 +14,7 @@ The tree follows REP-105: odom -> base_footprint -> base_link, then the URDF's l
 - every other URDF joint parent -> child: fixed joints once (/tf_static), moving joints from their
   positions (/tf), both from pinocchio's forward kinematics of the same URDF.
 """
+
 from __future__ import annotations
 
 import math
@@ -36,8 +37,8 @@ class Transform:
 
     parent: str
     child: str
-    translation: np.ndarray    # (3,)
-    rotation: np.ndarray       # (3, 3)
+    translation: np.ndarray  # (3,)
+    rotation: np.ndarray  # (3, 3)
 
     @property
     def quaternion(self):
@@ -91,16 +92,27 @@ class RobotFrames:
         self.model = pin.buildModelFromXML(self.urdf_text)
         self.data = self.model.createData()
         root = ET.fromstring(self.urdf_text)
-        self.joints = [(j.get('name'), j.get('type'), j.find('parent').get('link'),
-                        j.find('child').get('link')) for j in root.findall('joint')]
+        self.joints = [
+            (
+                j.get('name'),
+                j.get('type'),
+                j.find('parent').get('link'),
+                j.find('child').get('link'),
+            )
+            for j in root.findall('joint')
+        ]
         self.links = [link.get('name') for link in root.findall('link')]
-        self._frame = {name: self.model.getFrameId(name, pin.FrameType.BODY)
-                       for name in self.links}
+        self._frame = {
+            name: self.model.getFrameId(name, pin.FrameType.BODY) for name in self.links
+        }
         self._joint_id = {self.model.names[j]: j for j in range(1, self.model.njoints)}
         self.q = pin.neutral(self.model)
         pin.framesForwardKinematics(self.model, self.data, self.q)
-        self._static = [self._relative(parent, child) for _, kind, parent, child in self.joints
-                        if kind == 'fixed']
+        self._static = [
+            self._relative(parent, child)
+            for _, kind, parent, child in self.joints
+            if kind == 'fixed'
+        ]
         imu_in_base_link = self._relative(BASE_LINK, IMU_LINK)
         self._base_link_in_imu = imu_in_base_link.rotation.T
         self.radius, self.track = self._wheel_geometry(root)
@@ -111,8 +123,9 @@ class RobotFrames:
         """Wheel radius (collision cylinder), track (joint origins): as krang_model reads them."""
         joints = {j.get('name'): j for j in root.findall('joint')}
         links = [joints[w].find('child').get('link') for w in WHEELS]
-        radius = float(root.find(f"link[@name='{links[0]}']/collision/geometry/cylinder")
-                       .get('radius'))
+        radius = float(
+            root.find(f"link[@name='{links[0]}']/collision/geometry/cylinder").get('radius')
+        )
         xs = [float(joints[w].find('origin').get('xyz').split()[0]) for w in WHEELS]
         return radius, abs(xs[1] - xs[0])
 
@@ -127,8 +140,9 @@ class RobotFrames:
         out = []
         for t in self._static:
             if t.child == BASE_LINK:
-                out.append(Transform(BASE_LINK, t.parent, -t.rotation.T @ t.translation,
-                                     t.rotation.T))
+                out.append(
+                    Transform(BASE_LINK, t.parent, -t.rotation.T @ t.translation, t.rotation.T)
+                )
             else:
                 out.append(t)
         return out
@@ -140,16 +154,19 @@ class RobotFrames:
             if j is None or not math.isfinite(angle):
                 continue
             jm = self.model.joints[j]
-            if jm.nq == 2:      # continuous joint: (cos, sin)
-                self.q[jm.idx_q:jm.idx_q + 2] = math.cos(angle), math.sin(angle)
+            if jm.nq == 2:  # continuous joint: (cos, sin)
+                self.q[jm.idx_q : jm.idx_q + 2] = math.cos(angle), math.sin(angle)
             else:
                 self.q[jm.idx_q] = angle
         pin.framesForwardKinematics(self.model, self.data, self.q)
 
     def joint_transforms(self, names=None):
         """parent -> child of the moving URDF joints (all, or those in `names`), at set_joints."""
-        return [self._relative(parent, child) for name, kind, parent, child in self.joints
-                if kind != 'fixed' and (names is None or name in names)]
+        return [
+            self._relative(parent, child)
+            for name, kind, parent, child in self.joints
+            if kind != 'fixed' and (names is None or name in names)
+        ]
 
     def base_link_in_footprint(self, imu_quaternion):
         """base_footprint -> base_link from the IMU orientation (x, y, z, w) of imu_link in a

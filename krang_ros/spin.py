@@ -1,5 +1,6 @@
 """The one way our nodes run: init, spin until Ctrl-C or shutdown, then close and shut down
 cleanly, with exit code 0 and no traceback however early the signal comes."""
+
 import sys
 
 import rclpy

@@ -10,6 +10,7 @@ environment has no tf2_msgs) /tf and /tf_static are not published: the node says
 log and still publishes /robot_description. `krang view` uses the same core for Foxglove.
 No parameters.
 """
+
 import sys
 
 from rclpy.node import Node
@@ -24,12 +25,13 @@ from krang_ros.spin import run_node
 try:
     from geometry_msgs.msg import TransformStamped
     from tf2_msgs.msg import TFMessage
-except ImportError:        # a pip environment without tf2_msgs: /tf is not published
+except ImportError:  # a pip environment without tf2_msgs: /tf is not published
     TFMessage = None
 
 ROBOT_DESCRIPTION, TF, TF_STATIC = '/robot_description', '/tf', '/tf_static'
-LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
-                     durability=DurabilityPolicy.TRANSIENT_LOCAL)
+LATCHED = QoSProfile(
+    depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL
+)
 
 
 def transform_stamped(stamp, t):
@@ -55,20 +57,25 @@ class StatePublisherNode(Node):
         description = self.create_publisher(String, ROBOT_DESCRIPTION, LATCHED)
         description.publish(String(data=self.frames.urdf_text))
         qos = topics.QOS
-        self.create_subscription(JointState, names.JOINT_STATES, self.on_joint_states,
-                                 qos[names.JOINT_STATES])
+        self.create_subscription(
+            JointState, names.JOINT_STATES, self.on_joint_states, qos[names.JOINT_STATES]
+        )
         self.create_subscription(Imu, names.IMU, self.on_imu, qos[names.IMU])
         if TFMessage is None:
             self.tf_pub = None
             self.get_logger().warning(
                 'tf2_msgs is not importable (no ROS 2 tf2_msgs in this environment): /tf and '
-                '/tf_static are NOT published; /robot_description is')
+                '/tf_static are NOT published; /robot_description is'
+            )
             return
         self.tf_pub = self.create_publisher(TFMessage, TF, 100)
         static = self.create_publisher(TFMessage, TF_STATIC, LATCHED)
         stamp = self.get_clock().now().to_msg()
-        static.publish(TFMessage(transforms=[transform_stamped(stamp, t)
-                                             for t in self.frames.static_transforms()]))
+        static.publish(
+            TFMessage(
+                transforms=[transform_stamped(stamp, t) for t in self.frames.static_transforms()]
+            )
+        )
 
     def on_imu(self, msg):
         q = msg.orientation
@@ -81,10 +88,12 @@ class StatePublisherNode(Node):
         self.frames.set_joints(positions)
         transforms = self.frames.joint_transforms(set(positions))
         if self.imu_orientation is not None and all(w in positions for w in WHEELS):
-            transforms += self.frames.base_transforms(self.imu_orientation,
-                                                      *(positions[w] for w in WHEELS))
-        self.tf_pub.publish(TFMessage(transforms=[transform_stamped(msg.header.stamp, t)
-                                                  for t in transforms]))
+            transforms += self.frames.base_transforms(
+                self.imu_orientation, *(positions[w] for w in WHEELS)
+            )
+        self.tf_pub.publish(
+            TFMessage(transforms=[transform_stamped(msg.header.stamp, t) for t in transforms])
+        )
 
 
 def main(args=None):

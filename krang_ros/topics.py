@@ -1,19 +1,38 @@
 """QoS of every topic of krang_ros.names, defined once for every node, the recorder and the
 tests."""
-from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy,
-                       qos_profile_sensor_data)
+
+from rclpy.qos import (
+    DurabilityPolicy,
+    HistoryPolicy,
+    QoSProfile,
+    ReliabilityPolicy,
+    qos_profile_sensor_data,
+)
 
 # Re-exported only for krang_adrc_controller/node.py, which still spells names as topics.X.
-from .names import (BALANCED_POSE, BETA, CLOCK, COM, DIAGNOSTICS, GROUND_TRUTH,  # noqa: F401
-                    IMU, JOINT_POSITION_CMD, JOINT_STATES, POSE_TARGET, WHEEL_EFFORT_CMD)
+from .names import (
+    BALANCED_POSE,
+    BETA,
+    CLOCK,
+    COM,
+    DIAGNOSTICS,
+    GROUND_TRUTH,  # noqa: F401
+    IMU,
+    JOINT_POSITION_CMD,
+    JOINT_STATES,
+    POSE_TARGET,
+    WHEEL_EFFORT_CMD,
+)
 
 DEFAULT = QoSProfile(depth=10)
 SENSOR = qos_profile_sensor_data
 COMMAND = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
-KEEP_ALL = QoSProfile(depth=1000, history=HistoryPolicy.KEEP_ALL,
-                      reliability=ReliabilityPolicy.RELIABLE)
-LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
-                     durability=DurabilityPolicy.TRANSIENT_LOCAL)
+KEEP_ALL = QoSProfile(
+    depth=1000, history=HistoryPolicy.KEEP_ALL, reliability=ReliabilityPolicy.RELIABLE
+)
+LATCHED = QoSProfile(
+    depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL
+)
 
 QOS = {
     JOINT_STATES: DEFAULT,

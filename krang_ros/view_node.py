@@ -5,6 +5,7 @@ Subscribes /joint_states, /imu/data, /com_estimator/beta, /com_estimator/com, /d
 controller's 'mode' value) and the latched /adrc_controller/mode (std_msgs/String) if a controller
 publishes one. Publishes nothing on ROS.
 """
+
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PointStamped
 from rclpy.node import Node
@@ -16,8 +17,9 @@ from krang_ros import messages, names, topics
 from krang_ros.foxglove_view import LiveView
 
 CONTROLLER_MODE = '/adrc_controller/mode'
-LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
-                     durability=DurabilityPolicy.TRANSIENT_LOCAL)
+LATCHED = QoSProfile(
+    depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL
+)
 
 
 class LiveViewNode(Node):
@@ -36,8 +38,10 @@ class LiveViewNode(Node):
         self.create_timer(1.0 / rate_hz, self.view.publish)
         self.create_timer(1.0, self.view.publish_scene)
         self.view.publish_scene()
-        self.get_logger().info(f'Foxglove WebSocket server on ws://{host}:{self.port} '
-                               '(Foxglove: Open connection -> Foxglove WebSocket)')
+        self.get_logger().info(
+            f'Foxglove WebSocket server on ws://{host}:{self.port} '
+            '(Foxglove: Open connection -> Foxglove WebSocket)'
+        )
 
     def on_joint_states(self, msg):
         self.view.on_joints(dict(zip(msg.name, msg.position)))

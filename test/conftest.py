@@ -1,4 +1,5 @@
 """Shared fixtures: the real robot data (skipped when absent) and ROS isolation per test run."""
+
 import os
 import random
 from pathlib import Path
@@ -7,9 +8,11 @@ import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 
-# Single-threaded OpenBLAS before numpy is imported, as every node and `krang` run (krang_ros/entry.py).
+# Single-threaded OpenBLAS before numpy is imported, as every node and `krang` run
+# (krang_ros/entry.py).
 os.environ.setdefault('OPENBLAS_NUM_THREADS', '1')
-# Every test process gets its own DDS domain and stays on localhost, so parallel runs never cross-talk.
+# Every test process gets its own DDS domain and stays on localhost, so parallel runs never
+# cross-talk.
 os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
 os.environ.setdefault('ROS_DOMAIN_ID', str(random.Random(os.getpid()).randint(1, 100)))
 
@@ -25,5 +28,8 @@ def krang_data_dir():
 def krang_data():
     path = krang_data_dir()
     if path is None:
-        pytest.skip('real Krang data not found: set KRANG_DATA or place shared/krang_data beside the checkout')
+        pytest.skip(
+            'real Krang data not found: set KRANG_DATA or place shared/krang_data beside the '
+            'checkout'
+        )
     return path

@@ -1,10 +1,10 @@
-"""The package as a ROS user gets it: `colcon build` puts every executable where `ros2 run krang_com
-<exe>` looks and every configuration and launch file under share/ (DESIGN.md §2); each installed
-executable comes up from install/ with the installed configuration; package.xml names a rosdep key
-for every import; the launch files start what `krang bringup` starts."""
+"""The package as a ROS user gets it: `colcon build` puts every executable where `ros2 run
+krang_com <exe>` looks and every configuration and launch file under share/ (DESIGN.md §2); each
+installed executable comes up from install/ with the installed configuration; package.xml names a
+rosdep key for every import; the launch files start what `krang bringup` starts."""
+
 import ast
 import os
-import shutil
 import subprocess
 import sys
 import time
@@ -24,17 +24,34 @@ COLCON = Path(sys.executable).parent / 'colcon'
 
 #: Import name -> rosdep key of package.xml, for every third-party module the package imports.
 ROSDEP_KEYS = {
-    'rclpy': 'rclpy', 'ament_index_python': 'ament_index_python',
-    'builtin_interfaces': 'builtin_interfaces', 'std_msgs': 'std_msgs',
-    'sensor_msgs': 'sensor_msgs', 'geometry_msgs': 'geometry_msgs', 'std_srvs': 'std_srvs',
-    'diagnostic_msgs': 'diagnostic_msgs', 'rcl_interfaces': 'rcl_interfaces',
-    'rosgraph_msgs': 'rosgraph_msgs', 'launch': 'launch', 'launch_ros': 'launch_ros',
-    'pinocchio': 'pinocchio', 'coal': 'pinocchio',      # coal comes with pinocchio
-    'numpy': 'python3-numpy', 'scipy': 'python3-scipy', 'yaml': 'python3-yaml',
-    'matplotlib': 'python3-matplotlib', 'tqdm': 'python3-tqdm', 'can': 'python3-can',
-    'msgpack': 'python3-msgpack', 'canopen': 'python3-canopen', 'cantools': 'python3-cantools',
-    'control': 'python3-control', 'mcap': 'python3-mcap', 'mcap_ros2': 'python3-mcap-ros2-support',
-    'tf2_msgs': 'tf2_msgs', 'foxglove': 'python3-foxglove-sdk',
+    'rclpy': 'rclpy',
+    'ament_index_python': 'ament_index_python',
+    'builtin_interfaces': 'builtin_interfaces',
+    'std_msgs': 'std_msgs',
+    'sensor_msgs': 'sensor_msgs',
+    'geometry_msgs': 'geometry_msgs',
+    'std_srvs': 'std_srvs',
+    'diagnostic_msgs': 'diagnostic_msgs',
+    'rcl_interfaces': 'rcl_interfaces',
+    'rosgraph_msgs': 'rosgraph_msgs',
+    'launch': 'launch',
+    'launch_ros': 'launch_ros',
+    'pinocchio': 'pinocchio',
+    'coal': 'pinocchio',  # coal comes with pinocchio
+    'numpy': 'python3-numpy',
+    'scipy': 'python3-scipy',
+    'yaml': 'python3-yaml',
+    'matplotlib': 'python3-matplotlib',
+    'tqdm': 'python3-tqdm',
+    'can': 'python3-can',
+    'msgpack': 'python3-msgpack',
+    'canopen': 'python3-canopen',
+    'cantools': 'python3-cantools',
+    'control': 'python3-control',
+    'mcap': 'python3-mcap',
+    'mcap_ros2': 'python3-mcap-ros2-support',
+    'tf2_msgs': 'tf2_msgs',
+    'foxglove': 'python3-foxglove-sdk',
 }
 OWN_PACKAGES = {p.name for p in REPO.iterdir() if (p / '__init__.py').exists()}
 
@@ -94,6 +111,7 @@ def fake_launch_modules():
     class Node(dict):
         def __init__(self, **kwargs):
             super().__init__(kwargs)
+
     launch.LaunchDescription = LaunchDescription
     actions.Node = Node
     launch_ros.actions = actions
@@ -123,9 +141,23 @@ def colcon_install(tmp_path_factory):
         pytest.skip('colcon is not installed in this environment (pip: colcon-common-extensions)')
     work = tmp_path_factory.mktemp('colcon')
     result = subprocess.run(
-        [str(COLCON), 'build', '--base-paths', str(REPO), '--build-base', str(work / 'build'),
-         '--install-base', str(work / 'install'), '--event-handlers', 'console_direct-'],
-        cwd=work, capture_output=True, text=True, timeout=300)
+        [
+            str(COLCON),
+            'build',
+            '--base-paths',
+            str(REPO),
+            '--build-base',
+            str(work / 'build'),
+            '--install-base',
+            str(work / 'install'),
+            '--event-handlers',
+            'console_direct-',
+        ],
+        cwd=work,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert result.returncode == 0, result.stdout[-2000:] + result.stderr[-2000:]
     return work / 'install' / 'krang_com'
 
@@ -134,7 +166,9 @@ def test_colcon_install_layout(colcon_install):
     prefix = colcon_install
     for exe in EXECUTABLES:
         assert (prefix / 'lib' / 'krang_com' / exe).is_file(), exe
-    assert (prefix / 'share' / 'ament_index' / 'resource_index' / 'packages' / 'krang_com').exists()
+    assert (
+        prefix / 'share' / 'ament_index' / 'resource_index' / 'packages' / 'krang_com'
+    ).exists()
     share = prefix / 'share' / 'krang_com'
     assert (share / 'package.xml').exists()
     for source in sorted((REPO / 'config').iterdir()):
@@ -150,7 +184,8 @@ def installed_env(prefix):
     env = dict(os.environ)
     env['PYTHONPATH'] = str(site)
     env['AMENT_PREFIX_PATH'] = os.pathsep.join(
-        [str(prefix)] + [p for p in env.get('AMENT_PREFIX_PATH', '').split(os.pathsep) if p])
+        [str(prefix)] + [p for p in env.get('AMENT_PREFIX_PATH', '').split(os.pathsep) if p]
+    )
     return env
 
 
@@ -164,33 +199,55 @@ def test_installed_executables_come_up(colcon_install, tmp_path):
     prefix = colcon_install
     env = installed_env(prefix)
     lib, share = prefix / 'lib' / 'krang_com', prefix / 'share' / 'krang_com' / 'config'
-    out = subprocess.run([str(lib / 'krang'), '--help'], env=env, cwd=tmp_path,
-                         capture_output=True, text=True, timeout=60)
+    out = subprocess.run(
+        [str(lib / 'krang'), '--help'],
+        env=env,
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert out.returncode == 0 and 'demo' in out.stdout, out.stderr[-2000:]
-    probe = ("import krang_model.config as c, krang_cli; "
-             "print(c.config_dir()); print(krang_cli.__file__)")
-    where = subprocess.run([sys.executable, '-c', probe], env=env, cwd=tmp_path,
-                           capture_output=True, text=True, timeout=60).stdout.split()
+    probe = (
+        'import krang_model.config as c, krang_cli; '
+        'print(c.config_dir()); print(krang_cli.__file__)'
+    )
+    where = subprocess.run(
+        [sys.executable, '-c', probe],
+        env=env,
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=60,
+    ).stdout.split()
     assert Path(where[0]).resolve() == share.resolve()
     assert Path(where[1]).resolve().is_relative_to(prefix.resolve())
 
     from krang_sim.session_config import session_devices_file
+
     devices = session_devices_file(tmp_path)
     files = [share / n for n in ('controller.yaml', 'krang_params.yaml', 'sim_params.yaml')]
-    extra = {'can_bridge': {'devices_file': devices}, 'sim_krang': {'devices_file': devices},
-             'mcap_recorder': {'output': tmp_path / 'x.mcap'},
-             'com_estimator': {'output': tmp_path / 'beta.yaml'}}
+    extra = {
+        'can_bridge': {'devices_file': devices},
+        'sim_krang': {'devices_file': devices},
+        'mcap_recorder': {'output': tmp_path / 'x.mcap'},
+        'com_estimator': {'output': tmp_path / 'beta.yaml'},
+    }
     procs = {}
     rclpy.init()
     probe_node = Node('layout_probe')
     try:
         for exe in NODES:
-            cmd = [str(lib / exe), '--ros-args'] + [a for f in files for a in ('--params-file', str(f))]
+            cmd = [str(lib / exe), '--ros-args'] + [
+                a for f in files for a in ('--params-file', str(f))
+            ]
             for key, value in extra.get(exe, {}).items():
                 cmd += ['-p', f'{key}:={value}']
             log = open(tmp_path / f'{exe}.log', 'w')
-            procs[exe] = (subprocess.Popen(cmd, env=env, cwd=tmp_path, stdout=log,
-                                           stderr=subprocess.STDOUT), log)
+            procs[exe] = (
+                subprocess.Popen(cmd, env=env, cwd=tmp_path, stdout=log, stderr=subprocess.STDOUT),
+                log,
+            )
         deadline = time.monotonic() + 60.0
         seen = set()
         while time.monotonic() < deadline and seen != set(NODES):
@@ -198,7 +255,8 @@ def test_installed_executables_come_up(colcon_install, tmp_path):
             seen = set(probe_node.get_node_names()) & set(NODES)
             dead = {e: p.poll() for e, (p, _) in procs.items() if p.poll() is not None}
             assert not dead, f'installed nodes exited: {dead}: ' + ' | '.join(
-                (tmp_path / f'{e}.log').read_text()[-800:] for e in dead)
+                (tmp_path / f'{e}.log').read_text()[-800:] for e in dead
+            )
         assert seen == set(NODES), f'not in the graph after 60 s: {set(NODES) - seen}'
     finally:
         probe_node.destroy_node()

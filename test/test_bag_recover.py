@@ -4,6 +4,7 @@ killed -9.
 What "should" be recovered is computed from the intact original's chunk index (messages of every
 chunk that lies wholly before the cut), and payloads are compared byte for byte with the original.
 """
+
 import json
 import os
 import signal
@@ -63,11 +64,17 @@ def rosbags_counts(path):
 def original(tmp_path_factory):
     path = tmp_path_factory.mktemp('orig') / 'finished.mcap'
     with BagWriter(path, chunk_size=2048) as writer:
-        writer.add_topic('/com_estimator/beta', 'std_msgs/msg/Float64MultiArray',
-                         offered_qos=[OfferedQos.latched()])
+        writer.add_topic(
+            '/com_estimator/beta',
+            'std_msgs/msg/Float64MultiArray',
+            offered_qos=[OfferedQos.latched()],
+        )
         for i in range(N):
-            writer.write_message('/wheel_effort_cmd' if i % 4 else '/com_estimator/beta',
-                                 Float64MultiArray(data=[float(i), -float(i), 0.5]), T0 + 1000 * i)
+            writer.write_message(
+                '/wheel_effort_cmd' if i % 4 else '/com_estimator/beta',
+                Float64MultiArray(data=[float(i), -float(i), 0.5]),
+                T0 + 1000 * i,
+            )
     messages, summary = read_all(path)
     assert len(messages) == N and len(summary.chunk_indexes) > 10
     return path, messages, summary
@@ -97,9 +104,17 @@ def expected_prefix(messages, summary, cut):
     return [m for m in messages if m[1] <= last]
 
 
-@pytest.mark.parametrize('where', ['mid_chunk', 'inside_chunk_header', 'right_after_a_chunk',
-                                   'one_chunk_in',
-                                   'nothing_complete', 'ninety_percent_of_data'])
+@pytest.mark.parametrize(
+    'where',
+    [
+        'mid_chunk',
+        'inside_chunk_header',
+        'right_after_a_chunk',
+        'one_chunk_in',
+        'nothing_complete',
+        'ninety_percent_of_data',
+    ],
+)
 def test_torn_bag_is_recovered_up_to_the_last_complete_chunk(original, tmp_path, where):
     path, messages, summary = original
     data = path.read_bytes()
@@ -114,15 +129,15 @@ def test_torn_bag_is_recovered_up_to_the_last_complete_chunk(original, tmp_path,
     want = expected_prefix(messages, summary, cut)
     assert report.truncated and not report.data_complete
     assert report.messages == len(want)
-    got, rescued_summary = read_all(report.output)            # a finished, indexed file again
-    assert got == want                                         # same topics, times and bytes
+    got, rescued_summary = read_all(report.output)  # a finished, indexed file again
+    assert got == want  # same topics, times and bytes
     assert rescued_summary.statistics.message_count == len(want)
     if want:
         assert sum(rosbags_counts(report.output).values()) == len(want)
         channels = {c.topic: c for c in rescued_summary.channels.values()}
         original_channels = {c.topic: c for c in summary.channels.values()}
         for topic, channel in channels.items():
-            assert channel.metadata == original_channels[topic].metadata   # QoS + type hash kept
+            assert channel.metadata == original_channels[topic].metadata  # QoS + type hash kept
 
 
 def test_torn_summary_loses_nothing(original, tmp_path):
@@ -131,7 +146,7 @@ def test_torn_summary_loses_nothing(original, tmp_path):
     # cut inside the summary section: after DataEnd every message is already on disk
     summary_start = _footer_summary_start(path)
     torn = tmp_path / 'torn_summary.mcap'
-    torn.write_bytes(data[:summary_start + 20])
+    torn.write_bytes(data[: summary_start + 20])
     assert unreadable_by_standard_readers(torn)
     report = recover(torn, tmp_path / 'rescued.mcap')
     assert report.truncated and report.data_complete
@@ -141,6 +156,7 @@ def test_torn_summary_loses_nothing(original, tmp_path):
 def _footer_summary_start(path):
     from mcap.records import Footer
     from mcap.stream_reader import StreamReader
+
     return next(r for r in StreamReader(str(path)).records if isinstance(r, Footer)).summary_start
 
 
@@ -148,8 +164,10 @@ def test_finished_bag_round_trips_unchanged(original, tmp_path):
     path, messages, _ = original
     report = recover(path, tmp_path / 'copy.mcap')
     assert not report.truncated and report.data_complete and report.bad_chunks == 0
-    assert report.messages == N and report.topics == {'/com_estimator/beta': 100,
-                                                      '/wheel_effort_cmd': 300}
+    assert report.messages == N and report.topics == {
+        '/com_estimator/beta': 100,
+        '/wheel_effort_cmd': 300,
+    }
     assert read_all(report.output)[0] == messages
 
 
@@ -183,8 +201,12 @@ KILLED_WRITER = textwrap.dedent("""
 
 def test_writer_killed_with_sigkill_is_recovered(tmp_path):
     bag, sent = tmp_path / 'killed.mcap', 300
-    proc = subprocess.Popen([sys.executable, '-c', KILLED_WRITER, str(bag), str(sent)], cwd=REPO,
-                            stdout=subprocess.PIPE, text=True)
+    proc = subprocess.Popen(
+        [sys.executable, '-c', KILLED_WRITER, str(bag), str(sent)],
+        cwd=REPO,
+        stdout=subprocess.PIPE,
+        text=True,
+    )
     try:
         assert proc.stdout.readline().strip() == 'written'
     finally:
@@ -202,8 +224,10 @@ def test_writer_killed_with_sigkill_is_recovered(tmp_path):
     for i, (topic, log_time, data) in enumerate(got):
         assert (topic, log_time) == ('/wheel_effort_cmd', 10**18 + i)
     from rclpy.serialization import deserialize_message
-    assert [deserialize_message(d, Float64MultiArray).data[0] for _, _,
-            d in got] == list(range(kept))
+
+    assert [deserialize_message(d, Float64MultiArray).data[0] for _, _, d in got] == list(
+        range(kept)
+    )
     # message record: opcode, length, header fields, data
     per_message = len(got[0][2]) + 31
     assert 0 < kept and sent - kept <= 2048 // per_message + 1
@@ -229,7 +253,7 @@ def test_recover_errors(tmp_path, original):
 def test_cli_recover(original, tmp_path, capsys):
     path, messages, summary = original
     torn = tmp_path / 'torn.mcap'
-    torn.write_bytes(path.read_bytes()[:int(0.5 * path.stat().st_size)])
+    torn.write_bytes(path.read_bytes()[: int(0.5 * path.stat().st_size)])
     out = tmp_path / 'rescued.mcap'
     assert bag_cli.main(['recover', str(torn), '--out', str(out), '--json']) == 0
     report = json.loads(capsys.readouterr().out.strip().splitlines()[-1])

@@ -3,6 +3,7 @@ the values, counts, QoS metadata and type hashes we put in; our reader agrees wi
 
 Expected values come from the test's own source data, never from the writer's bookkeeping.
 """
+
 import json
 from pathlib import Path
 
@@ -41,8 +42,14 @@ QOS = {
     '/imu/data': [OfferedQos.sensor_data()],
     '/com_estimator/beta': [OfferedQos.latched()],
 }
-COUNTS = {'/joint_states': 60, '/imu/data': 45, '/wheel_effort_cmd': 30, '/com_estimator/beta': 3,
-          '/com_estimator/com': 10, '/diagnostics': 5}
+COUNTS = {
+    '/joint_states': 60,
+    '/imu/data': 45,
+    '/wheel_effort_cmd': 30,
+    '/com_estimator/beta': 3,
+    '/com_estimator/com': 10,
+    '/diagnostics': 5,
+}
 
 
 def joint_state(i):
@@ -59,7 +66,7 @@ def imu(i):
     msg.header.frame_id = 'imu'
     msg.angular_velocity.y = 0.01 * i
     msg.linear_acceleration.z = 9.81
-    msg.orientation_covariance = np.diag([1e-3, 2e-3, 3e-3 + i]).ravel()   # numpy fields
+    msg.orientation_covariance = np.diag([1e-3, 2e-3, 3e-3 + i]).ravel()  # numpy fields
     msg.angular_velocity_covariance = np.full(9, 0.5)
     return msg
 
@@ -67,8 +74,9 @@ def imu(i):
 def float_array(values, labels=None):
     msg = Float64MultiArray(data=list(values))
     if labels:
-        msg.layout.dim = [MultiArrayDimension(label=','.join(labels), size=len(values),
-                                              stride=len(values))]
+        msg.layout.dim = [
+            MultiArrayDimension(label=','.join(labels), size=len(values), stride=len(values))
+        ]
     return msg
 
 
@@ -80,29 +88,36 @@ def point(i):
 
 
 def diagnostics(i):
-    status = DiagnosticStatus(level=DiagnosticStatus.WARN, name='can_bridge', message=f'tick {i}',
-                              hardware_id='can0', values=[KeyValue(key='frames',
-                                                                   value=str(100 * i))])
+    status = DiagnosticStatus(
+        level=DiagnosticStatus.WARN,
+        name='can_bridge',
+        message=f'tick {i}',
+        hardware_id='can0',
+        values=[KeyValue(key='frames', value=str(100 * i))],
+    )
     return DiagnosticArray(status=[status])
 
 
 def source_messages():
     """(topic, log_time_ns, message) in time order, interleaving all topics."""
     makers = {
-        '/joint_states': joint_state, '/imu/data': imu, '/com_estimator/com': point,
+        '/joint_states': joint_state,
+        '/imu/data': imu,
+        '/com_estimator/com': point,
         '/diagnostics': diagnostics,
         '/wheel_effort_cmd': lambda i: float_array([0.1 * i, -0.1 * i]),
         '/com_estimator/beta': lambda i: float_array(np.arange(8) + 10.0 * i, BETA_LABELS),
     }
     slots = sorted((k / COUNTS[topic], topic, k) for topic in COUNTS for k in range(COUNTS[topic]))
-    return [(topic, T0 + 1_000_000 * n, k, makers[topic](k)) for n, (_, topic,
-                                                                     k) in enumerate(slots)]
+    return [
+        (topic, T0 + 1_000_000 * n, k, makers[topic](k)) for n, (_, topic, k) in enumerate(slots)
+    ]
 
 
 @pytest.fixture(scope='module')
 def bag(tmp_path_factory):
     path = tmp_path_factory.mktemp('bag') / 'session.mcap'
-    with BagWriter(path, chunk_size=4096) as writer:   # small chunks: many of them
+    with BagWriter(path, chunk_size=4096) as writer:  # small chunks: many of them
         for topic, type_name in TYPES.items():
             writer.add_topic(topic, type_name, offered_qos=QOS.get(topic))
         for topic, log_time, _, msg in source_messages():
@@ -133,9 +148,11 @@ def check_values(topic, got):
             assert (msg.point.x, msg.point.z) == pytest.approx((0.001 * k, 0.5))
         elif topic == '/diagnostics':
             (status,) = msg.status
-            assert (status.name, status.message, status.values[0].value) == ('can_bridge',
-                                                                             f'tick {k}',
-                                                                             str(100 * k))
+            assert (status.name, status.message, status.values[0].value) == (
+                'can_bridge',
+                f'tick {k}',
+                str(100 * k),
+            )
             assert status.level in (DiagnosticStatus.WARN, DiagnosticStatus.WARN[0])
 
 
@@ -168,7 +185,8 @@ def test_mcap_ros2_decodes_every_message_from_the_embedded_schemas(bag):
     got = {topic: [] for topic in TYPES}
     with open(bag, 'rb') as stream:
         for _, channel, message, decoded in make_reader(
-                stream, decoder_factories=[DecoderFactory()]).iter_decoded_messages():
+            stream, decoder_factories=[DecoderFactory()]
+        ).iter_decoded_messages():
             got[channel.topic].append((message.log_time, decoded))
     assert {t: len(v) for t, v in got.items()} == COUNTS
     for topic, messages in got.items():
@@ -190,13 +208,23 @@ def test_file_follows_the_rosbag2_mcap_contract(bag):
     assert {t: stats.channel_message_counts[c.id] for t, c in by_topic.items()} == COUNTS
     for topic, channel in by_topic.items():
         schema = summary.schemas[channel.schema_id]
-        assert (schema.name, schema.encoding, channel.message_encoding) == (TYPES[topic],
-                                                                            'ros2msg', 'cdr')
+        assert (schema.name, schema.encoding, channel.message_encoding) == (
+            TYPES[topic],
+            'ros2msg',
+            'cdr',
+        )
         profiles = yaml.safe_load(channel.metadata['offered_qos_profiles'])
-        assert set(profiles[0]) == {'history', 'depth', 'reliability', 'durability', 'deadline',
-                                    'lifespan',
-                                    'liveliness', 'liveliness_lease_duration',
-                                    'avoid_ros_namespace_conventions'}
+        assert set(profiles[0]) == {
+            'history',
+            'depth',
+            'reliability',
+            'durability',
+            'deadline',
+            'lifespan',
+            'liveliness',
+            'liveliness_lease_duration',
+            'avoid_ros_namespace_conventions',
+        }
         assert profiles[0]['deadline'] == {'sec': 9223372036, 'nsec': 854775807}
         assert profiles[0]['history'] == 'keep_last' and profiles[0]['liveliness'] == 'automatic'
         # The type hash must be the one rosbags computes from the schema text we embedded.
@@ -214,14 +242,22 @@ def test_file_follows_the_rosbag2_mcap_contract(bag):
 def test_schema_text_and_hash_match_rosidl():
     text = schemas.message_definition('sensor_msgs/Imu')
     sections = text.split('\n' + '=' * 80 + '\n')
-    assert sections[0].strip().endswith('float64[9] linear_acceleration_covariance # Row major x, '
-                                        'y z')
+    assert (
+        sections[0]
+        .strip()
+        .endswith('float64[9] linear_acceleration_covariance # Row major x, y z')
+    )
     assert [s.splitlines()[0] for s in sections[1:]] == [
-        'MSG: geometry_msgs/Quaternion', 'MSG: geometry_msgs/Vector3', 'MSG: std_msgs/Header',
-        'MSG: builtin_interfaces/Time']
+        'MSG: geometry_msgs/Quaternion',
+        'MSG: geometry_msgs/Vector3',
+        'MSG: std_msgs/Header',
+        'MSG: builtin_interfaces/Time',
+    ]
     # rclpy reports this hash for Imu publishers (see notes); rosidl's JSON is the source.
-    assert schemas.type_hash('sensor_msgs/msg/Imu') == \
-        'RIHS01_7d9a00ff131080897a5ec7e26e315954b8eae3353c3f995c55faf71574000b5b'
+    assert (
+        schemas.type_hash('sensor_msgs/msg/Imu')
+        == 'RIHS01_7d9a00ff131080897a5ec7e26e315954b8eae3353c3f995c55faf71574000b5b'
+    )
     assert schemas.type_name_of(Imu()) == 'sensor_msgs/msg/Imu'
     with pytest.raises(schemas.SchemaNotFoundError):
         schemas.message_definition('sensor_msgs/msg/NoSuchType')
@@ -266,10 +302,14 @@ def test_array_helpers(bag):
 def test_joint_states_with_changing_names_are_aligned(tmp_path):
     path = tmp_path / 'js.mcap'
     with BagWriter(path) as writer:
-        writer.write_message('/joint_states', JointState(name=['a', 'b'], position=[1.0, 2.0],
-                                                         velocity=[]), T0)
-        writer.write_message('/joint_states', JointState(name=['b', 'c'], position=[3.0, 4.0],
-                                                         velocity=[0.3, 0.4]), T0 + 1)
+        writer.write_message(
+            '/joint_states', JointState(name=['a', 'b'], position=[1.0, 2.0], velocity=[]), T0
+        )
+        writer.write_message(
+            '/joint_states',
+            JointState(name=['b', 'c'], position=[3.0, 4.0], velocity=[0.3, 0.4]),
+            T0 + 1,
+        )
     series = bag_reader.read_joint_states(path)
     assert series.names == ['a', 'b', 'c']
     np.testing.assert_array_equal(series.positions, [[1, 2, np.nan], [np.nan, 3, 4]])
@@ -279,7 +319,7 @@ def test_joint_states_with_changing_names_are_aligned(tmp_path):
 def test_clear_errors_for_missing_and_broken_files(tmp_path, bag):
     with pytest.raises(bag_reader.BagNotFoundError):
         bag_reader.message_counts(tmp_path / 'missing.mcap')
-    with pytest.raises(FileNotFoundError):   # also a FileNotFoundError for generic callers
+    with pytest.raises(FileNotFoundError):  # also a FileNotFoundError for generic callers
         list(bag_reader.iter_messages(tmp_path / 'missing.mcap'))
     junk = tmp_path / 'junk.mcap'
     junk.write_bytes(b'this is not an mcap file at all' * 10)
@@ -333,6 +373,7 @@ def test_cli_help_explains(capsys):
 def test_bag_without_statistics_is_counted_by_scanning(tmp_path):
     """Other writers may omit the statistics record; counts then come from reading the file."""
     from mcap.writer import Writer
+
     path = tmp_path / 'nostats.mcap'
     with open(path, 'wb') as stream:
         writer = Writer(stream, use_statistics=False)

@@ -1,5 +1,6 @@
 """The controller's configuration: nested dataclasses <-> dotted ROS parameters
 (krang_ros/params.py, without ROS), and the parameter files that set them."""
+
 from dataclasses import dataclass, field
 
 import pytest
@@ -25,15 +26,21 @@ class Outer:
 
 
 def test_flatten_uses_dotted_names_and_lists():
-    assert params.flatten(Outer()) == {'name': 'x', 'weights': [1.0, 2.0], 'inner.gain': 2.0,
-                                       'inner.count': 3, 'inner.on': True}
+    assert params.flatten(Outer()) == {
+        'name': 'x',
+        'weights': [1.0, 2.0],
+        'inner.gain': 2.0,
+        'inner.count': 3,
+        'inner.on': True,
+    }
 
 
 def test_round_trip():
     cfg = Outer(name='y', weights=(3.0,), inner=Inner(gain=-1.5, count=7, on=False))
     assert params.build(Outer, params.flatten(cfg)) == cfg
-    full = ControllerConfig().override({'adrc.eso.omega_o': 7.0,
-                                        'modes.stand_gains': [1, 2, 3, 4, 5, 6]})
+    full = ControllerConfig().override(
+        {'adrc.eso.omega_o': 7.0, 'modes.stand_gains': [1, 2, 3, 4, 5, 6]}
+    )
     assert params.build(ControllerConfig, params.flatten(full)) == full
     assert full.adrc.eso.omega_o == 7.0
     assert full.modes.stand_gains == (1.0, 2.0, 3.0, 4.0, 5.0, 6.0)
@@ -50,15 +57,24 @@ def test_unknown_names_are_rejected():
     with pytest.raises(ValueError, match=r"unknown Outer parameters: \['inner.gian'\]"):
         params.build(Outer, {'inner.gian': 1.0})
     with pytest.raises(ValueError, match='unknown'):
-        params.build(Outer, {'inner': 1.0})           # a group is not a parameter
+        params.build(Outer, {'inner': 1.0})  # a group is not a parameter
     with pytest.raises(ValueError, match='unknown'):
         load_controller_config(overrides={'no_such_gain': 1.0})
 
 
-@pytest.mark.parametrize('name,value', [('inner.gain', 'fast'), ('inner.gain', True),
-                                        ('inner.count', 2.5), ('inner.count', False),
-                                        ('inner.on', 1), ('name', 3), ('weights', 1.0),
-                                        ('weights', ['a'])])
+@pytest.mark.parametrize(
+    'name,value',
+    [
+        ('inner.gain', 'fast'),
+        ('inner.gain', True),
+        ('inner.count', 2.5),
+        ('inner.count', False),
+        ('inner.on', 1),
+        ('name', 3),
+        ('weights', 1.0),
+        ('weights', ['a']),
+    ],
+)
 def test_types_are_checked(name, value):
     with pytest.raises(TypeError, match=name):
         params.build(Outer, {name: value})
@@ -85,8 +101,11 @@ def test_leaves_carry_type_default_and_description():
 
 def test_nested_yaml_reads_as_dotted():
     doc = {'rate_hz': 100.0, 'adrc': {'eso': {'omega_o': 10.0}}, 'safety.stale_timeout_s': 0.5}
-    assert params.nested_to_dotted(doc) == {'rate_hz': 100.0, 'adrc.eso.omega_o': 10.0,
-                                            'safety.stale_timeout_s': 0.5}
+    assert params.nested_to_dotted(doc) == {
+        'rate_hz': 100.0,
+        'adrc.eso.omega_o': 10.0,
+        'safety.stale_timeout_s': 0.5,
+    }
 
 
 def _controller_section(name):

@@ -1,4 +1,5 @@
 """Files a user keeps are written atomically, and bad input files give one clear line."""
+
 import os
 import signal
 import subprocess
@@ -38,6 +39,7 @@ def test_reader_never_sees_a_partial_beta(robot, tmp_path):
                 reads['ok'] += 1
             except Exception as err:  # noqa: BLE001 - record any failure, assert below
                 reads['bad'].append(f'{err!r}: {len(text)} chars')
+
     thread = threading.Thread(target=reader)
     thread.start()
     for k in range(300):
@@ -51,10 +53,12 @@ def test_reader_never_sees_a_partial_beta(robot, tmp_path):
 def test_sigkill_while_saving_leaves_a_whole_file(tmp_path):
     """SIGKILL a process that saves in a loop: the file on disk is always a whole beta."""
     path = tmp_path / 'beta.yaml'
-    code = ('import sys; from krang_model.beta import save_beta; from krang_model.robot import '
-            'load_krang; r = load_krang(); b = r.nominal_beta\n'
-            'save_beta(sys.argv[1], b, r); print("ready", flush=True)\n'
-            'while True: save_beta(sys.argv[1], b, r)\n')
+    code = (
+        'import sys; from krang_model.beta import save_beta; from krang_model.robot import '
+        'load_krang; r = load_krang(); b = r.nominal_beta\n'
+        'save_beta(sys.argv[1], b, r); print("ready", flush=True)\n'
+        'while True: save_beta(sys.argv[1], b, r)\n'
+    )
     robot = load_krang()
     for delay in (0.05, 0.11, 0.23, 0.37, 0.5):
         proc = subprocess.Popen([sys.executable, '-c', code, str(path)], stdout=subprocess.PIPE)
@@ -101,7 +105,7 @@ def test_truncated_pose_file(tmp_path, robot):
     rows[:, 0] = -1.5
     text = pose_csv(tmp_path, rows).read_text()
     cut = tmp_path / 'cut.csv'
-    cut.write_text(text[:len(text) - 20])
+    cut.write_text(text[: len(text) - 20])
     with pytest.raises(PoseFileError, match='line 5 has fewer values'):
         load_poses(cut, KRANG_POSE_COLUMNS)
 
@@ -114,7 +118,7 @@ def test_pose_outside_the_joint_limits(tmp_path, robot):
     path = pose_csv(tmp_path, rows)
     with pytest.raises(PoseFileError, match=r'line 3: q_left_4 = .* outside the joint limits'):
         load_poses(path, KRANG_POSE_COLUMNS, (robot.lower, robot.upper))
-    load_poses(path, KRANG_POSE_COLUMNS)      # without limits the file itself is fine
+    load_poses(path, KRANG_POSE_COLUMNS)  # without limits the file itself is fine
 
 
 def test_negative_row_is_refused(tmp_path, robot):

@@ -1,5 +1,6 @@
 """Base pitch from DMU samples: kore's geometry with the -45 deg mount, bias removal, the Kalman
 filter, and a gyro bias the filter is not told of (sitting and in the closed loop)."""
+
 import dataclasses
 import math
 
@@ -58,17 +59,29 @@ def run(estimator, pitch_of_t, rate_of_t, mount, bias, duration=3.0, dt=0.002, n
 
 
 def test_constant_pitch_on_the_caster_is_recovered(imu):
-    est = run(ImuPitchEstimator(imu), lambda t: -1.76, lambda t: 0.0, imu.mount_angle_rad,
-              imu.gyro_bias_rad_s, noise=0.01)
+    est = run(
+        ImuPitchEstimator(imu),
+        lambda t: -1.76,
+        lambda t: 0.0,
+        imu.mount_angle_rad,
+        imu.gyro_bias_rad_s,
+        noise=0.01,
+    )
     assert est.ready
     assert est.pitch == pytest.approx(-1.76, abs=0.01)
-    assert est.pitch_rate == pytest.approx(0.0, abs=0.02)      # the -0.14 rad/s bias is gone
+    assert est.pitch_rate == pytest.approx(0.0, abs=0.02)  # the -0.14 rad/s bias is gone
 
 
 def test_pitch_ramp_is_tracked(imu):
     rate = 0.2
-    est = run(ImuPitchEstimator(imu), lambda t: -1.2 + rate * t, lambda t: rate,
-              imu.mount_angle_rad, imu.gyro_bias_rad_s, duration=3.0)
+    est = run(
+        ImuPitchEstimator(imu),
+        lambda t: -1.2 + rate * t,
+        lambda t: rate,
+        imu.mount_angle_rad,
+        imu.gyro_bias_rad_s,
+        duration=3.0,
+    )
     assert est.pitch == pytest.approx(-1.2 + rate * (3.0 - 0.002), abs=0.005)
     assert est.pitch_rate == pytest.approx(rate, abs=0.01)
 
@@ -77,10 +90,22 @@ def test_mount_angle_is_honoured(imu):
     """Data from a DMU mounted at 0 deg: an estimator configured for 0 recovers the pitch, one
     configured for -45 deg does not (the tilt is read on the wrong axis)."""
     flat = dataclasses.replace(imu, mount_angle_rad=0.0)
-    good = run(ImuPitchEstimator(flat), lambda t: -0.7, lambda t: 0.0, 0.0, flat.gyro_bias_rad_s,
-               duration=0.5)
-    wrong = run(ImuPitchEstimator(imu), lambda t: -0.7, lambda t: 0.0, 0.0, imu.gyro_bias_rad_s,
-                duration=0.5)
+    good = run(
+        ImuPitchEstimator(flat),
+        lambda t: -0.7,
+        lambda t: 0.0,
+        0.0,
+        flat.gyro_bias_rad_s,
+        duration=0.5,
+    )
+    wrong = run(
+        ImuPitchEstimator(imu),
+        lambda t: -0.7,
+        lambda t: 0.0,
+        0.0,
+        imu.gyro_bias_rad_s,
+        duration=0.5,
+    )
     assert good.pitch == pytest.approx(-0.7, abs=1e-3)
     assert abs(wrong.pitch - -0.7) > 0.1
 
@@ -103,6 +128,7 @@ def test_pitch_survives_axle_acceleration():
 
     from krang_can_bridge.config import load_devices
     from krang_can_bridge.imu_filter import PitchKalmanFilter, pitch_measurement, sensor_vectors
+
     cfg = load_devices().imu
     rng = np.random.default_rng(0)
 
@@ -112,19 +138,27 @@ def test_pitch_survives_axle_acceleration():
             t = k * dt
             pitch = -1.55 + 0.08 * math.sin(2 * math.pi * 0.4 * t)
             rate = 0.08 * 2 * math.pi * 0.4 * math.cos(2 * math.pi * 0.4 * t)
-            accel = 3.0 * math.sin(2 * math.pi * 0.7 * t + 1.0)   # m/s^2 along the floor
-            force, rates = sensor_vectors(pitch, rate, cfg.mount_angle_rad,
-                                          forward_specific_force=accel)
-            measured = pitch_measurement(force + rng.normal(0, 0.02, 3),
-                                         rates + rng.normal(0, 0.002, 3), cfg.mount_angle_rad)
+            accel = 3.0 * math.sin(2 * math.pi * 0.7 * t + 1.0)  # m/s^2 along the floor
+            force, rates = sensor_vectors(
+                pitch, rate, cfg.mount_angle_rad, forward_specific_force=accel
+            )
+            measured = pitch_measurement(
+                force + rng.normal(0, 0.02, 3),
+                rates + rng.normal(0, 0.002, 3),
+                cfg.mount_angle_rad,
+            )
             estimate, _ = kalman.update(*measured, dt if k else 0.0)
             if t > 10:
                 errors.append(estimate - pitch)
         return float(np.sqrt(np.mean(np.square(errors))))
+
     k = cfg.kalman
     ours = rms_error(PitchKalmanFilter.from_config(k))
-    kore = rms_error(PitchKalmanFilter.from_config(
-        dataclasses.replace(k, measurement_noise_angle=1e-3, measurement_noise_rate=1e-3)))
+    kore = rms_error(
+        PitchKalmanFilter.from_config(
+            dataclasses.replace(k, measurement_noise_angle=1e-3, measurement_noise_rate=1e-3)
+        )
+    )
     assert ours < 0.005
     assert kore > 5 * ours
 
@@ -133,7 +167,7 @@ def test_pitch_survives_axle_acceleration():
 # The DMU as sim_krang emulates it: 200 Hz, noise 0.002 rad/s and 0.02 m/s^2, LSB-quantised.
 DMU_DT, RATE_STD, ACCEL_STD = 0.005, 0.002, 0.02
 RATE_LSB, ACCEL_LSB = math.radians(0.008), 0.0003 * 9.80665
-BIASES = (0.01, -0.01, 0.004)       # rad/s about the pitch axis; 0.004 was not used in the tuning
+BIASES = (0.01, -0.01, 0.004)  # rad/s about the pitch axis; 0.004 was not used in the tuning
 
 
 class BiasedDmu:
@@ -190,7 +224,7 @@ def test_bias_appearing_after_startup_is_tracked(imu, bias):
     converges to the bias. kore's filter would stay off by about the bias times 60 s."""
     t, err, b = sitting_errors(imu, lambda t: bias if t >= 5.0 else 0.0, 200.0)
     assert np.nanmax(np.abs(err[t < 5.0])) <= 2e-3
-    assert np.nanmax(np.abs(err)) > 10e-3                  # the step is felt: the test can fail
+    assert np.nanmax(np.abs(err)) > 10e-3  # the step is felt: the test can fail
     assert np.max(np.abs(err[t >= 185.0])) <= 2e-3
     assert b[-1] == pytest.approx(bias, abs=0.1 * abs(bias))
 
@@ -217,8 +251,9 @@ def test_startup_waits_for_a_settling_robot(imu):
     assert turning.filter.ready and turning.filter.bias == pytest.approx(0.0, abs=1e-4)
 
 
-def closed_loop_pitch_errors(imu, bias_of_t, seconds, seed=0, amplitude=0.1, freq=0.1,
-                             move_from=20.0):
+def closed_loop_pitch_errors(
+    imu, bias_of_t, seconds, seed=0, amplitude=0.1, freq=0.1, move_from=20.0
+):
     """The shipped controller balancing the simulated robot (krang_sim.closed_loop) on THIS
     filter's pitch: DMU samples at 200 Hz from the true pitch, rate and axle acceleration, with the
     unknown bias. The robot rests on its caster for 1 s (the bridge starts on a resting robot), is
@@ -243,6 +278,7 @@ def closed_loop_pitch_errors(imu, bias_of_t, seconds, seed=0, amplitude=0.1, fre
         if state['est'] is not None:
             s.q_base, s.pitch_rate = state['est'].pitch, state['est'].pitch_rate
         return s
+
     sim.control_sample = filtered_sample
     while sim.t < seconds:
         loop.run(0.1)

@@ -1,4 +1,6 @@
-"""krang learn on the real hardware data: output formats, physical consistency, cross-validation."""
+"""krang learn on the real hardware data: output formats, physical consistency,
+cross-validation."""
+
 import json
 import subprocess
 import sys
@@ -17,10 +19,22 @@ def robot():
 
 
 def _learn(krang_data, out, *extra):
-    cmd = [sys.executable, '-m', 'krang_cli.main', 'learn',
-           '--poses', str(krang_data / 'hardware_balanced_poses_train.csv'),
-           '--beta0', str(krang_data / 'betas' / 'betaVectors1initialBetahardwareAll190Vectors.txt'), '--row', '0',
-           '--out', str(out), '--json', *extra]
+    cmd = [
+        sys.executable,
+        '-m',
+        'krang_cli.main',
+        'learn',
+        '--poses',
+        str(krang_data / 'hardware_balanced_poses_train.csv'),
+        '--beta0',
+        str(krang_data / 'betas' / 'betaVectors1initialBetahardwareAll190Vectors.txt'),
+        '--row',
+        '0',
+        '--out',
+        str(out),
+        '--json',
+        *extra,
+    ]
     res = subprocess.run(cmd, capture_output=True, text=True, check=True)
     return json.loads(res.stdout.strip().splitlines()[-1])
 
@@ -51,8 +65,8 @@ def test_paper_gd_reproduces_the_authors_last_row(krang_data, tmp_path, robot):
     doc = _learn(krang_data, out, '--method', 'paper-gd', '--folds', '0')
     traj = np.loadtxt(krang_data / 'betas' / 'betaVectors1initialBetahardwareAll190Vectors.txt')
     beta = load_beta(out, robot)
-    assert np.abs(beta - traj[189]).max() <= 2.05e-4       # the kit's "2e-4" (2.02e-4 measured)
-    assert not doc['physically_consistent']                # the authors' learned beta is not physical
+    assert np.abs(beta - traj[189]).max() <= 2.05e-4  # the kit's "2e-4" (2.02e-4 measured)
+    assert not doc['physically_consistent']  # the authors' learned beta is not physical
     assert doc['in_sample_mean_abs_xcom_m'] == pytest.approx(0.00457, abs=2e-5)
 
 
@@ -81,7 +95,20 @@ def test_map_online_in_file_order(krang_data, tmp_path, robot):
 
 
 def test_bad_input_is_a_clear_error(krang_data, tmp_path):
-    res = subprocess.run([sys.executable, '-m', 'krang_cli.main', 'learn', '--poses', str(tmp_path / 'none.csv'),
-                          '--beta0', str(krang_data / 'betas' / 'convergedBetaVector104PosesHardwareTrained.txt'),
-                          '--out', str(tmp_path / 'x.txt')], capture_output=True, text=True)
+    res = subprocess.run(
+        [
+            sys.executable,
+            '-m',
+            'krang_cli.main',
+            'learn',
+            '--poses',
+            str(tmp_path / 'none.csv'),
+            '--beta0',
+            str(krang_data / 'betas' / 'convergedBetaVector104PosesHardwareTrained.txt'),
+            '--out',
+            str(tmp_path / 'x.txt'),
+        ],
+        capture_output=True,
+        text=True,
+    )
     assert res.returncode != 0 and 'no such pose file' in res.stderr

@@ -1,6 +1,7 @@
 """krang view: the Foxglove core without ROS, then the node fed by fake ROS publishers and read by
 a WebSocket client speaking the Foxglove protocol (foxglove-sdk 0.30 negotiates the subprotocol
 foxglove.sdk.v1, the successor of foxglove.websocket.v1)."""
+
 import asyncio
 import json
 import struct
@@ -25,9 +26,14 @@ from krang_ros.foxglove_view import LiveView
 from krang_ros.view_node import LiveViewNode
 
 SUBPROTOCOL = 'foxglove.sdk.v1'
-CHANNELS = {'/transforms': 'foxglove.FrameTransforms', '/robot': 'foxglove.SceneUpdate',
-            '/com': 'foxglove.SceneUpdate', '/com_live': 'krang.com_live',
-            '/learning': 'krang.learning', '/mode': 'krang.mode'}
+CHANNELS = {
+    '/transforms': 'foxglove.FrameTransforms',
+    '/robot': 'foxglove.SceneUpdate',
+    '/com': 'foxglove.SceneUpdate',
+    '/com_live': 'krang.com_live',
+    '/learning': 'krang.learning',
+    '/mode': 'krang.mode',
+}
 
 
 def balanced_pose():
@@ -55,12 +61,12 @@ def test_core_poses_the_robot_and_its_com():
     assert abs(nominal[0]) < 1e-9 and estimated == pytest.approx(nominal)
     shifted = robot.nominal_beta.copy()
     view.on_beta(shifted)
-    assert view.beta_step is None                   # the first estimate is no step
-    shifted[1] += 0.5                               # 0.5 kg m more along Base x
+    assert view.beta_step is None  # the first estimate is no step
+    shifted[1] += 0.5  # 0.5 kg m more along Base x
     view.on_beta(shifted)
     assert view.beta_step == pytest.approx(0.5)
     assert view.on_learned_com((0.002, 0.0, 0.5)) == {'pose': 1, 'x_com_mm': 2.0, 'beta_step': 0.5}
-    scene = view.scene.encode()                     # protobuf: link names appear as bytes
+    scene = view.scene.encode()  # protobuf: link names appear as bytes
     assert all(name.encode() in scene for name in ('Base', 'LWheel', 'Spine', 'lGripper'))
 
 
@@ -76,15 +82,23 @@ async def read_session(port, publish, wanted, timeout=20.0):
                 channels.update({c['topic']: c for c in msg['channels']})
         assert {t: c['schemaName'] for t, c in channels.items()} == CHANNELS
         by_sub = dict(enumerate(channels))
-        await ws.send(json.dumps({'op': 'subscribe', 'subscriptions': [
-            {'id': i, 'channelId': channels[t]['id']} for i, t in by_sub.items()]}))
+        await ws.send(
+            json.dumps(
+                {
+                    'op': 'subscribe',
+                    'subscriptions': [
+                        {'id': i, 'channelId': channels[t]['id']} for i, t in by_sub.items()
+                    ],
+                }
+            )
+        )
         await asyncio.sleep(0.3)
         await asyncio.get_running_loop().run_in_executor(None, publish)
         got = {}
         deadline = time.monotonic() + timeout
         while not wanted <= set(got) and time.monotonic() < deadline:
             frame = await asyncio.wait_for(ws.recv(), timeout)
-            if isinstance(frame, bytes) and frame[0] == 1:        # opcode 1: message data
+            if isinstance(frame, bytes) and frame[0] == 1:  # opcode 1: message data
                 sub, _ = struct.unpack('<IQ', frame[1:13])
                 got.setdefault(by_sub[sub], []).append(frame[13:])
         return got
@@ -98,9 +112,15 @@ def test_view_node_serves_the_robot_to_a_websocket_client():
     node = LiveViewNode(port=0, rate_hz=50.0)
     fake = rclpy.create_node('fake_robot')
     qos = topics.QOS
-    pub = {n: fake.create_publisher(t, n, qos[n]) for n, t in (
-        (names.JOINT_STATES, JointState), (names.BETA, Float64MultiArray),
-        (names.COM, PointStamped), (names.DIAGNOSTICS, DiagnosticArray))}
+    pub = {
+        n: fake.create_publisher(t, n, qos[n])
+        for n, t in (
+            (names.JOINT_STATES, JointState),
+            (names.BETA, Float64MultiArray),
+            (names.COM, PointStamped),
+            (names.DIAGNOSTICS, DiagnosticArray),
+        )
+    }
     pub[names.IMU] = fake.create_publisher(Imu, names.IMU, qos[names.IMU])
     executor = SingleThreadedExecutor()
     executor.add_node(node)
@@ -114,20 +134,27 @@ def test_view_node_serves_the_robot_to_a_websocket_client():
         stamp = fake.get_clock().now().to_msg()
         pub[names.BETA].publish(messages.labelled_array(robot.nominal_beta, robot.beta_labels()))
         time.sleep(0.3)
-        pub[names.BETA].publish(messages.labelled_array(robot.nominal_beta + step,
-                                                        robot.beta_labels()))
+        pub[names.BETA].publish(
+            messages.labelled_array(robot.nominal_beta + step, robot.beta_labels())
+        )
         time.sleep(0.3)
         point = PointStamped()
         point.point.x, point.point.z = 0.0123, 0.5
         pub[names.COM].publish(point)
-        pub[names.DIAGNOSTICS].publish(messages.diagnostics(stamp, 'adrc_controller', 'ok', '',
-                                                            {'mode': 'BALANCE_LO'}))
+        pub[names.DIAGNOSTICS].publish(
+            messages.diagnostics(stamp, 'adrc_controller', 'ok', '', {'mode': 'BALANCE_LO'})
+        )
         for _ in range(20):
-            pub[names.JOINT_STATES].publish(messages.joint_state(
-                stamp, list(robot.pose_joints) + ['JLWheel', 'JRWheel'],
-                list(joints) + [0.0, 0.0]))
-            pub[names.IMU].publish(messages.imu(stamp, 'imu_link', q_star, 1e-6, (0, 0, 0),
-                                                (0, 0, 9.81)))
+            pub[names.JOINT_STATES].publish(
+                messages.joint_state(
+                    stamp,
+                    list(robot.pose_joints) + ['JLWheel', 'JRWheel'],
+                    list(joints) + [0.0, 0.0],
+                )
+            )
+            pub[names.IMU].publish(
+                messages.imu(stamp, 'imu_link', q_star, 1e-6, (0, 0, 0), (0, 0, 9.81))
+            )
             time.sleep(0.05)
 
     try:
@@ -140,8 +167,11 @@ def test_view_node_serves_the_robot_to_a_websocket_client():
         rclpy.try_shutdown()
     assert json.loads(got['/mode'][-1]) == {'mode': 'BALANCE_LO'}
     learning = json.loads(got['/learning'][0])
-    assert learning == {'pose': 1, 'x_com_mm': pytest.approx(12.3),
-                        'beta_step': pytest.approx(0.3)}
+    assert learning == {
+        'pose': 1,
+        'x_com_mm': pytest.approx(12.3),
+        'beta_step': pytest.approx(0.3),
+    }
     live = json.loads(got['/com_live'][-1])
     assert live['q_base_rad'] == pytest.approx(q_star, abs=1e-9)
     assert abs(live['x_com_nominal_mm']) < 1e-6

@@ -3,6 +3,7 @@
 The ROS tests publish a known number of messages and check the bag with rosbags and mcap_ros2 —
 never with the recorder's own counters.
 """
+
 import os
 import signal
 import subprocess
@@ -20,8 +21,13 @@ from rosbags.rosbag2.metadata import parse_qos
 from rosbags.interfaces import QosDurability, QosReliability
 
 from krang_bag.node import offered_qos_from_profile
-from krang_bag.recording import (RequestQos, choose_request_qos, plan_new_topics,
-                                 resolve_output_path, topic_selected)
+from krang_bag.recording import (
+    RequestQos,
+    choose_request_qos,
+    plan_new_topics,
+    resolve_output_path,
+    topic_selected,
+)
 from krang_bag.writer import DURATION_INFINITE_NS, OfferedQos, offered_qos_yaml
 
 REPO = Path(__file__).resolve().parents[1]
@@ -30,6 +36,7 @@ LATCHED = OfferedQos.latched()
 
 
 # ------------------------------------------------------------------ plain functions, no ROS
+
 
 def test_qos_request_is_the_strongest_that_matches_every_offer():
     assert choose_request_qos([RELIABLE, RELIABLE]) == RequestQos(True, False, 100)
@@ -52,11 +59,16 @@ def test_topic_selection():
     # named explicitly
     assert topic_selected('/_hidden/x', include=['/_hidden/x'])
     add, skipped = plan_new_topics(
-        [('/b', ['std_msgs/msg/String']), ('/a', ['sensor_msgs/msg/Imu']), ('/done',
-                                                                            ['std_msgs/msg/Bool']),
-         ('/mixed', ['std_msgs/msg/String', 'std_msgs/msg/Bool']), ('/rosout',
-                                                                    ['rcl_interfaces/msg/Log'])],
-        recorded={'/done'}, exclude=['/rosout'])
+        [
+            ('/b', ['std_msgs/msg/String']),
+            ('/a', ['sensor_msgs/msg/Imu']),
+            ('/done', ['std_msgs/msg/Bool']),
+            ('/mixed', ['std_msgs/msg/String', 'std_msgs/msg/Bool']),
+            ('/rosout', ['rcl_interfaces/msg/Log']),
+        ],
+        recorded={'/done'},
+        exclude=['/rosout'],
+    )
     assert add == [('/a', 'sensor_msgs/msg/Imu'), ('/b', 'std_msgs/msg/String')]
     assert list(skipped) == ['/mixed']
 
@@ -65,28 +77,44 @@ def test_output_path(tmp_path):
     now = datetime(2025, 3, 4, 5, 6, 7)
     assert resolve_output_path('', now) == Path('krang_2025_03_04-05_06_07.mcap')
     assert resolve_output_path(str(tmp_path), now) == tmp_path / 'krang_2025_03_04-05_06_07.mcap'
-    assert resolve_output_path(str(tmp_path / 'new') + '/',
-                               now) == tmp_path / 'new' / 'krang_2025_03_04-05_06_07.mcap'
+    assert (
+        resolve_output_path(str(tmp_path / 'new') + '/', now)
+        == tmp_path / 'new' / 'krang_2025_03_04-05_06_07.mcap'
+    )
     assert resolve_output_path(str(tmp_path / 'run.mcap'), now) == tmp_path / 'run.mcap'
 
 
 def test_offered_qos_from_rclpy_profiles_reads_back_in_rosbags():
     from rclpy.qos import QoSDurabilityPolicy, QoSProfile, qos_profile_sensor_data
-    latched = offered_qos_from_profile(QoSProfile(depth=1,
-                                                  durability=QoSDurabilityPolicy.TRANSIENT_LOCAL))
+
+    latched = offered_qos_from_profile(
+        QoSProfile(depth=1, durability=QoSDurabilityPolicy.TRANSIENT_LOCAL)
+    )
     sensor = offered_qos_from_profile(qos_profile_sensor_data)
-    assert (latched.reliability, latched.durability, latched.depth) == ('reliable',
-                                                                        'transient_local', 1)
-    assert (sensor.reliability, sensor.durability, sensor.history) == ('best_effort', 'volatile',
-                                                                       'keep_last')
+    assert (latched.reliability, latched.durability, latched.depth) == (
+        'reliable',
+        'transient_local',
+        1,
+    )
+    assert (sensor.reliability, sensor.durability, sensor.history) == (
+        'best_effort',
+        'volatile',
+        'keep_last',
+    )
     parsed = parse_qos(offered_qos_yaml([latched, sensor, OfferedQos(history='unknown', depth=0)]))
-    assert [q.durability for q in parsed] == [QosDurability.TRANSIENT_LOCAL,
-                                              QosDurability.VOLATILE,
-                                              QosDurability.VOLATILE]
-    assert [q.reliability for q in parsed][:2] == [QosReliability.RELIABLE,
-                                                   QosReliability.BEST_EFFORT]
-    assert yaml.safe_load(offered_qos_yaml([OfferedQos()]))[0]['lifespan'] == \
-        {'sec': DURATION_INFINITE_NS // 10**9, 'nsec': DURATION_INFINITE_NS % 10**9}
+    assert [q.durability for q in parsed] == [
+        QosDurability.TRANSIENT_LOCAL,
+        QosDurability.VOLATILE,
+        QosDurability.VOLATILE,
+    ]
+    assert [q.reliability for q in parsed][:2] == [
+        QosReliability.RELIABLE,
+        QosReliability.BEST_EFFORT,
+    ]
+    assert yaml.safe_load(offered_qos_yaml([OfferedQos()]))[0]['lifespan'] == {
+        'sec': DURATION_INFINITE_NS // 10**9,
+        'nsec': DURATION_INFINITE_NS % 10**9,
+    }
 
 
 # ------------------------------------------------------------------ the node over DDS
@@ -99,8 +127,14 @@ def start_recorder(*ros_params):
     for param in ros_params:
         args += ['-p', param]
     # The environment (ROS_DOMAIN_ID, ROS_AUTOMATIC_DISCOVERY_RANGE from conftest) is inherited.
-    return subprocess.Popen(args, cwd=REPO, env=os.environ.copy(), stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True)
+    return subprocess.Popen(
+        args,
+        cwd=REPO,
+        env=os.environ.copy(),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
 
 
 @pytest.fixture
@@ -117,6 +151,7 @@ def ros_domain(monkeypatch, request):
 def publisher_node(ros_domain):
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
+
     context = rclpy.Context()
     rclpy.init(context=context)
     node = rclpy.create_node('bag_test_publisher', context=context)
@@ -132,19 +167,23 @@ def make_publishers(node):
     from rclpy.qos import QoSDurabilityPolicy, QoSProfile, qos_profile_sensor_data
     from sensor_msgs.msg import Imu, JointState
     from std_msgs.msg import Float64MultiArray
+
     return {
         '/joint_states': node.create_publisher(JointState, '/joint_states', 10),
         '/imu/data': node.create_publisher(Imu, '/imu/data', qos_profile_sensor_data),
         '/wheel_effort_cmd': node.create_publisher(Float64MultiArray, '/wheel_effort_cmd', 50),
         '/com_estimator/beta': node.create_publisher(
-            Float64MultiArray, '/com_estimator/beta',
-            QoSProfile(depth=1, durability=QoSDurabilityPolicy.TRANSIENT_LOCAL)),
+            Float64MultiArray,
+            '/com_estimator/beta',
+            QoSProfile(depth=1, durability=QoSDurabilityPolicy.TRANSIENT_LOCAL),
+        ),
     }
 
 
 def message_for(topic, i):
     from sensor_msgs.msg import Imu, JointState
     from std_msgs.msg import Float64MultiArray
+
     if topic == '/joint_states':
         return JointState(name=['waist'], position=[float(i)])
     if topic == '/imu/data':
@@ -169,10 +208,14 @@ def spin_for(executor, seconds):
 
 def publish_all(node, executor, publishers, proc, beta_published_before):
     """Wait until the recorder matched every publisher, then publish; returns counts per topic."""
+
     def recorder_matched():
         assert proc.poll() is None, f'recorder exited early: {proc.communicate()[1]}'
-        return all(node.count_subscribers(t) >= 1 and p.get_subscription_count() >= 1
-                   for t, p in publishers.items())
+        return all(
+            node.count_subscribers(t) >= 1 and p.get_subscription_count() >= 1
+            for t, p in publishers.items()
+        )
+
     spin_until(executor, recorder_matched, 20, 'the recorder to subscribe')
     spin_for(executor, 0.3)
     published = {topic: 0 for topic in publishers}
@@ -180,11 +223,11 @@ def publish_all(node, executor, publishers, proc, beta_published_before):
     for i in range(N_PER_TOPIC):
         for topic, publisher in publishers.items():
             if topic == '/com_estimator/beta' and i % 10:
-                continue        # latched topic: a few messages only
+                continue  # latched topic: a few messages only
             publisher.publish(message_for(topic, i))
             published[topic] += 1
         spin_for(executor, 0.004)
-    spin_for(executor, 1.0)     # let the recorder take everything before it is stopped
+    spin_for(executor, 1.0)  # let the recorder take everything before it is stopped
     return published
 
 
@@ -239,14 +282,15 @@ def test_recorder_bag_holds_every_published_message(publisher_node, tmp_path, st
     mcap_counts, channels = bag_counts_mcap_ros2(bag)
     assert mcap_counts == counts
     if stop_signal == signal.SIGINT:
-        assert set(counts) == set(publishers)          # excluded topics stayed out
+        assert set(counts) == set(publishers)  # excluded topics stayed out
     else:
-        assert {'/rosout'} <= set(counts)              # everything discovered is recorded
+        assert {'/rosout'} <= set(counts)  # everything discovered is recorded
 
     assert qos['/imu/data'][0].reliability == QosReliability.BEST_EFFORT
     assert qos['/com_estimator/beta'][0].durability == QosDurability.TRANSIENT_LOCAL
     assert qos['/joint_states'][0].reliability == QosReliability.RELIABLE
     from krang_bag.schemas import type_hash
+
     assert channels['/imu/data'].metadata['topic_type_hash'] == type_hash('sensor_msgs/msg/Imu')
 
 
@@ -254,15 +298,18 @@ def test_recorder_bag_holds_every_published_message(publisher_node, tmp_path, st
 @pytest.mark.timeout(60)
 def test_recorder_killed_with_sigkill_is_recoverable(publisher_node, tmp_path):
     from krang_bag.recover import recover
+
     node, executor = publisher_node
     publishers = make_publishers(node)
     bag = tmp_path / 'killed.mcap'
-    proc = start_recorder(f'output:={bag}', 'chunk_size:=1024',
-                          "topics:=['/joint_states', '/imu/data', '/wheel_effort_cmd', "
-                          "'/com_estimator/beta']")
+    proc = start_recorder(
+        f'output:={bag}',
+        'chunk_size:=1024',
+        "topics:=['/joint_states', '/imu/data', '/wheel_effort_cmd', '/com_estimator/beta']",
+    )
     try:
         published = publish_all(node, executor, publishers, proc, beta_published_before=0)
-        spin_for(executor, 0.5)        # one more poll tick: the recorder flushes completed chunks
+        spin_for(executor, 0.5)  # one more poll tick: the recorder flushes completed chunks
         proc.send_signal(signal.SIGKILL)
         proc.communicate(timeout=15)
     finally:
@@ -275,7 +322,7 @@ def test_recorder_killed_with_sigkill_is_recoverable(publisher_node, tmp_path):
     report = recover(bag, tmp_path / 'rescued.mcap')
     counts, values, _ = bag_counts_rosbags(report.output)
     assert report.truncated and report.messages == sum(counts.values()) > 0
-    assert set(counts) <= set(publishers)              # the `topics` include list was honoured
+    assert set(counts) <= set(publishers)  # the `topics` include list was honoured
     assert all(counts[t] <= published[t] for t in counts)
     # a prefix
     assert values['/joint_states'] == [float(i) for i in range(len(values['/joint_states']))]

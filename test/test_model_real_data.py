@@ -1,4 +1,5 @@
 """Our Krang description against the authors' own files (skipped without the real-data kit)."""
+
 import csv
 
 import numpy as np
@@ -19,7 +20,9 @@ def krang():
 
 @pytest.fixture(scope='module')
 def train(krang_data):
-    q_base, joints, _ = load_poses(krang_data / 'hardware_balanced_poses_train.csv', KRANG_POSE_COLUMNS)
+    q_base, joints, _ = load_poses(
+        krang_data / 'hardware_balanced_poses_train.csv', KRANG_POSE_COLUMNS
+    )
     return q_base, joints
 
 
@@ -29,12 +32,14 @@ def test_beta_layout_matches_the_authors(krang, krang_data):
     assert len(rows) == krang.n_beta
     quantities = {'m': 'm', 'm*x': 'm*x', 'm*y': 'm*y', 'm*z': 'm*z'}
     for row, label, value in zip(rows, krang.beta_labels(), krang.nominal_beta):
-        assert label == f"{row['body']}.{quantities[row['quantity']]}"
+        assert label == f'{row["body"]}.{quantities[row["quantity"]]}'
         assert value == pytest.approx(float(row['beta0_value']), rel=1e-5, abs=1e-6)
 
 
 def test_nominal_beta_is_the_authors_beta0(krang, krang_data):
-    np.testing.assert_allclose(krang.nominal_beta, load_beta(krang_data / ALL190, krang, row=0), rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(
+        krang.nominal_beta, load_beta(krang_data / ALL190, krang, row=0), rtol=1e-5, atol=1e-6
+    )
     kinect = np.loadtxt(krang_data / 'betas/kinect_96/idealBetaVector.txt')
     without_kinect = np.delete(kinect, np.s_[20:24])  # the Kinect block follows Bracket (body 5)
     np.testing.assert_allclose(krang.nominal_beta, without_kinect, rtol=1e-5, atol=1e-6)
@@ -49,8 +54,11 @@ def test_xcom_errors_equal_the_authors_figures(krang, krang_data, train, row, me
     assert err.max() == pytest.approx(max_cm, abs=0.05)
 
 
-def test_replaying_the_authors_gradient_descent_reproduces_their_trajectory(krang, krang_data, train):
-    """Each of the 189 update directions is phi of one recorded pose: a strict test of our kinematics."""
+def test_replaying_the_authors_gradient_descent_reproduces_their_trajectory(
+    krang, krang_data, train
+):
+    """Each of the 189 update directions is phi of one recorded pose: a strict test of our
+    kinematics."""
     rows = np.loadtxt(krang_data / ALL190)
     features = phi(krang, *train)
     beta = rows[0].copy()

@@ -1,6 +1,7 @@
 """Every node executable answers --help without starting, and ends with exit code 0 and no
 traceback on SIGINT or SIGTERM, whether the signal comes while it imports, while it is being
 built, or while it spins; `krang bringup --sim` too (issue: RCLError and KeyError on Ctrl-C)."""
+
 import signal
 import subprocess
 import sys
@@ -30,8 +31,13 @@ def configured_parameters(executable):
 def test_help_explains_and_exits(executable, tmp_path):
     """--help prints what the node does and every parameter (each one our config files set
     among them), then exits without starting the node."""
-    out = subprocess.run([sys.executable, '-m', 'krang_ros.entry', executable, '--help'],
-                         cwd=tmp_path, capture_output=True, text=True, timeout=60)
+    out = subprocess.run(
+        [sys.executable, '-m', 'krang_ros.entry', executable, '--help'],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert out.returncode == 0, out.stderr
     assert out.stdout.startswith(f'usage: {executable}')
     listed = out.stdout.split('\nparameters:\n', 1)
@@ -47,14 +53,16 @@ def start(executable, tmp_path):
     for f in params_files(sim=True):
         cmd += ['--params-file', f]
     cmd += ['-p', f'devices_file:={devices}', '-p', f'output:={tmp_path / "out.mcap"}']
-    return subprocess.Popen(cmd, cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                            text=True)
+    return subprocess.Popen(
+        cmd, cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True
+    )
 
 
 @pytest.mark.ros
 @pytest.mark.parametrize('executable', NODES)
-@pytest.mark.parametrize('signum, delay_s', [(signal.SIGINT, 0.3), (signal.SIGTERM, 1.2),
-                                             (signal.SIGINT, 4.0)])
+@pytest.mark.parametrize(
+    'signum, delay_s', [(signal.SIGINT, 0.3), (signal.SIGTERM, 1.2), (signal.SIGINT, 4.0)]
+)
 def test_signal_exits_cleanly(executable, signum, delay_s, tmp_path):
     proc = start(executable, tmp_path)
     time.sleep(delay_s)
@@ -67,10 +75,21 @@ def test_signal_exits_cleanly(executable, signum, delay_s, tmp_path):
 @pytest.mark.ros
 @pytest.mark.parametrize('signum', [signal.SIGINT, signal.SIGTERM])
 def test_bringup_sim_without_record_exits_cleanly(signum, tmp_path):
-    proc = subprocess.Popen([sys.executable, '-m', 'krang_cli.main', 'bringup', '--sim',
-                             '--log-dir', str(tmp_path / 'logs')],
-                            cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                            text=True)
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            '-m',
+            'krang_cli.main',
+            'bringup',
+            '--sim',
+            '--log-dir',
+            str(tmp_path / 'logs'),
+        ],
+        cwd=tmp_path,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
     time.sleep(6.0)
     assert proc.poll() is None, proc.communicate()[0][-3000:]
     proc.send_signal(signum)

@@ -1,5 +1,6 @@
 """Parameters as a ROS node sees them (krang_ros/params.declare): descriptors, an int where a float
 is declared, a run-time change refused with a reason, an invalid start value named in one line."""
+
 import subprocess
 import sys
 from dataclasses import dataclass, field
@@ -36,8 +37,11 @@ def context():
 
 
 def make_node(context, **overrides):
-    return Node('params_probe', context=context, parameter_overrides=[
-        Parameter(k, value=v) for k, v in overrides.items()])
+    return Node(
+        'params_probe',
+        context=context,
+        parameter_overrides=[Parameter(k, value=v) for k, v in overrides.items()],
+    )
 
 
 def test_descriptors_int_for_float_and_string_lists(context):
@@ -58,9 +62,14 @@ def test_run_time_change_is_refused_with_a_reason(context):
     node.destroy_node()
 
 
-@pytest.mark.parametrize('name, value, message', [
-    ('rate_hz', 0.0, 'rate_hz must be > 0'), ('method', 'bogus', 'method must be map or gd'),
-    ('rate_hz', 'fast', 'rate_hz must be float')])
+@pytest.mark.parametrize(
+    'name, value, message',
+    [
+        ('rate_hz', 0.0, 'rate_hz must be > 0'),
+        ('method', 'bogus', 'method must be map or gd'),
+        ('rate_hz', 'fast', 'rate_hz must be float'),
+    ],
+)
 def test_invalid_start_values_are_one_parameter_error(context, name, value, message):
     node = make_node(context, **{name: value})
     with pytest.raises(params.ParameterError, match=message):
@@ -69,9 +78,23 @@ def test_invalid_start_values_are_one_parameter_error(context, name, value, mess
 
 
 def test_node_with_an_invalid_parameter_exits_with_one_line(tmp_path):
-    out = subprocess.run([sys.executable, '-m', 'krang_ros.entry', 'mcap_recorder', '--ros-args',
-                          '-p', 'poll_period_s:=0.0', '-p', f'output:={tmp_path / "x.mcap"}'],
-                         capture_output=True, text=True, timeout=60, cwd=tmp_path)
+    out = subprocess.run(
+        [
+            sys.executable,
+            '-m',
+            'krang_ros.entry',
+            'mcap_recorder',
+            '--ros-args',
+            '-p',
+            'poll_period_s:=0.0',
+            '-p',
+            f'output:={tmp_path / "x.mcap"}',
+        ],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        cwd=tmp_path,
+    )
     assert out.returncode == 2
     assert out.stderr.strip() == 'error: mcap_recorder: poll_period_s must be > 0, got 0.0'
     assert not (tmp_path / 'x.mcap').exists()

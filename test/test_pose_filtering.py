@@ -1,5 +1,6 @@
 """Pose filtering: Algorithm 1 (fast == straightforward), its stop rule, the other criteria, the
 erroneous betas."""
+
 import json
 import math
 import subprocess
@@ -33,8 +34,8 @@ def test_erroneous_betas_follow_the_authors_recipe(robot, problem):
     _, Phi, betas = problem
     b0 = robot.nominal_beta
     assert betas.shape == (60, robot.n_beta)
-    assert np.array_equal(betas[:, 0::4], np.repeat(b0[None, 0::4], 60, 0))      # masses unchanged
-    assert np.all(np.abs(betas @ Phi[0]) > 0.02)                                  # the 2 cm rule
+    assert np.array_equal(betas[:, 0::4], np.repeat(b0[None, 0::4], 60, 0))  # masses unchanged
+    assert np.all(np.abs(betas @ Phi[0]) > 0.02)  # the 2 cm rule
     dev = betas - b0
     moments = np.ones(robot.n_beta, bool)
     moments[0::4] = False
@@ -42,7 +43,7 @@ def test_erroneous_betas_follow_the_authors_recipe(robot, problem):
     p = paper_betas(b0, 200, np.random.default_rng(0))
     rel = p / np.where(b0 == 0, 1, b0) - 1
     assert np.all(np.abs(rel[:, 0::4]) <= 0.2 + 1e-12) and np.abs(rel[:, 0::4]).max() > 0.15
-    assert np.array_equal(p[:, 3::4], np.repeat(b0[None, 3::4], 200, 0))          # m*z untouched
+    assert np.array_equal(p[:, 3::4], np.repeat(b0[None, 3::4], 200, 0))  # m*z untouched
 
 
 @pytest.mark.parametrize('criterion', ['paper-l1', 'squared'])
@@ -55,19 +56,21 @@ def test_fast_equals_straightforward(problem, criterion):
     assert np.allclose(fast.max_error, ref.max_error, rtol=1e-12, atol=1e-15)
     assert np.abs(fast.betas - ref.betas).max() < 1e-12
     if criterion == 'paper-l1':
-        assert fast.evaluations < 0.5 * len(Phi) * len(fast.selected)     # it did prune
+        assert fast.evaluations < 0.5 * len(Phi) * len(fast.selected)  # it did prune
 
 
 def test_d_optimal_fast_equals_straightforward_before_saturation(robot, problem):
     _, Phi, betas = problem
     prior = est.physical_prior_std(robot)
     A, b = est.equality_constraints(robot, robot.nominal_mass)
-    _, S0 = est.condition_on_constraints(robot.nominal_beta, np.diag(prior ** 2), A, b)
+    _, S0 = est.condition_on_constraints(robot.nominal_beta, np.diag(prior**2), A, b)
     r = (math.radians(0.1) * 0.4) ** 2
-    fast = filter_poses(Phi, betas, 'd-optimal', prior_cov=S0, noise_var=r, x_tol=0.0,
-                        max_poses=25)
-    ref = filter_straightforward(Phi, betas, 'd-optimal', prior_cov=S0, noise_var=r, x_tol=0.0,
-                                 max_poses=25)
+    fast = filter_poses(
+        Phi, betas, 'd-optimal', prior_cov=S0, noise_var=r, x_tol=0.0, max_poses=25
+    )
+    ref = filter_straightforward(
+        Phi, betas, 'd-optimal', prior_cov=S0, noise_var=r, x_tol=0.0, max_poses=25
+    )
     assert np.array_equal(fast.selected, ref.selected)
     assert np.abs(fast.betas - ref.betas).max() < 1e-9 * np.abs(ref.betas).max()
 
@@ -113,7 +116,7 @@ def test_criteria_behave(robot, problem):
     # d-optimal: greedy gains are non-increasing (submodularity) and the MAP learner converges fast
     prior = est.physical_prior_std(robot)
     A, b = est.equality_constraints(robot, robot.nominal_mass)
-    _, S0 = est.condition_on_constraints(robot.nominal_beta, np.diag(prior ** 2), A, b)
+    _, S0 = est.condition_on_constraints(robot.nominal_beta, np.diag(prior**2), A, b)
     r = (math.radians(0.1) * 0.4) ** 2
     d = filter_poses(Phi, betas, 'd-optimal', prior_cov=S0, noise_var=r)
     assert d.converged and len(d.selected) < len(gd.selected)
@@ -130,16 +133,49 @@ def test_criteria_behave(robot, problem):
 
 def test_cli_filter(tmp_path):
     pool = tmp_path / 'pool.csv'
-    subprocess.run([sys.executable, '-m', 'krang_cli.main', 'poses', 'pool', '--n', '600',
-                    '--seed', '1',
-                    '--out', str(pool), '--no-progress', '--json'], check=True,
-                    capture_output=True)
+    subprocess.run(
+        [
+            sys.executable,
+            '-m',
+            'krang_cli.main',
+            'poses',
+            'pool',
+            '--n',
+            '600',
+            '--seed',
+            '1',
+            '--out',
+            str(pool),
+            '--no-progress',
+            '--json',
+        ],
+        check=True,
+        capture_output=True,
+    )
     out = tmp_path / 'filtered.csv'
-    res = subprocess.run([sys.executable, '-m', 'krang_cli.main', 'poses', 'filter', '--pool',
-                          str(pool),
-                          '--n-betas', '40', '--seed', '2', '--tol', '0.002', '--out', str(out),
-                          '--no-progress'],
-                         capture_output=True, text=True, check=True)
+    res = subprocess.run(
+        [
+            sys.executable,
+            '-m',
+            'krang_cli.main',
+            'poses',
+            'filter',
+            '--pool',
+            str(pool),
+            '--n-betas',
+            '40',
+            '--seed',
+            '2',
+            '--tol',
+            '0.002',
+            '--out',
+            str(out),
+            '--no-progress',
+        ],
+        capture_output=True,
+        text=True,
+        check=True,
+    )
     doc = json.loads(res.stdout.strip().splitlines()[-1])
     assert doc['criterion'] == 'paper-l1' and doc['selected'] > 10 and doc['seconds'] >= 0
     lines = out.read_text().strip().splitlines()

@@ -1,5 +1,6 @@
 """The safe balanced pose pool: limits, balance, and collisions checked independently of
 pinocchio."""
+
 import json
 import subprocess
 import sys
@@ -33,9 +34,11 @@ def generated(pool):
 
 def _rpy(r, p, y):
     cx, sx, cy, sy, cz, sz = np.cos(r), np.sin(r), np.cos(p), np.sin(p), np.cos(y), np.sin(y)
-    return (np.array([[cz, -sz, 0], [sz, cz, 0], [0, 0, 1]]) @ np.array([[cy, 0, sy], [0, 1, 0],
-                                                                         [-sy, 0, cy]])
-            @ np.array([[1, 0, 0], [0, cx, -sx], [0, sx, cx]]))
+    return (
+        np.array([[cz, -sz, 0], [sz, cz, 0], [0, 0, 1]])
+        @ np.array([[cy, 0, sy], [0, 1, 0], [-sy, 0, cy]])
+        @ np.array([[1, 0, 0], [0, cx, -sx], [0, sx, cx]])
+    )
 
 
 class IndependentChecker:
@@ -67,8 +70,11 @@ class IndependentChecker:
         for j in root.findall('joint'):
             parent[j.find('child').get('link')] = j.find('parent').get('link')
         names = robot.body_names
-        self.adjacent = {frozenset((names.index(c), names.index(p))) for c, p in parent.items()
-                         if c in names and p in names}
+        self.adjacent = {
+            frozenset((names.index(c), names.index(p)))
+            for c, p in parent.items()
+            if c in names and p in names
+        }
         self.wheels = set(robot.wheel_body_ids)
 
     def _placed(self, joints):
@@ -99,8 +105,9 @@ class IndependentChecker:
         """Lowest z (frame 0) of the non-wheel boxes."""
         R0 = base_to_frame0(q_base)[0]
         low = np.inf
-        signs = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)],
-                         dtype=float)
+        signs = np.array(
+            [[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], dtype=float
+        )
         for i, R, t, shape, half in self._placed(joints):
             if i in self.wheels or half is None:
                 continue
@@ -127,6 +134,7 @@ def test_poses_within_limits_and_balanced(robot, pool, generated):
     assert np.abs(x_com(robot, q, j, robot.nominal_beta)).max() < 1e-12
     # the CoM is above the axle, not below
     from krang_model.com import com_frame0
+
     assert np.all(com_frame0(robot, q, j, robot.nominal_beta)[:, 2] > 0)
     assert generated.tries >= 300
 
@@ -138,8 +146,10 @@ def test_poses_are_collision_free_by_an_independent_check(robot, checker, genera
 
 
 def test_excluded_pairs_are_the_adjacent_links(pool, checker, robot):
-    excluded = {frozenset((a.rsplit('_', 1)[0], b.rsplit('_', 1)[0]))
-                for a, b in pool.checker.excluded_pairs}
+    excluded = {
+        frozenset((a.rsplit('_', 1)[0], b.rsplit('_', 1)[0]))
+        for a, b in pool.checker.excluded_pairs
+    }
     adjacent = {frozenset(robot.body_names[i] for i in pair) for pair in checker.adjacent}
     with_geometry = {robot.body_names[s[0]] for s in checker.shapes}
     assert excluded == {p for p in adjacent if p <= with_geometry}
@@ -166,8 +176,10 @@ def _find(pool, checker, robot, want, seed=0, max_batches=40):
 def test_a_self_colliding_pose_is_rejected(robot, pool, checker):
     qb, jt, hits = _find(pool, checker, robot, 'self', seed=1)
     assert not pool.is_safe(qb, jt)
-    names = {frozenset((a.rsplit('_', 1)[0], b.rsplit('_', 1)[0]))
-             for a, b in pool.checker.colliding_pairs(qb, jt)}
+    names = {
+        frozenset((a.rsplit('_', 1)[0], b.rsplit('_', 1)[0]))
+        for a, b in pool.checker.colliding_pairs(qb, jt)
+    }
     assert {frozenset(h) for h in hits} <= names
 
 
@@ -178,6 +190,7 @@ def test_floor_check(robot, pool, checker):
     assert pairs and all('floor' in p for p in pairs)
     # the same pose checked without the floor is free
     from krang_pose_server.pool import CollisionChecker
+
     assert CollisionChecker(robot, check_floor=False).is_free(qb, jt)
     # the wheels rest on the floor and never count as a floor collision
     assert pool.checker.is_free(-0.5, np.zeros(16)) == (
@@ -191,17 +204,33 @@ def test_agreement_on_random_candidates(robot, pool, checker):
     joints = rng.uniform(pool.lower, pool.upper, size=(150, 16))
     q_base, ok = pool.balanced_candidates(joints)
     for qb, jt in zip(q_base[ok], joints[ok]):
-        ind = not checker.self_collisions(jt) and checker.lowest_point(qb,
-                                                                       jt) > -robot.wheel_radius
+        ind = (
+            not checker.self_collisions(jt) and checker.lowest_point(qb, jt) > -robot.wheel_radius
+        )
         assert pool.checker.is_free(qb, jt) == ind
 
 
 def test_cli_pool(tmp_path, robot):
     out = tmp_path / 'pool.csv'
-    res = subprocess.run([sys.executable, '-m', 'krang_cli.main', 'poses', 'pool', '--n', '200',
-                          '--seed', '3',
-                          '--out', str(out), '--no-progress'], capture_output=True, text=True,
-                          check=True)
+    res = subprocess.run(
+        [
+            sys.executable,
+            '-m',
+            'krang_cli.main',
+            'poses',
+            'pool',
+            '--n',
+            '200',
+            '--seed',
+            '3',
+            '--out',
+            str(out),
+            '--no-progress',
+        ],
+        capture_output=True,
+        text=True,
+        check=True,
+    )
     doc = json.loads(res.stdout.strip().splitlines()[-1])
     assert doc['poses'] == 200 and doc['tries'] >= 200 and doc['seconds'] > 0
     q, j, _ = load_poses(out, KRANG_POSE_COLUMNS)

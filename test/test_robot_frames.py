@@ -1,5 +1,6 @@
 """REP-103/105/145 frames: the published IMU orientation, the URDF's base_link/imu_link and the tf
 tree of krang_ros.robot_frames agree with the model and with physics (no ROS graph needed)."""
+
 import math
 import time
 import xml.etree.ElementTree as ET
@@ -59,8 +60,11 @@ def published_tree(frames, q_base, joints, wheels=(0.0, 0.0)):
     robot = load_krang()
     frames.set_joints(dict(zip(robot.pose_joints, joints)))
     orientation = messages.pitch_quaternion(q_base)
-    return world_placements(frames.static_transforms() + frames.joint_transforms()
-                            + frames.base_transforms(orientation, *wheels))
+    return world_placements(
+        frames.static_transforms()
+        + frames.joint_transforms()
+        + frames.base_transforms(orientation, *wheels)
+    )
 
 
 @pytest.fixture(scope='module')
@@ -75,8 +79,10 @@ def test_urdf_has_rep103_frames_without_mass():
     for link in (BASE_LINK, IMU_LINK):
         assert root.find(f"link[@name='{link}']") is not None
         assert root.find(f"link[@name='{link}']/inertial") is None
-    kinds = {j.find('child').get('link'): (j.get('type'), j.find('parent').get('link'))
-             for j in root.findall('joint')}
+    kinds = {
+        j.find('child').get('link'): (j.get('type'), j.find('parent').get('link'))
+        for j in root.findall('joint')
+    }
     assert kinds[BASE_LINK] == ('fixed', 'Base') and kinds[IMU_LINK] == ('fixed', BASE_LINK)
 
 
@@ -91,10 +97,12 @@ def test_accelerometer_sees_gravity_of_the_published_orientation(q_base):
     """(a) The bridge's published specific force of a robot at rest equals the published
     orientation's inverse applied to (0, 0, g), in imu_link."""
     force, rates = sensor_vectors(q_base, 0.0, MOUNT, gravity=G)
-    fake = SimpleNamespace(config=SimpleNamespace(imu=SimpleNamespace(
-        mount_angle_rad=MOUNT, frame_id=IMU_LINK)))
-    sample = SimpleNamespace(rates=rates, specific_force=force, pitch=q_base,
-                             pitch_variance=1e-6, pitch_rate=0.0)
+    fake = SimpleNamespace(
+        config=SimpleNamespace(imu=SimpleNamespace(mount_angle_rad=MOUNT, frame_id=IMU_LINK))
+    )
+    sample = SimpleNamespace(
+        rates=rates, specific_force=force, pitch=q_base, pitch_variance=1e-6, pitch_rate=0.0
+    )
     msg = CanBridgeNode._imu_message(fake, sample, Time())
     o, a = msg.orientation, msg.linear_acceleration
     expected = matrix_from_quaternion(o.x, o.y, o.z, o.w).T @ np.array([0.0, 0.0, G])
@@ -108,9 +116,15 @@ def test_com_is_over_the_axle_at_the_balance_pitch(poses):
     0; arms may shift it sideways along the axle) and equals krang_model's com_frame0."""
     robot = load_krang()
     root = ET.parse(KRANG_URDF).getroot()
-    inertials = [(link.get('name'), float(link.find('inertial/mass').get('value')),
-                  np.array([float(v) for v in link.find('inertial/origin').get('xyz').split()]))
-                 for link in root.findall('link') if link.find('inertial') is not None]
+    inertials = [
+        (
+            link.get('name'),
+            float(link.find('inertial/mass').get('value')),
+            np.array([float(v) for v in link.find('inertial/origin').get('xyz').split()]),
+        )
+        for link in root.findall('link')
+        if link.find('inertial') is not None
+    ]
     frames = RobotFrames()
     pitches = com.balance_pitch(robot, poses, robot.nominal_beta)
     for joints, q_base in zip(poses, pitches):
@@ -157,11 +171,11 @@ def test_wheel_odometry():
     odom = frames.odometry
     assert (r, track) == (load_krang().wheel_radius, pytest.approx(load_krang().track_width))
     odom.update(0.0, 0.0, -0.8)
-    x, _, yaw = odom.update(0.5, 0.5, -0.8)              # both wheels roll forward
+    x, _, yaw = odom.update(0.5, 0.5, -0.8)  # both wheels roll forward
     assert x == pytest.approx(0.5 * r) and yaw == 0.0
-    x2, _, _ = odom.update(0.5 - 0.3, 0.5 - 0.3, -0.5)    # body pitches, wheels still on the floor
+    x2, _, _ = odom.update(0.5 - 0.3, 0.5 - 0.3, -0.5)  # body pitches, wheels still on the floor
     assert x2 == pytest.approx(x)
-    _, _, yaw = odom.update(0.2 - 0.1, 0.2 + 0.1, -0.5)   # right wheel ahead: a left turn (+yaw)
+    _, _, yaw = odom.update(0.2 - 0.1, 0.2 + 0.1, -0.5)  # right wheel ahead: a left turn (+yaw)
     assert yaw == pytest.approx(2 * 0.1 * r / track)
 
 
@@ -185,8 +199,9 @@ def test_state_publisher_latches_the_urdf():
         node = StatePublisherNode()
         listener = rclpy.create_node('listener')
         got = []
-        listener.create_subscription(String, ROBOT_DESCRIPTION, lambda m: got.append(m.data),
-                                     LATCHED)
+        listener.create_subscription(
+            String, ROBOT_DESCRIPTION, lambda m: got.append(m.data), LATCHED
+        )
         executor = SingleThreadedExecutor()
         executor.add_node(node)
         executor.add_node(listener)

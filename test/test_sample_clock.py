@@ -1,5 +1,6 @@
 """DMU sample times from the sequence counter (krang_can_bridge.sample_clock), against arrival
 times."""
+
 import pytest
 
 from krang_can_bridge.sample_clock import SampleClock
@@ -9,7 +10,7 @@ P = 0.005
 
 def test_jittered_arrivals_give_the_sampling_grid():
     clock = SampleClock(P)
-    arrivals = [0.0, 0.0071, 0.0093, 0.0172, 0.0201]        # up to 2 ms of jitter either way
+    arrivals = [0.0, 0.0071, 0.0093, 0.0172, 0.0201]  # up to 2 ms of jitter either way
     times = [clock.time_of(k, t) for k, t in enumerate(arrivals)]
     assert times == pytest.approx([0.0, P, 2 * P, 3 * P, 4 * P], abs=1e-12)
     assert clock.time_of(4, 0.0205) == pytest.approx(4 * P)  # the second frame of the same sample
@@ -29,7 +30,7 @@ def test_burst_after_a_stall_keeps_the_spacing_within_the_lag_bound():
 def test_counter_wrap_and_re_anchoring():
     clock = SampleClock(P, lead_max_s=0.5)
     clock.time_of(254, 10.0)
-    assert clock.time_of(1, 10.015) == pytest.approx(10.0 + 3 * P)     # 254 -> 255 -> 0 -> 1
+    assert clock.time_of(1, 10.015) == pytest.approx(10.0 + 3 * P)  # 254 -> 255 -> 0 -> 1
     # 1.0 s ahead: a restart, re-anchored
     assert clock.time_of(200, 10.02) == pytest.approx(10.02)
     with pytest.raises(ValueError):

@@ -1,5 +1,6 @@
 """The session figures: every mark of the timeline is in its legend, modes are bands, pose moves
 and learned poses are lines, and the figures are written (atomically) as PNGs."""
+
 import numpy as np
 import pytest
 from builtin_interfaces.msg import Time
@@ -11,8 +12,15 @@ from krang_bag.writer import BagWriter
 from krang_model.robot import load_krang
 from krang_ros import messages, names
 
-MODES = [(0.0, 'sit'), (1.0, 'sit'), (2.0, 'stand_up'), (3.0, 'balance'), (4.0, 'balance'),
-         (8.0, 'sit_down'), (9.0, 'sit')]
+MODES = [
+    (0.0, 'sit'),
+    (1.0, 'sit'),
+    (2.0, 'stand_up'),
+    (3.0, 'balance'),
+    (4.0, 'balance'),
+    (8.0, 'sit_down'),
+    (9.0, 'sit'),
+]
 TARGETS = [3.5, 5.5]
 LEARNED = [5.0, 7.0]
 
@@ -20,8 +28,12 @@ LEARNED = [5.0, 7.0]
 def test_mode_segments_merge_repeated_reports():
     times, modes = zip(*MODES)
     assert mode_segments(np.array(times), list(modes), 10.0) == [
-        (0.0, 2.0, 'sit'), (2.0, 3.0, 'stand_up'), (3.0, 8.0, 'balance'), (8.0, 9.0, 'sit_down'),
-        (9.0, 10.0, 'sit')]
+        (0.0, 2.0, 'sit'),
+        (2.0, 3.0, 'stand_up'),
+        (3.0, 8.0, 'balance'),
+        (8.0, 9.0, 'sit_down'),
+        (9.0, 10.0, 'sit'),
+    ]
     assert mode_segments(np.array([]), [], 10.0) == []
 
 
@@ -29,7 +41,7 @@ def test_mode_segments_merge_repeated_reports():
 def bag(tmp_path):
     robot = load_krang()
     path = tmp_path / 'session.mcap'
-    s = 10 ** 9
+    s = 10**9
     with BagWriter(path) as w:
         w.add_topic(names.WHEEL_EFFORT_CMD, 'std_msgs/msg/Float64MultiArray')
         w.add_topic(names.DIAGNOSTICS, 'diagnostic_msgs/msg/DiagnosticArray')
@@ -37,39 +49,62 @@ def bag(tmp_path):
         w.add_topic(names.BALANCED_POSE, 'sensor_msgs/msg/JointState')
         w.add_topic(names.BETA, 'std_msgs/msg/Float64MultiArray')
         for k in range(101):
-            w.write_message(names.WHEEL_EFFORT_CMD, Float64MultiArray(data=[0.1 * k, 0.0]),
-                            s + k * s // 10)
+            w.write_message(
+                names.WHEEL_EFFORT_CMD, Float64MultiArray(data=[0.1 * k, 0.0]), s + k * s // 10
+            )
         for t, mode in MODES:
-            w.write_message(names.DIAGNOSTICS, messages.diagnostics(
-                Time(), 'adrc_controller', 'ok', '', {'mode': mode}), s + int(t * s))
-            w.write_message(names.DIAGNOSTICS, messages.diagnostics(
-                Time(), 'com_estimator', 'ok', '', {'poses': 0}), s + int(t * s))
+            w.write_message(
+                names.DIAGNOSTICS,
+                messages.diagnostics(Time(), 'adrc_controller', 'ok', '', {'mode': mode}),
+                s + int(t * s),
+            )
+            w.write_message(
+                names.DIAGNOSTICS,
+                messages.diagnostics(Time(), 'com_estimator', 'ok', '', {'poses': 0}),
+                s + int(t * s),
+            )
         for t in TARGETS:
-            w.write_message(names.POSE_TARGET, messages.joint_state(
-                Time(), robot.pose_joints, np.zeros(len(robot.pose_joints))), s + int(t * s))
+            w.write_message(
+                names.POSE_TARGET,
+                messages.joint_state(Time(), robot.pose_joints, np.zeros(len(robot.pose_joints))),
+                s + int(t * s),
+            )
         for t in LEARNED:
-            w.write_message(names.BALANCED_POSE, messages.joint_state(
-                Time(), list(robot.pose_joints) + [names.BASE_PITCH],
-                np.zeros(len(robot.pose_joints) + 1)), s + int(t * s))
+            w.write_message(
+                names.BALANCED_POSE,
+                messages.joint_state(
+                    Time(),
+                    list(robot.pose_joints) + [names.BASE_PITCH],
+                    np.zeros(len(robot.pose_joints) + 1),
+                ),
+                s + int(t * s),
+            )
         for k in range(3):
-            w.write_message(names.BETA, messages.labelled_array(
-                robot.nominal_beta * (1 + 0.01 * k), robot.beta_labels()), s + k * s)
+            w.write_message(
+                names.BETA,
+                messages.labelled_array(robot.nominal_beta * (1 + 0.01 * k), robot.beta_labels()),
+                s + k * s,
+            )
     return path
 
 
 def test_timeline_marks_and_legend(bag):
     times, modes = read_modes(bag)
-    assert modes == [m for _, m in MODES]                    # only the controller's reports
+    assert modes == [m for _, m in MODES]  # only the controller's reports
     fig = timeline_figure(bag, read_float_arrays(bag, names.WHEEL_EFFORT_CMD))
     ax = fig.axes[0]
     assert ax.get_title() == 'Session timeline: session.mcap'
     labels = ax.get_legend_handles_labels()[1]
-    assert labels == ['controller mode: sit', 'controller mode: stand_up',
-                      'controller mode: balance', 'controller mode: sit_down',
-                      'total wheel torque command (N m)',
-                      'pose move starts (new /pose_server/target)',
-                      'balanced pose detected and learned']
-    assert len(ax.patches) == 5                               # one band per mode segment
+    assert labels == [
+        'controller mode: sit',
+        'controller mode: stand_up',
+        'controller mode: balance',
+        'controller mode: sit_down',
+        'total wheel torque command (N m)',
+        'pose move starts (new /pose_server/target)',
+        'balanced pose detected and learned',
+    ]
+    assert len(ax.patches) == 5  # one band per mode segment
     vertical = sorted(line.get_xdata()[0] for line in ax.lines[1:])
     assert vertical == pytest.approx(sorted(TARGETS + LEARNED))
     # every drawn mark has a legend entry (unlabelled repeats share their first's style)

@@ -1,4 +1,5 @@
 """The simulated robot: sensors consistent with the state, effects doing what their names say."""
+
 import math
 
 import numpy as np
@@ -9,9 +10,29 @@ from krang_model.drivetrain import drivetrain
 from krang_model.robot import load_krang
 from krang_sim.physics import KrangSim, SimConfig, SimEffects, SensorNoise, perturbed_beta
 
-POSE = np.array([2.2, 0.0749, 1.008, -1.113, 0.0, -1.594, 0.037, 1.022, -0.021, -0.855, 1.113, 0.0, 1.561,
-                 -0.028, -1.052, 0.021])
-QUIET = SensorNoise(imu_pitch_std_rad=0.0, gyro_std_rad_s=0.0, accel_std_m_s2=0.0, joint_std_rad=0.0)
+POSE = np.array(
+    [
+        2.2,
+        0.0749,
+        1.008,
+        -1.113,
+        0.0,
+        -1.594,
+        0.037,
+        1.022,
+        -0.021,
+        -0.855,
+        1.113,
+        0.0,
+        1.561,
+        -0.028,
+        -1.052,
+        0.021,
+    ]
+)
+QUIET = SensorNoise(
+    imu_pitch_std_rad=0.0, gyro_std_rad_s=0.0, accel_std_m_s2=0.0, joint_std_rad=0.0
+)
 
 
 @pytest.fixture(scope='module')
@@ -20,8 +41,13 @@ def krang():
 
 
 def sim(krang, q_base=None, **effects):
-    return KrangSim(krang, krang.nominal_beta, POSE, q_base=q_base,
-                    config=SimConfig(effects=SimEffects(**effects), noise=QUIET))
+    return KrangSim(
+        krang,
+        krang.nominal_beta,
+        POSE,
+        q_base=q_base,
+        config=SimConfig(effects=SimEffects(**effects), noise=QUIET),
+    )
 
 
 def test_sitting_robot_rests_on_the_caster_and_the_accelerometer_sees_the_pitch(krang):
@@ -62,13 +88,19 @@ def test_payload_moves_the_true_balance(krang):
 
 
 def test_torque_constant_delay_and_current_limit(krang):
-    free, a, b = sim(krang, q_base=-1.0), sim(krang, q_base=-1.0), sim(krang, q_base=-1.0, torque_constant_scale=0.5)
+    free, a, b = (
+        sim(krang, q_base=-1.0),
+        sim(krang, q_base=-1.0),
+        sim(krang, q_base=-1.0, torque_constant_scale=0.5),
+    )
     for s in (a, b):
         s.command_currents(20.0, 20.0)
     for s in (free, a, b):
         s.step(5)
     # the wheel acceleration due to the motors is linear in the torque: half Kt, half the effect
-    assert b.state[2] - free.state[2] == pytest.approx(0.5 * (a.state[2] - free.state[2]), rel=1e-3)
+    assert b.state[2] - free.state[2] == pytest.approx(
+        0.5 * (a.state[2] - free.state[2]), rel=1e-3
+    )
     d = sim(krang, q_base=-1.0, actuation_delay_s=0.01)
     d.command_currents(100.0, -100.0)
     d.step(9)
@@ -95,16 +127,21 @@ def test_perturbed_truth_is_physical(krang):
     assert beta[0::4].sum() == pytest.approx(krang.nominal_mass)
     assert np.all(beta[0::4] > 0)
     for w in krang.wheel_body_ids:
-        assert np.all(beta[4 * w + 1:4 * w + 4] == 0)
+        assert np.all(beta[4 * w + 1 : 4 * w + 4] == 0)
 
 
 def test_effects_are_values_of_the_true_drive_train(krang):
     """The physical effects become the true robot's Drivetrain, which krang_model.wip integrates;
     drive_extra adds to any of its fields (a new term needs no simulator code)."""
     nominal = drivetrain(krang)
-    fx = SimEffects(floor_slope_rad=0.01, wheel_radius_m=0.25, wheel_viscous_Nm_s=2.0,
-                    wheel_coulomb_Nm=0.5, torque_constant_scale=0.8,
-                    drive_extra={'ground_viscous': 1.5, 'viscous_friction': 0.25})
+    fx = SimEffects(
+        floor_slope_rad=0.01,
+        wheel_radius_m=0.25,
+        wheel_viscous_Nm_s=2.0,
+        wheel_coulomb_Nm=0.5,
+        torque_constant_scale=0.8,
+        drive_extra={'ground_viscous': 1.5, 'viscous_friction': 0.25},
+    )
     d = fx.drive(krang)
     assert (d.floor_slope, d.wheel_radius) == (0.01, 0.25)
     assert d.viscous_friction == pytest.approx(nominal.viscous_friction + 2.25)
@@ -115,6 +152,6 @@ def test_effects_are_values_of_the_true_drive_train(krang):
     slow = sim(krang, q_base=-1.0, drive_extra={'ground_viscous': 50.0})
     free = sim(krang, q_base=-1.0)
     for s in (slow, free):
-        s.state[2] = 1.0            # rolling forward
+        s.state[2] = 1.0  # rolling forward
         s.step(50)
-    assert slow.state[2] < free.state[2] - 0.05   # the rolling resistance brakes the wheels
+    assert slow.state[2] < free.state[2] - 0.05  # the rolling resistance brakes the wheels

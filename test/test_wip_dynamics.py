@@ -1,4 +1,5 @@
 """The WIP reduction, nonlinear dynamics and linearisation against independent references."""
+
 import math
 from dataclasses import replace
 
@@ -11,10 +12,48 @@ from krang_model.robot import load_krang, load_wip7
 from krang_model.drivetrain import drivetrain
 from krang_model.wip import WipDynamics, linearize, reduce_pose
 
-POSE = np.array([2.65, 1.17, -1.6, 1.58, 1.68, -1.13, 3.13, -1.19, 0.03, 1.26, -1.67, 2.10, -0.70, -1.19, 1.43, -1.67])
-# the upper-body pose of the Table II stand-up runs (waist 2.755 rad; balancing_runs/table2, first row)
-TABLE2_POSE = np.array([2.75467, 0.0749392, 1.00799, -1.113, -0.000251086, -1.59399, 0.0370958, 1.02202,
-                        -0.0209895, -0.854931, 1.113, 0.000271173, 1.561, -0.0280979, -1.052, 0.0210068])
+POSE = np.array(
+    [
+        2.65,
+        1.17,
+        -1.6,
+        1.58,
+        1.68,
+        -1.13,
+        3.13,
+        -1.19,
+        0.03,
+        1.26,
+        -1.67,
+        2.10,
+        -0.70,
+        -1.19,
+        1.43,
+        -1.67,
+    ]
+)
+# the upper-body pose of the Table II stand-up runs (waist 2.755 rad; balancing_runs/table2, first
+# row)
+TABLE2_POSE = np.array(
+    [
+        2.75467,
+        0.0749392,
+        1.00799,
+        -1.113,
+        -0.000251086,
+        -1.59399,
+        0.0370958,
+        1.02202,
+        -0.0209895,
+        -0.854931,
+        1.113,
+        0.000271173,
+        1.561,
+        -0.0280979,
+        -1.052,
+        0.0210068,
+    ]
+)
 
 
 @pytest.fixture(scope='module')
@@ -23,12 +62,20 @@ def krang():
 
 
 def frictionless(robot):
-    return drivetrain(robot, viscous_friction=0.0, ground_viscous=0.0, coulomb_friction=0.0, yaw_friction=0.0,
-                      caster_stiffness=0.0, caster_damping=0.0)
+    return drivetrain(
+        robot,
+        viscous_friction=0.0,
+        ground_viscous=0.0,
+        coulomb_friction=0.0,
+        yaw_friction=0.0,
+        caster_stiffness=0.0,
+        caster_damping=0.0,
+    )
 
 
 def test_reduction_against_pinocchio_inertia_algebra(krang):
-    """Body mass, CoM and inertia about the axle from pinocchio's spatial inertias (wheels excluded)."""
+    """Body mass, CoM and inertia about the axle from pinocchio's spatial inertias (wheels
+    excluded)."""
     body = reduce_pose(krang, POSE, krang.nominal_beta)
     model = krang.model
     data = model.createData()
@@ -39,7 +86,9 @@ def test_reduction_against_pinocchio_inertia_algebra(krang):
         if j not in wheel_joints:
             total += data.oMi[j].act(model.inertias[j])
     assert body.mass == pytest.approx(total.mass, rel=1e-12)
-    assert body.com_distance == pytest.approx(math.hypot(total.lever[1], total.lever[2]), rel=1e-12)
+    assert body.com_distance == pytest.approx(
+        math.hypot(total.lever[1], total.lever[2]), rel=1e-12
+    )
     # rotational inertia about the base origin: I_c + m (|c|^2 1 - c c^T); the axle is base x
     c = total.lever
     about_origin = total.inertia + total.mass * (c @ c * np.eye(3) - np.outer(c, c))
@@ -62,7 +111,14 @@ def test_energy_is_conserved_without_friction_or_input(make_robot):
     pose = np.zeros(len(robot.pose_joints)) if robot.name == 'wip7' else POSE
     body = reduce_pose(robot, pose, robot.nominal_beta)
     dyn = WipDynamics(body, frictionless(robot))
-    state = [0.0, -body.com_offset + 0.3, 0.5, -0.2, 0.0, 0.3]  # falling from 0.3 rad, rolling, turning
+    state = [
+        0.0,
+        -body.com_offset + 0.3,
+        0.5,
+        -0.2,
+        0.0,
+        0.3,
+    ]  # falling from 0.3 rad, rolling, turning
     e0 = dyn.energy(state)
     for _ in range(4000):  # 0.4 s of a fall through large angles
         state = dyn.step_rk4(state, 0.0, 0.0, 1e-4)
@@ -93,6 +149,7 @@ def test_linearisation_matches_finite_differences(krang):
         state = [x[0] / r, upright + x[2], x[1] / r, x[3], 0.0, 0.0]
         ddphi, ddqb, _ = dyn.accelerations(state, tau / 2, tau / 2)
         return np.array([x[1], r * ddphi, x[3], ddqb])
+
     h = 1e-6
     a_fd = np.column_stack([(f(h * e, 0.0) - f(-h * e, 0.0)) / (2 * h) for e in np.eye(4)])
     b_fd = (f(np.zeros(4), h) - f(np.zeros(4), -h)) / (2 * h)
@@ -104,7 +161,9 @@ def test_linearisation_matches_finite_differences(krang):
 
 def test_caster_holds_the_sitting_robot(krang):
     sit_pose = TABLE2_POSE.copy()
-    sit_pose[0] = 2.2  # waist: with beta_0 the Table II pose itself balances behind the caster (README)
+    sit_pose[0] = (
+        2.2  # waist: with beta_0 the Table II pose itself balances behind the caster (README)
+    )
     body = reduce_pose(krang, sit_pose, krang.nominal_beta)
     assert -body.com_offset > -1.5  # upright balance well forward of the caster
     drive = drivetrain(krang)
