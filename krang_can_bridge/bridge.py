@@ -30,6 +30,7 @@ Safety rules, all enforced here so the ROS shell cannot get them wrong:
 Every produced frame is a `BusFrame(bus, msg)`: the same ids are used on several buses (left and
 right arm).
 """
+
 from __future__ import annotations
 
 import logging
@@ -51,10 +52,10 @@ from krang_ros.names import BRIDGE_RECOVER
 
 logger = logging.getLogger('krang_can_bridge')
 
-OK, WARN, ERROR, STALE = 0, 1, 2, 3     # diagnostic_msgs/DiagnosticStatus levels
+OK, WARN, ERROR, STALE = 0, 1, 2, 3  # diagnostic_msgs/DiagnosticStatus levels
 NMT_ID = 0x000
 EMCY_BASE, SDO_RESPONSE_BASE, SDO_REQUEST_BASE, HEARTBEAT_BASE = 0x080, 0x580, 0x600, 0x700
-REJECTION_WARN_S = 10.0     # /diagnostics WARNs this long after a rejected command
+REJECTION_WARN_S = 10.0  # /diagnostics WARNs this long after a rejected command
 
 
 class BusFrame(NamedTuple):
@@ -71,9 +72,9 @@ class JointStateSnapshot(NamedTuple):
 
 
 class ImuSnapshot(NamedTuple):
-    pitch: float                    # q_base [rad], hardware convention
-    pitch_rate: float               # filtered dq_base [rad/s]
-    rates: tuple[float, float, float]           # bias-corrected, sensor axes [rad/s]
+    pitch: float  # q_base [rad], hardware convention
+    pitch_rate: float  # filtered dq_base [rad/s]
+    rates: tuple[float, float, float]  # bias-corrected, sensor axes [rad/s]
     specific_force: tuple[float, float, float]  # sensor axes [m/s^2]
     ready: bool
     pitch_variance: float
@@ -104,7 +105,7 @@ class _ModuleState:
     joint: BodyJointConfig
     module: PowerCubeModuleConfig
     device: _Device
-    position: float | None = None        # module coordinates
+    position: float | None = None  # module coordinates
     velocity: float | None = None
     short_state: int | None = None
 
@@ -116,14 +117,14 @@ class _WheelState:
     position: float | None = None
     velocity: float | None = None
     current: float | None = None
-    statusword: int | None = None      # the leading bytes of any TPDO (diagnostics)
+    statusword: int | None = None  # the leading bytes of any TPDO (diagnostics)
     # The statusword TPDO alone (mapped to 0x6041 by the driver; that the other TPDOs lead with it
     # is our reading, so no fault decision rests on them)
     drive_status: int | None = None
     drive_status_at: float | None = None
     emcy: str | None = None
-    started: bool = False       # the node's start-up (or recovery) sequence enabled this drive
-    armed: bool = False         # started and seen OPERATION_ENABLED: leaving it is a fault
+    started: bool = False  # the node's start-up (or recovery) sequence enabled this drive
+    armed: bool = False  # started and seen OPERATION_ENABLED: leaving it is a fault
 
 
 @dataclass
@@ -173,17 +174,20 @@ class BridgeCore:
         self._canopen_ids: set[int] = set()
         for drive in w.drives:
             codec = amc_proto.AmcDriveCodec(drive, w, dbc)
-            state = _WheelState(codec, _Device(f'amc/{drive.joint}', w.required,
-                                               w.silence_timeout_s))
+            state = _WheelState(
+                codec, _Device(f'amc/{drive.joint}', w.required, w.silence_timeout_s)
+            )
             self._wheels[drive.joint] = state
             for fid in codec.feedback_ids:
                 self._wheel_by_id[fid] = state
             self._wheel_echo_ids |= set(codec.command_ids) | {SDO_REQUEST_BASE + drive.node_id}
-            self._canopen_ids |= {SDO_RESPONSE_BASE + drive.node_id,
-                                  HEARTBEAT_BASE + drive.node_id}
+            self._canopen_ids |= {
+                SDO_RESPONSE_BASE + drive.node_id,
+                HEARTBEAT_BASE + drive.node_id,
+            }
         self._emcy_ids = {EMCY_BASE + s.codec.drive.node_id: s for s in self._wheels.values()}
-        self._wheel_echo_ids.add(amc_proto.HEARTBEAT_BASE + w.watchdog.node_id)   # our heartbeat
-        self._wheel_command: tuple[float, float, float] | None = None   # (left, right, time)
+        self._wheel_echo_ids.add(amc_proto.HEARTBEAT_BASE + w.watchdog.node_id)  # our heartbeat
+        self._wheel_command: tuple[float, float, float] | None = None  # (left, right, time)
         self._command_loop_at: float | None = None
         self._fault = ''
 
@@ -198,16 +202,20 @@ class BridgeCore:
         self._modules: dict[tuple[str, int], _ModuleState] = {}
         for joint in pcfg.joints:
             for m in joint.modules:
-                dev = _Device(f'powercube/{joint.joint}/{m.bus}:{m.module_id}', pcfg.required,
-                              pcfg.silence_timeout_s)
+                dev = _Device(
+                    f'powercube/{joint.joint}/{m.bus}:{m.module_id}',
+                    pcfg.required,
+                    pcfg.silence_timeout_s,
+                )
                 self._modules[(m.bus, m.module_id)] = _ModuleState(joint, m, dev)
 
     # ---- helpers --------------------------------------------------------------------------------
     def _now(self, now: float | None) -> float:
         return self.clock() if now is None else now
 
-    def _log(self, key: str, text: str, level: int = logging.WARNING,
-             period_s: float = 1.0) -> None:
+    def _log(
+        self, key: str, text: str, level: int = logging.WARNING, period_s: float = 1.0
+    ) -> None:
         """Log at most once per `period_s` per key (a 500 Hz NaN stream must not flood the log)."""
         t = self.clock()
         if t - self._log_times.get(key, -math.inf) >= period_s:
@@ -216,8 +224,11 @@ class BridgeCore:
 
     @property
     def devices(self) -> list[_Device]:
-        return ([s.device for s in self._wheels.values()] + [self._imu_device]
-                + [m.device for m in self._modules.values()])
+        return (
+            [s.device for s in self._wheels.values()]
+            + [self._imu_device]
+            + [m.device for m in self._modules.values()]
+        )
 
     def _bus_of(self, msg: can.Message, bus: str | None) -> str | None:
         if bus is not None:
@@ -240,8 +251,11 @@ class BridgeCore:
                 self._on_wheel(self._wheel_by_id[aid], msg, now)
             elif bus == self.config.imu.bus and aid in self.dmu.feedback_ids:
                 self._on_imu(msg, now)
-            elif bus is not None and pc.ACK_BASE < aid <= pc.ACK_BASE + pc.MODULE_ID_MASK \
-                    and (bus, aid & pc.MODULE_ID_MASK) in self._modules:
+            elif (
+                bus is not None
+                and pc.ACK_BASE < aid <= pc.ACK_BASE + pc.MODULE_ID_MASK
+                and (bus, aid & pc.MODULE_ID_MASK) in self._modules
+            ):
                 self._on_module(self._modules[(bus, aid & pc.MODULE_ID_MASK)], msg, now)
             elif bus == self.config.wheels.bus and aid in self._emcy_ids:
                 self._on_emcy(self._emcy_ids[aid], msg)
@@ -311,8 +325,9 @@ class BridgeCore:
             state.armed = state.started
         elif state.armed:
             state.armed = False
-            self._latch_fault(f'{joint}: drive left OPERATION_ENABLED for {name} (statusword '
-                              f'0x{sw:04X})')
+            self._latch_fault(
+                f'{joint}: drive left OPERATION_ENABLED for {name} (statusword 0x{sw:04X})'
+            )
 
     def _latch_fault(self, reason: str) -> None:
         """The first reason stays until clear_fault; later ones are logged."""
@@ -321,8 +336,9 @@ class BridgeCore:
             self.counters.drive_faults += 1
             logger.error(f'drive fault latched, both wheels at zero current: {reason}')
         else:
-            self._log(f'fault:{reason}', f'drive fault (already latched): {reason}',
-                      logging.ERROR, 5.0)
+            self._log(
+                f'fault:{reason}', f'drive fault (already latched): {reason}', logging.ERROR, 5.0
+            )
 
     # ---- drive faults ---------------------------------------------------------------------------
     @property
@@ -348,8 +364,10 @@ class BridgeCore:
                 continue
             name = amc_proto.drive_state(w.drive_status)
             if name == 'FAULT':
-                return False, (f'{joint} still reports FAULT (statusword 0x{w.drive_status:04X}) '
-                               'after the fault reset')
+                return False, (
+                    f'{joint} still reports FAULT (statusword 0x{w.drive_status:04X}) '
+                    'after the fault reset'
+                )
             if name != 'OPERATION_ENABLED':
                 waiting.append(f'{joint}: {name} after the enable sequence')
         return (None, '; '.join(waiting)) if waiting else (True, '')
@@ -376,12 +394,18 @@ class BridgeCore:
         r, a = self._imu_rates, self._imu_accel
         if r is None or a is None or r.sequence != a.sequence:
             return
-        self._imu_rates = self._imu_accel = None          # one filter update per paired sample
+        self._imu_rates = self._imu_accel = None  # one filter update per paired sample
         est: PitchEstimate = self._imu_estimator.update((r.x, r.y, r.z), (a.x, a.y, a.z), now)
         w = self._imu_estimator.corrected_rates((r.x, r.y, r.z))
-        self._imu_snapshot = ImuSnapshot(est.pitch, est.pitch_rate, (float(w[0]), float(w[1]),
-                                                                     float(w[2])),
-                                         (a.x, a.y, a.z), est.ready, est.variance, now)
+        self._imu_snapshot = ImuSnapshot(
+            est.pitch,
+            est.pitch_rate,
+            (float(w[0]), float(w[1]), float(w[2])),
+            (a.x, a.y, a.z),
+            est.ready,
+            est.variance,
+            now,
+        )
 
     def _on_module(self, state: _ModuleState, msg: can.Message, now: float) -> None:
         try:
@@ -427,8 +451,10 @@ class BridgeCore:
     # ---- wheel commands -------------------------------------------------------------------------
     def wheel_current_limit_a(self, joint: str) -> float:
         """The drive train's current limit, or the drive's peak if lower."""
-        return min(self.config.wheels.drivetrain.current_limit,
-                   self._wheels[joint].codec.drive.peak_current_a)
+        return min(
+            self.config.wheels.drivetrain.current_limit,
+            self._wheels[joint].codec.drive.peak_current_a,
+        )
 
     def _reject(self, reason: str, now: float) -> None:
         c = self.counters
@@ -460,8 +486,9 @@ class BridgeCore:
             out.append(x)
         return tuple(out)
 
-    def wheel_current_frames(self, effort_left_Nm: float, effort_right_Nm: float,
-                             now: float | None = None) -> list[BusFrame]:
+    def wheel_current_frames(
+        self, effort_left_Nm: float, effort_right_Nm: float, now: float | None = None
+    ) -> list[BusFrame]:
         """RPDO current frames for efforts at the wheels [N m], clamped; zero current on both when
         motion is not allowed or either effort is invalid."""
         now = self._now(now)
@@ -476,10 +503,16 @@ class BridgeCore:
                 amps = min(limit, max(-limit, requested))
                 if amps != requested:
                     self.counters.clamped_commands += 1
-                    self._log(f'clamp{joint}',
-                              f'{joint}: {requested:.2f} A clamped to {amps:.2f} A', logging.INFO)
-            frames.append(BusFrame(self.config.wheels.bus,
-                                   self._wheels[joint].codec.encode_current_command(amps)))
+                    self._log(
+                        f'clamp{joint}',
+                        f'{joint}: {requested:.2f} A clamped to {amps:.2f} A',
+                        logging.INFO,
+                    )
+            frames.append(
+                BusFrame(
+                    self.config.wheels.bus, self._wheels[joint].codec.encode_current_command(amps)
+                )
+            )
         return frames
 
     def set_wheel_effort_command(self, efforts, now: float | None = None) -> None:
@@ -501,13 +534,15 @@ class BridgeCore:
         return self.wheel_current_frames(cmd[0], cmd[1], now)
 
     # ---- joint commands -------------------------------------------------------------------------
-    def _module_target(self, joint: BodyJointConfig, module: PowerCubeModuleConfig,
-                       q: float) -> float:
+    def _module_target(
+        self, joint: BodyJointConfig, module: PowerCubeModuleConfig, q: float
+    ) -> float:
         lower, upper = joint.module_limits(module)
         return _float32_within(module.sign * q, lower, upper)
 
-    def joint_position_frames(self, targets: Mapping[str, float],
-                              now: float | None = None) -> list[BusFrame]:
+    def joint_position_frames(
+        self, targets: Mapping[str, float], now: float | None = None
+    ) -> list[BusFrame]:
         """FRAMP moves to joint targets [rad] (URDF names), clamped; [] when motion is not allowed.
 
         Each commanded module gets TARGET_VEL and TARGET_ACC (the module type's limits) then
@@ -517,16 +552,21 @@ class BridgeCore:
         now = self._now(now)
         if not self.motion_allowed(now):
             if targets:
-                self._log('joints_blocked',
-                          'joint command dropped: motion not allowed (silent device)')
+                self._log(
+                    'joints_blocked', 'joint command dropped: motion not allowed (silent device)'
+                )
             return []
         frames = []
         for name, q in targets.items():
             try:
                 joint = self.config.powercube.joint(name)
             except KeyError:
-                self._log(f'unknown{name}', f'joint command for unknown joint {name!r} ignored',
-                          logging.INFO, 10.0)
+                self._log(
+                    f'unknown{name}',
+                    f'joint command for unknown joint {name!r} ignored',
+                    logging.INFO,
+                    10.0,
+                )
                 continue
             try:
                 q = float(q)
@@ -537,17 +577,24 @@ class BridgeCore:
                 continue
             if joint.clamp(q) != q:
                 self.counters.clamped_commands += 1
-                self._log(f'clamp{name}',
-                          f'{name}: target {q:.4f} clamped to [{joint.lower}, {joint.upper}]',
-                          logging.INFO)
+                self._log(
+                    f'clamp{name}',
+                    f'{name}: target {q:.4f} clamped to [{joint.lower}, {joint.upper}]',
+                    logging.INFO,
+                )
             vel = _float32_within(joint.max_velocity_rad_s, 0.0, joint.max_velocity_rad_s)
-            acc = _float32_within(joint.max_acceleration_rad_s2, 0.0,
-                                  joint.max_acceleration_rad_s2)
+            acc = _float32_within(
+                joint.max_acceleration_rad_s2, 0.0, joint.max_acceleration_rad_s2
+            )
             for m in joint.modules:
-                frames += [BusFrame(m.bus, pc.set_param(m.module_id, pc.TARGET_VEL, vel)),
-                           BusFrame(m.bus, pc.set_param(m.module_id, pc.TARGET_ACC, acc)),
-                           BusFrame(m.bus, pc.set_motion(m.module_id, pc.FRAMP_ACK,
-                                                         self._module_target(joint, m, q)))]
+                frames += [
+                    BusFrame(m.bus, pc.set_param(m.module_id, pc.TARGET_VEL, vel)),
+                    BusFrame(m.bus, pc.set_param(m.module_id, pc.TARGET_ACC, acc)),
+                    BusFrame(
+                        m.bus,
+                        pc.set_motion(m.module_id, pc.FRAMP_ACK, self._module_target(joint, m, q)),
+                    ),
+                ]
         return frames
 
     def watchdog_frames(self, now: float | None = None) -> list[BusFrame]:
@@ -556,18 +603,22 @@ class BridgeCore:
         proves the control path is alive, not just that this process is."""
         now = self._now(now)
         wd, bus = self.config.wheels.watchdog, self.config.wheels.bus
-        if (wd.mechanism == 'none' or self._command_loop_at is None
-                or now - self._command_loop_at > wd.alive_timeout_s):
+        if (
+            wd.mechanism == 'none'
+            or self._command_loop_at is None
+            or now - self._command_loop_at > wd.alive_timeout_s
+        ):
             return []
         if wd.mechanism == 'heartbeat':
             return [BusFrame(bus, amc_proto.heartbeat_frame(wd))]
-        return [BusFrame(bus, amc_proto.guarding_request(d.node_id))
-                for d in self.config.wheels.drives]
+        return [
+            BusFrame(bus, amc_proto.guarding_request(d.node_id)) for d in self.config.wheels.drives
+        ]
 
     def poll_frames(self) -> list[BusFrame]:
         """GET_PARAM ACT_FPOS and ACT_FVEL for every module (modules only speak when asked)."""
         frames = []
-        for (bus, module_id) in self._modules:
+        for bus, module_id in self._modules:
             frames.append(BusFrame(bus, pc.get_param(module_id, pc.ACT_FPOS)))
             frames.append(BusFrame(bus, pc.get_param(module_id, pc.ACT_FVEL)))
         return frames
@@ -580,16 +631,31 @@ class BridgeCore:
         for st in self._modules.values():
             lower, upper = st.joint.module_limits(st.module)
             b, i = st.module.bus, st.module.module_id
-            frames += [BusFrame(b, pc.simple_command(i, pc.RESET)),
-                       BusFrame(b, pc.set_param(i, pc.MIN_FPOS, _float32_within(lower, lower,
-                                                                                upper))),
-                       BusFrame(b, pc.set_param(i, pc.MAX_FPOS, _float32_within(upper, lower,
-                                                                                upper))),
-                       BusFrame(b, pc.set_param(i, pc.TARGET_VEL, _float32_within(
-                           st.joint.max_velocity_rad_s, 0.0, st.joint.max_velocity_rad_s))),
-                       BusFrame(b, pc.set_param(i, pc.TARGET_ACC, _float32_within(
-                           st.joint.max_acceleration_rad_s2, 0.0,
-                           st.joint.max_acceleration_rad_s2)))]
+            frames += [
+                BusFrame(b, pc.simple_command(i, pc.RESET)),
+                BusFrame(b, pc.set_param(i, pc.MIN_FPOS, _float32_within(lower, lower, upper))),
+                BusFrame(b, pc.set_param(i, pc.MAX_FPOS, _float32_within(upper, lower, upper))),
+                BusFrame(
+                    b,
+                    pc.set_param(
+                        i,
+                        pc.TARGET_VEL,
+                        _float32_within(
+                            st.joint.max_velocity_rad_s, 0.0, st.joint.max_velocity_rad_s
+                        ),
+                    ),
+                ),
+                BusFrame(
+                    b,
+                    pc.set_param(
+                        i,
+                        pc.TARGET_ACC,
+                        _float32_within(
+                            st.joint.max_acceleration_rad_s2, 0.0, st.joint.max_acceleration_rad_s2
+                        ),
+                    ),
+                ),
+            ]
         return frames
 
     def imu_stream_frames(self, now: float | None = None) -> list[BusFrame]:
@@ -620,8 +686,11 @@ class BridgeCore:
                 continue
             names.append(joint.joint)
             pos.append(sum(s.module.sign * s.position for s in states) / len(states))
-            vel.append(sum(s.module.sign * s.velocity for s in states) / len(states)
-                       if all(s.velocity is not None for s in states) else math.nan)
+            vel.append(
+                sum(s.module.sign * s.velocity for s in states) / len(states)
+                if all(s.velocity is not None for s in states)
+                else math.nan
+            )
         for joint, w in self._wheels.items():
             if w.position is None or w.device.silent(now):
                 continue
@@ -643,8 +712,9 @@ class BridgeCore:
         c = self.counters
         silent = [d for d in self.devices if d.silent(now)]
         allowed = self.motion_allowed(now)
-        fault = [f'drive fault latched: {self._fault} (call {BRIDGE_RECOVER})'] \
-            if self._fault else []
+        fault = (
+            [f'drive fault latched: {self._fault} (call {BRIDGE_RECOVER})'] if self._fault else []
+        )
         reports = [
             DiagnosticReport(
                 'can_bridge: motion',
@@ -654,7 +724,8 @@ class BridgeCore:
                 else 'motion disabled (zero wheel current, no joint motion): '
                 + (
                     '; '.join(
-                        fault + list(self._inhibits.values())
+                        fault
+                        + list(self._inhibits.values())
                         + [f'{d.name} silent' for d in silent if d.required]
                     )
                     or 'IMU filter not initialised'
@@ -668,49 +739,101 @@ class BridgeCore:
             )
         ]
         recent = c.last_rejection_at is not None and now - c.last_rejection_at <= REJECTION_WARN_S
-        reports.append(DiagnosticReport(
-            'can_bridge: commands', WARN if recent else OK,
-            (f'{c.rejected_commands} rejected commands, last: {c.last_rejection}' if recent
-             else f'{c.rejected_commands} rejected commands, none in the last '
-                  f'{REJECTION_WARN_S:.0f} s' if c.rejected_commands else 'no rejected commands'),
-            {'rejected_commands': str(c.rejected_commands), 'last_rejection': c.last_rejection,
-             'last_rejection_age_s': '' if c.last_rejection_at is None
-             else f'{now - c.last_rejection_at:.3f}',
-             'clamped_commands': str(c.clamped_commands)}))
-        reports.append(DiagnosticReport(
-            'can_bridge: frames', WARN if c.malformed or c.unknown else OK,
-            f'{c.malformed} malformed, {c.unknown} unknown of {c.frames}',
-            {'frames': str(c.frames), 'malformed': str(c.malformed), 'unknown': str(c.unknown),
-             'echoes': str(c.echoes), 'canopen': str(c.canopen),
-             'last_malformed': c.last_malformed, 'last_unknown': c.last_unknown}))
+        reports.append(
+            DiagnosticReport(
+                'can_bridge: commands',
+                WARN if recent else OK,
+                (
+                    f'{c.rejected_commands} rejected commands, last: {c.last_rejection}'
+                    if recent
+                    else f'{c.rejected_commands} rejected commands, none in the last '
+                    f'{REJECTION_WARN_S:.0f} s'
+                    if c.rejected_commands
+                    else 'no rejected commands'
+                ),
+                {
+                    'rejected_commands': str(c.rejected_commands),
+                    'last_rejection': c.last_rejection,
+                    'last_rejection_age_s': ''
+                    if c.last_rejection_at is None
+                    else f'{now - c.last_rejection_at:.3f}',
+                    'clamped_commands': str(c.clamped_commands),
+                },
+            )
+        )
+        reports.append(
+            DiagnosticReport(
+                'can_bridge: frames',
+                WARN if c.malformed or c.unknown else OK,
+                f'{c.malformed} malformed, {c.unknown} unknown of {c.frames}',
+                {
+                    'frames': str(c.frames),
+                    'malformed': str(c.malformed),
+                    'unknown': str(c.unknown),
+                    'echoes': str(c.echoes),
+                    'canopen': str(c.canopen),
+                    'last_malformed': c.last_malformed,
+                    'last_unknown': c.last_unknown,
+                },
+            )
+        )
         wd = self.config.wheels.watchdog
-        beating = wd.mechanism != 'none' and self._command_loop_at is not None \
+        beating = (
+            wd.mechanism != 'none'
+            and self._command_loop_at is not None
             and now - self._command_loop_at <= wd.alive_timeout_s
-        reports.append(DiagnosticReport(
-            'can_bridge: drive watchdog', OK if beating or wd.mechanism == 'none' else WARN,
-            'off (mechanism none): the drives hold their last current if the bridge dies'
-            if wd.mechanism == 'none'
-            else f'{wd.mechanism} every {wd.period_ms} ms, drives stop {wd.timeout_ms} ms after '
-                 'the last' + ('' if beating else ': WITHHELD, wheel command loop quiet'),
-            {'mechanism': wd.mechanism, 'node_id': str(wd.node_id),
-             'abort_connection_option': str(wd.abort_connection_option)}))
+        )
+        reports.append(
+            DiagnosticReport(
+                'can_bridge: drive watchdog',
+                OK if beating or wd.mechanism == 'none' else WARN,
+                'off (mechanism none): the drives hold their last current if the bridge dies'
+                if wd.mechanism == 'none'
+                else f'{wd.mechanism} every {wd.period_ms} ms, drives stop {wd.timeout_ms} ms '
+                f'after '
+                'the last' + ('' if beating else ': WITHHELD, wheel command loop quiet'),
+                {
+                    'mechanism': wd.mechanism,
+                    'node_id': str(wd.node_id),
+                    'abort_connection_option': str(wd.abort_connection_option),
+                },
+            )
+        )
         for bus in self.config.buses_in_use():
             n = c.error_frames.get(bus, 0)
-            reports.append(DiagnosticReport(f'can_bridge: bus {bus}', WARN if n else OK,
-                                            f'{n} error frames',
-                                            {'error_frames': str(n)}))
+            reports.append(
+                DiagnosticReport(
+                    f'can_bridge: bus {bus}',
+                    WARN if n else OK,
+                    f'{n} error frames',
+                    {'error_frames': str(n)},
+                )
+            )
         for joint, w in self._wheels.items():
             state = amc_proto.drive_state(w.statusword) if w.statusword is not None else 'unknown'
             level = (
-                STALE if w.device.silent(now)
-                else OK if state == 'OPERATION_ENABLED' else ERROR if state == 'FAULT' else WARN
+                STALE
+                if w.device.silent(now)
+                else OK
+                if state == 'OPERATION_ENABLED'
+                else ERROR
+                if state == 'FAULT'
+                else WARN
             )
-            reports.append(DiagnosticReport(f'can_bridge: {w.device.name}', level,
-                                            f'drive {state}',
-                                            {'position_rad': str(w.position),
-                                             'velocity_rad_s': str(w.velocity),
-                                             'current_a': str(w.current), 'emcy': str(w.emcy),
-                                             'malformed': str(w.device.malformed)}))
+            reports.append(
+                DiagnosticReport(
+                    f'can_bridge: {w.device.name}',
+                    level,
+                    f'drive {state}',
+                    {
+                        'position_rad': str(w.position),
+                        'velocity_rad_s': str(w.velocity),
+                        'current_a': str(w.current),
+                        'emcy': str(w.emcy),
+                        'malformed': str(w.device.malformed),
+                    },
+                )
+            )
         imu = self._imu_snapshot
         level = (
             STALE
@@ -731,11 +854,20 @@ class BridgeCore:
         for st in self._modules.values():
             not_ok = st.short_state is not None and st.short_state & pc.SHORT_NOT_OK
             level = STALE if st.device.silent(now) else (WARN if not_ok else OK)
-            reports.append(DiagnosticReport(
-                f'can_bridge: {st.device.name}', level,
-                'silent' if level == STALE else ('module reports NOT_OK (error, not homed or '
-                                                 'halted)' if not_ok
-                                                 else 'ok'),
-                {'position': str(st.position), 'short_state': str(st.short_state),
-                 'malformed': str(st.device.malformed)}))
+            reports.append(
+                DiagnosticReport(
+                    f'can_bridge: {st.device.name}',
+                    level,
+                    'silent'
+                    if level == STALE
+                    else (
+                        'module reports NOT_OK (error, not homed or halted)' if not_ok else 'ok'
+                    ),
+                    {
+                        'position': str(st.position),
+                        'short_state': str(st.short_state),
+                        'malformed': str(st.device.malformed),
+                    },
+                )
+            )
         return reports

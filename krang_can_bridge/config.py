@@ -8,6 +8,7 @@ description every user of a motor constant reads. A device map may still state a
 the drive train at load. The loader validates the file so that a typo or a disagreeing constant
 fails at start-up, not as a wrong current on the bus. docs/can.md describes the devices.
 """
+
 from __future__ import annotations
 
 import math
@@ -21,8 +22,8 @@ from krang_model.config import config_path
 from krang_model.drivetrain import Drivetrain, drivetrain
 from krang_model.robot import load_krang
 
-DEVICES_FILE_NAME = 'can_devices.yaml'                 # the simulated robot (udp_multicast)
-ROBOT_DEVICES_FILE_NAME = 'can_devices_robot.yaml'     # the robot (SocketCAN): bridge default
+DEVICES_FILE_NAME = 'can_devices.yaml'  # the simulated robot (udp_multicast)
+ROBOT_DEVICES_FILE_NAME = 'can_devices_robot.yaml'  # the robot (SocketCAN): bridge default
 WATCHDOG_MECHANISMS = ('heartbeat', 'guarding', 'none')
 
 
@@ -52,9 +53,9 @@ class WheelDriveConfig:
     joint: str
     node_id: int
     sign: int
-    peak_current_kp: float      # drive object 0x20D8.0C, units of 0.1 A
-    k_i: float                  # feedback interpolation, 0x2032.08
-    k_s: float                  # switching frequency in Hz (0x20D8.24)
+    peak_current_kp: float  # drive object 0x20D8.0C, units of 0.1 A
+    k_i: float  # feedback interpolation, 0x2032.08
+    k_s: float  # switching frequency in Hz (0x20D8.24)
 
     @property
     def peak_current_a(self) -> float:
@@ -98,7 +99,7 @@ class WheelsConfig:
     """The AMC drives; `drivetrain` is the robot's (krang_model.drivetrain), not the YAML's."""
 
     bus: str
-    encoder_counts_per_rev: float    # motor encoder, read by the drive
+    encoder_counts_per_rev: float  # motor encoder, read by the drive
     silence_timeout_s: float
     command_timeout_s: float
     command_rate_hz: float
@@ -130,22 +131,22 @@ class WheelsConfig:
 class KalmanConfig:
     process_k1: float
     process_k1b: float
-    measurement_noise_angle: float   # accelerometer pitch (corrupted by linear acceleration)
-    measurement_noise_rate: float    # gyro pitch rate
+    measurement_noise_angle: float  # accelerometer pitch (corrupted by linear acceleration)
+    measurement_noise_rate: float  # gyro pitch rate
     init_samples: int
     # gyro-bias random walk [(rad/s)^2/s]: how fast the bias is tracked
     bias_process_noise: float
     # start-up: still = the accelerometer pitch turns slower than this,
     still_rate_rad_s: float
-    still_rate_change_rad_s: float   # and the gyro mean changes less than this across the window;
-    still_wait_s: float              # no still window within this long: start without the bias
+    still_rate_change_rad_s: float  # and the gyro mean changes less than this across the window;
+    still_wait_s: float  # no still window within this long: start without the bias
 
 
 @dataclass(frozen=True)
 class ImuConfig:
     bus: str
     mount_angle_rad: float
-    gyro_bias_rad_s: tuple[float, float, float]   # about sensor x (dQ), y (dP), z (dR)
+    gyro_bias_rad_s: tuple[float, float, float]  # about sensor x (dQ), y (dP), z (dR)
     silence_timeout_s: float
     stream_toggle_retry_s: float
     required: bool
@@ -292,8 +293,11 @@ def _sign(value: Any, where: str) -> int:
 
 
 # Drive-train values a device map may still state, and the Drivetrain field each must equal.
-DRIVETRAIN_KEYS = {'torque_constant_nm_per_a': 'torque_constant', 'gear_ratio': 'gear_ratio',
-                   'current_limit_a': 'current_limit'}
+DRIVETRAIN_KEYS = {
+    'torque_constant_nm_per_a': 'torque_constant',
+    'gear_ratio': 'gear_ratio',
+    'current_limit_a': 'current_limit',
+}
 
 
 def _check_drivetrain(d: Mapping, drive: Drivetrain, source: Path) -> None:
@@ -306,11 +310,13 @@ def _check_drivetrain(d: Mapping, drive: Drivetrain, source: Path) -> None:
             raise ConfigError(
                 f'{source}: wheels.{key} = {d[key]!r} disagrees with the drive train ({attr} = '
                 f'{expected!r}, config/robot.yaml via krang_model.drivetrain); remove the key '
-                'from the device map or make the two agree')
+                'from the device map or make the two agree'
+            )
 
 
-def _parse_watchdog(d: Any, drives: list[WheelDriveConfig],
-                    command_rate_hz: float) -> WatchdogConfig:
+def _parse_watchdog(
+    d: Any, drives: list[WheelDriveConfig], command_rate_hz: float
+) -> WatchdogConfig:
     """wheels.watchdog, checked so that a drive can never trip on a healthy bridge nor wait
     forever on a dead one."""
     where = 'wheels.watchdog'
@@ -318,30 +324,39 @@ def _parse_watchdog(d: Any, drives: list[WheelDriveConfig],
         raise ConfigError(f'{where}: missing (a mapping: mechanism, node_id, period_s, ...)')
     mechanism = str(_req(d, 'mechanism', where))
     if mechanism not in WATCHDOG_MECHANISMS:
-        raise ConfigError(f'{where}.mechanism must be one of {WATCHDOG_MECHANISMS}, got '
-                          f'{mechanism!r}')
+        raise ConfigError(
+            f'{where}.mechanism must be one of {WATCHDOG_MECHANISMS}, got {mechanism!r}'
+        )
     node_id = int(_req(d, 'node_id', where))
     if not 1 <= node_id <= 0x7F or node_id in {x.node_id for x in drives}:
-        raise ConfigError(f'{where}.node_id {node_id} must be in 1..127 and not a drive\'s')
+        raise ConfigError(f"{where}.node_id {node_id} must be in 1..127 and not a drive's")
     cfg = WatchdogConfig(
-        mechanism=mechanism, node_id=node_id,
+        mechanism=mechanism,
+        node_id=node_id,
         period_s=_positive(_req(d, 'period_s', where), f'{where}.period_s'),
         timeout_s=_positive(_req(d, 'timeout_s', where), f'{where}.timeout_s'),
         alive_timeout_s=_positive(_req(d, 'alive_timeout_s', where), f'{where}.alive_timeout_s'),
-        abort_connection_option=int(_req(d, 'abort_connection_option', where)))
+        abort_connection_option=int(_req(d, 'abort_connection_option', where)),
+    )
     if not -0x8000 <= cfg.abort_connection_option <= 3:
-        raise ConfigError(f'{where}.abort_connection_option (0x6007) must be 0..3 (DS402) or a '
-                          f'negative manufacturer code, got {cfg.abort_connection_option}')
+        raise ConfigError(
+            f'{where}.abort_connection_option (0x6007) must be 0..3 (DS402) or a '
+            f'negative manufacturer code, got {cfg.abort_connection_option}'
+        )
     if cfg.period_s * 3 > cfg.timeout_s:
-        raise ConfigError(f'{where}: period_s {cfg.period_s} must be at most a third of timeout_s '
-                          f'{cfg.timeout_s} (a late beat must not trip the drives)')
+        raise ConfigError(
+            f'{where}: period_s {cfg.period_s} must be at most a third of timeout_s '
+            f'{cfg.timeout_s} (a late beat must not trip the drives)'
+        )
     if not (1 <= cfg.period_ms and cfg.timeout_ms <= 0xFFFF):
         raise ConfigError(f'{where}: period_s and timeout_s must be 1 ms .. 65.535 s')
     if mechanism == 'guarding' and not 1 <= cfg.life_time_factor <= 0xFF:
         raise ConfigError(f'{where}: timeout_s / period_s (life time factor) must be 1..255')
     if cfg.alive_timeout_s * command_rate_hz < 2:
-        raise ConfigError(f'{where}.alive_timeout_s {cfg.alive_timeout_s} must span at least two '
-                          f'wheel command periods (1/{command_rate_hz} s)')
+        raise ConfigError(
+            f'{where}.alive_timeout_s {cfg.alive_timeout_s} must span at least two '
+            f'wheel command periods (1/{command_rate_hz} s)'
+        )
     return cfg
 
 
@@ -354,27 +369,41 @@ def _parse_wheels(d: Mapping, buses: Mapping, drive: Drivetrain, source: Path) -
         node_id = int(_req(dd, 'node_id', w))
         if not 1 <= node_id <= 0x7F:
             raise ConfigError(f'{w}: CANopen node id {node_id} outside 1..127')
-        drives.append(WheelDriveConfig(
-            joint=str(_req(dd, 'joint', w)), node_id=node_id, sign=_sign(_req(dd, 'sign', w), w),
-            peak_current_kp=_positive(_req(dd, 'peak_current_kp', w), f'{w}.peak_current_kp'),
-            k_i=_positive(_req(dd, 'k_i', w), f'{w}.k_i'), k_s=_positive(_req(dd, 'k_s', w),
-                                                                         f'{w}.k_s')))
+        drives.append(
+            WheelDriveConfig(
+                joint=str(_req(dd, 'joint', w)),
+                node_id=node_id,
+                sign=_sign(_req(dd, 'sign', w), w),
+                peak_current_kp=_positive(_req(dd, 'peak_current_kp', w), f'{w}.peak_current_kp'),
+                k_i=_positive(_req(dd, 'k_i', w), f'{w}.k_i'),
+                k_s=_positive(_req(dd, 'k_s', w), f'{w}.k_s'),
+            )
+        )
     if len({x.node_id for x in drives}) != len(drives) or len({x.joint for x in drives}) != len(
         drives
     ):
         raise ConfigError(f'{where}: duplicate node id or joint')
     cfg = WheelsConfig(
         bus=str(_req(d, 'bus', where)),
-        encoder_counts_per_rev=_positive(_req(d, 'encoder_counts_per_rev', where),
-                                         'encoder_counts_per_rev'),
-        silence_timeout_s=_positive(_req(d, 'silence_timeout_s', where),
-                                    'wheels.silence_timeout_s'),
-        command_timeout_s=_positive(_req(d, 'command_timeout_s', where),
-                                    'wheels.command_timeout_s'),
+        encoder_counts_per_rev=_positive(
+            _req(d, 'encoder_counts_per_rev', where), 'encoder_counts_per_rev'
+        ),
+        silence_timeout_s=_positive(
+            _req(d, 'silence_timeout_s', where), 'wheels.silence_timeout_s'
+        ),
+        command_timeout_s=_positive(
+            _req(d, 'command_timeout_s', where), 'wheels.command_timeout_s'
+        ),
         command_rate_hz=_positive(_req(d, 'command_rate_hz', where), 'wheels.command_rate_hz'),
-        required=bool(d.get('required', True)), drives=tuple(drives), drivetrain=drive,
-        watchdog=_parse_watchdog(d.get('watchdog'), drives,
-                                 _positive(_req(d, 'command_rate_hz', where), 'command_rate_hz')))
+        required=bool(d.get('required', True)),
+        drives=tuple(drives),
+        drivetrain=drive,
+        watchdog=_parse_watchdog(
+            d.get('watchdog'),
+            drives,
+            _positive(_req(d, 'command_rate_hz', where), 'command_rate_hz'),
+        ),
+    )
     if cfg.bus not in buses:
         raise ConfigError(f'{where}: unknown bus {cfg.bus!r}')
     return cfg
@@ -440,9 +469,11 @@ def _parse_powercube(d: Mapping, buses: Mapping) -> PowerCubeConfig:
         modules = []
         for i, md in enumerate(_req(jd, 'modules', w)):
             mw = f'{w}.modules[{i}]'
-            m = PowerCubeModuleConfig(bus=str(_req(md, 'bus', mw)), module_id=int(_req(md, 'id',
-                                                                                       mw)),
-                                      sign=_sign(md.get('sign', 1), mw))
+            m = PowerCubeModuleConfig(
+                bus=str(_req(md, 'bus', mw)),
+                module_id=int(_req(md, 'id', mw)),
+                sign=_sign(md.get('sign', 1), mw),
+            )
             if m.bus not in buses:
                 raise ConfigError(f'{mw}: unknown bus {m.bus!r}')
             if not 1 <= m.module_id <= 0x1F:
@@ -453,22 +484,34 @@ def _parse_powercube(d: Mapping, buses: Mapping) -> PowerCubeConfig:
             modules.append(m)
         if not modules:
             raise ConfigError(f'{w}: no modules')
-        joints.append(BodyJointConfig(
-            joint=str(name), lower=lower, upper=upper, module_type=tname,
-            max_velocity_rad_s=math.radians(_positive(_req(t, 'max_velocity_deg_s', tname),
-                                                      f'{tname} velocity')),
-            max_acceleration_rad_s2=math.radians(
-                _positive(_req(t, 'max_acceleration_deg_s2', tname), f'{tname} acceleration')),
-            modules=tuple(modules)))
+        joints.append(
+            BodyJointConfig(
+                joint=str(name),
+                lower=lower,
+                upper=upper,
+                module_type=tname,
+                max_velocity_rad_s=math.radians(
+                    _positive(_req(t, 'max_velocity_deg_s', tname), f'{tname} velocity')
+                ),
+                max_acceleration_rad_s2=math.radians(
+                    _positive(_req(t, 'max_acceleration_deg_s2', tname), f'{tname} acceleration')
+                ),
+                modules=tuple(modules),
+            )
+        )
     return PowerCubeConfig(
         poll_rate_hz=_positive(_req(d, 'poll_rate_hz', where), 'poll_rate_hz'),
-        silence_timeout_s=_positive(_req(d, 'silence_timeout_s', where),
-                                    'powercube.silence_timeout_s'),
-        required=bool(d.get('required', True)), joints=tuple(joints))
+        silence_timeout_s=_positive(
+            _req(d, 'silence_timeout_s', where), 'powercube.silence_timeout_s'
+        ),
+        required=bool(d.get('required', True)),
+        joints=tuple(joints),
+    )
 
 
-def load_devices(path: str | Path | None = None,
-                 drive: Drivetrain | None = None) -> CanDevicesConfig:
+def load_devices(
+    path: str | Path | None = None, drive: Drivetrain | None = None
+) -> CanDevicesConfig:
     """Load and validate a device map (default: `default_devices_file()`) for the drive train
     `drive` (default: the robot's, `drivetrain(load_krang())`)."""
     path = Path(path) if path is not None else default_devices_file()
@@ -477,18 +520,22 @@ def load_devices(path: str | Path | None = None,
     buses = {}
     for name, bd in _req(data, 'buses', str(path)).items():
         bd = dict(bd)
-        buses[str(name)] = BusConfig(name=str(name), interface=str(_req(bd, 'interface',
-                                                                        f'buses.{name}')),
-                                     channel=str(_req(bd, 'channel', f'buses.{name}')),
-                                     options=dict(bd.get('options', {}) or {}))
+        buses[str(name)] = BusConfig(
+            name=str(name),
+            interface=str(_req(bd, 'interface', f'buses.{name}')),
+            channel=str(_req(bd, 'channel', f'buses.{name}')),
+            options=dict(bd.get('options', {}) or {}),
+        )
     cfg = CanDevicesConfig(
-        path=path.resolve(), dbc_path=(path.resolve().parent / str(_req(data, 'dbc_file',
-                                                                        str(path)))).resolve(),
+        path=path.resolve(),
+        dbc_path=(path.resolve().parent / str(_req(data, 'dbc_file', str(path)))).resolve(),
         buses=buses,
-        wheels=_parse_wheels(_req(data, 'wheels', str(path)), buses, drive, sources.get('wheels',
-                                                                                        path)),
+        wheels=_parse_wheels(
+            _req(data, 'wheels', str(path)), buses, drive, sources.get('wheels', path)
+        ),
         imu=_parse_imu(_req(data, 'imu', str(path)), buses),
-        powercube=_parse_powercube(_req(data, 'powercube', str(path)), buses))
+        powercube=_parse_powercube(_req(data, 'powercube', str(path)), buses),
+    )
     names = cfg.joint_names
     if len(set(names)) != len(names):
         raise ConfigError('a joint name appears twice')

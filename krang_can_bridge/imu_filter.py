@@ -20,6 +20,7 @@ Unlike imud/kore (which fed raw rates), the configured gyro biases are removed b
 ssdmu.c defines them for this DMU and leaving -0.14 rad/s in the pitch rate would bias the balance
 controller.
 """
+
 from __future__ import annotations
 
 import math
@@ -43,8 +44,9 @@ def tilt_direction(mount_angle_rad: float) -> np.ndarray:
     return np.array([math.cos(mount_angle_rad), -math.sin(mount_angle_rad), 0.0])
 
 
-def pitch_measurement(specific_force: Sequence[float], rates: Sequence[float],
-                      mount_angle_rad: float) -> tuple[float, float]:
+def pitch_measurement(
+    specific_force: Sequence[float], rates: Sequence[float], mount_angle_rad: float
+) -> tuple[float, float]:
     """(pitch, pitch_rate) of one sample, exactly as kore computed them (specific force in any
     unit)."""
     m = mount_angle_rad
@@ -52,9 +54,14 @@ def pitch_measurement(specific_force: Sequence[float], rates: Sequence[float],
     return math.atan2(new_x, specific_force[2]), rates[1] * math.sin(m) + rates[0] * math.cos(m)
 
 
-def sensor_vectors(pitch: float, pitch_rate: float, mount_angle_rad: float, gravity: float = 9.81,
-                   forward_specific_force: float = 0.0, up_specific_force: float | None = None
-                   ) -> tuple[np.ndarray, np.ndarray]:
+def sensor_vectors(
+    pitch: float,
+    pitch_rate: float,
+    mount_angle_rad: float,
+    gravity: float = 9.81,
+    forward_specific_force: float = 0.0,
+    up_specific_force: float | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
     """(specific force [m/s^2], rates [rad/s]) in sensor coordinates for a robot at `pitch` in the
     pitch plane.
 
@@ -65,7 +72,7 @@ def sensor_vectors(pitch: float, pitch_rate: float, mount_angle_rad: float, grav
     """
     up = gravity if up_specific_force is None else up_specific_force
     s, c = math.sin(pitch), math.cos(pitch)
-    along_tilt = -forward_specific_force * c + up * s   # on d (d is world -forward at pitch 0)
+    along_tilt = -forward_specific_force * c + up * s  # on d (d is world -forward at pitch 0)
     along_z = forward_specific_force * s + up * c
     force = along_tilt * tilt_direction(mount_angle_rad) + np.array([0.0, 0.0, along_z])
     return force, pitch_rate * pitch_axis(mount_angle_rad)
@@ -94,9 +101,18 @@ class PitchKalmanFilter:
 
     _C = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 1.0]])
 
-    def __init__(self, process_k1: float, process_k1b: float, measurement_noise_angle: float,
-                 measurement_noise_rate: float, init_samples: int, bias_process_noise: float,
-                 still_rate: float, still_rate_change: float, still_wait: float):
+    def __init__(
+        self,
+        process_k1: float,
+        process_k1b: float,
+        measurement_noise_angle: float,
+        measurement_noise_rate: float,
+        init_samples: int,
+        bias_process_noise: float,
+        still_rate: float,
+        still_rate_change: float,
+        still_wait: float,
+    ):
         self.k1, self.k1b = process_k1, process_k1b
         self.bias_process_noise = bias_process_noise
         self.still_rate, self.still_rate_change = still_rate, still_rate_change
@@ -107,9 +123,17 @@ class PitchKalmanFilter:
 
     @classmethod
     def from_config(cls, k: KalmanConfig) -> 'PitchKalmanFilter':
-        return cls(k.process_k1, k.process_k1b, k.measurement_noise_angle,
-                   k.measurement_noise_rate, k.init_samples, k.bias_process_noise,
-                   k.still_rate_rad_s, k.still_rate_change_rad_s, k.still_wait_s)
+        return cls(
+            k.process_k1,
+            k.process_k1b,
+            k.measurement_noise_angle,
+            k.measurement_noise_rate,
+            k.init_samples,
+            k.bias_process_noise,
+            k.still_rate_rad_s,
+            k.still_rate_change_rad_s,
+            k.still_wait_s,
+        )
 
     @property
     def ready(self) -> bool:
@@ -151,9 +175,13 @@ class PitchKalmanFilter:
 
     def _model(self, dt: float) -> tuple[np.ndarray, np.ndarray]:
         a = np.array([[1.0, dt, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
-        q = np.array([[dt ** 4 * self.k1 / 4.0, dt ** 3 * self.k1 / 2.0, 0.0],
-                      [dt ** 3 * self.k1 / 2.0, dt ** 2 * self.k1b, 0.0],
-                      [0.0, 0.0, dt * self.bias_process_noise]])
+        q = np.array(
+            [
+                [dt**4 * self.k1 / 4.0, dt**3 * self.k1 / 2.0, 0.0],
+                [dt**3 * self.k1 / 2.0, dt**2 * self.k1b, 0.0],
+                [0.0, 0.0, dt * self.bias_process_noise],
+            ]
+        )
         return a, q
 
     def _steady_covariance(self, dt: float) -> np.ndarray:
@@ -165,7 +193,7 @@ class PitchKalmanFilter:
         c, r = self._C, self.measurement_cov
         try:
             prior = solve_discrete_are(a.T, c.T, q, r)
-        except (np.linalg.LinAlgError, ValueError):      # a bias noise too small to solve for
+        except (np.linalg.LinAlgError, ValueError):  # a bias noise too small to solve for
             return np.diag([1.0, 1.0, r[1, 1]])
         return prior - prior @ c.T @ np.linalg.solve(c @ prior @ c.T + r, c @ prior)
 
@@ -178,7 +206,7 @@ class PitchKalmanFilter:
             return float(self.x[0]), float(self.x[1])
         x0, x1, x2 = self.x.tolist()
         (p00, p01, p02), (_, p11, p12), (_, _, p22) = self.P.tolist()
-        if dt > 0.0 and math.isfinite(dt):                     # x <- A x, P <- A P A^T + Q
+        if dt > 0.0 and math.isfinite(dt):  # x <- A x, P <- A P A^T + Q
             if dt != self._model_dt:
                 self._model_dt, self._q = dt, self._model(dt)[1].tolist()
             (q00, q01, _), (_, q11, _), (_, _, q22) = self._q
@@ -189,28 +217,34 @@ class PitchKalmanFilter:
             p11 += q11
             p22 += q22
         ra, rw = self.measurement_cov[0, 0], self.measurement_cov[1, 1]
-        u = (p00, p01, p02)                                     # the columns of P C^T
+        u = (p00, p01, p02)  # the columns of P C^T
         v = (p01 + p02, p11 + p12, p12 + p22)
         s00, s01, s11 = p00 + ra, p01 + p02, p11 + 2.0 * p12 + p22 + rw
         det = s00 * s11 - s01 * s01
         k0 = [(ui * s11 - vi * s01) / det for ui, vi in zip(u, v)]
         k1 = [(vi * s00 - ui * s01) / det for ui, vi in zip(u, v)]
         y0, y1 = angle - x0, rate - x1 - x2
-        self.x = np.array([x0 + k0[0] * y0 + k1[0] * y1, x1 + k0[1] * y0 + k1[1] * y1,
-                           x2 + k0[2] * y0 + k1[2] * y1])
+        self.x = np.array(
+            [
+                x0 + k0[0] * y0 + k1[0] * y1,
+                x1 + k0[1] * y0 + k1[1] * y1,
+                x2 + k0[2] * y0 + k1[2] * y1,
+            ]
+        )
         p = [[p00, p01, p02], [p01, p11, p12], [p02, p12, p22]]
-        self.P = np.array([[p[i][j] - k0[i] * u[j] - k1[i] * v[j] for j in range(3)]
-                           for i in range(3)])
+        self.P = np.array(
+            [[p[i][j] - k0[i] * u[j] - k1[i] * v[j] for j in range(3)] for i in range(3)]
+        )
         return float(self.x[0]), float(self.x[1])
 
 
 class PitchEstimate(NamedTuple):
-    pitch: float               # q_base [rad], hardware convention
-    pitch_rate: float          # dq_base [rad/s]
-    raw_pitch: float           # one-sample measurement before the filter
+    pitch: float  # q_base [rad], hardware convention
+    pitch_rate: float  # dq_base [rad/s]
+    raw_pitch: float  # one-sample measurement before the filter
     raw_pitch_rate: float
-    ready: bool                # the filter has its initial average
-    variance: float            # filter variance of the pitch [rad^2]
+    ready: bool  # the filter has its initial average
+    variance: float  # filter variance of the pitch [rad^2]
 
 
 class ImuPitchEstimator:
@@ -225,12 +259,14 @@ class ImuPitchEstimator:
     def corrected_rates(self, rates: Sequence[float]) -> np.ndarray:
         return np.asarray(rates, dtype=float) - self.gyro_bias
 
-    def update(self, rates: Sequence[float], specific_force: Sequence[float],
-               t: float) -> PitchEstimate:
+    def update(
+        self, rates: Sequence[float], specific_force: Sequence[float], t: float
+    ) -> PitchEstimate:
         w = self.corrected_rates(rates)
         raw_pitch, raw_rate = pitch_measurement(specific_force, w, self.mount_angle_rad)
         dt = 0.0 if self._last_t is None else t - self._last_t
         self._last_t = t
         pitch, rate = self.filter.update(raw_pitch, raw_rate, dt)
-        return PitchEstimate(pitch, rate, raw_pitch, raw_rate, self.filter.ready,
-                             float(self.filter.P[0, 0]))
+        return PitchEstimate(
+            pitch, rate, raw_pitch, raw_rate, self.filter.ready, float(self.filter.P[0, 0])
+        )

@@ -34,6 +34,7 @@ Parameters: BridgeParams below (`can_bridge --help`), read once at start. With u
 time of the core (IMU filter steps, silence and command timeouts) is the simulator's /clock, not
 wall time.
 """
+
 from __future__ import annotations
 
 import logging
@@ -53,17 +54,21 @@ from std_msgs.msg import Float64MultiArray, String
 from std_srvs.srv import Trigger
 
 from krang_can_bridge.bridge import BridgeCore, BusFrame
-from krang_can_bridge.config import BusConfig, load_devices, resolve_devices_file, \
-    robot_devices_file
+from krang_can_bridge.config import (
+    BusConfig,
+    load_devices,
+    resolve_devices_file,
+    robot_devices_file,
+)
 from krang_can_bridge.imu_filter import pitch_axis, tilt_direction
 from krang_can_bridge.protocols import amc as amc_proto
 from krang_can_bridge.sample_clock import SampleClock
 from krang_ros import messages, names, params, topics
 from krang_ros.spin import run_node
 
-SIM_TIME_SLACK_S = 0.025     # with use_sim_time: checks run at most this far past the newest frame
+SIM_TIME_SLACK_S = 0.025  # with use_sim_time: checks run at most this far past the newest frame
 HARDWARE_ID = 'krang_can'
-CAN_BITRATE = 1000000        # every Krang net runs at 1 Mbit/s (docs/can.md)
+CAN_BITRATE = 1000000  # every Krang net runs at 1 Mbit/s (docs/can.md)
 
 
 def _doc(text: str) -> dict:
@@ -74,21 +79,37 @@ def _doc(text: str) -> dict:
 class BridgeParams:
     """The node's ROS parameters (krang_ros.params: descriptions, read only, checked at start)."""
 
-    devices_file: str = field(default_factory=lambda: str(robot_devices_file()), metadata=_doc(
-        "CAN device map; a bare name is looked up in config/ (default: the robot's SocketCAN "
-        'map; the simulated node set sets can_devices.yaml)'))
-    publish_rate_hz: float = field(default=200.0, metadata=_doc(
-        '/joint_states and /imu/data rate [Hz]'))
-    amc_startup: bool = field(default=True, metadata=_doc(
-        'configure and enable the AMC drives through SDO at start (as amciod did)'))
+    devices_file: str = field(
+        default_factory=lambda: str(robot_devices_file()),
+        metadata=_doc(
+            "CAN device map; a bare name is looked up in config/ (default: the robot's SocketCAN "
+            'map; the simulated node set sets can_devices.yaml)'
+        ),
+    )
+    publish_rate_hz: float = field(
+        default=200.0, metadata=_doc('/joint_states and /imu/data rate [Hz]')
+    )
+    amc_startup: bool = field(
+        default=True,
+        metadata=_doc('configure and enable the AMC drives through SDO at start (as amciod did)'),
+    )
     sdo_timeout_s: float = field(default=0.3, metadata=_doc('SDO response timeout [s]'))
-    startup_retry_s: float = field(default=2.0, metadata=_doc(
-        'wait before retrying a failed drive start-up [s]'))
-    recover_timeout_s: float = field(default=1.0, metadata=_doc(
-        '~/recover: how long to wait for every drive to report OPERATION_ENABLED [s]'))
+    startup_retry_s: float = field(
+        default=2.0, metadata=_doc('wait before retrying a failed drive start-up [s]')
+    )
+    recover_timeout_s: float = field(
+        default=1.0,
+        metadata=_doc(
+            '~/recover: how long to wait for every drive to report OPERATION_ENABLED [s]'
+        ),
+    )
     send_timeout_s: float = field(default=0.002, metadata=_doc('CAN send timeout [s]'))
-    imu_sample_period_s: float = field(default=0.0, metadata=_doc(
-        '0: DMU samples timed by arrival; > 0: by their sequence counter at this period [s]'))
+    imu_sample_period_s: float = field(
+        default=0.0,
+        metadata=_doc(
+            '0: DMU samples timed by arrival; > 0: by their sequence counter at this period [s]'
+        ),
+    )
 
     def __post_init__(self):
         for name in ('publish_rate_hz', 'sdo_timeout_s', 'startup_retry_s', 'recover_timeout_s'):
@@ -118,8 +139,10 @@ def open_bus(bus: BusConfig) -> can.BusABC:
     except (OSError, can.CanError, ValueError) as exc:
         text = f'cannot open CAN bus {bus.name} ({bus.interface} {bus.channel}): {exc}'
         if bus.interface == 'socketcan':
-            text += (f'; is the CAN driver loaded and the interface up? sudo ip link set '
-                     f'{bus.channel} up type can bitrate {CAN_BITRATE}')
+            text += (
+                f'; is the CAN driver loaded and the interface up? sudo ip link set '
+                f'{bus.channel} up type can bitrate {CAN_BITRATE}'
+            )
         raise BusOpenError(text) from exc
 
 
@@ -175,8 +198,9 @@ class CanBridgeNode(Node):
             clock = self.get_clock()
             self._frame_time = lambda: clock.now().nanoseconds * 1e-9
             self._newest_frame = self._frame_time()
-            self._device_time = lambda: min(self._frame_time(),
-                                            self._newest_frame + SIM_TIME_SLACK_S)
+            self._device_time = lambda: min(
+                self._frame_time(), self._newest_frame + SIM_TIME_SLACK_S
+            )
         else:
             self._frame_time = self._device_time = time.monotonic
             self._newest_frame = self._frame_time()
@@ -192,7 +216,7 @@ class CanBridgeNode(Node):
         self._send_errors: dict[str, int] = {}
         self._receive_errors: dict[str, str] = {}
         self._startup_status: dict[str, str] = {}
-        self._sdo_lock = threading.Lock()        # one SDO user at a time: start-up or recover
+        self._sdo_lock = threading.Lock()  # one SDO user at a time: start-up or recover
         self._sdo_timeout = p.sdo_timeout_s
         self._recover_timeout = p.recover_timeout_s
         self._published_fault: str | None = None
@@ -216,18 +240,28 @@ class CanBridgeNode(Node):
             self.notifiers.append(can.Notifier(bus, [_BusListener(self, name)], timeout=0.1))
 
         qos = topics.QOS
-        self.joint_pub = self.create_publisher(JointState, names.JOINT_STATES,
-                                               qos[names.JOINT_STATES])
+        self.joint_pub = self.create_publisher(
+            JointState, names.JOINT_STATES, qos[names.JOINT_STATES]
+        )
         self.imu_pub = self.create_publisher(Imu, names.IMU, qos[names.IMU])
-        self.diag_pub = self.create_publisher(DiagnosticArray, names.DIAGNOSTICS,
-                                              qos[names.DIAGNOSTICS])
+        self.diag_pub = self.create_publisher(
+            DiagnosticArray, names.DIAGNOSTICS, qos[names.DIAGNOSTICS]
+        )
         self.fault_pub = self.create_publisher(String, names.DRIVE_FAULT, topics.LATCHED)
         self.publish_fault()
         self.create_service(Trigger, '~/recover', self.on_recover)
-        self.create_subscription(Float64MultiArray, names.WHEEL_EFFORT_CMD, self.on_wheel_effort,
-                                 qos[names.WHEEL_EFFORT_CMD])
-        self.create_subscription(JointState, names.JOINT_POSITION_CMD, self.on_joint_position,
-                                 qos[names.JOINT_POSITION_CMD])
+        self.create_subscription(
+            Float64MultiArray,
+            names.WHEEL_EFFORT_CMD,
+            self.on_wheel_effort,
+            qos[names.WHEEL_EFFORT_CMD],
+        )
+        self.create_subscription(
+            JointState,
+            names.JOINT_POSITION_CMD,
+            self.on_joint_position,
+            qos[names.JOINT_POSITION_CMD],
+        )
 
         self.create_timer(1.0 / p.publish_rate_hz, self.publish_state)
         self.create_timer(1.0 / self.config.wheels.command_rate_hz, self.send_wheel_commands)
@@ -238,10 +272,12 @@ class CanBridgeNode(Node):
         for drive in self.config.wheels.drives:
             self._startup_status[drive.joint] = 'pending'
             if p.amc_startup:
-                self.core.inhibit(f'startup/{drive.joint}',
-                                  f'{drive.joint}: AMC start-up not done')
+                self.core.inhibit(
+                    f'startup/{drive.joint}', f'{drive.joint}: AMC start-up not done'
+                )
         self._startup_thread = threading.Thread(
-            target=self._startup_worker, args=(p.amc_startup, p.startup_retry_s), daemon=True)
+            target=self._startup_worker, args=(p.amc_startup, p.startup_retry_s), daemon=True
+        )
         self._startup_thread.start()
         self._watchdog_thread = threading.Thread(target=self._watchdog_worker, daemon=True)
         self._watchdog_thread.start()
@@ -255,7 +291,7 @@ class CanBridgeNode(Node):
 
     # ---- CAN I/O --------------------------------------------------------------------------------
     def on_received(self, bus: str, msg: can.Message) -> None:
-        if self._stop.is_set():          # closing: the drives' reaction to our silence is expected
+        if self._stop.is_set():  # closing: the drives' reaction to our silence is expected
             return
         with self._lock:
             now = self._frame_time()
@@ -291,8 +327,9 @@ class CanBridgeNode(Node):
                 self.buses[bus].send(msg, timeout=self._send_timeout)
             except can.CanError as exc:
                 self._send_errors[bus] = self._send_errors.get(bus, 0) + 1
-                self.get_logger().warning(f'send on {bus} failed: {exc}',
-                                          throttle_duration_sec=1.0)
+                self.get_logger().warning(
+                    f'send on {bus} failed: {exc}', throttle_duration_sec=1.0
+                )
 
     def _watchdog_worker(self) -> None:
         """Send the drives' watchdog frames every period; the core withholds them when the wheel
@@ -312,8 +349,9 @@ class CanBridgeNode(Node):
         with self._lock:
             self.core.drive_started(drive.joint, False)
         with self._sdo_lock:
-            mismatches = amc_proto.run_startup(self.canopen, drive, self._sdo_timeout,
-                                               self.config.wheels.watchdog)
+            mismatches = amc_proto.run_startup(
+                self.canopen, drive, self._sdo_timeout, self.config.wheels.watchdog
+            )
         with self._lock:
             self.core.drive_started(drive.joint, not mismatches)
         return mismatches
@@ -331,8 +369,10 @@ class CanBridgeNode(Node):
                     mismatches = self._enable_drive(drive)
                 except Exception as exc:  # noqa: BLE001 - SDO timeout/abort or bus error: retry
                     self._startup_status[drive.joint] = f'failed: {type(exc).__name__}: {exc}'
-                    self.get_logger().warning(f'{drive.joint} start-up failed ({exc}); retrying',
-                                              throttle_duration_sec=10.0)
+                    self.get_logger().warning(
+                        f'{drive.joint} start-up failed ({exc}); retrying',
+                        throttle_duration_sec=10.0,
+                    )
                     self._stop.wait(retry_s)
                     continue
                 with self._lock:
@@ -387,8 +427,10 @@ class CanBridgeNode(Node):
             try:
                 mismatches = self._enable_drive(drive)
             except Exception as exc:  # noqa: BLE001 - SDO timeout/abort or bus error
-                return False, (f'{drive.joint}: fault reset and enable failed '
-                               f'({type(exc).__name__}: {exc}); fault still latched: {reason}')
+                return False, (
+                    f'{drive.joint}: fault reset and enable failed '
+                    f'({type(exc).__name__}: {exc}); fault still latched: {reason}'
+                )
             if mismatches:
                 return False, '; '.join(mismatches)
         since = self._frame_time()
@@ -414,11 +456,13 @@ class CanBridgeNode(Node):
         if len(msg.position) != len(msg.name):
             self.get_logger().warning(
                 f'{names.JOINT_POSITION_CMD}: name and position lengths differ; ignored',
-                throttle_duration_sec=1.0)
+                throttle_duration_sec=1.0,
+            )
             return
         with self._lock:
-            frames = self.core.joint_position_frames(dict(zip(msg.name, msg.position)),
-                                                     self._device_time())
+            frames = self.core.joint_position_frames(
+                dict(zip(msg.name, msg.position)), self._device_time()
+            )
         self.send(frames)
 
     def send_wheel_commands(self) -> None:
@@ -446,8 +490,9 @@ class CanBridgeNode(Node):
             imu = self.core.imu_state()
         stamp = self.get_clock().now().to_msg()
         if joints.names:
-            self.joint_pub.publish(messages.joint_state(stamp, joints.names, joints.positions,
-                                                        joints.velocities))
+            self.joint_pub.publish(
+                messages.joint_state(stamp, joints.names, joints.positions, joints.velocities)
+            )
         if imu is not None:
             self.imu_pub.publish(self._imu_message(imu, stamp))
 
@@ -457,27 +502,45 @@ class CanBridgeNode(Node):
         mount = self.config.imu.mount_angle_rad
         e, d = pitch_axis(mount), tilt_direction(mount)
         w, f = imu.rates, imu.specific_force
-        return messages.imu(stamp, self.config.imu.frame_id, imu.pitch, imu.pitch_variance,
-                            (-float(d @ w), imu.pitch_rate, w[2]),
-                            (-float(d @ f), float(e @ f), f[2]))
+        return messages.imu(
+            stamp,
+            self.config.imu.frame_id,
+            imu.pitch,
+            imu.pitch_variance,
+            (-float(d @ w), imu.pitch_rate, w[2]),
+            (-float(d @ f), float(e @ f), f[2]),
+        )
 
     def publish_diagnostics(self) -> None:
         with self._lock:
             reports = self.core.diagnostics(self._device_time())
-        statuses = [messages.diagnostic_status(r.name, messages.LEVEL_NAMES[r.level], r.message,
-                                               r.values, HARDWARE_ID) for r in reports]
+        statuses = [
+            messages.diagnostic_status(
+                r.name, messages.LEVEL_NAMES[r.level], r.message, r.values, HARDWARE_ID
+            )
+            for r in reports
+        ]
         for bus in self.buses:
             sent_err, recv_err = self._send_errors.get(bus, 0), self._receive_errors.get(bus)
             if sent_err or recv_err:
-                statuses.append(messages.diagnostic_status(
-                    f'can_bridge: bus {bus} I/O', 'error' if recv_err else 'warn',
-                    recv_err or f'{sent_err} send errors',
-                    {'send_errors': sent_err, 'receive_error': recv_err}, HARDWARE_ID))
+                statuses.append(
+                    messages.diagnostic_status(
+                        f'can_bridge: bus {bus} I/O',
+                        'error' if recv_err else 'warn',
+                        recv_err or f'{sent_err} send errors',
+                        {'send_errors': sent_err, 'receive_error': recv_err},
+                        HARDWARE_ID,
+                    )
+                )
         for joint, status in self._startup_status.items():
-            statuses.append(messages.diagnostic_status(
-                f'can_bridge: amc/{joint} start-up', 'ok' if status == 'enabled' else 'warn',
-                status,
-                hardware_id=HARDWARE_ID))
+            statuses.append(
+                messages.diagnostic_status(
+                    f'can_bridge: amc/{joint} start-up',
+                    'ok' if status == 'enabled' else 'warn',
+                    status,
+                    hardware_id=HARDWARE_ID,
+                )
+            )
         self.diag_pub.publish(messages.diagnostic_array(self.get_clock().now().to_msg(), statuses))
 
     # ---- shutdown -------------------------------------------------------------------------------

@@ -9,19 +9,21 @@ receiver's clock: at most `lag_max_s` behind it (the clock jumped past a queue o
 track started late) and re-anchored when more than `lead_max_s` ahead (a sensor restart, or the
 track lost).
 """
+
 from __future__ import annotations
 
 
 class SampleClock:
-    def __init__(self, period_s: float, lag_max_s: float = 0.04, lead_max_s: float = 1.0,
-                 modulo: int = 256):
+    def __init__(
+        self, period_s: float, lag_max_s: float = 0.04, lead_max_s: float = 1.0, modulo: int = 256
+    ):
         if period_s <= 0 or lag_max_s < 0 or lead_max_s <= 0:
             raise ValueError('period_s and lead_max_s must be positive, lag_max_s not negative')
         self.period = float(period_s)
         self.lag_max = float(lag_max_s)
         self.lead_max = float(lead_max_s)
         self.modulo = int(modulo)
-        self._last = None                       # (sequence, time) of the last sample
+        self._last = None  # (sequence, time) of the last sample
 
     def time_of(self, sequence: int, now: float) -> float:
         """The time of the sample numbered `sequence`, received at `now` (the same number twice:

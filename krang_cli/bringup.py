@@ -1,4 +1,5 @@
 """krang bringup: start the node set (with the simulated robot under --sim) until Ctrl-C."""
+
 import logging
 
 from .node_set import RECORDER, STOP_ORDER, node_set, params_files
@@ -9,19 +10,31 @@ log = logging.getLogger('krang.bringup')
 
 def register(subparsers):
     p = subparsers.add_parser(
-        'bringup', help='start the node set (real robot, or --sim)',
-        description='Starts can_bridge, adrc_controller, pose_server and com_estimator as processes '
-                    '(and sim_krang with --sim, mcap_recorder with --record), with parameters from '
-                    'config/krang_params.yaml plus --params files. The bridge talks to the '
-                    'CAN buses of config/can_devices_robot.yaml (socketcan), with --sim to '
-                    'those of config/can_devices.yaml (config/sim_params.yaml). Ctrl-C stops '
-                    'everything '
-                    'cleanly, the recorder last.')
-    p.add_argument('--sim', action='store_true', help='start sim_krang and use the simulated buses')
-    p.add_argument('--params', action='append', default=[], metavar='FILE',
-                   help='extra ROS parameter YAML (node_name: ros__parameters: ...); may repeat, later wins')
+        'bringup',
+        help='start the node set (real robot, or --sim)',
+        description='Starts can_bridge, adrc_controller, pose_server and com_estimator as '
+        'processes '
+        '(and sim_krang with --sim, mcap_recorder with --record), with parameters from '
+        'config/krang_params.yaml plus --params files. The bridge talks to the '
+        'CAN buses of config/can_devices_robot.yaml (socketcan), with --sim to '
+        'those of config/can_devices.yaml (config/sim_params.yaml). Ctrl-C stops '
+        'everything '
+        'cleanly, the recorder last.',
+    )
+    p.add_argument(
+        '--sim', action='store_true', help='start sim_krang and use the simulated buses'
+    )
+    p.add_argument(
+        '--params',
+        action='append',
+        default=[],
+        metavar='FILE',
+        help='extra ROS parameter YAML (node_name: ros__parameters: ...); may repeat, later wins',
+    )
     p.add_argument('--record', metavar='BAG', help='record every topic to this MCAP file')
-    p.add_argument('--log-dir', help='write each node\'s output to DIR/<node>.log instead of the terminal')
+    p.add_argument(
+        '--log-dir', help="write each node's output to DIR/<node>.log instead of the terminal"
+    )
     p.set_defaults(func=run)
 
 

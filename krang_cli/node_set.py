@@ -4,6 +4,7 @@
 so the two can never start different executables or load different parameter files. No rclpy or
 launch import here: the launch files import this module on a real ROS install.
 """
+
 from dataclasses import dataclass
 
 from krang_model.config import config_path
@@ -51,7 +52,17 @@ def launch_description(sim):
     install; `krang bringup` runs without them."""
     from launch import LaunchDescription
     from launch_ros.actions import Node
-    return LaunchDescription([
-        Node(package='krang_com', executable=spec.executable, name=spec.executable,
-             parameters=list(spec.params_files), output='screen', emulate_tty=True)
-        for spec in node_set(sim)])
+
+    return LaunchDescription(
+        [
+            Node(
+                package='krang_com',
+                executable=spec.executable,
+                name=spec.executable,
+                parameters=list(spec.params_files),
+                output='screen',
+                emulate_tty=True,
+            )
+            for spec in node_set(sim)
+        ]
+    )

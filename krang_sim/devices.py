@@ -1,31 +1,42 @@
-"""CAN device emulators for the simulated Krang: they answer as the real devices do, frame for frame.
+"""CAN device emulators for the simulated Krang: they answer as the real devices do, frame for
+frame.
 
-The emulators are physics-free: they take and give physical quantities (wheel angle, rates, specific force,
-module positions) and speak the same wire formats as the robot, through the same codecs the bridge uses
-(krang_can_bridge.protocols), so the bridge is exercised against real frame layouts. The simulator
-(krang_sim/physics.py) owns the physics and calls them:
+The emulators are physics-free: they take and give physical quantities (wheel angle, rates,
+specific force, module positions) and speak the same wire formats as the robot, through the same
+codecs the bridge uses (krang_can_bridge.protocols), so the bridge is exercised against real frame
+layouts. The simulator (krang_sim/physics.py) owns the physics and calls them:
 
-    devices = KrangCanDevices(load_devices())           # every emulator from config/can_devices.yaml
-    replies = devices.on_frame(bus, msg)                 # host frame in -> device replies out (BusFrames)
-    devices.step(dt)                                     # PowerCube ramps advance
-    amps = devices.wheels['JLWheel'].commanded_current_a # -> physics
-    devices.set_silent(['imu'])                          # fault injection: the DMU stops transmitting
-    out = devices.wheel_feedback_frames({'JLWheel': q, ...}, {'JLWheel': dq, ...})  # physics -> bus
-    out += devices.imu.frames_from_pitch(q_base, dq_base)                           # physics -> bus
+    devices = KrangCanDevices(load_devices())           # every emulator from
+    config/can_devices.yaml replies = devices.on_frame(bus, msg)                 # host frame in ->
+    device replies out (BusFrames) devices.step(dt)                                     # PowerCube
+    ramps advance amps = devices.wheels['JLWheel'].commanded_current_a # -> physics
+    devices.set_silent(['imu'])                          # fault injection: the DMU stops
+    transmitting out = devices.wheel_feedback_frames({'JLWheel': q, ...}, {'JLWheel': dq, ...})  #
+    physics -> bus out += devices.imu.frames_from_pitch(q_base, dq_base)
+    # physics -> bus
 
-Design choices (the real behaviour is not knowable from the sources; each is a docstring-level assumption):
-- AMC: a canopen LocalNode provides the SDO server and NMT slave over the drive's object dictionary; a DS402
-  state machine follows the controlword (SDO or RPDO). Current is applied only when NMT is OPERATIONAL, the mode
-  is current (4) and the drive is OPERATION_ENABLED - so the bridge's start-up sequence is needed, as on the
-  robot (or pass auto_enable=True). TPDOs are sent only in OPERATIONAL. Currents beyond the drive peak saturate.
-- DMU: adds the configured gyro biases (the bridge removes them), optional white noise, rounds to the LSB and
+Design choices (the real behaviour is not knowable from the sources; each is a docstring-level
+assumption):
+- AMC: a canopen LocalNode provides the SDO server and NMT slave over the drive's object
+  dictionary; a DS402
+  state machine follows the controlword (SDO or RPDO). Current is applied only when NMT is
+  OPERATIONAL, the mode is current (4) and the drive is OPERATION_ENABLED - so the bridge's
+  start-up sequence is needed, as on the robot (or pass auto_enable=True). TPDOs are sent only in
+  OPERATIONAL. Currents beyond the drive peak saturate.
+- DMU: adds the configured gyro biases (the bridge removes them), optional white noise, rounds to
+  the LSB and
   saturates at int16; streams by default (`streaming=False` to exercise the bridge's toggle).
-- PowerCube: kinematic module. FRAMP follows a trapezoidal profile within TARGET_VEL / TARGET_ACC, themselves
-  capped by the module's datasheet limits; targets are clamped to the module soft limits; HALT stops and ignores
-  motions until RESET; FCUR_ACK stores the current and holds position (the simulator may `set_state`).
-- Silent device (fault injection, `set_silent`): it stops transmitting (a broken TX line or a hung firmware
-  loop) but still receives, so a drive applies the zero current a bridge sends once it notices the silence.
+- PowerCube: kinematic module. FRAMP follows a trapezoidal profile within TARGET_VEL /
+  TARGET_ACC, themselves
+  capped by the module's datasheet limits; targets are clamped to the module soft limits; HALT
+  stops and ignores motions until RESET; FCUR_ACK stores the current and holds position (the
+  simulator may `set_state`).
+- Silent device (fault injection, `set_silent`): it stops transmitting (a broken TX line or a
+  hung firmware
+  loop) but still receives, so a drive applies the zero current a bridge sends once it notices the
+  silence.
 """
+
 from __future__ import annotations
 
 import math
@@ -36,27 +47,40 @@ import canopen
 import numpy as np
 
 from krang_can_bridge.bridge import BusFrame
-from krang_can_bridge.config import BodyJointConfig, CanDevicesConfig, ImuConfig, PowerCubeModuleConfig, \
-    WheelDriveConfig, WheelsConfig
+from krang_can_bridge.config import (
+    BodyJointConfig,
+    CanDevicesConfig,
+    ImuConfig,
+    PowerCubeModuleConfig,
+    WheelDriveConfig,
+    WheelsConfig,
+)
 from krang_can_bridge.imu_filter import sensor_vectors
 from krang_can_bridge.protocols import ProtocolError, load_dbc
 from krang_can_bridge.protocols import amc as amc_proto
 from krang_can_bridge.protocols import powercube as pc
 from krang_can_bridge.protocols.dmu_imu import DmuCodec
 
-INT32_SPAN = 2 ** 32
+INT32_SPAN = 2**32
 
 
 class _CaptureNetwork(canopen.Network):
-    """A canopen Network without a bus: what the local node sends is collected and returned as replies."""
+    """A canopen Network without a bus: what the local node sends is collected and returned as
+    replies."""
 
     def __init__(self):
         super().__init__(bus=None)
         self.outbox: list[can.Message] = []
 
     def send_message(self, can_id: int, data, remote: bool = False) -> None:
-        self.outbox.append(can.Message(arbitration_id=can_id, data=bytes(data), is_extended_id=can_id > 0x7FF,
-                                       is_remote_frame=remote))
+        self.outbox.append(
+            can.Message(
+                arbitration_id=can_id,
+                data=bytes(data),
+                is_extended_id=can_id > 0x7FF,
+                is_remote_frame=remote,
+            )
+        )
 
     def send_periodic(self, can_id, data, period, remote=False):  # heartbeats: not emulated
         raise NotImplementedError('heartbeat producer is not emulated')
@@ -69,7 +93,9 @@ class _CaptureNetwork(canopen.Network):
 class AmcDriveEmulator:
     """One AMC drive: RPDO current in, TPDOs out, NMT and SDO through canopen."""
 
-    def __init__(self, drive: WheelDriveConfig, wheels: WheelsConfig, dbc, auto_enable: bool = False):
+    def __init__(
+        self, drive: WheelDriveConfig, wheels: WheelsConfig, dbc, auto_enable: bool = False
+    ):
         self.codec = amc_proto.AmcDriveCodec(drive, wheels, dbc)
         self.drive = drive
         self.wheels = wheels
@@ -82,7 +108,7 @@ class AmcDriveEmulator:
         self._last_controlword = 0
         self.malformed = 0
         self._boot()
-        self._network.take()                       # nobody listens to the power-on boot-up message
+        self._network.take()  # nobody listens to the power-on boot-up message
         if auto_enable:
             self.node.nmt.send_command(amc_proto.NMT_START)
             self.mode = amc_proto.OP_MODE_CURRENT
@@ -92,10 +118,10 @@ class AmcDriveEmulator:
         self.state = 'SWITCH_ON_DISABLED'
         self.mode = 0
         self._commanded_dc2_amps = 0.0
-        self.node.nmt.send_command(amc_proto.NMT_RESET_NODE)        # boot-up message
+        self.node.nmt.send_command(amc_proto.NMT_RESET_NODE)  # boot-up message
         self.node.nmt.send_command(amc_proto.NMT_PRE_OPERATIONAL)
 
-    # ---- state -----------------------------------------------------------------------------------------
+    # ---- state ----------------------------------------------------------------------------------
     @property
     def nmt_state(self) -> str:
         return self.node.nmt.state
@@ -106,17 +132,22 @@ class AmcDriveEmulator:
 
     @property
     def enabled(self) -> bool:
-        return (self.nmt_state == 'OPERATIONAL' and self.state == 'OPERATION_ENABLED'
-                and self.mode == amc_proto.OP_MODE_CURRENT)
+        return (
+            self.nmt_state == 'OPERATIONAL'
+            and self.state == 'OPERATION_ENABLED'
+            and self.mode == amc_proto.OP_MODE_CURRENT
+        )
 
     @property
     def commanded_current_a(self) -> float:
-        """Motor current the drive applies, signed in the wheel joint's direction [A]; 0 unless enabled."""
+        """Motor current the drive applies, signed in the wheel joint's direction [A]; 0 unless
+        enabled."""
         return self._commanded_dc2_amps if self.enabled else 0.0
 
     @property
     def wheel_torque_nm(self) -> float:
-        """Torque at the wheel for the applied current (Kt * gear * I, the drive constants of the config)."""
+        """Torque at the wheel for the applied current (Kt * gear * I, the drive constants of the
+        config)."""
         return self.wheels.current_to_effort(self.commanded_current_a)
 
     def fault(self) -> None:
@@ -124,8 +155,9 @@ class AmcDriveEmulator:
         self.state = 'FAULT'
 
     def _apply_controlword(self, cw: int) -> None:
-        """DS402 state machine. AMC's PDO controlword 0x008F sets bit 7 with 'enable operation': bit 7 acts
-        only on its rising edge in FAULT; otherwise the low bits decide (an assumption matching the driver)."""
+        """DS402 state machine. AMC's PDO controlword 0x008F sets bit 7 with 'enable operation':
+        bit 7 acts only on its rising edge in FAULT; otherwise the low bits decide (an assumption
+        matching the driver)."""
         rising_reset = bool(cw & 0x80) and not (self._last_controlword & 0x80)
         self._last_controlword = cw
         s = self.state
@@ -133,17 +165,17 @@ class AmcDriveEmulator:
             if rising_reset:
                 self.state = 'SWITCH_ON_DISABLED'
             return
-        if not cw & 0x02:                                   # disable voltage
+        if not cw & 0x02:  # disable voltage
             self.state = 'SWITCH_ON_DISABLED'
-        elif not cw & 0x04:                                 # quick stop
+        elif not cw & 0x04:  # quick stop
             self.state = 'QUICK_STOP_ACTIVE' if s == 'OPERATION_ENABLED' else 'SWITCH_ON_DISABLED'
-        elif not cw & 0x01:                                 # shutdown
+        elif not cw & 0x01:  # shutdown
             if s in ('SWITCH_ON_DISABLED', 'SWITCHED_ON', 'OPERATION_ENABLED'):
                 self.state = 'READY_TO_SWITCH_ON'
-        elif not cw & 0x08:                                 # switch on / disable operation
+        elif not cw & 0x08:  # switch on / disable operation
             if s in ('READY_TO_SWITCH_ON', 'OPERATION_ENABLED'):
                 self.state = 'SWITCHED_ON'
-        elif s in ('SWITCHED_ON', 'QUICK_STOP_ACTIVE'):     # enable operation
+        elif s in ('SWITCHED_ON', 'QUICK_STOP_ACTIVE'):  # enable operation
             self.state = 'OPERATION_ENABLED'
 
     def _on_sdo_write(self, index, subindex, od, data):
@@ -151,9 +183,11 @@ class AmcDriveEmulator:
             self._apply_controlword(int.from_bytes(data, 'little'))
         elif index == amc_proto.MODES_OF_OPERATION:
             self.mode = int.from_bytes(data, 'little', signed=True)
-            self.node.data_store.setdefault(amc_proto.MODES_OF_OPERATION_DISPLAY, {})[0] = bytes(data)
+            self.node.data_store.setdefault(amc_proto.MODES_OF_OPERATION_DISPLAY, {})[0] = bytes(
+                data
+            )
 
-    # ---- frames ----------------------------------------------------------------------------------------
+    # ---- frames ---------------------------------------------------------------------------------
     def on_frame(self, msg: can.Message) -> list[can.Message]:
         """Consume a host frame (NMT, SDO request, RPDO); return the drive's replies."""
         aid = msg.arbitration_id
@@ -169,34 +203,49 @@ class AmcDriveEmulator:
             return []
         if aid in (0, 0x600 + self.drive.node_id):
             self._network.notify(aid, bytes(msg.data), msg.timestamp)
-            if self.node.nmt.state == 'INITIALISING':           # NMT reset: reboot
+            if self.node.nmt.state == 'INITIALISING':  # NMT reset: reboot
                 self._boot()
             return self._network.take()
         return []
 
-    def tpdo_frames(self, position_rad: float, velocity_rad_s: float,
-                    current_a: float | None = None) -> list[can.Message]:
-        """TPDO position, velocity, current and statusword for the wheel state (none unless OPERATIONAL).
+    def tpdo_frames(
+        self, position_rad: float, velocity_rad_s: float, current_a: float | None = None
+    ) -> list[can.Message]:
+        """TPDO position, velocity, current and statusword for the wheel state (none unless
+        OPERATIONAL).
 
-        `current_a` defaults to the applied current (an ideal current loop); the position counter wraps at
-        32 bits like the drive's.
+        `current_a` defaults to the applied current (an ideal current loop); the position counter
+        wraps at 32 bits like the drive's.
         """
         if self.nmt_state != 'OPERATIONAL':
             return []
         sw = self.statusword
         counts = self.codec.position_counts(position_rad)
-        counts = (counts + 2 ** 31) % INT32_SPAN - 2 ** 31
+        counts = (counts + 2**31) % INT32_SPAN - 2**31
         cur = self.commanded_current_a if current_a is None else current_a
         cur = max(-self.drive.peak_current_a, min(self.drive.peak_current_a, cur))
-        return [self.codec.encode_position_counts(counts, sw), self.codec.encode_velocity(velocity_rad_s, sw),
-                self.codec.encode_actual_current(cur, sw), self.codec.encode_statusword(sw)]
+        return [
+            self.codec.encode_position_counts(counts, sw),
+            self.codec.encode_velocity(velocity_rad_s, sw),
+            self.codec.encode_actual_current(cur, sw),
+            self.codec.encode_statusword(sw),
+        ]
 
 
 class DmuImuEmulator:
-    """The DMU: 0x40/0x50 frames from sensor-frame rates and specific force, 0x90 toggles streaming."""
+    """The DMU: 0x40/0x50 frames from sensor-frame rates and specific force, 0x90 toggles
+    streaming."""
 
-    def __init__(self, imu: ImuConfig, dbc, streaming: bool = True, rate_noise_std_rad_s: float = 0.0,
-                 accel_noise_std_m_s2: float = 0.0, add_bias: bool = True, seed: int | None = None):
+    def __init__(
+        self,
+        imu: ImuConfig,
+        dbc,
+        streaming: bool = True,
+        rate_noise_std_rad_s: float = 0.0,
+        accel_noise_std_m_s2: float = 0.0,
+        add_bias: bool = True,
+        seed: int | None = None,
+    ):
         self.config = imu
         self.codec = DmuCodec(dbc)
         self.streaming = streaming
@@ -216,9 +265,11 @@ class DmuImuEmulator:
         return []
 
     def _raw(self, values: np.ndarray, lsb: float) -> list[int]:
-        return [int(min(2 ** 15 - 1, max(-2 ** 15, round(v / lsb)))) for v in values]
+        return [int(min(2**15 - 1, max(-(2**15), round(v / lsb)))) for v in values]
 
-    def frames(self, rates_rad_s: Sequence[float], specific_force_m_s2: Sequence[float]) -> list[can.Message]:
+    def frames(
+        self, rates_rad_s: Sequence[float], specific_force_m_s2: Sequence[float]
+    ) -> list[can.Message]:
         """One sample (rates frame + accelerations frame, same sequence number), in sensor axes."""
         if not self.streaming:
             return []
@@ -232,24 +283,48 @@ class DmuImuEmulator:
             raise ValueError('DMU emulator given non-finite rates or specific force')
         seq = self.sequence
         self.sequence = (self.sequence + 1) & 0xFF
-        return [self.codec.encode_raw_rates(self._raw(w, self.codec.rate_lsb_rad_s), self.status, seq),
-                self.codec.encode_raw_accelerations(self._raw(f, self.codec.accel_lsb_m_s2), self.status, seq)]
+        return [
+            self.codec.encode_raw_rates(self._raw(w, self.codec.rate_lsb_rad_s), self.status, seq),
+            self.codec.encode_raw_accelerations(
+                self._raw(f, self.codec.accel_lsb_m_s2), self.status, seq
+            ),
+        ]
 
-    def frames_from_pitch(self, pitch: float, pitch_rate: float, gravity: float = 9.81,
-                          forward_specific_force: float = 0.0,
-                          up_specific_force: float | None = None) -> list[can.Message]:
-        """A sample for a robot at base pitch `pitch` (hardware convention) turning at `pitch_rate`, honouring the
-        mount angle; specific force in the pitch plane as in krang_can_bridge.imu_filter.sensor_vectors."""
-        force, rates = sensor_vectors(pitch, pitch_rate, self.config.mount_angle_rad, gravity,
-                                      forward_specific_force, up_specific_force)
+    def frames_from_pitch(
+        self,
+        pitch: float,
+        pitch_rate: float,
+        gravity: float = 9.81,
+        forward_specific_force: float = 0.0,
+        up_specific_force: float | None = None,
+    ) -> list[can.Message]:
+        """A sample for a robot at base pitch `pitch` (hardware convention) turning at
+        `pitch_rate`, honouring the mount angle; specific force in the pitch plane as in
+        krang_can_bridge.imu_filter.sensor_vectors."""
+        force, rates = sensor_vectors(
+            pitch,
+            pitch_rate,
+            self.config.mount_angle_rad,
+            gravity,
+            forward_specific_force,
+            up_specific_force,
+        )
         return self.frames(rates, force)
 
 
 class PowerCubeEmulator:
     """One kinematic PowerCube module in module coordinates [rad, rad/s]."""
 
-    def __init__(self, module_id: int, max_velocity: float, max_acceleration: float, min_position: float,
-                 max_position: float, position: float = 0.0, homed: bool = True):
+    def __init__(
+        self,
+        module_id: int,
+        max_velocity: float,
+        max_acceleration: float,
+        min_position: float,
+        max_position: float,
+        position: float = 0.0,
+        homed: bool = True,
+    ):
         self.module_id = module_id
         self.max_velocity = max_velocity
         self.max_acceleration = max_acceleration
@@ -260,7 +335,7 @@ class PowerCubeEmulator:
         self.position = min(max_position, max(min_position, position))
         self.velocity = 0.0
         self.target = self.position
-        self.mode = 'ramp'                    # 'ramp' | 'velocity' | 'current'
+        self.mode = 'ramp'  # 'ramp' | 'velocity' | 'current'
         self.commanded_velocity = 0.0
         self.commanded_current = 0.0
         self.homed = homed
@@ -272,39 +347,64 @@ class PowerCubeEmulator:
     @classmethod
     def from_config(cls, joint: BodyJointConfig, module: PowerCubeModuleConfig, q: float = 0.0):
         lower, upper = joint.module_limits(module)
-        return cls(module.module_id, joint.max_velocity_rad_s, joint.max_acceleration_rad_s2, lower, upper,
-                   position=module.sign * joint.clamp(q))
+        return cls(
+            module.module_id,
+            joint.max_velocity_rad_s,
+            joint.max_acceleration_rad_s2,
+            lower,
+            upper,
+            position=module.sign * joint.clamp(q),
+        )
 
-    # ---- state words -----------------------------------------------------------------------------------
+    # ---- state words ----------------------------------------------------------------------------
     @property
     def in_motion(self) -> bool:
-        return abs(self.velocity) > 1e-9 or (self.mode == 'ramp' and abs(self.target - self.position) > 1e-9)
+        return abs(self.velocity) > 1e-9 or (
+            self.mode == 'ramp' and abs(self.target - self.position) > 1e-9
+        )
 
     def long_state(self) -> int:
         s = (pc.STATE_HOME_OK if self.homed else 0) | (pc.STATE_HALTED if self.halted else 0)
         s |= pc.STATE_ERROR if self.error else 0
-        s |= pc.STATE_MOTION if self.in_motion else (pc.STATE_RAMP_END if self.mode == 'ramp' else 0)
+        s |= (
+            pc.STATE_MOTION
+            if self.in_motion
+            else (pc.STATE_RAMP_END if self.mode == 'ramp' else 0)
+        )
         return s
 
     def short_state(self) -> int:
         s = pc.SHORT_NOT_OK if (self.error or not self.homed or self.halted) else 0
-        s |= pc.SHORT_MOTION if self.in_motion else (pc.SHORT_RAMP_END if self.mode == 'ramp' else 0)
+        s |= (
+            pc.SHORT_MOTION
+            if self.in_motion
+            else (pc.SHORT_RAMP_END if self.mode == 'ramp' else 0)
+        )
         return s
 
     def set_state(self, position: float, velocity: float = 0.0) -> None:
         """Override the kinematics (e.g. a simulator driving a current-mode module)."""
         self.position, self.velocity = position, velocity
 
-    # ---- protocol --------------------------------------------------------------------------------------
+    # ---- protocol -------------------------------------------------------------------------------
     def _param_value(self, param: int) -> float | int | None:
-        values = {pc.ACT_FPOS: self.position, pc.ACT_FVEL: self.velocity, pc.MIN_FPOS: self.min_position,
-                  pc.MAX_FPOS: self.max_position, pc.MAX_VEL: self.max_velocity, pc.MAX_ACC: self.max_acceleration,
-                  pc.TARGET_VEL: self.target_velocity, pc.TARGET_ACC: self.target_acceleration,
-                  pc.ACT_FPSEUDOCURRENT: self.commanded_current, pc.CUBE_STATE: self.long_state()}
+        values = {
+            pc.ACT_FPOS: self.position,
+            pc.ACT_FVEL: self.velocity,
+            pc.MIN_FPOS: self.min_position,
+            pc.MAX_FPOS: self.max_position,
+            pc.MAX_VEL: self.max_velocity,
+            pc.MAX_ACC: self.max_acceleration,
+            pc.TARGET_VEL: self.target_velocity,
+            pc.TARGET_ACC: self.target_acceleration,
+            pc.ACT_FPSEUDOCURRENT: self.commanded_current,
+            pc.CUBE_STATE: self.long_state(),
+        }
         return values.get(param, self.params.get(param))
 
     def on_frame(self, msg: can.Message) -> list[can.Message]:
-        """Consume a host frame; reply as the module does (frames for other modules are ignored)."""
+        """Consume a host frame; reply as the module does (frames for other modules are
+        ignored)."""
         try:
             req = pc.decode_request(msg)
         except pc.UnknownFrame:
@@ -348,10 +448,15 @@ class PowerCubeEmulator:
         # SET_MOTION
         if not (self.halted or self.error):
             if req.selector == pc.FRAMP_ACK:
-                self.mode, self.target = 'ramp', min(self.max_position, max(self.min_position, req.value))
+                self.mode, self.target = (
+                    'ramp',
+                    min(self.max_position, max(self.min_position, req.value)),
+                )
             elif req.selector == pc.FVEL_ACK:
                 self.mode = 'velocity'
-                self.commanded_velocity = max(-self.max_velocity, min(self.max_velocity, req.value))
+                self.commanded_velocity = max(
+                    -self.max_velocity, min(self.max_velocity, req.value)
+                )
             else:
                 self.mode, self.commanded_current, self.velocity = 'current', req.value, 0.0
         return [pc.reply_motion(mid, req.selector, self.position, self.short_state())]
@@ -373,9 +478,12 @@ class PowerCubeEmulator:
             v_des = self.commanded_velocity
         self.velocity += max(-a * dt, min(a * dt, v_des - self.velocity))
         new_position = self.position + self.velocity * dt
-        if self.mode == 'ramp' and (self.target - new_position) * (self.target - self.position) <= 0.0:
-            new_position = self.target                                # arrived; the braking curve ends at 0
-            if abs(self.velocity) > a * dt:                           # only a target change can cause this
+        if (
+            self.mode == 'ramp'
+            and (self.target - new_position) * (self.target - self.position) <= 0.0
+        ):
+            new_position = self.target  # arrived; the braking curve ends at 0
+            if abs(self.velocity) > a * dt:  # only a target change can cause this
                 self.velocity = 0.0
         if not self.min_position <= new_position <= self.max_position:
             new_position = min(self.max_position, max(self.min_position, new_position))
@@ -384,17 +492,33 @@ class PowerCubeEmulator:
 
 
 class KrangCanDevices:
-    """All of Krang's CAN devices from the device map, routed by bus: one object for the simulator to drive."""
+    """All of Krang's CAN devices from the device map, routed by bus: one object for the simulator
+    to drive."""
 
-    def __init__(self, config: CanDevicesConfig, auto_enable_wheels: bool = False, imu_streaming: bool = True,
-                 imu_rate_noise_std_rad_s: float = 0.0, imu_accel_noise_std_m_s2: float = 0.0,
-                 seed: int | None = None, initial_joint_positions: Mapping[str, float] | None = None):
+    def __init__(
+        self,
+        config: CanDevicesConfig,
+        auto_enable_wheels: bool = False,
+        imu_streaming: bool = True,
+        imu_rate_noise_std_rad_s: float = 0.0,
+        imu_accel_noise_std_m_s2: float = 0.0,
+        seed: int | None = None,
+        initial_joint_positions: Mapping[str, float] | None = None,
+    ):
         self.config = config
         dbc = load_dbc(config.dbc_path)
-        self.wheels = {d.joint: AmcDriveEmulator(d, config.wheels, dbc, auto_enable_wheels)
-                       for d in config.wheels.drives}
-        self.imu = DmuImuEmulator(config.imu, dbc, imu_streaming, imu_rate_noise_std_rad_s,
-                                  imu_accel_noise_std_m_s2, seed=seed)
+        self.wheels = {
+            d.joint: AmcDriveEmulator(d, config.wheels, dbc, auto_enable_wheels)
+            for d in config.wheels.drives
+        }
+        self.imu = DmuImuEmulator(
+            config.imu,
+            dbc,
+            imu_streaming,
+            imu_rate_noise_std_rad_s,
+            imu_accel_noise_std_m_s2,
+            seed=seed,
+        )
         q0 = dict(initial_joint_positions or {})
         self.modules: dict[tuple[str, int], PowerCubeEmulator] = {}
         self.joint_modules: dict[str, list[tuple[PowerCubeModuleConfig, PowerCubeEmulator]]] = {}
@@ -404,12 +528,15 @@ class KrangCanDevices:
                 em = PowerCubeEmulator.from_config(joint, m, q)
                 self.modules[(m.bus, m.module_id)] = em
                 self.joint_modules.setdefault(joint.joint, []).append((m, em))
-        self.module_joint = {(m.bus, m.module_id): j for j, mods in self.joint_modules.items() for m, _ in mods}
+        self.module_joint = {
+            (m.bus, m.module_id): j for j, mods in self.joint_modules.items() for m, _ in mods
+        }
         self.silent: frozenset[str] = frozenset()
 
     @property
     def device_names(self) -> list[str]:
-        """What `set_silent` accepts: 'imu', the wheel joints (their drives) and the body joints (their modules)."""
+        """What `set_silent` accepts: 'imu', the wheel joints (their drives) and the body joints
+        (their modules)."""
         return ['imu', *self.wheels, *self.joint_modules]
 
     def set_silent(self, names: Sequence[str]) -> None:
@@ -441,26 +568,43 @@ class KrangCanDevices:
             em.step(dt)
 
     def joint_positions(self) -> dict[str, float]:
-        """Body joint angles [rad] as the modules hold them (waist: mean of sign * module position)."""
-        return {j: sum(m.sign * em.position for m, em in mods) / len(mods) for j, mods in self.joint_modules.items()}
+        """Body joint angles [rad] as the modules hold them (waist: mean of sign * module
+        position)."""
+        return {
+            j: sum(m.sign * em.position for m, em in mods) / len(mods)
+            for j, mods in self.joint_modules.items()
+        }
 
     def joint_velocities(self) -> dict[str, float]:
-        return {j: sum(m.sign * em.velocity for m, em in mods) / len(mods) for j, mods in self.joint_modules.items()}
+        return {
+            j: sum(m.sign * em.velocity for m, em in mods) / len(mods)
+            for j, mods in self.joint_modules.items()
+        }
 
     def wheel_currents(self) -> dict[str, float]:
         return {j: w.commanded_current_a for j, w in self.wheels.items()}
 
-    def wheel_feedback_frames(self, positions_rad: Mapping[str, float], velocities_rad_s: Mapping[str, float],
-                              currents_a: Mapping[str, float] | None = None) -> list[BusFrame]:
+    def wheel_feedback_frames(
+        self,
+        positions_rad: Mapping[str, float],
+        velocities_rad_s: Mapping[str, float],
+        currents_a: Mapping[str, float] | None = None,
+    ) -> list[BusFrame]:
         out = []
         for j, w in self.wheels.items():
             cur = None if currents_a is None else currents_a.get(j)
-            out += [BusFrame(self.config.wheels.bus, m)
-                    for m in self._unless_silent(j, w.tpdo_frames(positions_rad[j], velocities_rad_s[j], cur))]
+            out += [
+                BusFrame(self.config.wheels.bus, m)
+                for m in self._unless_silent(
+                    j, w.tpdo_frames(positions_rad[j], velocities_rad_s[j], cur)
+                )
+            ]
         return out
 
     # a silent DMU keeps sampling (its sequence counter runs on), it only stops transmitting
-    def imu_frames(self, rates_rad_s: Sequence[float], specific_force_m_s2: Sequence[float]) -> list[BusFrame]:
+    def imu_frames(
+        self, rates_rad_s: Sequence[float], specific_force_m_s2: Sequence[float]
+    ) -> list[BusFrame]:
         frames = self.imu.frames(rates_rad_s, specific_force_m_s2)
         return [BusFrame(self.config.imu.bus, m) for m in self._unless_silent('imu', frames)]
 

@@ -17,6 +17,7 @@ Fault injection: `silent_devices` (string array, settable at run time, e.g. thro
 AMC drive, or a body joint for its PowerCube modules; [] restores them. The change is logged and
 reported at once on /diagnostics with the simulated time it took effect (`silent_since_s`).
 """
+
 import dataclasses
 import math
 import sys
@@ -72,24 +73,39 @@ class SimKrangNode(Node):
         # /clock every `clock_every` physics steps (default: with each sensor feedback). Every node
         # on use_sim_time pays for each /clock message (rclpy re-evaluates its timers), so the rate
         # is the coarsest the nodes' timers need.
-        self.clock_every = max(1, round(self.rate / p('clock_rate_hz',
-                                                      self.rate / self.feedback_every).value))
+        self.clock_every = max(
+            1, round(self.rate / p('clock_rate_hz', self.rate / self.feedback_every).value)
+        )
         seed = p('seed', 0).value
-        effects = SimEffects(**{f.name: p(f'effects.{f.name}', f.default).value
-                                for f in dataclasses.fields(SimEffects) if isinstance(f.default,
-                                                                                      (float,
-                                                                                       str))})
+        effects = SimEffects(
+            **{
+                f.name: p(f'effects.{f.name}', f.default).value
+                for f in dataclasses.fields(SimEffects)
+                if isinstance(f.default, (float, str))
+            }
+        )
         self.config = load_devices(devices_file)
         true_beta = load_beta(truth_file, self.robot)
-        self.sim = KrangSim(self.robot, true_beta, np.array(pose),
-                            None if math.isnan(q_base) else q_base,
-                            SimConfig(dt=1.0 / self.rate, effects=effects, seed=seed,
-                                      # IMU noise: in the emulator
-                                      noise=SensorNoise(imu_pitch_std_rad=0.0)))
-        self.devices = KrangCanDevices(self.config, seed=seed, imu_rate_noise_std_rad_s=0.002,
-                                       imu_accel_noise_std_m_s2=0.02,
-                                       initial_joint_positions=dict(zip(self.robot.pose_joints,
-                                                                        pose)))
+        self.sim = KrangSim(
+            self.robot,
+            true_beta,
+            np.array(pose),
+            None if math.isnan(q_base) else q_base,
+            SimConfig(
+                dt=1.0 / self.rate,
+                effects=effects,
+                seed=seed,
+                # IMU noise: in the emulator
+                noise=SensorNoise(imu_pitch_std_rad=0.0),
+            ),
+        )
+        self.devices = KrangCanDevices(
+            self.config,
+            seed=seed,
+            imu_rate_noise_std_rad_s=0.002,
+            imu_accel_noise_std_m_s2=0.02,
+            initial_joint_positions=dict(zip(self.robot.pose_joints, pose)),
+        )
         self.lock = threading.Lock()
         self.sent_frames = 0
         self.slips = 0
@@ -122,13 +138,19 @@ class SimKrangNode(Node):
         qos = topics.QOS
         self.clock_pub = self.create_publisher(Clock, names.CLOCK, qos[names.CLOCK])
         if self.max_control_lag > 0:
-            self.create_subscription(Float64MultiArray, names.WHEEL_EFFORT_CMD,
-                                     self.on_effort_command, qos[names.WHEEL_EFFORT_CMD])
+            self.create_subscription(
+                Float64MultiArray,
+                names.WHEEL_EFFORT_CMD,
+                self.on_effort_command,
+                qos[names.WHEEL_EFFORT_CMD],
+            )
             self.create_subscription(Imu, names.IMU, self.on_imu_published, qos[names.IMU])
-        self.truth_pub = self.create_publisher(Float64MultiArray, names.GROUND_TRUTH,
-                                               qos[names.GROUND_TRUTH])
-        self.diag_pub = self.create_publisher(DiagnosticArray, names.DIAGNOSTICS,
-                                              qos[names.DIAGNOSTICS])
+        self.truth_pub = self.create_publisher(
+            Float64MultiArray, names.GROUND_TRUTH, qos[names.GROUND_TRUTH]
+        )
+        self.diag_pub = self.create_publisher(
+            DiagnosticArray, names.DIAGNOSTICS, qos[names.DIAGNOSTICS]
+        )
         self.create_timer(0.1, self.publish_truth)
         self.create_timer(1.0, self.publish_diagnostics)
         self.running = True
@@ -136,8 +158,9 @@ class SimKrangNode(Node):
         # interpreter's 5 ms switch interval at a time; the nine bus threads then get it in turn
         # and a wheel current command waited tens of simulated ms before it reached the drive. 1 ms
         # slices bound that to about a millisecond per waiting thread.
-        sys.setswitchinterval(min(sys.getswitchinterval(), p('gil_switch_interval_s',
-                                                             0.001).value))
+        sys.setswitchinterval(
+            min(sys.getswitchinterval(), p('gil_switch_interval_s', 0.001).value)
+        )
         self.silent_since = None
         silent = p('silent_devices', Parameter.Type.STRING_ARRAY).value
         if silent:
@@ -145,10 +168,12 @@ class SimKrangNode(Node):
         self.add_on_set_parameters_callback(self.on_parameters)
         self.thread = threading.Thread(target=self.physics_loop, name='physics', daemon=True)
         self.thread.start()
-        self.get_logger().info(f'simulated Krang: truth {truth_file}, sitting at q_base '
-                               f'{self.sim.q_base:+.3f} rad, true balance '
-                               f'{self.sim.balance_pitch():+.3f} rad, {self.rate:.0f} Hz physics '
-                               f'at {self.factor:g}x real time, buses {sorted(self.buses)}')
+        self.get_logger().info(
+            f'simulated Krang: truth {truth_file}, sitting at q_base '
+            f'{self.sim.q_base:+.3f} rad, true balance '
+            f'{self.sim.balance_pitch():+.3f} rad, {self.rate:.0f} Hz physics '
+            f'at {self.factor:g}x real time, buses {sorted(self.buses)}'
+        )
 
     def on_host_frame(self, bus_name, msg):
         with self.lock:
@@ -171,8 +196,9 @@ class SimKrangNode(Node):
             self.devices.set_silent(names)
             self.silent_since = self.sim.t if names else None
         if names:
-            self.get_logger().warn(f'fault injection: {", ".join(names)} silent from t = '
-                                   f'{self.silent_since:.3f} s')
+            self.get_logger().warn(
+                f'fault injection: {", ".join(names)} silent from t = {self.silent_since:.3f} s'
+            )
         else:
             self.get_logger().info('fault injection: every device transmits again')
         self.publish_diagnostics()
@@ -203,8 +229,9 @@ class SimKrangNode(Node):
                 self.buses[frame.bus].send(frame.msg, timeout=0.01)
                 self.sent_frames += 1
             except can.CanError as err:
-                self.get_logger().warn(f'send on {frame.bus} failed: {err}',
-                                       throttle_duration_sec=5)
+                self.get_logger().warn(
+                    f'send on {frame.bus} failed: {err}', throttle_duration_sec=5
+                )
 
     def physics_loop(self):
         dt = 1.0 / self.rate
@@ -215,7 +242,7 @@ class SimKrangNode(Node):
                 waited = time.monotonic()
                 time.sleep(0.0005)
                 waited = time.monotonic() - waited
-                start += waited                 # the wait is a slip, not a debt to catch up
+                start += waited  # the wait is a slip, not a debt to catch up
                 self.guard_wait_s += waited
                 continue
             with self.lock:
@@ -230,11 +257,13 @@ class SimKrangNode(Node):
                     read = self.sim.sensors()
                     frames = self.devices.wheel_feedback_frames(
                         {'JLWheel': read.wheel_left, 'JRWheel': read.wheel_right},
-                        {'JLWheel': read.wheel_left_rate, 'JRWheel': read.wheel_right_rate})
+                        {'JLWheel': read.wheel_left_rate, 'JRWheel': read.wheel_right_rate},
+                    )
                     frames += self.devices.imu_frames_from_pitch(
                         self.sim.q_base + self.sim.config.effects.imu_pitch_bias_rad,
                         self.sim.state[3],
-                        forward_specific_force=self.sim.axle_acceleration)
+                        forward_specific_force=self.sim.axle_acceleration,
+                    )
             self.send(frames)
             if self.publish_clock and k % self.clock_every == 0:
                 # right after the samples of this step: a node's timer that fires on this time
@@ -256,8 +285,13 @@ class SimKrangNode(Node):
 
     def publish_truth(self):
         with self.lock:
-            values = [self.sim.t, self.sim.q_base, self.sim.x, self.sim.balance_pitch(),
-                      *self.sim.applied_current]
+            values = [
+                self.sim.t,
+                self.sim.q_base,
+                self.sim.x,
+                self.sim.balance_pitch(),
+                *self.sim.applied_current,
+            ]
         msg = messages.labelled_array(values, GROUND_TRUTH_FIELDS, label='truth')
         self.truth_pub.publish(msg)
 
@@ -265,10 +299,13 @@ class SimKrangNode(Node):
         with self.lock:
             t, qb, bal = self.sim.t, self.sim.q_base, self.sim.balance_pitch()
             silent, since = sorted(self.devices.silent), self.silent_since
-        values = {'q_base': f'{qb:+.4f}', 'true_balance_pitch': f'{bal:+.4f}',
-                  'frames_sent': self.sent_frames,
-                  'real_time_slips': self.slips,
-                  'control_guard_wait_s': f'{self.guard_wait_s:.1f}'}
+        values = {
+            'q_base': f'{qb:+.4f}',
+            'true_balance_pitch': f'{bal:+.4f}',
+            'frames_sent': self.sent_frames,
+            'real_time_slips': self.slips,
+            'control_guard_wait_s': f'{self.guard_wait_s:.1f}',
+        }
         if silent:
             values.update(silent_devices=', '.join(silent), silent_since_s=f'{since:.4f}')
         self.diag_pub.publish(

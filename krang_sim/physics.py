@@ -1,15 +1,17 @@
-"""The simulated Krang: WIP physics with a hidden true beta, position-controlled body joints, and the
-sensors and actuators as the hardware has them. No CAN and no ROS here (see devices.py, node.py).
+"""The simulated Krang: WIP physics with a hidden true beta, position-controlled body joints, and
+the sensors and actuators as the hardware has them. No CAN and no ROS here (see devices.py,
+node.py).
 
-The body joints move as the Schunk modules do, rate-limited to each module's speed. While they move,
-the locked-pose reduction is recomputed every `reduce_period` (quasi-static arms: at <= 0.44 rad/s the
-joints' own momentum is negligible against the 150 kg body).
+The body joints move as the Schunk modules do, rate-limited to each module's speed. While they
+move, the locked-pose reduction is recomputed every `reduce_period` (quasi-static arms: at <= 0.44
+rad/s the joints' own momentum is negligible against the 150 kg body).
 
-`SimEffects` are physical effects the nominal model leaves out. The simulator can switch each one on
-with a value, and `krang discrepancy` has to name them from data. The physical ones are values of
-the drive train (``SimEffects.drive``): the equations are krang_model.wip's, nothing here restates
-them.
+`SimEffects` are physical effects the nominal model leaves out. The simulator can switch each one
+on with a value, and `krang discrepancy` has to name them from data. The physical ones are values
+of the drive train (``SimEffects.drive``): the equations are krang_model.wip's, nothing here
+restates them.
 """
+
 import math
 from collections import deque
 from dataclasses import dataclass, field, replace
@@ -24,17 +26,17 @@ from krang_model.wip import WipDynamics, point_mass_beta, reduce_pose
 class SimEffects:
     """Deviations of the true robot from the nominal model (all zero = nominal). Units in names."""
 
-    imu_pitch_bias_rad: float = 0.0        # the IMU reads q_base + bias
-    floor_slope_rad: float = 0.0           # ground rises along the heading
-    wheel_radius_m: float = 0.0            # effective rolling radius; 0 = the URDF's
-    payload_kg: float = 0.0                # an unmodelled mass ...
-    payload_body: str = 'lGripper'         # ... rigidly on this body ...
+    imu_pitch_bias_rad: float = 0.0  # the IMU reads q_base + bias
+    floor_slope_rad: float = 0.0  # ground rises along the heading
+    wheel_radius_m: float = 0.0  # effective rolling radius; 0 = the URDF's
+    payload_kg: float = 0.0  # an unmodelled mass ...
+    payload_body: str = 'lGripper'  # ... rigidly on this body ...
     payload_com_m: tuple = (0.0, 0.0, 0.10)  # ... at this point of its frame
-    wheel_viscous_Nm_s: float = 0.0        # extra wheel-to-body viscous friction (both wheels)
-    wheel_coulomb_Nm: float = 0.0          # extra Coulomb friction per wheel
-    torque_constant_scale: float = 1.0     # true Kt / nominal Kt
-    actuation_delay_s: float = 0.0         # transport delay of the wheel current commands
-    encoder_offset_rad: float = 0.0        # the waist encoder reads q + offset
+    wheel_viscous_Nm_s: float = 0.0  # extra wheel-to-body viscous friction (both wheels)
+    wheel_coulomb_Nm: float = 0.0  # extra Coulomb friction per wheel
+    torque_constant_scale: float = 1.0  # true Kt / nominal Kt
+    actuation_delay_s: float = 0.0  # transport delay of the wheel current commands
+    encoder_offset_rad: float = 0.0  # the waist encoder reads q + offset
     encoder_offset_joint: str = 'JWaist'
     drive_extra: dict = field(default_factory=dict)  # amounts added to any Drivetrain field
 
@@ -42,9 +44,11 @@ class SimEffects:
         """The true robot's Drivetrain: the nominal one with these effects."""
         nominal = drivetrain(robot)
         extra = dict(self.drive_extra)
-        for name, amount in (('floor_slope', self.floor_slope_rad),
-                             ('viscous_friction', self.wheel_viscous_Nm_s),
-                             ('coulomb_friction', self.wheel_coulomb_Nm)):
+        for name, amount in (
+            ('floor_slope', self.floor_slope_rad),
+            ('viscous_friction', self.wheel_viscous_Nm_s),
+            ('coulomb_friction', self.wheel_coulomb_Nm),
+        ):
             extra[name] = extra.get(name, 0.0) + amount
         values = {k: getattr(nominal, k) + v for k, v in extra.items()}
         if self.wheel_radius_m:
@@ -59,17 +63,17 @@ class SensorNoise:
 
     imu_pitch_std_rad: float = math.radians(0.1)
     gyro_std_rad_s: float = 0.002
-    gyro_lsb_rad_s: float = math.radians(0.008)     # DMU: 0.008 deg/s per LSB
-    accel_lsb_m_s2: float = 0.0003 * 9.80665       # DMU: 0.0003 g per LSB
+    gyro_lsb_rad_s: float = math.radians(0.008)  # DMU: 0.008 deg/s per LSB
+    accel_lsb_m_s2: float = 0.0003 * 9.80665  # DMU: 0.0003 g per LSB
     accel_std_m_s2: float = 0.02
-    encoder_counts_per_rad: float = 4000 * 15 / (2 * math.pi)   # motor encoder through the gearbox
+    encoder_counts_per_rad: float = 4000 * 15 / (2 * math.pi)  # motor encoder through the gearbox
     joint_std_rad: float = 1e-4
 
 
 @dataclass
 class SimConfig:
-    dt: float = 1e-3                       # physics step (s)
-    reduce_period: float = 0.02            # re-reduction of a moving pose (s)
+    dt: float = 1e-3  # physics step (s)
+    reduce_period: float = 0.02  # re-reduction of a moving pose (s)
     effects: SimEffects = field(default_factory=SimEffects)
     noise: SensorNoise = field(default_factory=SensorNoise)
     seed: int = 0
@@ -80,27 +84,29 @@ class Sensors:
     """One sample of everything the robot's devices report."""
 
     t: float
-    q_base: float           # IMU pitch as the bridge's filter reports it (here: truth + bias + noise)
-    pitch_rate: float       # d q_base / dt (rad/s)
-    gyro: tuple             # angular velocity in the base frame (rad/s), DMU-quantised
-    specific_force: tuple   # specific force in the base frame (m/s^2), DMU-quantised
-    wheel_left: float       # encoder angle relative to the body (rad, wheel side, quantised)
+    q_base: float  # IMU pitch as the bridge's filter reports it (here: truth + bias + noise)
+    pitch_rate: float  # d q_base / dt (rad/s)
+    gyro: tuple  # angular velocity in the base frame (rad/s), DMU-quantised
+    specific_force: tuple  # specific force in the base frame (m/s^2), DMU-quantised
+    wheel_left: float  # encoder angle relative to the body (rad, wheel side, quantised)
     wheel_right: float
     wheel_left_rate: float
     wheel_right_rate: float
-    joints: np.ndarray      # body joint encoders (rad), pose order
-    wheel_current_left: float   # current the drives apply (A)
+    joints: np.ndarray  # body joint encoders (rad), pose order
+    wheel_current_left: float  # current the drives apply (A)
     wheel_current_right: float
 
 
 def payload_beta(robot, beta, effects):
     """beta of the true robot including an unmodelled payload."""
-    return point_mass_beta(robot, beta, effects.payload_body, effects.payload_com_m,
-                           effects.payload_kg)
+    return point_mass_beta(
+        robot, beta, effects.payload_body, effects.payload_com_m, effects.payload_kg
+    )
 
 
 class KrangSim:
-    """The true robot. Call `command_currents` / `command_joints`, then `step()`; read `sensors()`."""
+    """The true robot. Call `command_currents` / `command_joints`, then `step()`; read
+    `sensors()`."""
 
     def __init__(self, robot, true_beta, joints, q_base=None, config=None):
         self.robot = robot
@@ -125,17 +131,22 @@ class KrangSim:
         self.applied_current = (0.0, 0.0)
         self._enc_offset = np.zeros(len(self.joints))
         if fx.encoder_offset_rad:
-            self._enc_offset[robot.pose_joints.index(fx.encoder_offset_joint)] = fx.encoder_offset_rad
+            self._enc_offset[robot.pose_joints.index(fx.encoder_offset_joint)] = (
+                fx.encoder_offset_rad
+            )
 
     # --- commands -------------------------------------------------------------------------------
     def command_currents(self, left_a, right_a):
-        """Motor currents the drives are asked for (A); the drives clamp them at the current limit."""
+        """Motor currents the drives are asked for (A); the drives clamp them at the current
+        limit."""
         self._current_cmd = (float(left_a), float(right_a))
 
     def command_joints(self, targets):
         """Body joint position targets (rad, pose order), clamped to the URDF limits."""
         targets = np.clip(np.asarray(targets, dtype=float), self.robot.lower, self.robot.upper)
-        self._target_changed = self._target_changed or not np.array_equal(targets, self.joint_targets)
+        self._target_changed = self._target_changed or not np.array_equal(
+            targets, self.joint_targets
+        )
         self.joint_targets = targets
 
     # --- physics --------------------------------------------------------------------------------
@@ -153,16 +164,19 @@ class KrangSim:
             self._move_joints(dt)
             prev = self.state
             self.state = self.dynamics.step(prev, kt * il, kt * ir, dt)
-            self._accel = ((self.state[2] - prev[2]) / dt, (self.state[3] - prev[3]) / dt,
-                           (self.state[5] - prev[5]) / dt)
+            self._accel = (
+                (self.state[2] - prev[2]) / dt,
+                (self.state[3] - prev[3]) / dt,
+                (self.state[5] - prev[5]) / dt,
+            )
             self.t += dt
 
     def _move_joints(self, dt):
-        """Rate-limited joints; the pose is re-reduced every `reduce_period` while they move and when they
-        arrive. Arrival counts once the target holds still: under a ramping target (the PowerCube
-        emulators move the target a little every step) the joints reach it at every step, and re-reducing
-        each time cost ~500 reductions of 5 ms per simulated second, which held sim_krang at a fraction of
-        real time, with 5 ms stalls, during every pose move."""
+        """Rate-limited joints; the pose is re-reduced every `reduce_period` while they move and
+        when they arrive. Arrival counts once the target holds still: under a ramping target (the
+        PowerCube emulators move the target a little every step) the joints reach it at every step,
+        and re-reducing each time cost ~500 reductions of 5 ms per simulated second, which held
+        sim_krang at a fraction of real time, with 5 ms stalls, during every pose move."""
         changed, self._target_changed = self._target_changed, False
         error = self.joint_targets - self.joints
         if np.any(np.abs(error) > 1e-9):
@@ -172,16 +186,20 @@ class KrangSim:
             self._move_steps += 1
             arrived = not np.any(np.abs(self.joint_targets - self.joints) > 1e-9)
             if arrived and not changed:
-                self._move_steps = 0                # arrived at a target that holds still
-            elif self._since_reduce < self.config.reduce_period and not (arrived and self._move_steps == 1):
+                self._move_steps = 0  # arrived at a target that holds still
+            elif self._since_reduce < self.config.reduce_period and not (
+                arrived and self._move_steps == 1
+            ):
                 return
         else:
             self._move_steps = 0
             if np.array_equal(self.joints, self._reduced_at):
-                return                              # still, and reduced at this pose
+                return  # still, and reduced at this pose
         self._since_reduce = 0.0
         self._reduced_at = self.joints.copy()
-        self.dynamics = WipDynamics(reduce_pose(self.robot, self.joints, self.true_beta), self.drive)
+        self.dynamics = WipDynamics(
+            reduce_pose(self.robot, self.joints, self.true_beta), self.drive
+        )
 
     @property
     def joints_moving(self):
@@ -214,9 +232,10 @@ class KrangSim:
         ddphi, _, _ = self._accel
         r = self.drive.wheel_radius
         g = self.drive.gravity
-        # Specific force at the axle (the IMU sits on the base): the axle accelerates along the floor,
-        # gravity points down. Base y = (sin qb, cos qb) and base z = (-cos qb, sin qb) in frame 0 (x, z).
-        # An IMU bias is a pitch misalignment of the sensor, so it enters as qb + bias.
+        # Specific force at the axle (the IMU sits on the base): the axle accelerates along the
+        # floor, gravity points down. Base y = (sin qb, cos qb) and base z = (-cos qb, sin qb) in
+        # frame 0 (x, z). An IMU bias is a pitch misalignment of the sensor, so it enters as qb +
+        # bias.
         a_fwd = r * ddphi
         slope = fx.floor_slope_rad
         ax, az = a_fwd * math.cos(slope), a_fwd * math.sin(slope) + g
@@ -228,6 +247,7 @@ class KrangSim:
 
         def q(v, lsb):
             return round(v / lsb) * lsb
+
         half = 0.5 * self.drive.track_width / r
         rel = phi - qb
         wl, wr = rel - half * psi, rel + half * psi
@@ -236,22 +256,29 @@ class KrangSim:
             t=self.t,
             q_base=qb + fx.imu_pitch_bias_rad + rng.normal(0.0, noise.imu_pitch_std_rad),
             pitch_rate=q(dqb + rng.normal(0.0, noise.gyro_std_rad_s), noise.gyro_lsb_rad_s),
-            gyro=tuple(q(w + rng.normal(0.0, noise.gyro_std_rad_s), noise.gyro_lsb_rad_s) for w in gyro),
-            specific_force=tuple(q(f + rng.normal(0.0, noise.accel_std_m_s2), noise.accel_lsb_m_s2)
-                                 for f in (0.0, f_y, f_z)),
+            gyro=tuple(
+                q(w + rng.normal(0.0, noise.gyro_std_rad_s), noise.gyro_lsb_rad_s) for w in gyro
+            ),
+            specific_force=tuple(
+                q(f + rng.normal(0.0, noise.accel_std_m_s2), noise.accel_lsb_m_s2)
+                for f in (0.0, f_y, f_z)
+            ),
             wheel_left=round(wl * cpr) / cpr,
             wheel_right=round(wr * cpr) / cpr,
             wheel_left_rate=dphi - dqb - half * dpsi,
             wheel_right_rate=dphi - dqb + half * dpsi,
-            joints=self.joints + self._enc_offset + rng.normal(0.0, noise.joint_std_rad, len(self.joints)),
+            joints=self.joints
+            + self._enc_offset
+            + rng.normal(0.0, noise.joint_std_rad, len(self.joints)),
             wheel_current_left=self.applied_current[0],
             wheel_current_right=self.applied_current[1],
         )
 
 
 def perturbed_beta(robot, seed, mass_fraction=0.05, com_shift_m=0.03):
-    """A physically plausible 'true' robot near the nominal one: masses within a few per cent, local
-    CoMs moved by up to a few centimetres, total mass kept; wheels stay centred on their axle."""
+    """A physically plausible 'true' robot near the nominal one: masses within a few per cent,
+    local CoMs moved by up to a few centimetres, total mass kept; wheels stay centred on their
+    axle."""
     rng = np.random.default_rng(seed)
     b = robot.nominal_beta.reshape(-1, 4).copy()
     masses = b[:, 0] * (1.0 + rng.uniform(-mass_fraction, mass_fraction, len(b)))

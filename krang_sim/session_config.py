@@ -1,5 +1,6 @@
 """Per-session files for the simulated robot: a device map on private multicast ports, so that two
 sessions (a demo and a test run, say) on one machine never hear each other's CAN frames."""
+
 import random
 from pathlib import Path
 
@@ -10,7 +11,8 @@ from krang_model.config import config_path, load_config
 
 
 def resolve_config_file(name, default):
-    """A file parameter: empty -> config/<default>; a bare name -> config/<name>; else the path itself."""
+    """A file parameter: empty -> config/<default>; a bare name -> config/<name>; else the path
+    itself."""
     name = str(name or default)
     path = Path(name)
     return path if path.is_absolute() or path.exists() else config_path(name)
@@ -29,11 +31,21 @@ def session_devices_file(directory, port=None):
     base = default_devices_file()
     config = load_devices(base)
     buses = config.buses
-    doc = {'extends': str(Path(base).resolve()), 'dbc_file': str(Path(config.dbc_path).resolve()),
-           'buses': {name: {'interface': bus.interface, 'channel': bus.channel,
-                            'options': {**dict(bus.options), 'port': port + k}}
-                     for k, (name, bus) in enumerate(sorted(buses.items()))}}
+    doc = {
+        'extends': str(Path(base).resolve()),
+        'dbc_file': str(Path(config.dbc_path).resolve()),
+        'buses': {
+            name: {
+                'interface': bus.interface,
+                'channel': bus.channel,
+                'options': {**dict(bus.options), 'port': port + k},
+            }
+            for k, (name, bus) in enumerate(sorted(buses.items()))
+        },
+    }
     path = Path(directory) / 'can_devices_session.yaml'
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text('# generated for one simulated session\n' + yaml.safe_dump(doc, sort_keys=False))
+    path.write_text(
+        '# generated for one simulated session\n' + yaml.safe_dump(doc, sort_keys=False)
+    )
     return path

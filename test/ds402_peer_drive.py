@@ -22,6 +22,7 @@ did.
 
     python ds402_peer_drive.py --channel 239.74.1.4 --port 45000 --nodes 32:1,33:-1
 """
+
 import argparse
 import json
 import signal
@@ -33,13 +34,19 @@ import time
 import canopen
 from canopen import objectdictionary as od
 
-KP_DEFAULT, KI_DEFAULT, KS_DEFAULT = 600, 1, 20000        # docs/can.md: 60 A peak, k_i 1, 20 kHz
+KP_DEFAULT, KI_DEFAULT, KS_DEFAULT = 600, 1, 20000  # docs/can.md: 60 A peak, k_i 1, 20 kHz
 TPDO_PERIOD_S = 0.005
 WATCH_PERIOD_S = 0.002
 EMCY_HEARTBEAT_LOST, EMCY_OVER_CURRENT = 0x8130, 0x2310
 
-STATUSWORD = {'SWITCH_ON_DISABLED': 0x0040, 'READY_TO_SWITCH_ON': 0x0021, 'SWITCHED_ON': 0x0023,
-              'OPERATION_ENABLED': 0x0027, 'QUICK_STOP_ACTIVE': 0x0007, 'FAULT': 0x0008}
+STATUSWORD = {
+    'SWITCH_ON_DISABLED': 0x0040,
+    'READY_TO_SWITCH_ON': 0x0021,
+    'SWITCHED_ON': 0x0023,
+    'OPERATION_ENABLED': 0x0027,
+    'QUICK_STOP_ACTIVE': 0x0007,
+    'FAULT': 0x0008,
+}
 
 _print_lock = threading.Lock()
 
@@ -66,20 +73,37 @@ def _record(index, subs):
 def dictionary(node_id, kp, k_i, k_s):
     d = od.ObjectDictionary()
     d.node_id = node_id
-    for index, dtype, default in ((0x1017, od.UNSIGNED16, 0), (0x100C, od.UNSIGNED16, 0),
-                                  (0x100D, od.UNSIGNED8, 0), (0x6040, od.UNSIGNED16, 0),
-                                  (0x6041, od.UNSIGNED16, 0x40), (0x6060, od.INTEGER8, 0),
-                                  (0x6061, od.INTEGER8, 0), (0x6007, od.INTEGER16, 1),
-                                  (0x2120, od.UNSIGNED32, 0), (0x2121, od.UNSIGNED32, 0)):
+    for index, dtype, default in (
+        (0x1017, od.UNSIGNED16, 0),
+        (0x100C, od.UNSIGNED16, 0),
+        (0x100D, od.UNSIGNED8, 0),
+        (0x6040, od.UNSIGNED16, 0),
+        (0x6041, od.UNSIGNED16, 0x40),
+        (0x6060, od.INTEGER8, 0),
+        (0x6061, od.INTEGER8, 0),
+        (0x6007, od.INTEGER16, 1),
+        (0x2120, od.UNSIGNED32, 0),
+        (0x2121, od.UNSIGNED32, 0),
+    ):
         d.add_object(_var(index, 0, dtype, default))
     d.add_object(_record(0x1016, [_var(0x1016, 1, od.UNSIGNED32, 0)]))
-    d.add_object(_record(0x20D8, [_var(0x20D8, 0x0C, od.UNSIGNED16, kp, 'ro'),
-                                  _var(0x20D8, 0x24, od.UNSIGNED32, round(k_s / 1000 * 65536),
-                                       'ro')]))
+    d.add_object(
+        _record(
+            0x20D8,
+            [
+                _var(0x20D8, 0x0C, od.UNSIGNED16, kp, 'ro'),
+                _var(0x20D8, 0x24, od.UNSIGNED32, round(k_s / 1000 * 65536), 'ro'),
+            ],
+        )
+    )
     d.add_object(_record(0x2032, [_var(0x2032, 0x08, od.UNSIGNED16, k_i, 'ro')]))
     for index in (0x1402, 0x1403, 0x1404, 0x1800, 0x1802, 0x1803, 0x1804):
-        d.add_object(_record(index, [_var(index, 1, od.UNSIGNED32, 0x80000000),
-                                     _var(index, 2, od.UNSIGNED8, 0xFE)]))
+        d.add_object(
+            _record(
+                index,
+                [_var(index, 1, od.UNSIGNED32, 0x80000000), _var(index, 2, od.UNSIGNED8, 0xFE)],
+            )
+        )
         # AMC's fixed mappings (canopen's PDO classes need a mapping object per PDO)
         d.add_object(_record(index + 0x200, [_var(index + 0x200, 1, od.UNSIGNED32, 0, 'ro')]))
     return d
@@ -92,8 +116,8 @@ class Drive:
         self.state, self.mode, self.last_cw = 'SWITCH_ON_DISABLED', 0, 0
         self.target_a = 0.0
         self.fault_cause = False
-        self.consumer = None                  # (producer id, timeout s) from 0x1016.1
-        self.last_heartbeat = None            # watching starts at the first heartbeat
+        self.consumer = None  # (producer id, timeout s) from 0x1016.1
+        self.last_heartbeat = None  # watching starts at the first heartbeat
         self.abort_option = 1
         self.node = canopen.LocalNode(node_id, dictionary(node_id, kp, k_i, k_s))
         self.node.add_write_callback(self.on_write)
@@ -102,14 +126,17 @@ class Drive:
         network.subscribe(0x200 + 7 * node_id + 2, self.on_rpdo_current)
         self.network = network
         self._reported = None
-        self.node.nmt.send_command(0x81)      # boot-up, then pre-operational
+        self.node.nmt.send_command(0x81)  # boot-up, then pre-operational
         self.node.nmt.send_command(0x80)
         self.report()
 
     # ---- what the drive does ----
     def applied_a(self):
-        on = (self.node.nmt.state == 'OPERATIONAL' and self.state == 'OPERATION_ENABLED'
-              and self.mode == 4)
+        on = (
+            self.node.nmt.state == 'OPERATIONAL'
+            and self.state == 'OPERATION_ENABLED'
+            and self.mode == 4
+        )
         return self.target_a if on else 0.0
 
     def report(self, why=''):
@@ -174,7 +201,7 @@ class Drive:
                 return
             cw, dc2 = struct.unpack('<Hh', bytes(data))
             self.controlword(cw)
-            self.target_a = self.sign * dc2 * (self.kp / 10) / 2 ** 15
+            self.target_a = self.sign * dc2 * (self.kp / 10) / 2**15
             self.report('RPDO')
 
     def on_heartbeat(self, can_id, data, timestamp):
@@ -189,7 +216,7 @@ class Drive:
                 return
             if now - self.last_heartbeat <= self.consumer[1]:
                 return
-            self.last_heartbeat = None                     # watching again at the next beat
+            self.last_heartbeat = None  # watching again at the next beat
             emit(node=self.id, event='heartbeat lost', option=self.abort_option)
             if self.abort_option == 1:
                 self.fault(EMCY_HEARTBEAT_LOST, 'heartbeat lost')
@@ -204,10 +231,14 @@ class Drive:
             if self.node.nmt.state != 'OPERATIONAL':
                 return []
             sw = STATUSWORD[self.state]
-            dc1 = round(self.sign * self.applied_a() / (self.kp / 10) * 2 ** 13)
+            dc1 = round(self.sign * self.applied_a() / (self.kp / 10) * 2**13)
         base = 0x200 + 7 * self.id
-        return [(base + 3, struct.pack('<Hi', sw, 0)), (base + 4, struct.pack('<Hi', sw, 0)),
-                (base + 5, struct.pack('<Hh', sw, dc1)), (base + 6, struct.pack('<H', sw))]
+        return [
+            (base + 3, struct.pack('<Hi', sw, 0)),
+            (base + 4, struct.pack('<Hi', sw, 0)),
+            (base + 5, struct.pack('<Hh', sw, dc1)),
+            (base + 6, struct.pack('<H', sw)),
+        ]
 
 
 def main():

@@ -5,6 +5,7 @@ Device traffic is built by hand with struct from docs/can.md (not with the codec
 every command frame the core produces is decoded by hand and checked against the limits of
 config/can_devices.yaml.
 """
+
 import dataclasses
 import math
 import random
@@ -22,8 +23,21 @@ from krang_model.drivetrain import drivetrain
 from krang_model.robot import load_krang
 
 CFG = load_devices()
-ADVERSARIAL = [math.nan, math.inf, -math.inf, 1e308, -1e308, 1e6, -1e6, 0.0, -0.0, 5e-324, 'nan',
-               None, '12']
+ADVERSARIAL = [
+    math.nan,
+    math.inf,
+    -math.inf,
+    1e308,
+    -1e308,
+    1e6,
+    -1e6,
+    0.0,
+    -0.0,
+    5e-324,
+    'nan',
+    None,
+    '12',
+]
 
 
 def msg(aid, data):
@@ -36,8 +50,9 @@ class HandDevices:
 
     def __init__(self, core, pitch=-0.9):
         self.core, self.pitch, self.seq = core, pitch, 0
-        self.module_pos = {(m.bus,
-                            m.module_id): 0.0 for j in CFG.powercube.joints for m in j.modules}
+        self.module_pos = {
+            (m.bus, m.module_id): 0.0 for j in CFG.powercube.joints for m in j.modules
+        }
 
     def feed(self, t, wheels=True, imu=True, modules=True, wheel_counts=(0, 0)):
         c = self.core
@@ -50,14 +65,19 @@ class HandDevices:
         if imu:
             m = CFG.imu.mount_angle_rad
             g_lsb = 9.80665 * 0.0003
-            f = (9.81 * math.sin(self.pitch) * math.cos(m),
-                 -9.81 * math.sin(self.pitch) * math.sin(m),
-                 9.81 * math.cos(self.pitch))
+            f = (
+                9.81 * math.sin(self.pitch) * math.cos(m),
+                -9.81 * math.sin(self.pitch) * math.sin(m),
+                9.81 * math.cos(self.pitch),
+            )
             b = CFG.imu.gyro_bias_rad_s
             rates = [round(x / math.radians(0.008)) for x in b]
             c.on_frame(msg(0x40, struct.pack('<hhhBB', *rates, 0, self.seq)), t, 'can3')
-            c.on_frame(msg(0x50, struct.pack('<hhhBB', *[round(x / g_lsb) for x in f], 0,
-                                             self.seq)), t, 'can3')
+            c.on_frame(
+                msg(0x50, struct.pack('<hhhBB', *[round(x / g_lsb) for x in f], 0, self.seq)),
+                t,
+                'can3',
+            )
             self.seq = (self.seq + 1) & 0xFF
         if modules:
             for (bus, mid), pos in self.module_pos.items():
@@ -91,7 +111,7 @@ def wheel_amps_by_hand(frame):
     cw, dc2 = struct.unpack('<Hh', bytes(frame.msg.data))
     assert cw == 0x008F and len(frame.msg.data) == 4
     drive = CFG.wheels.drive('JLWheel' if frame.msg.arbitration_id == 0x2E2 else 'JRWheel')
-    return drive.sign * dc2 * (drive.peak_current_kp / 10) / 2 ** 15
+    return drive.sign * dc2 * (drive.peak_current_kp / 10) / 2**15
 
 
 def check_joint_frames_within_limits(frames):
@@ -124,7 +144,7 @@ def test_wheel_effort_to_current_value_and_sign():
     frames = core.wheel_current_frames(effort, -effort, t)
     assert [f.msg.arbitration_id for f in frames] == [0x2E2, 0x2E9]
     left, right = (wheel_amps_by_hand(f) for f in frames)
-    lsb = 60.0 / 2 ** 15
+    lsb = 60.0 / 2**15
     assert left == pytest.approx(expected, abs=lsb) and right == pytest.approx(-expected, abs=lsb)
     # the right drive sees the opposite raw sign for the same joint-direction current
     same = core.wheel_current_frames(effort, effort, t)
@@ -153,9 +173,9 @@ def test_wheel_commands_never_exceed_the_limit():
             amps = wheel_amps_by_hand(f)
             assert abs(amps) <= limit
             if not all(finite):
-                assert amps == 0.0                      # either one rejected -> zero on both
+                assert amps == 0.0  # either one rejected -> zero on both
             elif abs(float(effort)) > 100:
-                assert abs(amps) == pytest.approx(limit, abs=60.0 / 2 ** 15)
+                assert abs(amps) == pytest.approx(limit, abs=60.0 / 2**15)
     assert core.counters.rejected_commands > 0 and core.counters.clamped_commands > 0
 
 
@@ -164,19 +184,25 @@ def test_joint_commands_stay_inside_limits():
     rng = random.Random(2)
     names = CFG.body_joint_names
     for _ in range(200):
-        targets = {n: rng.choice([rng.uniform(-20, 20),
-                                  rng.choice(ADVERSARIAL)]) for n in rng.sample(names, 6)}
-        targets['JLWheel'] = 1.0                                        # not a body joint: ignored
+        targets = {
+            n: rng.choice([rng.uniform(-20, 20), rng.choice(ADVERSARIAL)])
+            for n in rng.sample(names, 6)
+        }
+        targets['JLWheel'] = 1.0  # not a body joint: ignored
         check_joint_frames_within_limits(core.joint_position_frames(targets, t))
     frames = core.joint_position_frames({'JWaist': 1.5, 'LJ2': math.nan, 'JTorso': 99.0}, t)
     targets = check_joint_frames_within_limits(frames)
-    assert ('JWaist', 1, pytest.approx(1.5)) in targets and ('JWaist', -1,
-                                                             pytest.approx(-1.5)) in targets
+    assert ('JWaist', 1, pytest.approx(1.5)) in targets and (
+        'JWaist',
+        -1,
+        pytest.approx(-1.5),
+    ) in targets
     assert ('JTorso', 1, pytest.approx(1.57)) in targets
-    assert not any(j == 'LJ2' for j, _, _ in targets)                   # NaN -> no motion
+    assert not any(j == 'LJ2' for j, _, _ in targets)  # NaN -> no motion
     assert 'LJ2' in core.counters.last_rejection or core.counters.rejected_commands >= 1
-    edge = check_joint_frames_within_limits(core.joint_position_frames({'JWaist': 2.88,
-                                                                        'LJ1': -math.pi}, t))
+    edge = check_joint_frames_within_limits(
+        core.joint_position_frames({'JWaist': 2.88, 'LJ1': -math.pi}, t)
+    )
     assert all(abs(v) <= 2.88 for j, _, v in edge if j == 'JWaist')
 
 
@@ -213,8 +239,10 @@ def test_nothing_moves_before_every_device_was_heard():
     core = BridgeCore(CFG, clock=lambda: 0.0)
     assert not core.motion_allowed(0.0)
     assert set(core.silent_devices(0.0)) >= {'amc/JLWheel', 'amc/JRWheel', 'imu'}
-    assert [wheel_amps_by_hand(f) for f in core.wheel_current_frames(30.0, 30.0, 0.0)] == [0.0,
-                                                                                           0.0]
+    assert [wheel_amps_by_hand(f) for f in core.wheel_current_frames(30.0, 30.0, 0.0)] == [
+        0.0,
+        0.0,
+    ]
 
 
 def test_stale_effort_command_becomes_zero():
@@ -247,11 +275,18 @@ def test_malformed_and_unknown_frames_are_counted_and_survived():
     assert core.counters.unknown == before[1] + 2
     core.on_frame(can.Message(arbitration_id=0x20000080, is_error_frame=True), t, 'can3')
     assert core.counters.error_frames == {'can3': 1}
-    for _ in range(2000):                                                        # fuzz
+    for _ in range(2000):  # fuzz
         data = bytes(rng.getrandbits(8) for _ in range(rng.randint(0, 8)))
-        core.on_frame(msg(rng.choice([0x40, 0x50, 0x2E3, 0x2E4, 0x2E5, 0x2E6, 0x0A4, 0x0AD,
-                                      rng.randrange(0x800)]),
-                          data), t, rng.choice(['can0', 'can3', 'can11', 'nonexistent']))
+        core.on_frame(
+            msg(
+                rng.choice(
+                    [0x40, 0x50, 0x2E3, 0x2E4, 0x2E5, 0x2E6, 0x0A4, 0x0AD, rng.randrange(0x800)]
+                ),
+                data,
+            ),
+            t,
+            rng.choice(['can0', 'can3', 'can11', 'nonexistent']),
+        )
     # our own commands looped back by udp_multicast are neither unknown nor malformed
     n = core.counters.unknown, core.counters.malformed
     for f in core.wheel_current_frames(1.0, 1.0, t) + core.poll_frames() + core.startup_frames():
@@ -275,12 +310,13 @@ def test_imu_state_and_stream_toggle():
         and imu.pitch == pytest.approx(-0.9, abs=2e-3)
         and imu.pitch_rate == pytest.approx(0, abs=0.01)
     )
-    assert core.imu_stream_frames(t) == []                     # streaming: never toggle
+    assert core.imu_stream_frames(t) == []  # streaming: never toggle
     retry = CFG.imu.stream_toggle_retry_s
     frames = core.imu_stream_frames(t + retry + 0.01)
-    assert [(f.bus, f.msg.arbitration_id, bytes(f.msg.data)) for f in frames] == [('can3', 0x90,
-                                                                                   b'\x0f')]
-    assert core.imu_stream_frames(t + retry + 0.02) == []      # no toggle storm
+    assert [(f.bus, f.msg.arbitration_id, bytes(f.msg.data)) for f in frames] == [
+        ('can3', 0x90, b'\x0f')
+    ]
+    assert core.imu_stream_frames(t + retry + 0.02) == []  # no toggle storm
     assert len(core.imu_stream_frames(t + 2 * retry + 0.03)) == 1
 
 
@@ -329,9 +365,9 @@ def test_fuzzed_half_invalid_pairs_never_drive_one_wheel():
         frames = core.wheel_command_frames(t)
         if len(cmd) == 2:
             frames += core.wheel_current_frames(cmd[0], cmd[1], t)
-        for pair in (frames[i:i + 2] for i in range(0, len(frames), 2)):
+        for pair in (frames[i : i + 2] for i in range(0, len(frames), 2)):
             amps = [wheel_amps_by_hand(f) for f in pair]
-            assert amps == [0.0, 0.0], (cmd, amps)             # never one-sided
+            assert amps == [0.0, 0.0], (cmd, amps)  # never one-sided
         n += 1 + (len(cmd) == 2)
     assert core.counters.rejected_commands == n
 
@@ -364,13 +400,16 @@ def test_drive_fault_statusword_latches_zero_current_on_both_until_recovered():
     # the leading bytes of the position TPDO are only our reading of AMC's mapping: no decision
     core.on_frame(msg(0x200 + 7 * RIGHT + 3, struct.pack('<Hi', 0x0008, 0)), t, 'can3')
     assert core.fault_reason == ''
-    statusword(core, RIGHT, 0x0008, t)                          # FAULT
+    statusword(core, RIGHT, 0x0008, t)  # FAULT
     assert 'JRWheel' in core.fault_reason and 'FAULT' in core.fault_reason
     assert [wheel_amps_by_hand(f) for f in core.wheel_current_frames(20, 20, t)] == [0.0, 0.0]
     assert core.joint_position_frames({'JTorso': 0.3}, t) == []
     motion = core.diagnostics(t)[0]
-    assert motion.level == 2 and 'JRWheel' in motion.message and '/can_bridge/recover' in \
-        motion.message
+    assert (
+        motion.level == 2
+        and 'JRWheel' in motion.message
+        and '/can_bridge/recover' in motion.message
+    )
     # the drive reporting OPERATION_ENABLED again does not unlatch: only a recover does
     t += 0.01
     dev.feed(t)
@@ -387,8 +426,9 @@ def test_drive_fault_statusword_latches_zero_current_on_both_until_recovered():
     assert core.recover_status(since) == (True, '')
     core.clear_fault()
     assert core.fault_reason == '' and core.motion_allowed(t + 0.003)
-    assert all(abs(wheel_amps_by_hand(f)) > 10 for f in core.wheel_current_frames(20, 20,
-                                                                                   t + 0.003))
+    assert all(
+        abs(wheel_amps_by_hand(f)) > 10 for f in core.wheel_current_frames(20, 20, t + 0.003)
+    )
 
 
 def test_emcy_of_either_drive_latches_a_fault_but_error_reset_does_not():
@@ -399,18 +439,18 @@ def test_emcy_of_either_drive_latches_a_fault_but_error_reset_does_not():
     assert 'JRWheel' in core.fault_reason and '0x2310' in core.fault_reason
     assert [wheel_amps_by_hand(f) for f in core.wheel_current_frames(-20, 20, t)] == [0.0, 0.0]
     core2, _, t2 = healthy_core()
-    core2.on_frame(msg(0x80 + 0x20, b'\x01'), t2, 'can3')            # malformed EMCY: a fault too
+    core2.on_frame(msg(0x80 + 0x20, b'\x01'), t2, 'can3')  # malformed EMCY: a fault too
     assert 'JLWheel' in core2.fault_reason
 
 
 def test_a_started_drive_leaving_operation_enabled_is_a_fault():
     core, dev, t = healthy_core()
-    statusword(core, RIGHT, 0x0040, t)            # not started: start-up transitions are no fault
+    statusword(core, RIGHT, 0x0040, t)  # not started: start-up transitions are no fault
     assert core.fault_reason == ''
     for joint in CFG.wheel_joint_names:
         core.drive_started(joint, True)
-    dev.feed(t + 0.001)                           # seen OPERATION_ENABLED: armed
-    statusword(core, RIGHT, 0x0040, t + 0.002)    # e.g. its watchdog disabled the voltage
+    dev.feed(t + 0.001)  # seen OPERATION_ENABLED: armed
+    statusword(core, RIGHT, 0x0040, t + 0.002)  # e.g. its watchdog disabled the voltage
     assert 'left OPERATION_ENABLED' in core.fault_reason
     assert not core.motion_allowed(t + 0.002)
 
@@ -420,12 +460,13 @@ def test_heartbeat_only_while_the_command_loop_runs():
     core, _, t = healthy_core()
     wd = CFG.wheels.watchdog
     assert wd.mechanism == 'heartbeat'
-    assert core.watchdog_frames(t) == []                          # the loop never ran
+    assert core.watchdog_frames(t) == []  # the loop never ran
     core.wheel_command_frames(t)
     frames = core.watchdog_frames(t + wd.alive_timeout_s * 0.9)
     assert [(f.bus, f.msg.arbitration_id, bytes(f.msg.data)) for f in frames] == [
-        ('can3', 0x700 + wd.node_id, b'\x05')]
-    assert core.watchdog_frames(t + wd.alive_timeout_s * 1.1) == []   # hung loop: no beat
+        ('can3', 0x700 + wd.node_id, b'\x05')
+    ]
+    assert core.watchdog_frames(t + wd.alive_timeout_s * 1.1) == []  # hung loop: no beat
     level = {r.name: r for r in core.diagnostics(t + 1.0)}['can_bridge: drive watchdog'].level
     assert level == 1
     # our own heartbeat looped back is an echo, not an unknown frame
@@ -440,11 +481,14 @@ def test_guarding_requests_and_no_watchdog():
     core = BridgeCore(cfg, clock=lambda: 0.0)
     core.wheel_command_frames(0.0)
     frames = core.watchdog_frames(0.01)
-    assert [(f.msg.arbitration_id, f.msg.is_remote_frame) for f in frames] == [(0x720, True),
-                                                                               (0x721, True)]
+    assert [(f.msg.arbitration_id, f.msg.is_remote_frame) for f in frames] == [
+        (0x720, True),
+        (0x721, True),
+    ]
     off = dataclasses.replace(CFG.wheels.watchdog, mechanism='none')
-    core = BridgeCore(dataclasses.replace(CFG, wheels=dataclasses.replace(CFG.wheels,
-                                                                          watchdog=off)))
+    core = BridgeCore(
+        dataclasses.replace(CFG, wheels=dataclasses.replace(CFG.wheels, watchdog=off))
+    )
     core.wheel_command_frames(0.0)
     assert core.watchdog_frames(0.01) == []
 
@@ -458,24 +502,29 @@ def test_startup_configures_the_drive_watchdog_before_the_drive_starts():
     start = ('nmt', 0, 0, 0x01)
     assert keys.index(consumer) < keys.index(start) and keys.index(abort) < keys.index(start)
     guarding = dataclasses.replace(wd, mechanism='guarding')
-    keys = [(s.index, s.value) for s in amc_proto.startup_sequence(CFG.wheels.drive('JLWheel'),
-                                                                   guarding)]
+    keys = [
+        (s.index, s.value)
+        for s in amc_proto.startup_sequence(CFG.wheels.drive('JLWheel'), guarding)
+    ]
     assert (0x100C, round(wd.period_s * 1000)) in keys
     assert (0x100D, round(wd.timeout_s / wd.period_s)) in keys
     # without a watchdog the sequence is the 2018 one
     assert amc_proto.startup_sequence(CFG.wheels.drive('JLWheel'))[-1].value == 0x0F
 
 
-@pytest.mark.parametrize('change, complaint', [
-    ({'mechanism': 'heartbeats'}, 'mechanism'),
-    ({'node_id': 0x20}, 'node_id'),
-    ({'node_id': 0}, 'node_id'),
-    ({'period_s': 0.1}, 'third'),
-    ({'abort_connection_option': 4}, '0x6007'),
-    ({'alive_timeout_s': 0.005}, 'alive_timeout_s'),
-    ({'timeout_s': 70.0}, '65.535'),
-    (None, 'watchdog'),
-])
+@pytest.mark.parametrize(
+    'change, complaint',
+    [
+        ({'mechanism': 'heartbeats'}, 'mechanism'),
+        ({'node_id': 0x20}, 'node_id'),
+        ({'node_id': 0}, 'node_id'),
+        ({'period_s': 0.1}, 'third'),
+        ({'abort_connection_option': 4}, '0x6007'),
+        ({'alive_timeout_s': 0.005}, 'alive_timeout_s'),
+        ({'timeout_s': 70.0}, '65.535'),
+        (None, 'watchdog'),
+    ],
+)
 def test_watchdog_settings_are_validated_at_load(tmp_path, change, complaint):
     data = yaml.safe_load(CFG.path.read_text())
     if change is None:

@@ -1,5 +1,6 @@
 """can_bridge node end to end: real rclpy, udp_multicast buses, the device emulators on the robot
 side."""
+
 import math
 import random
 import threading
@@ -12,7 +13,7 @@ import yaml
 pytestmark = pytest.mark.ros
 
 rclpy = pytest.importorskip('rclpy')
-pytest.importorskip('msgpack')                      # python-can's udp_multicast needs it
+pytest.importorskip('msgpack')  # python-can's udp_multicast needs it
 
 from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
@@ -37,8 +38,11 @@ def devices_file(tmp_path):
     rng = random.Random()
     group = f'239.74.{rng.randint(100, 250)}'
     for i, name in enumerate(data['buses']):
-        data['buses'][name] = {'interface': 'udp_multicast', 'channel': f'{group}.{i + 1}',
-                               'options': {'port': rng.randint(40000, 60000)}}
+        data['buses'][name] = {
+            'interface': 'udp_multicast',
+            'channel': f'{group}.{i + 1}',
+            'options': {'port': rng.randint(40000, 60000)},
+        }
     data['dbc_file'] = str(base.dbc_path)
     path = tmp_path / 'can_devices.yaml'
     path.write_text(yaml.safe_dump(data))
@@ -54,8 +58,10 @@ class Robot:
         self.devices = KrangCanDevices(cfg, initial_joint_positions=q0)
         self.lock = threading.Lock()
         self.buses = {b: can.Bus(**cfg.buses[b].bus_kwargs()) for b in cfg.buses_in_use()}
-        self.notifiers = [can.Notifier(bus, [self._listener(name)], timeout=0.05)
-                          for name, bus in self.buses.items()]
+        self.notifiers = [
+            can.Notifier(bus, [self._listener(name)], timeout=0.05)
+            for name, bus in self.buses.items()
+        ]
         self.stop = threading.Event()
         self.thread = threading.Thread(target=self.loop, daemon=True)
         self.thread.start()
@@ -69,14 +75,16 @@ class Robot:
                     replies = robot.devices.on_frame(name, msg)
                 for r in replies:
                     robot.buses[r.bus].send(r.msg)
+
         return L()
 
     def loop(self, dt=0.004):
         while not self.stop.is_set():
             with self.lock:
                 self.devices.step(dt)
-                out = self.devices.wheel_feedback_frames({'JLWheel': 0.4, 'JRWheel': -0.6},
-                                                         {'JLWheel': 0.0, 'JRWheel': 0.0})
+                out = self.devices.wheel_feedback_frames(
+                    {'JLWheel': 0.4, 'JRWheel': -0.6}, {'JLWheel': 0.0, 'JRWheel': 0.0}
+                )
                 out += self.devices.imu_frames_from_pitch(-1.2, 0.0)
             for f in out:
                 self.buses[f.bus].send(f.msg)
@@ -98,20 +106,26 @@ def test_node_bridges_states_and_commands(devices_file):
     ctx = rclpy.Context()
     rclpy.init(context=ctx)
     ex = SingleThreadedExecutor(context=ctx)
-    bridge = CanBridgeNode(context=ctx, parameter_overrides=[Parameter('devices_file',
-                                                                       value=str(devices_file))])
+    bridge = CanBridgeNode(
+        context=ctx, parameter_overrides=[Parameter('devices_file', value=str(devices_file))]
+    )
     probe = rclpy.create_node('probe', context=ctx)
     got = {}
     probe.create_subscription(JointState, '/joint_states', lambda m: got.__setitem__('js', m), 10)
-    probe.create_subscription(Imu, '/imu/data', lambda m: got.__setitem__('imu', m),
-                              qos_profile_sensor_data)
-    probe.create_subscription(DiagnosticArray, '/diagnostics', lambda m: got.__setitem__('diag',
-                                                                                         m), 10)
-    probe.create_subscription(String, names.DRIVE_FAULT, lambda m: got.__setitem__('fault', m),
-                              topics.LATCHED)
-    effort_pub = probe.create_publisher(Float64MultiArray, '/wheel_effort_cmd',
-                                        QoSProfile(depth=10,
-                                                   reliability=ReliabilityPolicy.RELIABLE))
+    probe.create_subscription(
+        Imu, '/imu/data', lambda m: got.__setitem__('imu', m), qos_profile_sensor_data
+    )
+    probe.create_subscription(
+        DiagnosticArray, '/diagnostics', lambda m: got.__setitem__('diag', m), 10
+    )
+    probe.create_subscription(
+        String, names.DRIVE_FAULT, lambda m: got.__setitem__('fault', m), topics.LATCHED
+    )
+    effort_pub = probe.create_publisher(
+        Float64MultiArray,
+        '/wheel_effort_cmd',
+        QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE),
+    )
     joint_pub = probe.create_publisher(JointState, '/joint_position_cmd', 10)
     ex.add_node(bridge)
     ex.add_node(probe)
@@ -125,10 +139,12 @@ def test_node_bridges_states_and_commands(devices_file):
     def joints():
         js = got.get('js')
         return dict(zip(js.name, js.position)) if js else {}
+
     try:
         # the modules answer polls one by one: wait until every joint has been reported once
-        assert spin_until(lambda: all(j in joints() for j in ('JLWheel', 'JRWheel', 'JWaist',
-                                                              'LJ4')), 10.0), joints()
+        assert spin_until(
+            lambda: all(j in joints() for j in ('JLWheel', 'JRWheel', 'JWaist', 'LJ4')), 10.0
+        ), joints()
         assert joints()['JLWheel'] == pytest.approx(0.4, abs=1e-3)
         assert joints()['JRWheel'] == pytest.approx(-0.6, abs=1e-3)
         assert joints()['JWaist'] == pytest.approx(1.5, abs=1e-5)
@@ -152,8 +168,9 @@ def test_node_bridges_states_and_commands(devices_file):
             effort_pub.publish(Float64MultiArray(data=[8.0, 8.0]))
             c = robot.devices.wheel_currents()
             return abs(c['JLWheel'] - expected) < 0.01 and abs(c['JRWheel'] - expected) < 0.01
+
         assert spin_until(current_arrived, 5.0), robot.devices.wheel_currents()
-        assert got['fault'].data == ''                     # latched '' from the start: no fault
+        assert got['fault'].data == ''  # latched '' from the start: no fault
 
         # half-invalid: both wheels stop, and /diagnostics WARNs with the count and the reason
         def both_zero_and_warned():
@@ -161,18 +178,22 @@ def test_node_bridges_states_and_commands(devices_file):
             d = got.get('diag')
             warned = d is not None and any(
                 s.name == 'can_bridge: commands' and s.level == b'\x01' and 'JLWheel' in s.message
-                for s in d.status)
+                for s in d.status
+            )
             return warned and robot.devices.wheel_currents() == {'JLWheel': 0.0, 'JRWheel': 0.0}
+
         assert spin_until(both_zero_and_warned, 5.0), robot.devices.wheel_currents()
         assert spin_until(current_arrived, 5.0), robot.devices.wheel_currents()
 
         joint_pub.publish(JointState(name=['JTorso'], position=[0.1]))
-        assert spin_until(lambda: abs(joints().get('JTorso', 0.0) - 0.1) < 1e-3,
-                          5.0), joints().get('JTorso')
+        assert spin_until(lambda: abs(joints().get('JTorso', 0.0) - 0.1) < 1e-3, 5.0), (
+            joints().get('JTorso')
+        )
 
         # the controller stops publishing: the wheel command goes stale -> zero current
-        assert spin_until(lambda: robot.devices.wheel_currents() == {'JLWheel': 0.0,
-                                                                     'JRWheel': 0.0}, 2.0)
+        assert spin_until(
+            lambda: robot.devices.wheel_currents() == {'JLWheel': 0.0, 'JRWheel': 0.0}, 2.0
+        )
     finally:
         bridge.close()
         ex.shutdown()

@@ -11,6 +11,7 @@ LocalNodes on a udp_multicast bus), a ROS probe in this process.
 - No parameters: the bridge takes the robot's SocketCAN map and, with no SocketCAN here, ends with
   one line naming can0 and the `ip link` command.
 """
+
 import json
 import os
 import random
@@ -27,7 +28,7 @@ import yaml
 pytestmark = pytest.mark.ros
 
 rclpy = pytest.importorskip('rclpy')
-pytest.importorskip('msgpack')                      # python-can's udp_multicast needs it
+pytest.importorskip('msgpack')  # python-can's udp_multicast needs it
 
 from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
 from rclpy.executors import SingleThreadedExecutor  # noqa: E402
@@ -35,8 +36,7 @@ from rclpy.parameter import Parameter  # noqa: E402
 from std_msgs.msg import Float64MultiArray, String  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
 
-from krang_can_bridge.config import default_devices_file, load_devices, \
-    resolve_devices_file  # noqa: E402
+from krang_can_bridge.config import default_devices_file, load_devices, resolve_devices_file  # noqa: E402
 from krang_can_bridge.node import CanBridgeNode  # noqa: E402
 from krang_cli.node_set import params_files  # noqa: E402
 from krang_cli.processes import NodeSet  # noqa: E402
@@ -60,8 +60,11 @@ def peer_map(tmp_path):
     rng = random.Random()
     group, port = f'239.74.{rng.randint(100, 250)}', rng.randrange(20000, 60000, 16)
     for i, name in enumerate(data['buses']):
-        data['buses'][name] = {'interface': 'udp_multicast', 'channel': f'{group}.{i + 1}',
-                               'options': {'port': port + i}}
+        data['buses'][name] = {
+            'interface': 'udp_multicast',
+            'channel': f'{group}.{i + 1}',
+            'options': {'port': port + i},
+        }
     data['dbc_file'] = str(base.dbc_path)
     data['imu']['required'] = data['powercube']['required'] = False
     data['wheels'].update(silence_timeout_s=0.5, command_timeout_s=0.5)
@@ -78,9 +81,21 @@ class Peer:
         nodes = ','.join(f'{d.node_id}:{d.sign}' for d in cfg.wheels.drives)
         self.ids = {d.joint: d.node_id for d in cfg.wheels.drives}
         self.proc = subprocess.Popen(
-            [sys.executable, str(PEER), '--channel', bus.channel, '--port',
-             str(bus.options['port']), '--nodes', nodes, '--fault-node',
-             str(self.ids['JRWheel'])], stdout=subprocess.PIPE, text=True)
+            [
+                sys.executable,
+                str(PEER),
+                '--channel',
+                bus.channel,
+                '--port',
+                str(bus.options['port']),
+                '--nodes',
+                nodes,
+                '--fault-node',
+                str(self.ids['JRWheel']),
+            ],
+            stdout=subprocess.PIPE,
+            text=True,
+        )
         self.events, self.lock = [], threading.RLock()
         threading.Thread(target=self._read, daemon=True).start()
         assert self.wait(lambda: any(e.get('event') == 'ready' for e in self.events), 10.0)
@@ -105,15 +120,27 @@ class Peer:
         value = 0.0
         with self.lock:
             for e in self.events:
-                if e.get('node') == self.ids[joint] and 'amps' in e and (at is None or
-                                                                         e['t'] <= at):
+                if (
+                    e.get('node') == self.ids[joint]
+                    and 'amps' in e
+                    and (at is None or e['t'] <= at)
+                ):
                     value = e['amps']
         return value
 
     def first_zero_after(self, joint, t):
         with self.lock:
-            return next((e['t'] for e in self.events if e.get('node') == self.ids[joint]
-                         and 'amps' in e and e['t'] > t and e['amps'] == 0.0), None)
+            return next(
+                (
+                    e['t']
+                    for e in self.events
+                    if e.get('node') == self.ids[joint]
+                    and 'amps' in e
+                    and e['t'] > t
+                    and e['amps'] == 0.0
+                ),
+                None,
+            )
 
     def signal(self, sig):
         self.proc.send_signal(sig)
@@ -135,11 +162,13 @@ class Probe:
         self.node = rclpy.create_node('safety_probe', context=self.context)
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)
-        self.effort = self.node.create_publisher(Float64MultiArray, names.WHEEL_EFFORT_CMD,
-                                                 topics.QOS[names.WHEEL_EFFORT_CMD])
+        self.effort = self.node.create_publisher(
+            Float64MultiArray, names.WHEEL_EFFORT_CMD, topics.QOS[names.WHEEL_EFFORT_CMD]
+        )
         self.fault, self.diag = None, {}
-        self.node.create_subscription(String, names.DRIVE_FAULT,
-                                      lambda m: setattr(self, 'fault', m.data), topics.LATCHED)
+        self.node.create_subscription(
+            String, names.DRIVE_FAULT, lambda m: setattr(self, 'fault', m.data), topics.LATCHED
+        )
         self.node.create_subscription(DiagnosticArray, names.DIAGNOSTICS, self._on_diag, 10)
         self.recover_client = self.node.create_client(Trigger, names.BRIDGE_RECOVER)
         self.command = None
@@ -202,7 +231,7 @@ def test_sigkilled_bridge_zero_current_within_0_3_s(rig):
     assert probe.spin(30.0, lambda: both_driven(peer)), peer.events[-6:]
     probe.spin(0.5)
     killed_at = time.monotonic()
-    bridge.kill()                                  # SIGKILL: the bridge sends nothing more
+    bridge.kill()  # SIGKILL: the bridge sends nothing more
     bridge.wait(5.0)
     assert both_driven(peer, killed_at), peer.events[-6:]
     time.sleep(1.0)
@@ -224,25 +253,28 @@ def test_hung_command_loop_stops_the_beat_and_the_drives(peer_map):
     wd = cfg.wheels.watchdog
     peer = Peer(cfg)
     probe = Probe()
-    bridge = CanBridgeNode(context=probe.context, parameter_overrides=[
-        Parameter('devices_file', value=str(path))])
+    bridge = CanBridgeNode(
+        context=probe.context, parameter_overrides=[Parameter('devices_file', value=str(path))]
+    )
     probe.executor.add_node(bridge)
     try:
         probe.command = (EFFORT_NM, EFFORT_NM)
         assert probe.spin(30.0, lambda: both_driven(peer)), peer.events[-6:]
         probe.spin(0.5)
-        hung_at = time.monotonic()                 # the executor stops: no callback runs from here
+        hung_at = time.monotonic()  # the executor stops: no callback runs from here
         frames = bridge.core.counters.frames
         time.sleep(1.0)
-        assert bridge.core.counters.frames > frames + 100        # frames still come in
+        assert bridge.core.counters.frames > frames + 100  # frames still come in
         assert bridge._watchdog_thread.is_alive()
         assert both_driven(peer, hung_at)
         for joint in ('JLWheel', 'JRWheel'):
             zero_at = peer.first_zero_after(joint, hung_at)
             assert zero_at is not None, peer.events[-6:]
             # + 0.1 s: the peer process's own lateness on a loaded machine
-            assert zero_at - hung_at < wd.alive_timeout_s + wd.timeout_s + 0.1, \
-                (joint, zero_at - hung_at)
+            assert zero_at - hung_at < wd.alive_timeout_s + wd.timeout_s + 0.1, (
+                joint,
+                zero_at - hung_at,
+            )
             print(f'{joint}: zero current {zero_at - hung_at:.3f} s after the loop hung')
     finally:
         bridge.close()
@@ -259,7 +291,7 @@ def test_faulted_drive_stops_both_wheels_until_recovered(rig):
     assert probe.spin(30.0, lambda: both_driven(peer)), peer.events[-6:]
     assert probe.spin(5.0, lambda: probe.fault == '')
     faulted_at = time.monotonic()
-    peer.signal(signal.SIGUSR1)                    # the right drive: FAULT + EMCY, cause stays
+    peer.signal(signal.SIGUSR1)  # the right drive: FAULT + EMCY, cause stays
     assert probe.spin(5.0, lambda: bool(probe.fault)), probe.fault
     assert 'JRWheel' in probe.fault
     # the left wheel, still commanded, got zero current too (from the bridge: it has no fault)
@@ -273,9 +305,10 @@ def test_faulted_drive_stops_both_wheels_until_recovered(rig):
     assert not refused.success and 'FAULT' in refused.message, refused.message
     probe.spin(1.0)
     assert probe.fault and peer.amps('JLWheel') == 0.0 and peer.amps('JRWheel') == 0.0
-    peer.signal(signal.SIGUSR2)                    # the cause is gone; the drive still in FAULT
-    assert peer.wait(lambda: any(e.get('event') == 'fault cause removed'
-                                 for e in peer.events), 5.0)
+    peer.signal(signal.SIGUSR2)  # the cause is gone; the drive still in FAULT
+    assert peer.wait(
+        lambda: any(e.get('event') == 'fault cause removed' for e in peer.events), 5.0
+    )
     probe.spin(0.5)
     assert peer.amps('JLWheel') == 0.0 and peer.amps('JRWheel') == 0.0
     accepted = probe.recover()
@@ -287,8 +320,13 @@ def test_faulted_drive_stops_both_wheels_until_recovered(rig):
 @pytest.mark.timeout(60)
 def test_without_parameters_the_bridge_takes_the_robots_socketcan_map():
     """No SocketCAN on this machine: the robot map's can0 cannot open -> one clear line, exit 1."""
-    proc = subprocess.run([sys.executable, '-m', 'krang_can_bridge.node'], capture_output=True,
-                          text=True, timeout=50, env=dict(os.environ))
+    proc = subprocess.run(
+        [sys.executable, '-m', 'krang_can_bridge.node'],
+        capture_output=True,
+        text=True,
+        timeout=50,
+        env=dict(os.environ),
+    )
     out = (proc.stdout + proc.stderr).strip()
     assert proc.returncode == 1, out
     assert 'Traceback' not in out
@@ -313,9 +351,16 @@ def test_the_simulated_node_set_chooses_the_simulator_map():
 
 
 def test_help_lists_the_parameters_without_starting_the_bridge():
-    proc = subprocess.run([sys.executable, '-c', 'import sys; from krang_ros.entry import run; '
-                           "sys.exit(run('can_bridge', ['--help']))"],
-                          capture_output=True, text=True, timeout=50)
+    proc = subprocess.run(
+        [
+            sys.executable,
+            '-c',
+            "import sys; from krang_ros.entry import run; sys.exit(run('can_bridge', ['--help']))",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=50,
+    )
     assert proc.returncode == 0, proc.stderr
     assert 'devices_file' in proc.stdout and 'can_devices_robot.yaml' in proc.stdout
     assert 'recover_timeout_s' in proc.stdout and 'cannot open' not in proc.stdout + proc.stderr

@@ -1,5 +1,6 @@
 """Codecs against frames built by hand from docs/can.md and the Krang drivers: ids, scales, signs,
 byte order."""
+
 import math
 import struct
 
@@ -46,15 +47,31 @@ def right(cfg, dbc):
 def test_config_matches_facts(cfg):
     assert [d.node_id for d in cfg.wheels.drives] == [0x20, 0x21]
     assert cfg.wheels.drive('JRWheel').sign == -1 and cfg.wheels.drive('JLWheel').sign == 1
-    assert cfg.wheels.drivetrain == drivetrain(load_krang())      # the one drive-train description
+    assert cfg.wheels.drivetrain == drivetrain(load_krang())  # the one drive-train description
     assert cfg.wheels.drivetrain.current_limit == 49.0
     assert cfg.wheels.encoder_counts_per_rev == 4000 and cfg.wheels.drivetrain.gear_ratio == 15
     # BLY343D, 12 oz-in/A as robot.yaml rounds it
     assert cfg.wheels.drivetrain.torque_constant == 0.0847
-    assert set(cfg.joint_names) == {'JWaist', 'JTorso', 'LJ1', 'LJ2', 'LJ3', 'LJ4', 'LJ5', 'LJ6',
-                                    'LJFT', 'RJ1',
-                                    'RJ2', 'RJ3', 'RJ4', 'RJ5', 'RJ6', 'RJFT', 'JLWheel',
-                                    'JRWheel'}
+    assert set(cfg.joint_names) == {
+        'JWaist',
+        'JTorso',
+        'LJ1',
+        'LJ2',
+        'LJ3',
+        'LJ4',
+        'LJ5',
+        'LJ6',
+        'LJFT',
+        'RJ1',
+        'RJ2',
+        'RJ3',
+        'RJ4',
+        'RJ5',
+        'RJ6',
+        'RJFT',
+        'JLWheel',
+        'JRWheel',
+    }
     waist = cfg.powercube.joint('JWaist')
     assert (waist.lower, waist.upper) == (0.0, 2.88)
     assert [m.sign for m in waist.modules] == [1, -1]
@@ -117,9 +134,16 @@ def test_device_map_with_a_disagreeing_torque_constant_is_rejected(tmp_path, cfg
 
 def test_device_map_may_state_drive_train_values_that_agree(tmp_path, cfg):
     drive = cfg.wheels.drivetrain
-    path = _with_wheel_keys(cfg, tmp_path, 'agree.yaml', {
-        'torque_constant_nm_per_a': drive.torque_constant, 'gear_ratio': drive.gear_ratio,
-        'current_limit_a': drive.current_limit})
+    path = _with_wheel_keys(
+        cfg,
+        tmp_path,
+        'agree.yaml',
+        {
+            'torque_constant_nm_per_a': drive.torque_constant,
+            'gear_ratio': drive.gear_ratio,
+            'current_limit_a': drive.current_limit,
+        },
+    )
     assert load_devices(path).wheels == cfg.wheels
     # the check names the file the `wheels` section came from, also through `extends`
     child = tmp_path / 'child.yaml'
@@ -140,13 +164,13 @@ def test_amc_cob_ids_follow_facts(left, right):
 def test_amc_current_rpdo_bytes(cfg, left, right):
     kp = cfg.wheels.drive('JLWheel').peak_current_kp
     # DC2 = A * 2^15 / (Kp/10), truncated like the driver
-    dc2 = int(10.0 * 2 ** 15 / (kp / 10))
+    dc2 = int(10.0 * 2**15 / (kp / 10))
     m = left.encode_current_command(10.0)
     assert m.arbitration_id == 0x2E2 and bytes(m.data) == struct.pack('<Hh', 0x008F, dc2)
-    assert bytes(m.data)[:2] == b'\x8f\x00'             # controlword 0x008F little-endian
-    m = right.encode_current_command(10.0)              # right drive: current sign -1
+    assert bytes(m.data)[:2] == b'\x8f\x00'  # controlword 0x008F little-endian
+    m = right.encode_current_command(10.0)  # right drive: current sign -1
     assert m.arbitration_id == 0x2E9 and bytes(m.data) == struct.pack('<Hh', 0x008F, -dc2)
-    assert right.decode_current_command(m) == (0x008F, pytest.approx(dc2 * (kp / 10) / 2 ** 15))
+    assert right.decode_current_command(m) == (0x008F, pytest.approx(dc2 * (kp / 10) / 2**15))
 
 
 def test_amc_tpdo_decoding_by_hand(cfg, left, right):
@@ -159,7 +183,7 @@ def test_amc_tpdo_decoding_by_hand(cfg, left, right):
         msg(0x2EA, struct.pack('<Hi', 0x0027, one_wheel_rev))
     ).value == pytest.approx(-2 * math.pi)
     # DS1: counts/s = raw * k_i * k_s / 2^17
-    raw = 2 ** 17
+    raw = 2**17
     expected = (
         raw
         * d.k_i
@@ -170,11 +194,12 @@ def test_amc_tpdo_decoding_by_hand(cfg, left, right):
         / (w.encoder_counts_per_rev * w.drivetrain.gear_ratio)
     )
     assert left.decode(msg(0x2E4, struct.pack('<Hi', 0x27, raw))).value == pytest.approx(expected)
-    assert right.decode(msg(0x2EB, struct.pack('<Hi', 0x27,
-                                               raw))).value == pytest.approx(-expected)
+    assert right.decode(msg(0x2EB, struct.pack('<Hi', 0x27, raw))).value == pytest.approx(
+        -expected
+    )
     # DC1: amccan_decode_dc1 = raw / (2^13 / Kp) / 10  (the kit table omits the /10; the driver has
     # it)
-    dc1_amps = 4096 / (2 ** 13 / d.peak_current_kp) / 10
+    dc1_amps = 4096 / (2**13 / d.peak_current_kp) / 10
     assert left.decode(msg(0x2E5, struct.pack('<Hh', 0x27, 4096))).value == pytest.approx(dc1_amps)
     assert right.decode(msg(0x2EC, struct.pack('<Hh', 0x27, 4096))).value == pytest.approx(-30.0)
     s = left.decode(msg(0x2E6, struct.pack('<H', 0x0627)))
@@ -189,8 +214,9 @@ def test_amc_round_trips(left, right):
         assert codec.decode(codec.encode_position(1.2345, 0x27)).value == pytest.approx(
             1.2345, abs=2 * math.pi / 60000
         )
-        assert codec.decode(codec.encode_velocity(-3.5, 0x27)).value == pytest.approx(-3.5,
-                                                                                      abs=1e-4)
+        assert codec.decode(codec.encode_velocity(-3.5, 0x27)).value == pytest.approx(
+            -3.5, abs=1e-4
+        )
         assert codec.decode(codec.encode_actual_current(-12.5, 0x27)).value == pytest.approx(
             -12.5, abs=0.01
         )
@@ -210,23 +236,24 @@ def test_amc_malformed_frames_rejected(left):
     with pytest.raises(MalformedFrame):
         left.decode(msg(0x2E3, struct.pack('<Hi', 0, 0) + b'\x00'))
     with pytest.raises(MalformedFrame):
-        left.decode(can.Message(arbitration_id=0x2E3, is_remote_frame=True, dlc=6,
-                                is_extended_id=False))
+        left.decode(
+            can.Message(arbitration_id=0x2E3, is_remote_frame=True, dlc=6, is_extended_id=False)
+        )
     with pytest.raises(MalformedFrame):
         left.decode(can.Message(arbitration_id=0x2E3, data=bytes(6), is_extended_id=True))
     with pytest.raises(UnknownFrame):
-        left.decode(msg(0x2EA, bytes(6)))                # the right drive's TPDO
+        left.decode(msg(0x2EA, bytes(6)))  # the right drive's TPDO
     with pytest.raises(UnknownFrame):
-        left.decode(msg(0x2E2, bytes(4)))                # an RPDO is not feedback
+        left.decode(msg(0x2E2, bytes(4)))  # an RPDO is not feedback
 
 
 def test_amc_startup_sequence_enters_current_mode(cfg):
     steps = amc.startup_sequence(cfg.wheels.drive('JLWheel'))
     writes = [(s.index, s.subindex, s.value) for s in steps if s.action == 'write']
-    assert (0x6060, 0, 4) in writes                              # op-mode current
+    assert (0x6060, 0, 4) in writes  # op-mode current
     # RPDO current enabled at its COB-ID
     assert (0x1404, 1, 0x2E2) in writes
-    assert (0x1402, 1, 0x2E0 | 1 << 31) in writes                # RPDO position disabled
+    assert (0x1402, 1, 0x2E0 | 1 << 31) in writes  # RPDO position disabled
     nmt = [s.value for s in steps if s.action == 'nmt']
     assert nmt == [0x80, 0x01]
     assert writes[-1] == (0x6040, 0, 0x0F) and writes.index((0x6060, 0, 4)) < len(writes) - 1
@@ -252,9 +279,14 @@ def test_dmu_frames_by_hand(dbc):
 def test_dmu_encode_round_trip_and_rejects(dbc):
     codec = DmuCodec(dbc)
     m = codec.encode_rates((0.1, -0.2, 0.3), status=1, sequence=9)
-    assert bytes(m.data) == struct.pack('<hhhBB', round(0.1 / math.radians(0.008)),
-                                        round(-0.2 / math.radians(0.008)),
-                                        round(0.3 / math.radians(0.008)), 1, 9)
+    assert bytes(m.data) == struct.pack(
+        '<hhhBB',
+        round(0.1 / math.radians(0.008)),
+        round(-0.2 / math.radians(0.008)),
+        round(0.3 / math.radians(0.008)),
+        1,
+        9,
+    )
     back = codec.decode(codec.encode_accelerations((0.0, -4.9, 9.81), sequence=3))
     assert (back.x, back.y, back.z) == pytest.approx((0.0, -4.9, 9.81), abs=0.0003 * G)
     # 5 rad/s > 32767 * 0.008 deg/s
@@ -262,7 +294,7 @@ def test_dmu_encode_round_trip_and_rejects(dbc):
         with pytest.raises(ValueOutOfRange):
             codec.encode_rates(bad)
     with pytest.raises(ValueOutOfRange):
-        codec.encode_accelerations((0, 0, 100.0))                    # > 9.83 g
+        codec.encode_accelerations((0, 0, 100.0))  # > 9.83 g
 
 
 def test_dmu_malformed_rejected(dbc):
@@ -304,11 +336,13 @@ def test_powercube_host_frames_by_hand():
     m = pc.get_param(4, pc.ACT_FPOS)
     assert m.arbitration_id == 0x0C4 and bytes(m.data) == bytes([0x0A, 0x3C])
     m = pc.set_motion(13, pc.FRAMP_ACK, 1.5)
-    assert m.arbitration_id == 0x0ED and bytes(m.data) == bytes([0x0B, 14]) + struct.pack('<f',
-                                                                                          1.5)
+    assert m.arbitration_id == 0x0ED and bytes(m.data) == bytes([0x0B, 14]) + struct.pack(
+        '<f', 1.5
+    )
     m = pc.set_param(5, pc.TARGET_VEL, 0.25)
-    assert m.arbitration_id == 0x0E5 and bytes(m.data) == bytes([0x08, 0x4F]) + struct.pack('<f',
-                                                                                            0.25)
+    assert m.arbitration_id == 0x0E5 and bytes(m.data) == bytes([0x08, 0x4F]) + struct.pack(
+        '<f', 0.25
+    )
     m = pc.simple_command(7, pc.RESET)
     assert m.arbitration_id == 0x0E7 and bytes(m.data) == b'\x00'
     m = pc.broadcast_command(pc.HALT)
@@ -321,8 +355,13 @@ def test_powercube_replies_by_hand():
     r = pc.decode_reply(msg(0x0A4, bytes([0x0A, 0x3C]) + struct.pack('<f', -0.25)))
     assert (r.module_id, r.command, r.selector, r.value) == (4, 0x0A, 0x3C, -0.25)
     r = pc.decode_reply(msg(0x0AD, bytes([0x0B, 14]) + struct.pack('<f', 0.75) + bytes([0x20, 0])))
-    assert (r.module_id, r.command, r.selector, r.value, r.short_state) == (13, 0x0B, 14, 0.75,
-                                                                            0x20)
+    assert (r.module_id, r.command, r.selector, r.value, r.short_state) == (
+        13,
+        0x0B,
+        14,
+        0.75,
+        0x20,
+    )
     r = pc.decode_reply(msg(0x0A6, bytes([0x0A, 0x27]) + struct.pack('<I', 0x8002)))
     # state word stays an integer
     assert r.value == 0x8002
@@ -334,13 +373,13 @@ def test_powercube_malformed_rejected():
     with pytest.raises(MalformedFrame):
         pc.decode_reply(msg(0x0A4, bytes([0x0A, 0x3C]) + struct.pack('<f', math.nan)))
     with pytest.raises(MalformedFrame):
-        pc.decode_reply(msg(0x0A4, bytes([0x0A, 0x3C, 0, 0, 0])))        # DLC 5
+        pc.decode_reply(msg(0x0A4, bytes([0x0A, 0x3C, 0, 0, 0])))  # DLC 5
     with pytest.raises(MalformedFrame):
-        pc.decode_reply(msg(0x0A4, bytes([0x0B, 99]) + bytes(6)))         # unknown motion
+        pc.decode_reply(msg(0x0A4, bytes([0x0B, 99]) + bytes(6)))  # unknown motion
     with pytest.raises(MalformedFrame):
-        pc.decode_reply(msg(0x0A4, bytes([0x55]) + bytes(5)))             # unknown command
+        pc.decode_reply(msg(0x0A4, bytes([0x55]) + bytes(5)))  # unknown command
     with pytest.raises(UnknownFrame):
-        pc.decode_reply(msg(0x0C4, bytes([0x0A, 0x3C])))                  # a host frame
+        pc.decode_reply(msg(0x0C4, bytes([0x0A, 0x3C])))  # a host frame
     for bad in (math.nan, math.inf, 1e39):
         with pytest.raises(ValueOutOfRange):
             pc.set_motion(4, pc.FRAMP_ACK, bad)

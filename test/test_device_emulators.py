@@ -5,6 +5,7 @@ AMC start-up) each own one virtual bus per configured bus; frames cross only thr
 Expectations are physical values put into the emulators (or computed from docs/can.md), never
 values read back from the code under test.
 """
+
 import dataclasses
 import itertools
 import math
@@ -55,17 +56,22 @@ class Rig:
         self.cfg = cfg
         self.devices = KrangCanDevices(cfg, **device_kwargs)
         self.core = BridgeCore(cfg)
-        self.lock = threading.Lock()            # the emulators are driven from several threads
+        self.lock = threading.Lock()  # the emulators are driven from several threads
         names = cfg.buses_in_use()
         self.host = {b: can.Bus(interface='virtual', channel=f'{uid}-{b}') for b in names}
         self.robot = {b: can.Bus(interface='virtual', channel=f'{uid}-{b}') for b in names}
         self.network = canopen.Network(self.host[cfg.wheels.bus])
-        self.notifiers = [can.Notifier(self.host[b], [_Listener(self._on_host, b)],
-                                       timeout=0.05) for b in names]
-        self.notifiers += [can.Notifier(self.robot[b], [_Listener(self._on_robot, b)],
-                                        timeout=0.05) for b in names]
-        self.wheel_state = wheel_state or {'pos': {'JLWheel': 0.0, 'JRWheel': 0.0},
-                                           'vel': {'JLWheel': 0.0, 'JRWheel': 0.0}}
+        self.notifiers = [
+            can.Notifier(self.host[b], [_Listener(self._on_host, b)], timeout=0.05) for b in names
+        ]
+        self.notifiers += [
+            can.Notifier(self.robot[b], [_Listener(self._on_robot, b)], timeout=0.05)
+            for b in names
+        ]
+        self.wheel_state = wheel_state or {
+            'pos': {'JLWheel': 0.0, 'JRWheel': 0.0},
+            'vel': {'JLWheel': 0.0, 'JRWheel': 0.0},
+        }
         self.pitch = pitch
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._robot_loop, daemon=True)
@@ -93,12 +99,13 @@ class Rig:
         while not self._stop.is_set():
             with self.lock:
                 self.devices.step(dt)
-                out = self.devices.wheel_feedback_frames(self.wheel_state['pos'],
-                                                         self.wheel_state['vel'])
+                out = self.devices.wheel_feedback_frames(
+                    self.wheel_state['pos'], self.wheel_state['vel']
+                )
                 out += self.devices.imu_frames_from_pitch(self.pitch, 0.0)
             self.send_robot(out)
             if k % 10 == 0:
-                self.send_host(self.core.poll_frames())     # the bridge node's poll timer
+                self.send_host(self.core.poll_frames())  # the bridge node's poll timer
             k += 1
             time.sleep(dt)
 
@@ -140,13 +147,13 @@ def test_commanded_current_arrives_with_value_and_sign():
         start_drives(rig)
         assert wait_for(lambda: rig.core.motion_allowed()), rig.core.diagnostics()[0]
         effort = 12.0
-        drive = drivetrain(load_krang())      # the robot's drive train, not the map's
+        drive = drivetrain(load_krang())  # the robot's drive train, not the map's
         expected = effort / (drive.torque_constant * drive.gear_ratio)
         frames = rig.core.wheel_current_frames(effort, effort)
         # right drive: raw sign flipped
         assert struct.unpack('<Hh', bytes(frames[1].msg.data))[1] < 0
         rig.send_host(frames)
-        lsb = rig.cfg.wheels.drive('JLWheel').peak_current_a / 2 ** 15
+        lsb = rig.cfg.wheels.drive('JLWheel').peak_current_a / 2**15
         assert wait_for(
             lambda: abs(rig.devices.wheels['JRWheel'].commanded_current_a - expected) < lsb
         )
@@ -189,11 +196,12 @@ def test_silent_drive_stops_transmitting_but_still_applies_commands():
 
     def waist_bus_replies():
         return {r.msg.arbitration_id for m in polls for r in devices.on_frame(waist_bus, m)}
+
     talking = waist_bus_replies()
     seq = devices.imu.sequence
     devices.set_silent(['imu', 'JWaist'])
     assert devices.imu_frames_from_pitch(-1.0, 0.0) == []
-    assert devices.imu.sequence == (seq + 1) & 0xFF                # the silent DMU keeps sampling
+    assert devices.imu.sequence == (seq + 1) & 0xFF  # the silent DMU keeps sampling
     # module -> host replies
     waist_ids = {0x0A0 + m.module_id for m in CFG.powercube.joints[0].modules}
     assert waist_ids <= talking and not waist_ids & waist_bus_replies()
@@ -209,6 +217,7 @@ def test_emulated_wheel_state_is_decoded_to_the_values_put_in():
         def decoded():
             js = rig.core.joint_state()
             return dict(zip(js.names, zip(js.positions, js.velocities)))
+
         assert wait_for(lambda: 'JRWheel' in decoded())
         count = 2 * math.pi / (4000 * 15)
         for joint in ('JLWheel', 'JRWheel'):
@@ -222,12 +231,14 @@ def test_emulated_wheel_state_is_decoded_to_the_values_put_in():
 def test_emulated_joint_states_and_position_commands():
     q0 = {'JWaist': 1.0, 'JTorso': -0.3, 'LJ2': 1.9, 'RJ6': -1.0, 'LJFT': 2.5}
     with Rig(initial_joint_positions=q0) as rig:
+
         def decoded():
             js = rig.core.joint_state()
             return dict(zip(js.names, js.positions))
+
         assert wait_for(lambda: len(decoded()) >= len(rig.cfg.body_joint_names))
         for joint, q in q0.items():
-            assert decoded()[joint] == pytest.approx(q, abs=1e-6)        # float32 on the wire
+            assert decoded()[joint] == pytest.approx(q, abs=1e-6)  # float32 on the wire
         assert decoded()['RJ1'] == pytest.approx(0.0, abs=1e-9)
         waist = [em.position for _, em in rig.devices.joint_modules['JWaist']]
         # qWaist = (pos0 - pos1) / 2
@@ -278,13 +289,14 @@ def test_amc_emulator_ignores_current_until_started_and_drops_it_on_fault():
     dbc = load_dbc(CFG.dbc_path)
     drive = CFG.wheels.drive('JLWheel')
     em = AmcDriveEmulator(drive, CFG.wheels, dbc)
-    cmd = can.Message(arbitration_id=0x2E2, data=struct.pack('<Hh', 0x8F, 8192),
-                      is_extended_id=False)
+    cmd = can.Message(
+        arbitration_id=0x2E2, data=struct.pack('<Hh', 0x8F, 8192), is_extended_id=False
+    )
     em.on_frame(cmd)
-    assert em.commanded_current_a == 0.0 and em.tpdo_frames(0.0, 0.0) == []      # pre-operational
+    assert em.commanded_current_a == 0.0 and em.tpdo_frames(0.0, 0.0) == []  # pre-operational
     em = AmcDriveEmulator(drive, CFG.wheels, dbc, auto_enable=True)
     em.on_frame(cmd)
-    assert em.commanded_current_a == pytest.approx(8192 * 60.0 / 2 ** 15)
+    assert em.commanded_current_a == pytest.approx(8192 * 60.0 / 2**15)
     em.fault()
     assert em.commanded_current_a == 0.0
     sw = struct.unpack('<H', bytes(em.tpdo_frames(0.0, 0.0)[3].data))[0]
@@ -297,8 +309,10 @@ def test_dmu_emulator_quantises_saturates_and_adds_bias():
     em = DmuImuEmulator(CFG.imu, dbc)
     rates, acc = em.frames((0.0, 0.0, 10.0), (0.0, 0.0, 9.81))
     dq, dp, dr, _, seq = struct.unpack('<hhhBB', bytes(rates.data))
-    assert (dq, dp) == (round(CFG.imu.gyro_bias_rad_s[0] / math.radians(0.008)),
-                        round(CFG.imu.gyro_bias_rad_s[1] / math.radians(0.008)))
+    assert (dq, dp) == (
+        round(CFG.imu.gyro_bias_rad_s[0] / math.radians(0.008)),
+        round(CFG.imu.gyro_bias_rad_s[1] / math.radians(0.008)),
+    )
     # 10 rad/s saturates
     assert dr == 32767 and seq == 0
     assert struct.unpack('<hhhBB', bytes(acc.data))[2] == round(9.81 / (0.0003 * 9.80665))
@@ -311,7 +325,7 @@ def test_powercube_emulator_ramps_within_its_limits():
     joint = CFG.powercube.joint('JTorso')
     em = PowerCubeEmulator.from_config(joint, joint.modules[0], 0.0)
     vmax, amax = joint.max_velocity_rad_s, joint.max_acceleration_rad_s2
-    reply = em.on_frame(pc.set_motion(13, pc.FRAMP_ACK, 3.0))[0]                 # beyond +1.57
+    reply = em.on_frame(pc.set_motion(13, pc.FRAMP_ACK, 3.0))[0]  # beyond +1.57
     assert pc.decode_reply(reply).selector == pc.FRAMP_ACK
     dt, prev_v, peak = 0.002, 0.0, 0.0
     positions = []
@@ -329,8 +343,10 @@ def test_powercube_emulator_ramps_within_its_limits():
     em.step(0.5)
     # halted until RESET
     assert em.position == pytest.approx(1.57)
-    assert pc.decode_reply(em.on_frame(pc.set_motion(13, pc.FRAMP_ACK,
-                                                     0.0))[0]).short_state & pc.SHORT_NOT_OK
+    assert (
+        pc.decode_reply(em.on_frame(pc.set_motion(13, pc.FRAMP_ACK, 0.0))[0]).short_state
+        & pc.SHORT_NOT_OK
+    )
     em.on_frame(pc.simple_command(13, pc.RESET))
     em.on_frame(pc.set_motion(13, pc.FRAMP_ACK, 1.0))
     em.step(0.5)

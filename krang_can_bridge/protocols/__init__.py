@@ -10,6 +10,7 @@ config/krang_can.dbc, the file CAN engineers load into their own tools. Every de
 `ProtocolError` subclass on a frame it cannot trust, and every encoder refuses NaN, inf and
 out-of-range values instead of wrapping them.
 """
+
 from __future__ import annotations
 
 import functools
@@ -75,6 +76,13 @@ def frame(arbitration_id: int, data: bytes | bytearray) -> can.Message:
     return can.Message(arbitration_id=arbitration_id, data=bytes(data), is_extended_id=False)
 
 
-__all__ = ['ProtocolError', 'UnknownFrame', 'MalformedFrame', 'ValueOutOfRange', 'load_dbc',
-           'require_finite',
-           'check_data_frame', 'frame']
+__all__ = [
+    'ProtocolError',
+    'UnknownFrame',
+    'MalformedFrame',
+    'ValueOutOfRange',
+    'load_dbc',
+    'require_finite',
+    'check_data_frame',
+    'frame',
+]

@@ -32,6 +32,7 @@ dictionary of the objects we touch, NMT and the SDO start-up sequence (`startup_
 stay plain frames: AMC's COB-ID scheme and fixed mappings are not the CiA defaults canopen's PDO
 classes would assume.
 """
+
 from __future__ import annotations
 
 import math
@@ -58,7 +59,7 @@ COB_STRIDE = 7
 RPDO_POSITION, RPDO_VELOCITY, RPDO_CURRENT = 0, 1, 2
 TPDO_POSITION, TPDO_VELOCITY, TPDO_CURRENT, TPDO_STATUSWORD = 3, 4, 5, 6
 
-CONTROLWORD_CURRENT_PDO = 0x008F     # amcdrive_rpdo_cw_i32: enable operation + fault-reset bit
+CONTROLWORD_CURRENT_PDO = 0x008F  # amcdrive_rpdo_cw_i32: enable operation + fault-reset bit
 OP_MODE_CURRENT = 4
 
 # DS402 objects
@@ -78,19 +79,23 @@ CONSUMER_HEARTBEAT_TIME = 0x1016
 ABORT_CONNECTION_OPTION = 0x6007
 ABORT_NO_ACTION, ABORT_FAULT, ABORT_DISABLE_VOLTAGE, ABORT_QUICK_STOP = 0, 1, 2, 3
 HEARTBEAT_BASE = 0x700
-NMT_STATE_OPERATIONAL = 0x05         # the bridge's heartbeat payload
+NMT_STATE_OPERATIONAL = 0x05  # the bridge's heartbeat payload
 # AMC manufacturer objects (amccan.h)
 BOARD_INFO = 0x20D8
-BOARD_INFO_MAX_PEAK_CURRENT = 0x0C   # Kp, 0.1 A
-BOARD_INFO_SWITCH_FREQ = 0x24        # PBF: kHz * 2^16
+BOARD_INFO_MAX_PEAK_CURRENT = 0x0C  # Kp, 0.1 A
+BOARD_INFO_SWITCH_FREQ = 0x24  # PBF: kHz * 2^16
 FEEDBACK_PARAMETERS = 0x2032
-FEEDBACK_POS_INTERPOLATION = 0x08    # k_i
+FEEDBACK_POS_INTERPOLATION = 0x08  # k_i
 TIMER1_CYCLE = 0x2120
 TIMER1_TPDOS = 0x2121
 # PDO communication parameter objects of the AMC PDOs the driver uses (amccan.c pdo_com_index)
 RPDO_COMM = {RPDO_POSITION: 0x1402, RPDO_VELOCITY: 0x1403, RPDO_CURRENT: 0x1404}
-TPDO_COMM = {TPDO_STATUSWORD: 0x1800, TPDO_POSITION: 0x1802, TPDO_VELOCITY: 0x1803,
-             TPDO_CURRENT: 0x1804}
+TPDO_COMM = {
+    TPDO_STATUSWORD: 0x1800,
+    TPDO_POSITION: 0x1802,
+    TPDO_VELOCITY: 0x1803,
+    TPDO_CURRENT: 0x1804,
+}
 # AMC's fixed mappings as the wire layouts imply them (the leading status word of TPDO 3/4/5 is our
 # reading).
 PDO_MAPPINGS = {
@@ -102,7 +107,7 @@ PDO_MAPPINGS = {
     TPDO_VELOCITY: ((STATUSWORD, 0, 16), (VELOCITY_ACTUAL, 0, 32)),
     TPDO_CURRENT: ((STATUSWORD, 0, 16), (CURRENT_ACTUAL, 0, 16)),
 }
-TIMER1_TPDO_BITS = 0b1111            # TPDO 1, 3, 4, 5 (bit i = i-th entry from AMCCAN_TPDO_1)
+TIMER1_TPDO_BITS = 0b1111  # TPDO 1, 3, 4, 5 (bit i = i-th entry from AMCCAN_TPDO_1)
 PDO_TRANS_ASYNC = 0xFE
 PDO_COB_DISABLED = 1 << 31
 
@@ -134,11 +139,11 @@ NMT_START, NMT_STOP, NMT_PRE_OPERATIONAL, NMT_RESET_NODE, NMT_RESET_COMMUNICATIO
     0x82,
 )
 
-DC2_FULL_SCALE = 2 ** 15
-DC1_FULL_SCALE = 2 ** 13
-DS1_FULL_SCALE = 2 ** 17
-INT16_MIN, INT16_MAX = -2 ** 15, 2 ** 15 - 1
-INT32_MIN, INT32_MAX = -2 ** 31, 2 ** 31 - 1
+DC2_FULL_SCALE = 2**15
+DC1_FULL_SCALE = 2**13
+DS1_FULL_SCALE = 2**17
+INT16_MIN, INT16_MAX = -(2**15), 2**15 - 1
+INT32_MIN, INT32_MAX = -(2**31), 2**31 - 1
 
 
 def drive_state(statusword: int) -> str:
@@ -168,10 +173,10 @@ class StartupStep:
     """One step of the drive start-up: an NMT command, an SDO write, or an SDO read to compare with
     config."""
 
-    action: str            # 'nmt' | 'write' | 'check'
+    action: str  # 'nmt' | 'write' | 'check'
     index: int = 0
     subindex: int = 0
-    value: int = 0         # NMT command, value written, or expected value
+    value: int = 0  # NMT command, value written, or expected value
     what: str = ''
 
 
@@ -182,10 +187,12 @@ class AmcDriveCodec:
         self.drive = drive
         self.wheels = wheels
         self.ids = {k: cob_id(drive.node_id, k) for k in range(7)}
-        self._kind_of_id = {self.ids[TPDO_POSITION]: 'position',
-                            self.ids[TPDO_VELOCITY]: 'velocity',
-                            self.ids[TPDO_CURRENT]: 'current',
-                            self.ids[TPDO_STATUSWORD]: 'statusword'}
+        self._kind_of_id = {
+            self.ids[TPDO_POSITION]: 'position',
+            self.ids[TPDO_VELOCITY]: 'velocity',
+            self.ids[TPDO_CURRENT]: 'current',
+            self.ids[TPDO_STATUSWORD]: 'statusword',
+        }
         self._messages = {}
         expected = {
             RPDO_CURRENT: {'controlword', 'target_current_dc2'},
@@ -198,13 +205,15 @@ class AmcDriveCodec:
             try:
                 message = dbc.get_message_by_frame_id(self.ids[offset])
             except KeyError as exc:
-                raise UnknownFrame(f'DBC has no frame 0x{self.ids[offset]:03X} for AMC node '
-                                   f'0x{drive.node_id:02X}') \
-                    from exc
+                raise UnknownFrame(
+                    f'DBC has no frame 0x{self.ids[offset]:03X} for AMC node 0x{drive.node_id:02X}'
+                ) from exc
             if {s.name for s in message.signals} != signals:
-                raise UnknownFrame(f'DBC frame {message.name} has signals '
-                                   f'{[s.name for s in message.signals]}, expected '
-                                   f'{sorted(signals)}')
+                raise UnknownFrame(
+                    f'DBC frame {message.name} has signals '
+                    f'{[s.name for s in message.signals]}, expected '
+                    f'{sorted(signals)}'
+                )
             self._messages[offset] = message
         self._amps_per_dc2 = drive.peak_current_a / DC2_FULL_SCALE
         self._amps_per_dc1 = drive.peak_current_a / DC1_FULL_SCALE
@@ -232,8 +241,9 @@ class AmcDriveCodec:
     def _unpack(self, offset: int, msg: can.Message) -> dict:
         message = self._messages[offset]
         check_data_frame(msg, message.length, message.name)
-        return message.decode(bytes(msg.data), decode_choices=False, scaling=False,
-                              allow_excess=False)
+        return message.decode(
+            bytes(msg.data), decode_choices=False, scaling=False, allow_excess=False
+        )
 
     # ---- host -> drive --------------------------------------------------------------------------
     def current_to_dc2(self, amps: float) -> int:
@@ -242,21 +252,29 @@ class AmcDriveCodec:
         amps = require_finite(amps, f'{self.drive.joint} current')
         raw = math.trunc(self.drive.sign * amps / self._amps_per_dc2)
         if not INT16_MIN <= raw <= INT16_MAX:
-            raise ValueOutOfRange(f'{self.drive.joint}: {amps} A exceeds the drive peak '
-                                  f'{self.drive.peak_current_a} A')
+            raise ValueOutOfRange(
+                f'{self.drive.joint}: {amps} A exceeds the drive peak '
+                f'{self.drive.peak_current_a} A'
+            )
         return raw
 
     def encode_current_command(self, amps: float) -> can.Message:
         """RPDO current: [controlword 0x008F][DC2]. Raises ValueOutOfRange for NaN/inf or beyond
         the drive peak."""
-        return self._pack(RPDO_CURRENT, {'controlword': CONTROLWORD_CURRENT_PDO,
-                                         'target_current_dc2': self.current_to_dc2(amps)})
+        return self._pack(
+            RPDO_CURRENT,
+            {
+                'controlword': CONTROLWORD_CURRENT_PDO,
+                'target_current_dc2': self.current_to_dc2(amps),
+            },
+        )
 
     def decode_current_command(self, msg: can.Message) -> tuple[int, float]:
         """(controlword, amps at the joint) of an RPDO current frame (the drive's view)."""
         if msg.arbitration_id != self.ids[RPDO_CURRENT]:
-            raise UnknownFrame(f'0x{msg.arbitration_id:03X} is not the current RPDO of '
-                               f'{self.drive.joint}')
+            raise UnknownFrame(
+                f'0x{msg.arbitration_id:03X} is not the current RPDO of {self.drive.joint}'
+            )
         s = self._unpack(RPDO_CURRENT, msg)
         return int(s['controlword']), self.drive.sign * s[
             'target_current_dc2'
@@ -266,8 +284,9 @@ class AmcDriveCodec:
     def decode(self, msg: can.Message) -> AmcReading:
         kind = self._kind_of_id.get(msg.arbitration_id)
         if kind is None:
-            raise UnknownFrame(f'0x{msg.arbitration_id:03X} is not a TPDO of AMC node '
-                               f'0x{self.drive.node_id:02X}')
+            raise UnknownFrame(
+                f'0x{msg.arbitration_id:03X} is not a TPDO of AMC node 0x{self.drive.node_id:02X}'
+            )
         sign = self.drive.sign
         if kind == 'position':
             s = self._unpack(TPDO_POSITION, msg)
@@ -284,19 +303,22 @@ class AmcDriveCodec:
         return AmcReading(self.drive.joint, kind, value, int(s['statusword']))
 
     def position_counts(self, position_rad: float) -> int:
-        return round(self.drive.sign * require_finite(position_rad,
-                                                      'position') * self._counts_per_rad)
+        return round(
+            self.drive.sign * require_finite(position_rad, 'position') * self._counts_per_rad
+        )
 
     def encode_position(self, position_rad: float, statusword: int) -> can.Message:
         counts = self.position_counts(position_rad)
         if not INT32_MIN <= counts <= INT32_MAX:
-            raise ValueOutOfRange(f'{self.drive.joint}: position {position_rad} rad overflows '
-                                  'int32 counts')
+            raise ValueOutOfRange(
+                f'{self.drive.joint}: position {position_rad} rad overflows int32 counts'
+            )
         return self._pack(TPDO_POSITION, {'statusword': statusword, 'position_counts': counts})
 
     def encode_position_counts(self, counts: int, statusword: int) -> can.Message:
-        return self._pack(TPDO_POSITION, {'statusword': statusword,
-                                          'position_counts': int(counts)})
+        return self._pack(
+            TPDO_POSITION, {'statusword': statusword, 'position_counts': int(counts)}
+        )
 
     def encode_velocity(self, velocity_rad_s: float, statusword: int) -> can.Message:
         v = require_finite(velocity_rad_s, 'velocity')
@@ -318,8 +340,14 @@ class AmcDriveCodec:
         return startup_sequence(self.drive, self.wheels.watchdog)
 
 
-def _var(index: int, subindex: int, name: str, data_type: int, access: str = 'rw',
-         default: int | None = None):
+def _var(
+    index: int,
+    subindex: int,
+    name: str,
+    data_type: int,
+    access: str = 'rw',
+    default: int | None = None,
+):
     v = od.ODVariable(name, index, subindex)
     v.data_type = data_type
     v.access_type = access
@@ -330,8 +358,9 @@ def _var(index: int, subindex: int, name: str, data_type: int, access: str = 'rw
 
 def _record(index: int, name: str, subs: list) -> od.ODRecord:
     rec = od.ODRecord(name, index)
-    rec.add_member(_var(index, 0, 'highest sub-index', od.UNSIGNED8, 'ro',
-                        max(s.subindex for s in subs)))
+    rec.add_member(
+        _var(index, 0, 'highest sub-index', od.UNSIGNED8, 'ro', max(s.subindex for s in subs))
+    )
     for s in subs:
         rec.add_member(s)
     return rec
@@ -351,42 +380,125 @@ def object_dictionary(drive: WheelDriveConfig) -> od.ObjectDictionary:
     d.add_object(_var(HEARTBEAT_TIME, 0, 'Producer heartbeat time', od.UNSIGNED16, 'rw', 0))
     d.add_object(_var(GUARD_TIME, 0, 'Guard time', od.UNSIGNED16, 'rw', 0))
     d.add_object(_var(LIFE_TIME_FACTOR, 0, 'Life time factor', od.UNSIGNED8, 'rw', 0))
-    d.add_object(_record(CONSUMER_HEARTBEAT_TIME, 'Consumer heartbeat time', [
-        _var(CONSUMER_HEARTBEAT_TIME, 1, 'Consumer heartbeat time 1', od.UNSIGNED32, 'rw', 0)]))
-    d.add_object(_var(ABORT_CONNECTION_OPTION, 0, 'Abort connection option code', od.INTEGER16,
-                      'rw', ABORT_FAULT))
+    d.add_object(
+        _record(
+            CONSUMER_HEARTBEAT_TIME,
+            'Consumer heartbeat time',
+            [
+                _var(
+                    CONSUMER_HEARTBEAT_TIME, 1, 'Consumer heartbeat time 1', od.UNSIGNED32, 'rw', 0
+                )
+            ],
+        )
+    )
+    d.add_object(
+        _var(
+            ABORT_CONNECTION_OPTION,
+            0,
+            'Abort connection option code',
+            od.INTEGER16,
+            'rw',
+            ABORT_FAULT,
+        )
+    )
     d.add_object(_var(CONTROLWORD, 0, 'Controlword', od.UNSIGNED16, 'rw', 0))
-    d.add_object(_var(STATUSWORD, 0, 'Statusword', od.UNSIGNED16, 'ro',
-                      STATUSWORD_OF_STATE['SWITCH_ON_DISABLED']))
+    d.add_object(
+        _var(
+            STATUSWORD,
+            0,
+            'Statusword',
+            od.UNSIGNED16,
+            'ro',
+            STATUSWORD_OF_STATE['SWITCH_ON_DISABLED'],
+        )
+    )
     d.add_object(_var(MODES_OF_OPERATION, 0, 'Modes of operation', od.INTEGER8, 'rw', 0))
-    d.add_object(_var(MODES_OF_OPERATION_DISPLAY, 0, 'Modes of operation display', od.INTEGER8,
-                      'ro', 0))
+    d.add_object(
+        _var(MODES_OF_OPERATION_DISPLAY, 0, 'Modes of operation display', od.INTEGER8, 'ro', 0)
+    )
     d.add_object(_var(POSITION_ACTUAL, 0, 'Position actual value', od.INTEGER32, 'ro', 0))
     d.add_object(_var(VELOCITY_ACTUAL, 0, 'Velocity actual value', od.INTEGER32, 'ro', 0))
     d.add_object(_var(TARGET_CURRENT, 0, 'Target current', od.INTEGER16, 'rw', 0))
     d.add_object(_var(CURRENT_ACTUAL, 0, 'Current actual value', od.INTEGER16, 'ro', 0))
-    d.add_object(_record(BOARD_INFO, 'Drive board info', [
-        _var(BOARD_INFO, BOARD_INFO_MAX_PEAK_CURRENT, 'Maximum peak current', od.UNSIGNED16, 'ro',
-             round(drive.peak_current_kp)),
-        _var(BOARD_INFO, BOARD_INFO_SWITCH_FREQ, 'Switching frequency', od.UNSIGNED32, 'ro',
-             switching_frequency_pbf(drive.k_s))]))
-    d.add_object(_record(FEEDBACK_PARAMETERS, 'Feedback parameters', [
-        _var(FEEDBACK_PARAMETERS, FEEDBACK_POS_INTERPOLATION, 'Position interpolation',
-             od.UNSIGNED16, 'ro',
-             round(drive.k_i))]))
+    d.add_object(
+        _record(
+            BOARD_INFO,
+            'Drive board info',
+            [
+                _var(
+                    BOARD_INFO,
+                    BOARD_INFO_MAX_PEAK_CURRENT,
+                    'Maximum peak current',
+                    od.UNSIGNED16,
+                    'ro',
+                    round(drive.peak_current_kp),
+                ),
+                _var(
+                    BOARD_INFO,
+                    BOARD_INFO_SWITCH_FREQ,
+                    'Switching frequency',
+                    od.UNSIGNED32,
+                    'ro',
+                    switching_frequency_pbf(drive.k_s),
+                ),
+            ],
+        )
+    )
+    d.add_object(
+        _record(
+            FEEDBACK_PARAMETERS,
+            'Feedback parameters',
+            [
+                _var(
+                    FEEDBACK_PARAMETERS,
+                    FEEDBACK_POS_INTERPOLATION,
+                    'Position interpolation',
+                    od.UNSIGNED16,
+                    'ro',
+                    round(drive.k_i),
+                )
+            ],
+        )
+    )
     d.add_object(_var(TIMER1_CYCLE, 0, 'Timer 1 cycle time', od.UNSIGNED32, 'rw', 0))
     d.add_object(_var(TIMER1_TPDOS, 0, 'Timer 1 TPDOs', od.UNSIGNED32, 'rw', 0))
     for offset, index in list(RPDO_COMM.items()) + list(TPDO_COMM.items()):
-        d.add_object(_record(index, f'PDO communication 0x{index:04X}', [
-            _var(index, 1, 'COB-ID', od.UNSIGNED32, 'rw', cob_id(drive.node_id,
-                                                                 offset) | PDO_COB_DISABLED),
-            _var(index, 2, 'Transmission type', od.UNSIGNED8, 'rw', PDO_TRANS_ASYNC)]))
+        d.add_object(
+            _record(
+                index,
+                f'PDO communication 0x{index:04X}',
+                [
+                    _var(
+                        index,
+                        1,
+                        'COB-ID',
+                        od.UNSIGNED32,
+                        'rw',
+                        cob_id(drive.node_id, offset) | PDO_COB_DISABLED,
+                    ),
+                    _var(index, 2, 'Transmission type', od.UNSIGNED8, 'rw', PDO_TRANS_ASYNC),
+                ],
+            )
+        )
         mapping_index = index + 0x200
         entries = PDO_MAPPINGS[offset]
-        d.add_object(_record(mapping_index, f'PDO mapping 0x{mapping_index:04X}', [
-            _var(mapping_index, i + 1, f'Mapped object {i + 1}', od.UNSIGNED32, 'ro',
-                 (obj << 16) | (sub << 8) | bits)
-            for i, (obj, sub, bits) in enumerate(entries)]))
+        d.add_object(
+            _record(
+                mapping_index,
+                f'PDO mapping 0x{mapping_index:04X}',
+                [
+                    _var(
+                        mapping_index,
+                        i + 1,
+                        f'Mapped object {i + 1}',
+                        od.UNSIGNED32,
+                        'ro',
+                        (obj << 16) | (sub << 8) | bits,
+                    )
+                    for i, (obj, sub, bits) in enumerate(entries)
+                ],
+            )
+        )
     return d
 
 
@@ -396,16 +508,31 @@ def watchdog_steps(watchdog: WatchdogConfig) -> list[StartupStep]:
     if watchdog.mechanism == 'none':
         return []
     if watchdog.mechanism == 'heartbeat':
-        steps = [StartupStep('write', CONSUMER_HEARTBEAT_TIME, 1,
-                             (watchdog.node_id << 16) | watchdog.timeout_ms,
-                             f'heartbeat consumer: node 0x{watchdog.node_id:02X}, '
-                             f'{watchdog.timeout_ms} ms')]
+        steps = [
+            StartupStep(
+                'write',
+                CONSUMER_HEARTBEAT_TIME,
+                1,
+                (watchdog.node_id << 16) | watchdog.timeout_ms,
+                f'heartbeat consumer: node 0x{watchdog.node_id:02X}, {watchdog.timeout_ms} ms',
+            )
+        ]
     else:
-        steps = [StartupStep('write', GUARD_TIME, 0, watchdog.period_ms, 'guard time'),
-                 StartupStep('write', LIFE_TIME_FACTOR, 0, watchdog.life_time_factor,
-                             'life time factor')]
-    return steps + [StartupStep('write', ABORT_CONNECTION_OPTION, 0,
-                                watchdog.abort_connection_option, 'abort connection option')]
+        steps = [
+            StartupStep('write', GUARD_TIME, 0, watchdog.period_ms, 'guard time'),
+            StartupStep(
+                'write', LIFE_TIME_FACTOR, 0, watchdog.life_time_factor, 'life time factor'
+            ),
+        ]
+    return steps + [
+        StartupStep(
+            'write',
+            ABORT_CONNECTION_OPTION,
+            0,
+            watchdog.abort_connection_option,
+            'abort connection option',
+        )
+    ]
 
 
 def heartbeat_frame(watchdog: WatchdogConfig) -> can.Message:
@@ -415,12 +542,14 @@ def heartbeat_frame(watchdog: WatchdogConfig) -> can.Message:
 
 def guarding_request(node_id: int) -> can.Message:
     """A node-guarding request: a remote frame on 0x700 + the drive's node id (DS301)."""
-    return can.Message(arbitration_id=HEARTBEAT_BASE + node_id, is_remote_frame=True, dlc=1,
-                       is_extended_id=False)
+    return can.Message(
+        arbitration_id=HEARTBEAT_BASE + node_id, is_remote_frame=True, dlc=1, is_extended_id=False
+    )
 
 
-def startup_sequence(drive: WheelDriveConfig,
-                     watchdog: WatchdogConfig | None = None) -> list[StartupStep]:
+def startup_sequence(
+    drive: WheelDriveConfig, watchdog: WatchdogConfig | None = None
+) -> list[StartupStep]:
     """amcdrive_init_drive + amcdrive_start as data: configure the PDOs and the 1 kHz timer (and
     the drive-side `watchdog`), enter current mode.
 
@@ -431,13 +560,18 @@ def startup_sequence(drive: WheelDriveConfig,
     sequence is the recovery after a fault.
     """
     n = drive.node_id
-    steps = [StartupStep('nmt', value=NMT_PRE_OPERATIONAL, what='pre-operational'),
-             StartupStep('check', BOARD_INFO, BOARD_INFO_MAX_PEAK_CURRENT,
-                         round(drive.peak_current_kp), 'Kp'),
-             StartupStep('check', BOARD_INFO, BOARD_INFO_SWITCH_FREQ,
-                         switching_frequency_pbf(drive.k_s), 'k_s'),
-             StartupStep('check', FEEDBACK_PARAMETERS, FEEDBACK_POS_INTERPOLATION,
-                         round(drive.k_i), 'k_i')]
+    steps = [
+        StartupStep('nmt', value=NMT_PRE_OPERATIONAL, what='pre-operational'),
+        StartupStep(
+            'check', BOARD_INFO, BOARD_INFO_MAX_PEAK_CURRENT, round(drive.peak_current_kp), 'Kp'
+        ),
+        StartupStep(
+            'check', BOARD_INFO, BOARD_INFO_SWITCH_FREQ, switching_frequency_pbf(drive.k_s), 'k_s'
+        ),
+        StartupStep(
+            'check', FEEDBACK_PARAMETERS, FEEDBACK_POS_INTERPOLATION, round(drive.k_i), 'k_i'
+        ),
+    ]
     for offset, index in RPDO_COMM.items():
         enabled = offset == RPDO_CURRENT
         steps.append(
@@ -450,26 +584,34 @@ def startup_sequence(drive: WheelDriveConfig,
             )
         )
     for offset, index in TPDO_COMM.items():
-        steps.append(StartupStep('write', index, 1, cob_id(n, offset),
-                                 f'TPDO COB-ID 0x{cob_id(n, offset):03X}'))
+        steps.append(
+            StartupStep(
+                'write', index, 1, cob_id(n, offset), f'TPDO COB-ID 0x{cob_id(n, offset):03X}'
+            )
+        )
     for index in list(RPDO_COMM.values()) + list(TPDO_COMM.values()):
         steps.append(StartupStep('write', index, 2, PDO_TRANS_ASYNC, 'async transmission'))
     steps += watchdog_steps(watchdog) if watchdog is not None else []
-    steps += [StartupStep('write', TIMER1_CYCLE, 0, 1, 'timer 1 = 1 ms'),
-              StartupStep('write', TIMER1_TPDOS, 0, TIMER1_TPDO_BITS,
-                          'timer 1 drives TPDO 1/3/4/5'),
-              StartupStep('write', CONTROLWORD, 0, CW_SHUTDOWN, 'shutdown'),
-              StartupStep('write', CONTROLWORD, 0, CW_RESET_FAULT, 'reset fault'),
-              StartupStep('nmt', value=NMT_START, what='start'),
-              StartupStep('write', CONTROLWORD, 0, CW_SHUTDOWN, 'shutdown'),
-              StartupStep('write', CONTROLWORD, 0, CW_SWITCH_ON, 'switch on'),
-              StartupStep('write', MODES_OF_OPERATION, 0, OP_MODE_CURRENT, 'current mode'),
-              StartupStep('write', CONTROLWORD, 0, CW_ENABLE_OPERATION, 'enable operation')]
+    steps += [
+        StartupStep('write', TIMER1_CYCLE, 0, 1, 'timer 1 = 1 ms'),
+        StartupStep('write', TIMER1_TPDOS, 0, TIMER1_TPDO_BITS, 'timer 1 drives TPDO 1/3/4/5'),
+        StartupStep('write', CONTROLWORD, 0, CW_SHUTDOWN, 'shutdown'),
+        StartupStep('write', CONTROLWORD, 0, CW_RESET_FAULT, 'reset fault'),
+        StartupStep('nmt', value=NMT_START, what='start'),
+        StartupStep('write', CONTROLWORD, 0, CW_SHUTDOWN, 'shutdown'),
+        StartupStep('write', CONTROLWORD, 0, CW_SWITCH_ON, 'switch on'),
+        StartupStep('write', MODES_OF_OPERATION, 0, OP_MODE_CURRENT, 'current mode'),
+        StartupStep('write', CONTROLWORD, 0, CW_ENABLE_OPERATION, 'enable operation'),
+    ]
     return steps
 
 
-def run_startup(network: canopen.Network, drive: WheelDriveConfig, sdo_timeout_s: float = 0.3,
-                watchdog: WatchdogConfig | None = None) -> list[str]:
+def run_startup(
+    network: canopen.Network,
+    drive: WheelDriveConfig,
+    sdo_timeout_s: float = 0.3,
+    watchdog: WatchdogConfig | None = None,
+) -> list[str]:
     """Execute `startup_sequence` through canopen (blocking SDO transfers; run it off the ROS
     executor).
 
@@ -496,8 +638,10 @@ def run_startup(network: canopen.Network, drive: WheelDriveConfig, sdo_timeout_s
                 var = dictionary[step.index][step.subindex]
                 got = var.decode_raw(node.sdo.upload(step.index, step.subindex))
                 if got != step.value:
-                    mismatches.append(f'{drive.joint} (node 0x{drive.node_id:02X}): drive reports '
-                                      f'{step.what} = {got}, config expects {step.value}')
+                    mismatches.append(
+                        f'{drive.joint} (node 0x{drive.node_id:02X}): drive reports '
+                        f'{step.what} = {got}, config expects {step.value}'
+                    )
     finally:
         del network[drive.node_id]
     return mismatches
@@ -508,6 +652,17 @@ def codecs_from_config(wheels: WheelsConfig, dbc) -> dict[str, AmcDriveCodec]:
     return {d.joint: AmcDriveCodec(d, wheels, dbc) for d in wheels.drives}
 
 
-__all__ = ['AmcDriveCodec', 'AmcReading', 'StartupStep', 'codecs_from_config', 'cob_id',
-           'drive_state', 'guarding_request', 'heartbeat_frame',
-           'object_dictionary', 'run_startup', 'startup_sequence', 'watchdog_steps']
+__all__ = [
+    'AmcDriveCodec',
+    'AmcReading',
+    'StartupStep',
+    'codecs_from_config',
+    'cob_id',
+    'drive_state',
+    'guarding_request',
+    'heartbeat_frame',
+    'object_dictionary',
+    'run_startup',
+    'startup_sequence',
+    'watchdog_steps',
+]

@@ -19,6 +19,7 @@ include/ssdmu/ssdmu.h):
 - Gyro biases are not removed here (imud published raw samples); the bridge subtracts the
   configured biases.
 """
+
 from __future__ import annotations
 
 import math
@@ -26,16 +27,21 @@ from typing import NamedTuple, Sequence
 
 import can
 
-from krang_can_bridge.protocols import (MalformedFrame, UnknownFrame, ValueOutOfRange,
-                                        check_data_frame, frame,
-                                        require_finite)
+from krang_can_bridge.protocols import (
+    MalformedFrame,
+    UnknownFrame,
+    ValueOutOfRange,
+    check_data_frame,
+    frame,
+    require_finite,
+)
 
 RATES_ID = 0x40
 ACCELERATIONS_ID = 0x50
 STREAM_TOGGLE_ID = 0x90
 STREAM_TOGGLE_COMMAND = 0x0F
-STANDARD_GRAVITY = 9.80665      # m/s^2 per g (unit definition)
-INT16_MIN, INT16_MAX = -2 ** 15, 2 ** 15 - 1
+STANDARD_GRAVITY = 9.80665  # m/s^2 per g (unit definition)
+INT16_MIN, INT16_MAX = -(2**15), 2**15 - 1
 
 _RATE_SIGNALS = ('dQ_x', 'dP_y', 'dR_z')
 _ACCEL_SIGNALS = ('acc_x', 'acc_y', 'acc_z')
@@ -101,8 +107,9 @@ class DmuCodec:
         else:
             raise UnknownFrame(f'0x{msg.arbitration_id:03X} is not a DMU data frame')
         check_data_frame(msg, message.length, message.name)
-        s = message.decode(bytes(msg.data), decode_choices=False, scaling=False,
-                           allow_excess=False)
+        s = message.decode(
+            bytes(msg.data), decode_choices=False, scaling=False, allow_excess=False
+        )
         return cls(*(s[n] * lsb for n in names), int(s['status']), int(s['sequence']))
 
     def _to_raw(self, values: Sequence[float], lsb: float, what: str) -> list[int]:
@@ -110,8 +117,9 @@ class DmuCodec:
             raise ValueOutOfRange(f'{what}: need 3 axes, got {len(values)}')
         raw = [round(require_finite(v, what) / lsb) for v in values]
         if any(not INT16_MIN <= r <= INT16_MAX for r in raw):
-            raise ValueOutOfRange(f'{what}: {list(values)} outside the DMU range '
-                                  f'+-{INT16_MAX * lsb:.4g}')
+            raise ValueOutOfRange(
+                f'{what}: {list(values)} outside the DMU range +-{INT16_MAX * lsb:.4g}'
+            )
         return raw
 
     def rates_to_raw(self, rates_rad_s: Sequence[float]) -> list[int]:
@@ -120,8 +128,9 @@ class DmuCodec:
     def accelerations_to_raw(self, accel_m_s2: Sequence[float]) -> list[int]:
         return self._to_raw(accel_m_s2, self.accel_lsb_m_s2, 'DMU accelerations')
 
-    def _encode(self, message, names, raw: Sequence[int], status: int,
-                sequence: int) -> can.Message:
+    def _encode(
+        self, message, names, raw: Sequence[int], status: int, sequence: int
+    ) -> can.Message:
         values = dict(zip(names, (int(r) for r in raw)))
         values.update(status=int(status) & 0xFF, sequence=int(sequence) & 0xFF)
         try:
@@ -130,31 +139,39 @@ class DmuCodec:
             raise ValueOutOfRange(f'{message.name}: {exc}') from exc
         return frame(message.frame_id, data)
 
-    def encode_rates(self, rates_rad_s: Sequence[float], status: int = 0,
-                     sequence: int = 0) -> can.Message:
+    def encode_rates(
+        self, rates_rad_s: Sequence[float], status: int = 0, sequence: int = 0
+    ) -> can.Message:
         """0x40 from rates about sensor x, y, z [rad/s] (rounded to the LSB; raises beyond
         int16)."""
-        return self._encode(self._rates, _RATE_SIGNALS, self.rates_to_raw(rates_rad_s), status,
-                            sequence)
+        return self._encode(
+            self._rates, _RATE_SIGNALS, self.rates_to_raw(rates_rad_s), status, sequence
+        )
 
-    def encode_raw_rates(self, raw: Sequence[int], status: int = 0,
-                         sequence: int = 0) -> can.Message:
+    def encode_raw_rates(
+        self, raw: Sequence[int], status: int = 0, sequence: int = 0
+    ) -> can.Message:
         return self._encode(self._rates, _RATE_SIGNALS, raw, status, sequence)
 
-    def encode_accelerations(self, accel_m_s2: Sequence[float], status: int = 0,
-                             sequence: int = 0) -> can.Message:
+    def encode_accelerations(
+        self, accel_m_s2: Sequence[float], status: int = 0, sequence: int = 0
+    ) -> can.Message:
         """0x50 from specific force along sensor x, y, z [m/s^2]."""
-        return self._encode(self._accel, _ACCEL_SIGNALS, self.accelerations_to_raw(accel_m_s2),
-                            status, sequence)
+        return self._encode(
+            self._accel, _ACCEL_SIGNALS, self.accelerations_to_raw(accel_m_s2), status, sequence
+        )
 
-    def encode_raw_accelerations(self, raw: Sequence[int], status: int = 0,
-                                 sequence: int = 0) -> can.Message:
+    def encode_raw_accelerations(
+        self, raw: Sequence[int], status: int = 0, sequence: int = 0
+    ) -> can.Message:
         return self._encode(self._accel, _ACCEL_SIGNALS, raw, status, sequence)
 
     def stream_toggle(self) -> can.Message:
         """0x90 [0x0F]: toggles streaming on the DMU."""
-        return frame(STREAM_TOGGLE_ID, self._toggle.encode({'command': STREAM_TOGGLE_COMMAND},
-                                                           scaling=False))
+        return frame(
+            STREAM_TOGGLE_ID,
+            self._toggle.encode({'command': STREAM_TOGGLE_COMMAND}, scaling=False),
+        )
 
     def is_stream_toggle(self, msg: can.Message) -> bool:
         """True for a valid toggle command; raises MalformedFrame for a 0x90 frame with another

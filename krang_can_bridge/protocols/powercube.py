@@ -18,6 +18,7 @@ which follows Amtec's "Data Exchange with PowerCube" rev 1.3:
 - Positions in rad, velocities in rad/s; FRAMP moves with the module's TARGET_VEL / TARGET_ACC
   parameters, which the host sets with SET_PARAM before the motion (pcio_group_setpos).
 """
+
 from __future__ import annotations
 
 import math
@@ -26,9 +27,14 @@ from typing import NamedTuple
 
 import can
 
-from krang_can_bridge.protocols import (MalformedFrame, UnknownFrame, ValueOutOfRange,
-                                        check_data_frame, frame,
-                                        require_finite)
+from krang_can_bridge.protocols import (
+    MalformedFrame,
+    UnknownFrame,
+    ValueOutOfRange,
+    check_data_frame,
+    frame,
+    require_finite,
+)
 
 ACK_BASE = 0x0A0
 GET_BASE = 0x0C0
@@ -42,7 +48,7 @@ SIMPLE_COMMANDS = frozenset({RESET, HOME, HALT})
 FRAMP_ACK, FVEL_ACK, FCUR_ACK = 14, 17, 18
 MOTIONS = frozenset({FRAMP_ACK, FVEL_ACK, FCUR_ACK})
 
-CUBE_STATE = 0x27          # PCIO_PARAM_ERROR: the 32-bit long state word
+CUBE_STATE = 0x27  # PCIO_PARAM_ERROR: the 32-bit long state word
 CONFIG = 0x39
 ACT_FPOS = 0x3C
 ACT_FVEL = 0x41
@@ -53,9 +59,19 @@ MAX_ACC = 0x4A
 ACT_FPSEUDOCURRENT = 0x4D
 TARGET_VEL = 0x4F
 TARGET_ACC = 0x50
-FLOAT_PARAMS = frozenset({ACT_FPOS, ACT_FVEL, MIN_FPOS, MAX_FPOS, MAX_VEL, MAX_ACC,
-                          ACT_FPSEUDOCURRENT,
-                          TARGET_VEL, TARGET_ACC})
+FLOAT_PARAMS = frozenset(
+    {
+        ACT_FPOS,
+        ACT_FVEL,
+        MIN_FPOS,
+        MAX_FPOS,
+        MAX_VEL,
+        MAX_ACC,
+        ACT_FPSEUDOCURRENT,
+        TARGET_VEL,
+        TARGET_ACC,
+    }
+)
 U32_PARAMS = frozenset({CUBE_STATE, CONFIG})
 
 # Long state word bits (pcio_state_t)
@@ -65,7 +81,7 @@ STATE_HALTED = 0x4
 STATE_MOTION = 0x800
 STATE_RAMP_END = 0x8000
 # Short state byte bits (pcio_short_state_id)
-SHORT_NOT_OK = 0x01        # error, or not homed, or halted
+SHORT_NOT_OK = 0x01  # error, or not homed, or halted
 SHORT_MOTION = 0x10
 SHORT_RAMP_END = 0x20
 
@@ -78,7 +94,7 @@ class PowerCubeRequest(NamedTuple):
 
     module_id: int | None
     command: int
-    selector: int | None      # parameter id (SET/GET_PARAM) or motion id (SET_MOTION)
+    selector: int | None  # parameter id (SET/GET_PARAM) or motion id (SET_MOTION)
     value: float | int | None
 
 
@@ -172,8 +188,9 @@ def decode_request(msg: can.Message) -> PowerCubeRequest:
     if cmd == GET_PARAM and len(data) == 2:
         return PowerCubeRequest(module_id, cmd, data[1], None)
     if cmd == SET_PARAM and len(data) == 6:
-        return PowerCubeRequest(module_id, cmd, data[1], _decode_value(data[1], data[2:6],
-                                                                       'SET_PARAM'))
+        return PowerCubeRequest(
+            module_id, cmd, data[1], _decode_value(data[1], data[2:6], 'SET_PARAM')
+        )
     if cmd == SET_MOTION and len(data) == 6 and data[1] in MOTIONS:
         (v,) = struct.unpack('<f', data[2:6])
         if not math.isfinite(v):
@@ -199,12 +216,15 @@ def reply_set_param(module_id: int, param: int, status: int = 0) -> can.Message:
     return frame(ACK_BASE + _module_id(module_id), bytes([SET_PARAM, param, status & 0xFF]))
 
 
-def reply_motion(module_id: int, motion: int, position: float, short_state: int,
-                 dio: int = 0) -> can.Message:
-    return frame(ACK_BASE + _module_id(module_id),
-                 bytes([SET_MOTION, motion]) + _f32(position,
-                                                    'position') + bytes([short_state & 0xFF,
-                                                                         dio & 0xFF]))
+def reply_motion(
+    module_id: int, motion: int, position: float, short_state: int, dio: int = 0
+) -> can.Message:
+    return frame(
+        ACK_BASE + _module_id(module_id),
+        bytes([SET_MOTION, motion])
+        + _f32(position, 'position')
+        + bytes([short_state & 0xFF, dio & 0xFF]),
+    )
 
 
 def decode_reply(msg: can.Message) -> PowerCubeReply:
@@ -220,8 +240,9 @@ def decode_reply(msg: can.Message) -> PowerCubeReply:
     if cmd in SIMPLE_COMMANDS and len(data) == 1:
         return PowerCubeReply(module_id, cmd, None, None, None)
     if cmd == GET_PARAM and len(data) == 6:
-        return PowerCubeReply(module_id, cmd, data[1], _decode_value(data[1], data[2:6],
-                                                                     'GET_PARAM reply'), None)
+        return PowerCubeReply(
+            module_id, cmd, data[1], _decode_value(data[1], data[2:6], 'GET_PARAM reply'), None
+        )
     if cmd == SET_PARAM and len(data) == 3:
         return PowerCubeReply(module_id, cmd, data[1], data[2], None)
     if cmd == SET_MOTION and len(data) in (7, 8) and data[1] in MOTIONS:
