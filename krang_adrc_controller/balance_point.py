@@ -39,11 +39,17 @@ class ObserverConfig:
     hold_s: float = field(default=0.5, metadata={
         'doc': 'estimate held while the joints move and this long after, s (the ESO re-converges)'
     })
+    track_moves: bool = field(default=False, metadata={
+        'doc': 'keep estimating while the joints move (false = hold, see hold_s)'})
+    converged_tol_rad: float = field(default=0.005, metadata={
+        'doc': 'converged when the low-passed gap between the raw estimate and delta_hat is below '
+               'this, rad (~2.5 mm of CoM at 0.5 m height)'})
 
     def __post_init__(self):
-        if self.time_constant_s <= 0 or self.limit_rad <= 0 or self.hold_s < 0:
-            raise ValueError('balance_point.time_constant_s and limit_rad must be positive, '
-                             'hold_s not negative')
+        if (self.time_constant_s <= 0 or self.limit_rad <= 0 or self.hold_s < 0
+                or self.converged_tol_rad <= 0):
+            raise ValueError('balance_point.time_constant_s, limit_rad and converged_tol_rad must '
+                             'be positive, hold_s not negative')
 
 
 class BalancePointObserver:
@@ -54,6 +60,9 @@ class BalancePointObserver:
         self.time_constant = float(config.time_constant_s)
         self.limit = float(config.limit_rad)
         self.hold_s = float(config.hold_s)
+        self.track_moves = bool(config.track_moves)
+        self.converged_tol = float(config.converged_tol_rad)
+        self.gap = math.inf             # low-passed (raw estimate - delta_hat), rad
         self.a = self.a_dx = self.a_dth = 0.0
         self.b = 1.0
         self.delta = 0.0
@@ -71,7 +80,13 @@ class BalancePointObserver:
         """Start at BALANCE entry, assuming the model right (delta_hat = 0)."""
         self.eso.reset(theta, dtheta)
         self.delta = 0.0
+        self.gap = math.inf
         self._u_prev = 0.0
+
+    @property
+    def converged(self) -> bool:
+        """delta_hat has caught up with the raw estimate (see ``converged_tol_rad``)."""
+        return abs(self.gap) < self.converged_tol
 
     def shift(self, delta_offset: float, same_pose: bool) -> None:
         """The model's theta offset moved by `delta_offset`: the measured theta jumps with no motion.
@@ -91,8 +106,11 @@ class BalancePointObserver:
         f = eso.z[2]
         if not hold:
             target = -f / self.a
-            self.delta += (1.0 - math.exp(-dt / self.time_constant)) * (target - self.delta)
+            alpha = 1.0 - math.exp(-dt / self.time_constant)
+            gap = target - self.delta
+            self.delta += alpha * gap
             self.delta = max(-self.limit, min(self.limit, self.delta))
+            self.gap = gap if self.gap == math.inf else self.gap + alpha * (gap - self.gap)
         return self.delta
 
     def applied(self, tau: float, theta: float, dx: float, dtheta: float) -> None:

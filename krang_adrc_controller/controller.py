@@ -148,6 +148,14 @@ class ControlOutput:
     psi: float = 0.0            # wheel radians
     saturated: bool = False
     balance_trim: float = 0.0   # rad, the balance-point observer's delta_hat (0 when it is off)
+    balance_converged: bool = False     # BALANCE with a settled balance estimate (see step)
+
+
+@dataclass(frozen=True)
+class Reply:
+    """The answer to an operator's request: accepted or not, and why."""
+    ok: bool
+    message: str
 
 
 def sample_from_sensors(sensors, joints_moving: bool = False) -> ControlSample:
@@ -180,8 +188,14 @@ class BalanceController:
         self._safety_limits = (cfg.safety.max_speed_m_s, cfg.safety.stand_timeout_s)
         self._spin = (*cfg.modes.spin_gains, cfg.modes.spin_limit_a)
         self._current_limit = drive.current_limit
+        self._caster_limit = drive.caster_pitch + cfg.safety.caster_margin_rad
+        self._caster_since: float | None = None
+        self._on_caster = False          # caught on the caster in BALANCE: sit (modes.py)
         self._pose_check_every = max(1, int(round(cfg.lqr.pose_check_period_s * cfg.rate_hz)))
         self.enabled = bool(cfg.modes.start_enabled)
+        self._auto_stand = cfg.modes.auto_stand
+        self._stand_once = False         # an operator's stand_up(), consumed in SIT
+        self._fault: str | None = None   # a drive fault reported by the bridge, latched
         self._stop_requested = False
         self._sit_requested = False
         self._reset_pending = False
@@ -198,6 +212,7 @@ class BalanceController:
         self._balance_point_active = False   # ... and the ADRC regulates about its estimate
         self._moving = False
         self._t_still = -math.inf        # when the joints last stopped
+        self._t_balance = -math.inf      # when BALANCE was entered
         self._t_offset = -math.inf
         self._t_gain = -math.inf
         self._t_prev = None
@@ -206,7 +221,9 @@ class BalanceController:
         self.psi_ref = 0.0
         self._refused = False
         self._t_stand = 0.0
+        self._sit_from = (0.0, 0.0)      # (t, IMU pitch) at SIT_DOWN entry
         self._stop_reason = None
+        self._waist: float | None = None     # of the latest finite sample (the sit guard)
         self.last_output: ControlOutput | None = None
         self.points: list[BalancedPoint] = []
         self.redesigns = 0
@@ -244,27 +261,131 @@ class BalanceController:
         if self._pose is not None:
             self._redesign(self._pose)
 
-    def set_enabled(self, enabled: bool) -> None:
-        """False -> SAFE_STOP (zero torque) from the next step; True -> leave SAFE_STOP to SIT (needs
-        fresh data) and, with auto_stand, stand up. Also clears a request_stop()."""
+    def set_enabled(self, enabled: bool, stand: bool | None = None) -> None:
+        """Offline sessions' switch, never refused: False -> SAFE_STOP (zero torque) from the next
+        step; True -> leave SAFE_STOP to SIT (needs fresh data) and stand up if ``stand`` (default
+        ``modes.auto_stand``). Also clears a request_stop() and a drive fault. The operator's
+        checked controls are request_enable / request_stand / request_sit / request_stop /
+        recover."""
         self.enabled = bool(enabled)
         if self.enabled:
+            self._auto_stand = self.config.modes.auto_stand if stand is None else bool(stand)
+            self._stand_once = False
+            self._fault = None
             self._stop_requested = False
             self._sit_requested = False
             self._reset_pending = True
             self._refused = False
         self._requests()
 
-    def request_sit(self) -> None:
-        """Sit down on the caster (STAND_UP/BALANCE -> SIT_DOWN -> SIT), if the waist allows it
-        (modes.py). auto_stand is suspended until set_enabled(True) is called again."""
+    # The operator's controls (the node's services). Each answers at once: a Reply accepted or
+    # refused with the reason; a long one (stand, sit) only starts, the mode reports its progress.
+    def request_enable(self, enabled: bool) -> 'Reply':
+        """True: from SAFE_STOP power the loop in SIT without standing up (= recover()); False:
+        zero current (SAFE_STOP) from SIT, refused while the robot is off its caster."""
+        mode = self.mode
+        if enabled:
+            if mode is Mode.SAFE_STOP:
+                return self.recover()
+            return Reply(True, f'already enabled (mode {mode.value})')
+        if mode is Mode.SAFE_STOP:
+            return Reply(True, 'already disabled (safe_stop, zero current)')
+        if mode is not Mode.SIT:
+            return Reply(False, f'refused: the robot is in {mode.value}, off its caster; '
+                                'use sit_down or halt')
+        self.set_enabled(False)
+        return Reply(True, 'disabled: zero current (safe_stop)')
+
+    def request_stand(self) -> 'Reply':
+        """SIT -> STAND_UP, if the CoM-angle error of the latest sample is in the stand window."""
+        mode = self.mode
+        if mode is not Mode.SIT:
+            return Reply(False, f'refused: {self._not_sitting(mode)}')
+        out = self.last_output
+        if out is None:
+            return Reply(False, 'refused: no sensor sample yet')
+        if self._stand_once:
+            return Reply(False, 'refused: stand_up already requested')
+        why = self.modes.stand_refusal(out.theta)
+        if why is not None:
+            return Reply(False, f'refused: {why}')
+        self._stand_once = True
+        self._sit_requested = False
+        self._refused = False
+        return Reply(True, 'started: standing up (the mode topic reports stand_up, then balance)')
+
+    def _not_sitting(self, mode: Mode) -> str:
+        return {Mode.SAFE_STOP: self._stopped_why(),
+                Mode.STAND_UP: 'already standing up',
+                Mode.BALANCE: 'already balancing',
+                Mode.SIT_DOWN: 'sitting down; stand_up once the mode is sit'}[mode]
+
+    def _stopped_why(self) -> str:
+        if self._fault:
+            return f'in safe_stop with a drive fault ({self._fault}); call /can_bridge/recover, ' \
+                   'then recover'
+        return 'in safe_stop (zero current); call recover first'
+
+    def request_sit(self) -> 'Reply':
+        """Sit down on the caster (STAND_UP/BALANCE -> SIT_DOWN -> SIT, then the ground PD holds
+        with near-zero current), if the waist allows it (modes.py). auto_stand is suspended until
+        set_enabled(True)."""
+        mode = self.mode
+        if mode is Mode.SAFE_STOP:
+            return Reply(False, f'refused: {self._stopped_why()}')
+        if mode is Mode.SIT or mode is Mode.SIT_DOWN:
+            return Reply(False, 'refused: already '
+                                + ('sitting' if mode is Mode.SIT else 'sitting down'))
+        if self._sit_requested:
+            return Reply(False, 'refused: sit_down already requested')
+        why = self.modes.sit_refusal(self._waist, self.theta_on_caster())
+        if why is not None:
+            return Reply(False, f'refused: {why}')
         self._sit_requested = True
         self._requests()
+        return Reply(True, 'started: sitting down (the mode topic reports sit_down, then sit)')
 
-    def request_stop(self) -> None:
-        """Latched stop: SAFE_STOP (zero torque) until set_enabled(True)."""
+    def theta_on_caster(self) -> float | None:
+        """The CoM angle (rad, whole robot) the current pose would have resting on the caster: the
+        model's offset less the balance-point trim; None before the first design."""
+        if self._pose is None:
+            return None
+        trim = self.last_output.balance_trim if self.last_output is not None else 0.0
+        return self.drive.caster_pitch + self._offset - trim
+
+    def request_stop(self, reason: str = 'stop requested') -> 'Reply':
+        """Latched stop: SAFE_STOP (zero torque) from the next step until recover() (or
+        set_enabled(True)). Never refused."""
+        if self.mode is Mode.SAFE_STOP and (self._stop_requested or not self.enabled):
+            return Reply(True, 'already in safe_stop (zero current)')
         self._stop_requested = True
+        self._stop_reason = reason
         self._requests()
+        return Reply(True, f'halted: zero current ({reason})')
+
+    def recover(self) -> 'Reply':
+        """SAFE_STOP -> SIT, powered and not standing; refused while a drive fault is latched."""
+        if self.mode is not Mode.SAFE_STOP:
+            return Reply(False, f'refused: not in safe_stop (mode {self.mode.value})')
+        if self._fault:
+            return Reply(False, f'refused: drive fault ({self._fault}); call /can_bridge/recover '
+                                'first')
+        self.set_enabled(True, stand=False)
+        return Reply(True, 'recovering: safe_stop -> sit (powered, on the caster)')
+
+    def set_drive_fault(self, reason: str) -> None:
+        """The bridge's latched drive fault: non-empty -> SAFE_STOP with that reason, and recover()
+        is refused until it is cleared ('')."""
+        if reason:
+            if reason != self._fault:
+                self.request_stop(f'drive fault: {reason}')
+            self._fault = reason
+        else:
+            self._fault = None
+
+    @property
+    def drive_fault(self) -> str | None:
+        return self._fault
 
     def _requests(self) -> None:
         """After any request: can the mode machine be skipped in BALANCE (nothing pending, no fall
@@ -376,6 +497,8 @@ class BalanceController:
         wl, wr = sample.wheel_left, sample.wheel_right
         rl, rr = sample.wheel_left_rate, sample.wheel_right_rate
         finite = qb == qb and dth == dth and wl == wl and wr == wr and rl == rl and rr == rr
+        if finite:
+            self._waist = float(sample.joints[0])
         k_step = self._k
         self._k = k_step + 1
         if finite and (sample.joints_moving or self._moving or self._pose is None
@@ -396,7 +519,7 @@ class BalanceController:
         # 2. safety, 3. mode
         mode_before = self.modes.mode
         if mode_before is Mode.STAND_UP or mode_before is Mode.BALANCE:
-            self._safety(t, dx, mode_before, finite)
+            self._safety(t, dx, qb, mode_before, finite)
         if (mode_before is Mode.BALANCE and self._steady and finite and not stale
                 and (now is None or now - t <= self.modes.stale_timeout_s)):
             # the mode machine can do nothing in BALANCE without a request, stale data or a fall
@@ -408,26 +531,39 @@ class BalanceController:
         # 4./5. the mode's law, 6. clamping
         point = None
         trim = fx = ft = 0.0
-        sat = False
+        sat = converged = False
         if mode is Mode.BALANCE:
-            il, ir, fx, ft, sat, trim, point = self._balance_law(
+            il, ir, fx, ft, sat, trim, point, converged = self._balance_law(
                 sample, theta, x, dx, dth, psi, dpsi, dt, k_step + 1, events)
         elif ground_gains is None:
             il = ir = 0.0
         else:
-            il, ir = self._ground_law(ground_gains, mode, qb, theta, x, dx, dth, psi, dpsi)
+            il, ir = self._ground_law(ground_gains, t, mode, qb, theta, x, dx, dth, psi, dpsi)
         il, ir, clamped = self._clamp(il, ir)
         k = self.k_motor
         if mode is Mode.BALANCE and self._balance_point_active:
             self.balance_point.applied((il + ir) * k, theta, dx, dth)
         out = ControlOutput(mode.value, il * k, ir * k, il, ir, point, theta, x, fx, ft, events,
-                            dth, dx, self.x_ref, psi, sat or clamped, trim)
+                            dth, dx, self.x_ref, psi, sat or clamped, trim, converged)
         self.last_output = out
         return out
 
-    def _safety(self, t, dx, mode, finite) -> None:
-        """Our stops in STAND_UP/BALANCE: a runaway speed, a stand-up that does not settle."""
+    def _safety(self, t, dx, qb, mode, finite) -> None:
+        """Our stops in STAND_UP/BALANCE: a runaway speed, a stand-up that does not settle; and
+        the caster catch in BALANCE (sit where the robot is, auto_stand suspended)."""
         max_speed, timeout = self._safety_limits
+        catch = self.config.safety.caster_catch_s
+        if catch and mode is Mode.BALANCE and finite:
+            if qb >= self._caster_limit:
+                self._caster_since = None
+            elif self._caster_since is None:
+                self._caster_since = t
+            elif t - self._caster_since >= catch and not self._on_caster:
+                self._on_caster = True
+                self._sit_requested = True
+                self._stop_reason = (f'caster contact: IMU pitch {qb:+.4f} rad below '
+                                     f'{self._caster_limit:+.4f} for {catch:g} s')
+                self._requests()
         why = None
         if max_speed and abs(dx) > max_speed and finite:
             why = f'speed {dx:.2f} m/s above max_speed_m_s'
@@ -446,8 +582,8 @@ class BalanceController:
         stop = self._stop_requested or not self.enabled
         sit = self._sit_requested and (mode_before is Mode.STAND_UP or mode_before is Mode.BALANCE)
         reset = self._reset_pending
-        stand = (self.enabled and self.config.modes.auto_stand and mode_before is Mode.SIT
-                 and not self._sit_requested)
+        stand = (self.enabled and mode_before is Mode.SIT and not self._sit_requested
+                 and (self._auto_stand or self._stand_once))
         if stale or not finite:
             last_t = -math.inf
             mt = t if finite else 0.0
@@ -461,14 +597,18 @@ class BalanceController:
                                    dtheta=sample.pitch_rate if finite else 0.0,
                                    waist=float(sample.joints[0]), last_sensor_t=last_t,
                                    stand_request=stand, sit_request=sit, stop_request=stop,
-                                   reset_request=reset))
+                                   reset_request=reset, on_caster=self._on_caster))
         if reset and (mode_before is not Mode.SAFE_STOP or mo.mode is not Mode.SAFE_STOP):
             self._reset_pending = False      # consumed; kept while SAFE_STOP refuses it (stale data)
             self._requests()
+        if stand and self._stand_once and mo.mode is not Mode.SIT:
+            self._stand_once = False
         events = []
         for e in mo.events:
             if e.startswith('stand_refused'):
-                if self._refused:
+                if self._stand_once:
+                    self._stand_once = False     # an operator's request is answered once
+                elif self._refused:
                     continue
                 self._refused = True
             events.append(e)
@@ -481,12 +621,22 @@ class BalanceController:
         self._refused = False
         if mode is Mode.STAND_UP:
             self._t_stand = t
+        if mode is Mode.SIT_DOWN:
+            self._sit_from = (t, theta - self._offset)     # the IMU pitch now
+        if mode is Mode.SIT and self._on_caster:
+            self._on_caster = False
+            self._caster_since = None
+            events.append(f'sit reason: {self._stop_reason}')
+            self._stop_reason = None
         if mode is Mode.SAFE_STOP and self._stop_reason:
             events.append(f'stop reason: {self._stop_reason}')
             self._stop_reason = None
+        self._on_caster = False
+        self._caster_since = None
         if mode is Mode.STAND_UP or (mode is Mode.BALANCE and self.config.rezero_x_on_balance):
             self.x_ref, self.psi_ref = x, psi
         if mode is Mode.BALANCE:
+            self._t_balance = t
             self.psi_ref = psi
             self.adrc.reset((theta, x - self.x_ref, dth, dx))
             if self.balance_point is not None:
@@ -496,15 +646,22 @@ class BalanceController:
 
     def _balance_law(self, sample, theta, x, dx, dth, psi, dpsi, dt, k, events):
         """ADRC about the balance point, the BalLo spin PD, and the detector's feed. Returns
-        (i_left, i_right, f_hat_x, f_hat_theta, saturated, trim, balanced point or None)."""
+        (i_left, i_right, f_hat_x, f_hat_theta, saturated, trim, balanced point or None,
+        converged). Converged: the joints have been still for the observer's hold and one time
+        constant, and its estimate has caught up (``BalancePointObserver.converged``)."""
         t = sample.t
         trim = 0.0
         theta_c = theta
+        converged = not self._moving
         if self._balance_point_active:
             # regulate about the balance point the observer found (theta_c = 0 there)
-            hold = self._moving or t - self._t_still < self.balance_point.hold_s
-            trim = self.balance_point.update(theta, dt, hold)
+            bp = self.balance_point
+            still = t - self._t_still
+            hold = not bp.track_moves and (self._moving or still < bp.hold_s)
+            trim = bp.update(theta, dt, hold)
             theta_c = theta - trim
+            converged = (not hold and still >= bp.hold_s + bp.time_constant
+                         and t - self._t_balance >= bp.hold_s + bp.time_constant and bp.converged)
         c = self.adrc.update(theta_c, x - self.x_ref, dt, dtheta=dth, dx=dx)
         il, ir = c.i_left, c.i_right
         kp, kd, lim = self._spin
@@ -520,14 +677,23 @@ class BalanceController:
             if point is not None:
                 self.points.append(point)
                 events.append(f'balanced_point: q_base={point.q_base:.5f}')
-        return il, ir, c.fhat_x, c.fhat_theta, c.saturated, trim, point
+        return il, ir, c.fhat_x, c.fhat_theta, c.saturated, trim, point, converged
 
-    def _ground_law(self, g, mode, qb, theta, x, dx, dth, psi, dpsi):
+    def _sit_ref(self, t) -> float:
+        """SIT_DOWN's pitch reference: from the pitch at the request down to the sit limit at
+        modes.sit_rate_rad_s (a step when 0)."""
+        modes = self.config.modes
+        if not modes.sit_rate_rad_s:
+            return modes.sit_imu_limit_rad
+        return max(modes.sit_imu_limit_rad,
+                   self._sit_from[1] - modes.sit_rate_rad_s * (t - self._sit_from[0]))
+
+    def _ground_law(self, g, t, mode, qb, theta, x, dx, dth, psi, dpsi):
         """The PD of SIT, STAND_UP and SIT_DOWN (A per wheel radian, modes.py); SIT_DOWN's theta
         error is the IMU pitch above the sit limit."""
         modes = self.config.modes
         r = self.r
-        e_th = qb - modes.sit_imu_limit_rad if mode is Mode.SIT_DOWN else theta
+        e_th = qb - self._sit_ref(t) if mode is Mode.SIT_DOWN else theta
         u_th = g[0] * e_th + g[1] * dth
         u_x = g[2] * ((x - self.x_ref) / r) + g[3] * (dx / r)
         u_spin = -(g[4] * (psi - self.psi_ref) + g[5] * dpsi)

@@ -11,7 +11,9 @@ Settled means, over the last ``window_s`` of samples (all of them, contiguous in
   * the observer's disturbance estimate has converged: max - min of f_hat over the window below
     ``fhat_band``;
   * optionally, the std of q_base below ``q_base_std_max``.
-Then ONE point is emitted: the window mean of every joint and of q_base. The detector disarms and
+Then ONE point is emitted: the window mean of every joint and of q_base, with the standard error
+of each mean by batch means (``BATCHES`` contiguous batches; the samples of a swaying robot are
+correlated, so std/sqrt(n) would be too small). The detector disarms and
 re-arms only when the joints move again (flag set, or a joint leaves ``rearm_tol_rad`` around the
 emitted pose). A gap in the samples longer than ``max_gap_s`` (at least three feed periods)
 restarts the window.
@@ -54,6 +56,21 @@ class DetectorConfig:
             raise ValueError('detector.window_s and rate_hz must be positive')
 
 
+#: contiguous batches of the window for the standard errors of its means
+BATCHES = 5
+
+
+def standard_error(samples: np.ndarray) -> np.ndarray:
+    """Standard error of the mean of correlated samples (rows in time order) by batch means,
+    never below the uncorrelated std/sqrt(n)."""
+    n = len(samples)
+    naive = samples.std(axis=0, ddof=1) / np.sqrt(n) if n > 1 else np.zeros(samples.shape[1:])
+    if n < 2 * BATCHES:
+        return naive
+    means = np.array([b.mean(axis=0) for b in np.array_split(samples, BATCHES)])
+    return np.maximum(means.std(axis=0, ddof=1) / np.sqrt(BATCHES), naive)
+
+
 @dataclass
 class BalancedPoint:
     t: float                 # time of the last sample of the window
@@ -62,6 +79,8 @@ class BalancedPoint:
     q_base_std: float
     n_samples: int
     window_s: float
+    q_base_se: float = 0.0   # standard error of q_base [rad] (standard_error)
+    joints_se: np.ndarray | None = None     # ... of the joints [rad]
 
 
 class BalancedPoseDetector:
@@ -127,7 +146,8 @@ class BalancedPoseDetector:
         qb = np.array([s[1] for s in self._buf])
         if self.q_base_std_max is not None and qb.std() > self.q_base_std_max:
             return None
-        point = BalancedPoint(float(t), float(qb.mean()), jmean, float(qb.std()), n, float(span))
+        point = BalancedPoint(float(t), float(qb.mean()), jmean, float(qb.std()), n, float(span),
+                              float(standard_error(qb)), standard_error(jw))
         self.last_point = point
         self.armed = False
         self._clear()

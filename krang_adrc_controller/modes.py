@@ -18,6 +18,8 @@ thresholds in ``ModesConfig`` and ``SafetyConfig``:
   arrives with fresh data and no stop request; the robot then restarts in SIT.
 * Optional: BALANCE/STAND_UP -> SAFE_STOP when |theta| exceeds fall_angle_rad (off by default:
   not in the authors' code).
+* Ours: BALANCE -> SIT when the caller reports the body resting on its caster (``on_caster``,
+  ``SafetyConfig.caster_catch_s``): the robot sits where it is instead of running away.
 
 Each mode carries the PD current gains of its controller (th, dth, x, dx, psi, dpsi) in A/rad and
 A/(rad/s) (01-balance-kore.cpp); BALANCE says 'adrc'. ``pd_currents`` applies such gains like
@@ -68,6 +70,15 @@ class ModesConfig:
         'settle time before BALANCE, s (100 loops of the 30 Hz hardware)'))
     sit_waist_min_rad: float = field(default=2.61799, metadata=_doc(
         'sit down only with the waist above this, rad (150 deg)'))
+    sit_theta_max_rad: float = field(default=-0.05, metadata=_doc(
+        'sit down only if the CoM angle the model predicts on the caster is below this, rad '
+        '(ours): nearer the axle the robot lands on its caster, bounces off past its balance '
+        'point and tips forward under the ground PD (over ROS in the sim at -0.02 rad)'))
+    sit_rate_rad_s: float = field(default=0.2, metadata=_doc(
+        'SIT_DOWN lowers its pitch reference from the pitch at the sit request to '
+        'sit_imu_limit_rad at this rate, rad/s (ours; 0 = the hardware\'s step). From the '
+        'sim\'s start pose the step lands at 0.80 rad/s, no gentler than a torque-free fall '
+        '(0.74); 0.2 rad/s lands at 0.37 (docs/control.md)'))
     sit_imu_limit_rad: float = field(default=-1.75406, metadata=_doc(
         'SIT_DOWN -> SIT below this IMU pitch, rad. -100.5 deg: the hardware used -103 deg, but '
         'the sim\'s caster holds the robot at -101.1 deg, so -103 deg is never reached'))
@@ -103,6 +114,13 @@ class SafetyConfig:
         'SAFE_STOP when STAND_UP has not settled within this, s (0 = off)'))
     max_speed_m_s: float = field(default=3.0, metadata=_doc(
         'SAFE_STOP above this |ground speed| in STAND_UP/BALANCE, m/s (0 = off)'))
+    caster_catch_s: float = field(default=0.1, metadata=_doc(
+        'BALANCE -> SIT when the IMU pitch has stayed within caster_margin_rad of the caster '
+        'contact this long, s (0 = off): the pose\'s true balance pitch lies beyond the caster '
+        '(a CoM error during a pose move), and balancing on would push the robot along on its '
+        'caster at full current until max_speed_m_s'))
+    caster_margin_rad: float = field(default=0.003, metadata=_doc(
+        'caster contact: IMU pitch below the caster\'s contact pitch plus this, rad'))
 
     def __post_init__(self):
         if self.stale_timeout_s <= 0:
@@ -132,6 +150,7 @@ class ModeInputs:
     sit_request: bool = False
     stop_request: bool = False
     reset_request: bool = False
+    on_caster: bool = False                  # BALANCE only: the body rests on its caster
 
 
 @dataclass
@@ -157,6 +176,7 @@ class ModeMachine:
         self.stand_settle_s = config.stand_settle_s
         self.sit_waist_min = config.sit_waist_min_rad
         self.sit_imu_limit = config.sit_imu_limit_rad
+        self.sit_theta_max = config.sit_theta_max_rad
         self.stale_timeout_s = safety.stale_timeout_s
         self.fall_angle = safety.fall_angle_rad or None
         self.gains = {Mode.SIT: ('ground_pd', tuple(config.ground_gains)),
@@ -166,6 +186,26 @@ class ModeMachine:
                       Mode.SAFE_STOP: ('off', None)}
         self.mode = initial_mode
         self._settle_since: float | None = None
+
+    def stand_refusal(self, theta_com: float) -> str | None:
+        """Why SIT -> STAND_UP is refused at this CoM-angle error, or None (the hardware's window).
+        """
+        if self.stand_error_min <= theta_com <= self.stand_error_max:
+            return None
+        return (f'CoM-angle error {theta_com:+.4f} rad outside '
+                f'[{self.stand_error_min:.4f}, {self.stand_error_max:.4f}] rad')
+
+    def sit_refusal(self, waist: float | None, theta_on_caster: float | None = None) -> str | None:
+        """Why STAND_UP/BALANCE -> SIT_DOWN is refused with this waist angle and predicted CoM
+        angle on the caster (None: not checked), or None."""
+        if waist is None or waist <= self.sit_waist_min:
+            return (f'waist {"unknown" if waist is None else f"{waist:.3f} rad"} not above the '
+                    f'sit threshold {self.sit_waist_min:.3f} rad')
+        if theta_on_caster is not None and theta_on_caster > self.sit_theta_max:
+            return (f'on the caster the CoM would be only {-theta_on_caster:.3f} rad behind the '
+                    f'axle (needs {-self.sit_theta_max:.3f}): it could tip forward off the '
+                    'caster; move to a pose with the CoM further back first')
+        return None
 
     def _stale(self, u: ModeInputs) -> bool:
         return u.last_sensor_t is not None and (u.t - u.last_sensor_t) > self.stale_timeout_s
@@ -190,18 +230,21 @@ class ModeMachine:
         elif (self.fall_angle is not None and self.mode in (Mode.STAND_UP, Mode.BALANCE)
               and abs(u.theta_com) > self.fall_angle):
             entered = self._go(Mode.SAFE_STOP, events, 'fall angle exceeded')
+        elif self.mode is Mode.BALANCE and u.on_caster:
+            entered = self._go(Mode.SIT, events, 'caster contact while balancing')
         elif self.mode is Mode.SIT:
             if u.stand_request:
-                if self.stand_error_min <= u.theta_com <= self.stand_error_max:
+                why = self.stand_refusal(u.theta_com)
+                if why is None:
                     entered = self._go(Mode.STAND_UP, events, 'stand request')
                 else:
-                    events.append('stand_refused: CoM-angle error outside '
-                                  f'[{self.stand_error_min:.4f}, {self.stand_error_max:.4f}] rad')
+                    events.append('stand_refused: ' + why)
         elif self.mode in (Mode.STAND_UP, Mode.BALANCE) and u.sit_request:
-            if u.waist is not None and u.waist > self.sit_waist_min:
+            why = self.sit_refusal(u.waist)
+            if why is None:
                 entered = self._go(Mode.SIT_DOWN, events, 'sit request')
             else:
-                events.append('sit_refused: waist not above the sit threshold (or unknown)')
+                events.append('sit_refused: ' + why)
         elif self.mode is Mode.STAND_UP:
             ok = u.imu_pitch > self.balance_imu_min and abs(u.dtheta) < self.balance_rate_max
             if not ok:

@@ -1,24 +1,33 @@
-"""adrc_controller: the balance controller on ROS topics (thin shell over controller.BalanceController).
+"""adrc_controller: the balance controller on ROS topics (thin shell over
+controller.BalanceController). Control runs from the latest imu/data and joint_states, either on
+a timer at `rate_hz` (the node's clock: wall time, or /clock with use_sim_time) or, with
+`step_on_imu`, once per imu/data sample (the 2018 kore loop also waited for each IMU message).
+Stepping on the sample removes the phase lag between two free-running loops at the same rate:
+the timer fired just before the bridge's next sample arrived and so used a sample one period old
+(measured over DDS at 100 Hz: median 10 ms, p90 25 ms of extra sample age). The timer then only
+watches: if no sample has driven the loop for two periods it steps anyway, so stale data still
+end in a safe stop. If either input is older than `stale_timeout_s`, the controller is told the
+data are stale and commands zero torque (safe stop) until recovered.
 
-Control runs from the latest /imu/data and /joint_states, either on a timer at `rate_hz` (the node's
-clock: wall time, or /clock with use_sim_time) or, with `step_on_imu`, once per /imu/data sample (the
-2018 kore loop also waited for each IMU message). Stepping on the sample removes the phase lag between
-two free-running loops at the same rate: the timer fired just before the bridge's next sample arrived
-and so used a sample one period old (measured over DDS at 100 Hz: median 10 ms, p90 25 ms of extra
-sample age). The timer then only watches: if no sample has driven the loop for two periods it steps
-anyway, so stale data still end in a safe stop. If either input is older than `stale_timeout_s`, the
-controller is told the data are stale and commands zero torque (safe stop) until it is re-enabled.
+The operator's controls are node-private services (README, "Running on the robot"): ~/enable
+(SetBool), ~/stand_up, ~/sit_down, ~/halt, ~/recover (Trigger). Each answers at once, accepted or
+refused with the reason; stand_up and sit_down only start, and the latched ~/mode topic reports
+their progress. A non-empty can_bridge/drive_fault forces a safe stop. Topics are relative
+(joint_states, imu/data, wheel_effort_cmd, balanced_pose, diagnostics, ...), so the node moves with
+__ns; its services and ~/mode, ~/balance_converged move with __node too.
 """
+
 import ctypes
 import sys
 
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
+from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import Imu, JointState
-from std_msgs.msg import Float64MultiArray
-from std_srvs.srv import SetBool
+from std_msgs.msg import Bool, Float64MultiArray, String
+from std_srvs.srv import SetBool, Trigger
 
 from krang_model.beta import load_beta
 from krang_model.robot import load_krang
@@ -26,7 +35,37 @@ from krang_ros import messages, names, params, topics
 from krang_ros.names import WHEEL_JOINTS as WHEELS
 from krang_ros.spin import run_node
 
-from .controller import BalanceController, ControllerConfig, ControlSample
+from .controller import BalanceController, ControllerConfig, ControlSample, Reply
+
+#: the node's own parameters besides ControllerConfig's: name -> (type, default, description)
+NODE_PARAMETERS = {
+    'step_on_imu': (
+        bool,
+        False,
+        'step once per imu/data sample (the timer only watches); '
+        'false = step on a timer at rate_hz',
+    ),
+    'initial_beta': (
+        str,
+        '',
+        'beta file to balance with until com_estimator publishes one '
+        "('' = the URDF's nominal beta)",
+    ),
+}
+
+
+def describe_parameters():
+    """One line per parameter, 'name (type, default): description' (`adrc_controller --help`)."""
+    rows = [
+        (leaf.name, leaf.kind, leaf.default, leaf.doc) for leaf in params.leaves(ControllerConfig)
+    ]
+    rows += [(name, kind, default, doc) for name, (kind, default, doc) in NODE_PARAMETERS.items()]
+    return [f'{name} ({kind.__name__}, {default!r}): {doc}' for name, kind, default, doc in rows]
+
+
+def relative(name):
+    """A graph name of krang_ros.names as a name relative to the node's namespace."""
+    return name.lstrip('/')
 
 
 class AdrcControllerNode(Node):
@@ -36,34 +75,67 @@ class AdrcControllerNode(Node):
         # every ControllerConfig leaf is a dotted ROS parameter (adrc.eso.omega_o; controller.yaml)
         self.config = params.declare(self, ControllerConfig)
         self.stale_timeout = self.config.safety.stale_timeout_s
-        self.step_on_imu = bool(self.declare_parameter('step_on_imu', False).value)
-        beta_file = self.declare_parameter('initial_beta', '').value
+        own = {
+            name: self.declare_parameter(
+                name, default, ParameterDescriptor(name=name, description=doc, read_only=True)
+            ).value
+            for name, (_, default, doc) in NODE_PARAMETERS.items()
+        }
+        self.step_on_imu = bool(own['step_on_imu'])
+        beta_file = own['initial_beta']
         beta = load_beta(beta_file, self.robot) if beta_file else self.robot.nominal_beta
         self.controller = BalanceController(self.robot, beta, self.config)
         self.imu = None
         self.joint_state = None
         self.target = None
         self.mode = None
-        self.effort_pub = self.create_publisher(Float64MultiArray, topics.WHEEL_EFFORT_CMD, topics.QOS[topics.WHEEL_EFFORT_CMD])
-        self.pose_pub = self.create_publisher(JointState, topics.BALANCED_POSE, topics.QOS[topics.BALANCED_POSE])
-        self.diag_pub = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, topics.QOS[topics.DIAGNOSTICS])
-        # Control acts on the newest sample only: after a stall, a queue of older samples (sensor QoS keeps
-        # 5, /joint_states 10) would be worked off one control step each, every one of them late.
+        self.converged = None
+        qos = topics.QOS
+
+        def publisher(kind, name, private=False, profile=None):
+            topic = '~/' + name.rsplit('/', 1)[1] if private else relative(name)
+            return self.create_publisher(kind, topic, profile or qos[name])
+
+        self.effort_pub = publisher(JointState, names.WHEEL_EFFORT_CMD)
+        self.pose_pub = publisher(JointState, names.BALANCED_POSE)
+        self.diag_pub = publisher(DiagnosticArray, names.DIAGNOSTICS)
+        self.mode_pub = publisher(String, names.MODE, True, topics.LATCHED)
+        self.converged_pub = publisher(Bool, names.BALANCE_CONVERGED, True, topics.LATCHED)
+        # Control acts on the newest sample only: after a stall, a queue of older samples (sensor
+        # QoS keeps 5, /joint_states 10) would be worked off one control step each, all late.
         latest = QoSProfile(depth=1, reliability=ReliabilityPolicy.BEST_EFFORT)
-        self.create_subscription(Imu, topics.IMU, self.on_imu, latest)
-        self.create_subscription(JointState, topics.JOINT_STATES, self.on_joint_states, latest)
-        self.create_subscription(Float64MultiArray, topics.BETA, self.on_beta, topics.QOS[topics.BETA])
-        self.create_subscription(JointState, topics.POSE_TARGET, self.on_target, topics.QOS[topics.POSE_TARGET])
-        self.create_service(SetBool, names.ENABLE, self.on_enable)
+        self.create_subscription(Imu, relative(names.IMU), self.on_imu, latest)
+        self.create_subscription(
+            JointState, relative(names.JOINT_STATES), self.on_joint_states, latest
+        )
+        self.create_subscription(
+            Float64MultiArray, relative(names.BETA), self.on_beta, qos[names.BETA]
+        )
+        self.create_subscription(
+            JointState, relative(names.POSE_TARGET), self.on_target, qos[names.POSE_TARGET]
+        )
+        self.create_subscription(
+            String, relative(names.DRIVE_FAULT), self.on_drive_fault, topics.LATCHED
+        )
+        self.create_service(SetBool, '~/enable', self.on_enable)
+        for name, call in (
+            (names.STAND_UP, self.on_stand_up),
+            (names.SIT_DOWN, self.on_sit_down),
+            (names.HALT, self.on_halt),
+            (names.CONTROLLER_RECOVER, self.on_recover),
+        ):
+            self.create_service(Trigger, '~/' + name.rsplit('/', 1)[1], call)
         self.period = 1.0 / self.config.rate_hz
         self.last_step = None
         self.last_sample_t = None
         self.create_timer(self.period, self.on_timer)
         self.create_timer(1.0, self.publish_diagnostics)
         self.last_output = None
-        self.get_logger().info(f'balancing at {self.config.rate_hz:.0f} Hz '
-                               f'({"on each /imu/data sample" if self.step_on_imu else "on a timer"}), stale '
-                               f'timeout {self.stale_timeout} s, initial beta {beta_file or "nominal (URDF)"}')
+        self.get_logger().info(
+            f'balancing at {self.config.rate_hz:.0f} Hz '
+            f'({"on each imu/data sample" if self.step_on_imu else "on a timer"}), stale '
+            f'timeout {self.stale_timeout} s, initial beta {beta_file or "nominal (URDF)"}'
+        )
 
     def now(self):
         return self.get_clock().now().nanoseconds * 1e-9
@@ -71,12 +143,21 @@ class AdrcControllerNode(Node):
     def on_imu(self, msg):
         q = msg.orientation
         stamp = msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
-        self.imu = (self.now(), messages.pitch_from_quaternion(q.x, q.y, q.z, q.w), msg.angular_velocity.y, stamp)
+        self.imu = (
+            self.now(),
+            messages.pitch_from_quaternion(q.x, q.y, q.z, q.w),
+            msg.angular_velocity.y,
+            stamp,
+        )
         if self.step_on_imu:
-            self.on_tick(sample_t=stamp)
+            self.on_tick(sample_t=stamp, stamp=msg.header.stamp)
 
     def on_timer(self):
-        if self.step_on_imu and self.last_step is not None and self.now() - self.last_step < 2.0 * self.period:
+        if (
+            self.step_on_imu
+            and self.last_step is not None
+            and self.now() - self.last_step < 2.0 * self.period
+        ):
             return
         self.on_tick()
 
@@ -84,10 +165,17 @@ class AdrcControllerNode(Node):
         joints = messages.joints_from_state(msg, self.robot.pose_joints)
         wheels = messages.joints_from_state(msg, WHEELS)
         if joints is None or wheels is None:
-            self.get_logger().warn('joint_states without all body joints and wheels; ignored', throttle_duration_sec=5)
+            self.get_logger().warn(
+                'joint_states without all body joints and wheels; ignored', throttle_duration_sec=5
+            )
             return
         rates = messages.velocities_from_state(msg, WHEELS)
-        self.joint_state = (self.now(), joints, wheels, rates if rates is not None else np.zeros(2))
+        self.joint_state = (
+            self.now(),
+            joints,
+            wheels,
+            rates if rates is not None else np.zeros(2),
+        )
 
     def on_target(self, msg):
         self.target = messages.joints_from_state(msg, self.robot.pose_joints)
@@ -100,70 +188,158 @@ class AdrcControllerNode(Node):
         self.controller.set_beta(beta)
         self.get_logger().info(f'new beta (total mass {beta[0::4].sum():.2f} kg)')
 
+    def on_drive_fault(self, msg):
+        if msg.data and msg.data != self.controller.drive_fault:
+            self.get_logger().error(f'drive fault: {msg.data}; safe stop')
+        elif not msg.data and self.controller.drive_fault:
+            self.get_logger().info('drive fault cleared by the bridge; recover to power the loop')
+        self.controller.set_drive_fault(msg.data)
+
     def sensors_stale(self):
         now = self.now()
-        # now == 0: on use_sim_time before the first /clock (its discovery can lag the data topics by
-        # seconds under load): every age would read 0, and the first /clock would make them all stale.
-        return (now <= 0.0 or self.imu is None or self.joint_state is None or now - self.imu[0] > self.stale_timeout
-                or now - self.joint_state[0] > self.stale_timeout)
+        # now == 0: on use_sim_time before the first /clock (its discovery can lag the data topics
+        # by seconds under load): every age would read 0, and the first /clock would make them all
+        # stale.
+        return (
+            now <= 0.0
+            or self.imu is None
+            or self.joint_state is None
+            or now - self.imu[0] > self.stale_timeout
+            or now - self.joint_state[0] > self.stale_timeout
+        )
 
-    def on_enable(self, request, response):
-        if request.data and self.sensors_stale():
-            response.success = False
-            response.message = 'not enabled: no fresh /imu/data and /joint_states yet (is can_bridge up?)'
-            self.get_logger().warn(response.message)
-            return response
-        self.controller.set_enabled(bool(request.data))
-        response.success = True
-        response.message = 'enabled' if request.data else 'disabled: wheels stopped'
-        self.get_logger().info(response.message)
+    def answer(self, response, reply, what):
+        response.success = reply.ok
+        response.message = reply.message
+        if reply.ok:  # rclpy ties a logging call site to one severity: two calls
+            self.get_logger().info(f'{what}: {reply.message}')
+        else:
+            self.get_logger().warn(f'{what}: {reply.message}')
         return response
 
-    def on_tick(self, sample_t=None):
-        """One control step. `sample_t`: the time of the IMU sample that triggered it (its header stamp,
-        the bridge's clock when it published), so the ESO integrates over the samples' own spacing."""
+    def fresh(self, request):
+        """The controller's answer to `request`, or a refusal while sensor data are not fresh."""
+        if self.sensors_stale():
+            return Reply(False, 'refused: no fresh imu/data and joint_states (is can_bridge up?)')
+        return request()
+
+    def on_enable(self, request, response):
+        if request.data:
+            reply = self.fresh(lambda: self.controller.request_enable(True))
+        else:
+            reply = self.controller.request_enable(False)
+        return self.answer(response, reply, 'enable' if request.data else 'disable')
+
+    def on_stand_up(self, request, response):
+        return self.answer(response, self.fresh(self.controller.request_stand), 'stand_up')
+
+    def on_sit_down(self, request, response):
+        return self.answer(response, self.controller.request_sit(), 'sit_down')
+
+    def on_halt(self, request, response):
+        return self.answer(response, self.controller.request_stop('operator halt'), 'halt')
+
+    def on_recover(self, request, response):
+        return self.answer(response, self.fresh(self.controller.recover), 'recover')
+
+    def on_tick(self, sample_t=None, stamp=None):
+        """One control step. `sample_t`: the time of the IMU sample that triggered it (its header
+        stamp, the sample's time at the bridge), so the ESO integrates over the samples' own
+        spacing; `stamp`: that header stamp, which the wheel command carries back."""
         now = self.now()
         self.last_step = now
         stale = self.sensors_stale()
         if sample_t is None:
             sample_t = now
-        if self.last_sample_t is not None and sample_t <= self.last_sample_t:   # a repeated or older stamp
+        if (
+            self.last_sample_t is not None and sample_t <= self.last_sample_t
+        ):  # a repeated or older stamp
             sample_t = max(now, self.last_sample_t + self.period)
         self.last_sample_t = sample_t
         if self.imu is None or self.joint_state is None:
-            sample = ControlSample(sample_t, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, np.zeros(len(self.robot.pose_joints)), False)
+            sample = ControlSample(
+                sample_t,
+                0.0,
+                0.0,
+                0.0,
+                0.0,
+                0.0,
+                0.0,
+                np.zeros(len(self.robot.pose_joints)),
+                False,
+            )
         else:
             _, q_base, pitch_rate, _ = self.imu
             _, joints, wheels, rates = self.joint_state
             moving = self.target is not None and bool(np.any(np.abs(self.target - joints) > 0.01))
-            sample = ControlSample(sample_t, q_base, pitch_rate, wheels[0], wheels[1], rates[0], rates[1], joints,
-                                   moving)
+            sample = ControlSample(
+                sample_t,
+                q_base,
+                pitch_rate,
+                wheels[0],
+                wheels[1],
+                rates[0],
+                rates[1],
+                joints,
+                moving,
+            )
         out = self.controller.step(sample, stale=stale)
         self.last_output = out
-        effort = Float64MultiArray()
-        effort.data = [float(out.torque_left), float(out.torque_right)]
-        self.effort_pub.publish(effort)
+        # stamped with the sample it answers (sim_krang's lockstep, latency measurements)
+        self.effort_pub.publish(messages.wheel_effort(
+            stamp or self.get_clock().now().to_msg(), WHEELS, (out.torque_left, out.torque_right)))
         for event in out.events:
             self.get_logger().info(event)
         if out.mode != self.mode:
             self.get_logger().info(f'mode {self.mode} -> {out.mode}')
             self.mode = out.mode
-            self.publish_diagnostics()          # a mode change is reported at once, not at the next 1 Hz report
+            self.mode_pub.publish(String(data=out.mode))
+            self.publish_diagnostics()  # a mode change at once, not at the next 1 Hz report
+        if out.balance_converged != self.converged:
+            self.converged = out.balance_converged
+            self.converged_pub.publish(Bool(data=out.balance_converged))
         if out.balanced_point is not None:
             point = out.balanced_point
-            names = list(self.robot.pose_joints) + [messages.BASE_PITCH]
-            values = list(point.joints) + [point.q_base]
-            self.pose_pub.publish(messages.joint_state(self.get_clock().now().to_msg(), names, values))
-            self.get_logger().info(f'balanced pose detected: q_base {point.q_base:+.4f} rad')
+            joint_names = list(self.robot.pose_joints) + [names.BASE_PITCH]
+            msg = messages.joint_state(
+                self.get_clock().now().to_msg(), joint_names, list(point.joints) + [point.q_base]
+            )
+            # effort[i]: the standard error of position[i], rad (README, topic table)
+            msg.effort = [float(v) for v in point.joints_se] + [float(point.q_base_se)]
+            self.pose_pub.publish(msg)
+            self.get_logger().info(
+                f'balanced pose detected: q_base {point.q_base:+.4f} rad '
+                f'(standard error {point.q_base_se:.5f})'
+            )
 
     def publish_diagnostics(self):
         out = self.last_output
         level = 'ok' if out is not None and out.mode != 'safe_stop' else 'warn'
-        values = {} if out is None else {'mode': out.mode, 'theta_rad': f'{out.theta:+.4f}', 'x_m': f'{out.x:+.3f}',
-                                         'f_hat_theta': f'{out.f_hat_theta:+.3f}', 'f_hat_x': f'{out.f_hat_x:+.3f}',
-                                         'x_ref_m': f'{out.x_ref:+.3f}', 'balance_trim_rad': f'{out.balance_trim:+.4f}'}
-        self.diag_pub.publish(messages.diagnostics(self.get_clock().now().to_msg(), 'adrc_controller', level,
-                                                   f'mode {out.mode if out else "starting"}', values))
+        values = (
+            {}
+            if out is None
+            else {
+                'mode': out.mode,
+                'theta_rad': f'{out.theta:+.4f}',
+                'x_m': f'{out.x:+.3f}',
+                'f_hat_theta': f'{out.f_hat_theta:+.3f}',
+                'f_hat_x': f'{out.f_hat_x:+.3f}',
+                'x_ref_m': f'{out.x_ref:+.3f}',
+                'balance_trim_rad': f'{out.balance_trim:+.4f}',
+                'balance_converged': str(out.balance_converged),
+            }
+        )
+        if self.controller.drive_fault:
+            values['drive_fault'] = self.controller.drive_fault
+        self.diag_pub.publish(
+            messages.diagnostics(
+                self.get_clock().now().to_msg(),
+                'adrc_controller',
+                level,
+                f'mode {out.mode if out else "starting"}',
+                values,
+            )
+        )
 
 
 def single_thread_blas() -> int:
@@ -176,8 +352,9 @@ def single_thread_blas() -> int:
     it, not the controller. Linux only; returns the number of libraries changed (0 when none)."""
     try:
         with open('/proc/self/maps') as f:
-            libs = sorted({line.split()[-1] for line in f
-                           if 'openblas' in line.lower() and '/' in line})
+            libs = sorted(
+                {line.split()[-1] for line in f if 'openblas' in line.lower() and '/' in line}
+            )
     except OSError:
         return 0
     changed = 0
@@ -186,8 +363,12 @@ def single_thread_blas() -> int:
             lib = ctypes.CDLL(path)
         except OSError:
             continue
-        for name in ('scipy_openblas_set_num_threads64_', 'scipy_openblas_set_num_threads',
-                     'openblas_set_num_threads64_', 'openblas_set_num_threads'):
+        for name in (
+            'scipy_openblas_set_num_threads64_',
+            'scipy_openblas_set_num_threads',
+            'openblas_set_num_threads64_',
+            'openblas_set_num_threads',
+        ):
             fn = getattr(lib, name, None)
             if fn is not None:
                 fn(1)

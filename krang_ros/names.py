@@ -12,12 +12,18 @@ DIAGNOSTICS = '/diagnostics'
 CLOCK = '/clock'                                 # ROS simulated time, published by sim_krang
 GROUND_TRUTH = '/sim_krang/ground_truth'         # the simulator's truth, for evaluation only
 DRIVE_FAULT = '/can_bridge/drive_fault'         # latched reason of a drive fault, '' when clear
+MODE = '/adrc_controller/mode'                   # latched controller mode (Mode values)
+BALANCE_CONVERGED = '/adrc_controller/balance_converged'  # latched Bool: balance estimate settled
 
 BASE_PITCH = 'base_pitch'    # the extra "joint" of /balanced_pose
 WHEEL_JOINTS = ('JLWheel', 'JRWheel')
 
 # Services: the node that serves each and the name it is served under.
 ENABLE = '/adrc_controller/enable'
+STAND_UP = '/adrc_controller/stand_up'          # std_srvs/Trigger; operator controls of
+SIT_DOWN = '/adrc_controller/sit_down'          # the controller, README "Running on the robot"
+HALT = '/adrc_controller/halt'
+CONTROLLER_RECOVER = '/adrc_controller/recover'
 NEXT_POSE = '/pose_server/next_pose'
 POSE_RESET = '/pose_server/reset'
 SAVE = '/com_estimator/save'

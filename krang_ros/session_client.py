@@ -3,10 +3,9 @@ tests)."""
 import time
 
 import rclpy
-from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
-from std_msgs.msg import Float64MultiArray
+from std_msgs.msg import Float64MultiArray, String
 from std_srvs.srv import SetBool, Trigger
 
 from . import names, topics
@@ -22,12 +21,15 @@ class SessionClient(Node):
         self.modes = []
         self.betas = []
         qos = topics.QOS
-        self.create_subscription(DiagnosticArray, names.DIAGNOSTICS, self.on_diagnostics,
-                                 qos[names.DIAGNOSTICS])
+        self.create_subscription(String, names.MODE, self.on_mode, topics.LATCHED)
         self.create_subscription(Float64MultiArray, names.BETA, self.on_beta, qos[names.BETA])
         self.next_pose = self.create_client(Trigger, names.NEXT_POSE)
         self.save = self.create_client(Trigger, names.SAVE)
         self.enable = self.create_client(SetBool, names.ENABLE)
+        # the controller's operator controls (README, "Running on the robot")
+        self.controls = {name: self.create_client(Trigger, name)
+                         for name in (names.STAND_UP, names.SIT_DOWN, names.HALT,
+                                      names.CONTROLLER_RECOVER)}
         self.spinner = SingleThreadedExecutor(context=context)
         self.spinner.add_node(self)
 
@@ -35,12 +37,8 @@ class SessionClient(Node):
     def mode(self):
         return self.modes[-1] if self.modes else None
 
-    def on_diagnostics(self, msg):
-        for status in msg.status:
-            if status.name == 'adrc_controller':
-                values = {kv.key: kv.value for kv in status.values}
-                if 'mode' in values:
-                    self.modes.append(values['mode'])
+    def on_mode(self, msg):
+        self.modes.append(msg.data)
 
     def on_beta(self, msg):
         self.betas.append(list(msg.data))
@@ -64,18 +62,30 @@ class SessionClient(Node):
         self.spin_until(future.done, timeout, f'the answer of {client.srv_name}')
         return future.result()
 
+    def operate(self, name, timeout=10.0):
+        """Call one of the controller's Trigger controls (names.STAND_UP, ...); the reply."""
+        return self.call(self.controls[name], Trigger.Request(), timeout)
+
     def enable_controller(self, timeout):
         """Enable the balance controller as soon as it accepts (it refuses until sensor data
-        flow)."""
+        flow), wait until it sits powered, then ask it to stand up (enable alone does not)."""
         deadline = time.monotonic() + timeout
         while True:
             reply = self.call(self.enable, SetBool.Request(data=True),
                               timeout=max(1.0, deadline - time.monotonic()))
             if reply.success:
-                return reply.message
+                break
             if time.monotonic() > deadline:
                 raise SessionError(f'adrc_controller did not accept enable: {reply.message}')
             self.pause(1.0)
+        self.spin_until(lambda: self.mode in ('sit', 'stand_up', 'balance'),
+                        max(1.0, deadline - time.monotonic()), 'the controller to sit powered')
+        if self.mode != 'sit':
+            return f'{reply.message}; already {self.mode}'
+        stand = self.operate(names.STAND_UP, timeout=max(1.0, deadline - time.monotonic()))
+        if not stand.success:
+            raise SessionError(f'adrc_controller did not stand up: {stand.message}')
+        return f'{reply.message}; {stand.message}'
 
     def wait_for_balance(self, timeout):
         self.spin_until(lambda: self.mode is not None and 'balance' in self.mode.lower(), timeout,

@@ -109,6 +109,19 @@ def test_sit_down_guard_and_completion():
     assert out.mode is Mode.SIT and out.entered and out.controller == 'ground_pd'
 
 
+def test_refusals_say_why_with_the_numbers():
+    """The reasons the operator's stand_up and sit_down see (the same checks as the step)."""
+    m = machine()
+    assert m.stand_refusal(-5 * DEG) is None
+    why = m.stand_refusal(-12 * DEG)
+    assert 'CoM-angle error -0.2094 rad outside [-0.1745, 0.0000] rad' == why
+    assert m.sit_refusal(151 * DEG) is None
+    assert m.sit_refusal(140 * DEG) == 'waist 2.443 rad not above the sit threshold 2.618 rad'
+    assert 'unknown' in m.sit_refusal(None)
+    out = m.step(inp(0.0, theta_com=-12 * DEG, stand_request=True))
+    assert out.events == ['stand_refused: ' + why]
+
+
 @pytest.mark.parametrize('start', ['sit', 'stand', 'balance', 'sit_down'])
 def test_stop_request_latches_safe_stop_from_every_mode(start):
     m = machine(stand_settle_s=0.0)
