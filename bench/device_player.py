@@ -26,6 +26,7 @@ even when the answer comes later than the next samples (bench_ros_latency.py).
 """
 import argparse
 import math
+import resource
 import sys
 import threading
 import time
@@ -217,6 +218,9 @@ class Player:
                 job[0] += math.ceil(behind / job[1]) * job[1]
         for t in threads[:-1]:
             t.join(1.0)
+        use = resource.getrusage(resource.RUSAGE_SELF)
+        print(f'device player: {use.ru_utime + use.ru_stime:.1f} s of CPU in '
+              f'{time.monotonic() - start:.1f} s', file=sys.stderr)
         self.save(a.out)
         for bus in [*self.buses.values(), self.ref_bus]:
             bus.shutdown()
