@@ -3,8 +3,10 @@ can_bridge and adrc_controller (real processes, DDS, udp_multicast CAN), and the
 
 --robot: the robot's configuration. Wall clock, no simulator, the robot's parameter files
 (krang_cli.node_set.params_files(sim=False)) with the device map on private udp_multicast ports,
-DMU samples and the controller at --rate-hz (500) by parameter. A separate process plays the
-devices (bench/device_player.py: DMU, AMC start-up and TPDOs, PowerCube modules); the robot sits,
+DMU samples, the controller's rate_hz (and the bridge's publish_rate_hz, while it has one) at
+--rate-hz (500) by parameter, plus CONTROLLER_OVERRIDES below. A separate process plays the
+devices (bench/device_player.py: DMU, AMC start-up and TPDOs at --tpdo-hz, 500 here and 1 kHz on
+the robot, PowerCube modules); the robot sits,
 the controller is enabled and asked to stand up, the player pitches the robot up to the nominal
 balance pitch and holds it there quietly (white sensor noise, no physics), the controller goes
 through STAND_UP to BALANCE by its own mode machine, and the measurement runs while it balances.
@@ -17,17 +19,18 @@ Matching a wheel command to its sample: every 5th DMU sample is a probe (a 0.03 
 pitch rate, taken back over the next 4 samples, alternating in sign); its answer is the first
 current RPDO after the probe frame that moves with it by more than half the probes' response, so
 it is found even when it comes after the next samples (up to two probe spacings, 20 ms; a later
-answer counts as none). p50/p99 are the probes' latencies. The timing match (the first new RPDO
-after a sample frame) is printed too: it cannot tell an answer later than the next sample from
-that sample's own, so it reads short when the latency nears the sample period. An RPDO that
-repeats the drive's previous payload is the bridge's periodic refresh, not an answer (the noise
-makes every answer differ). The rate counts the new RPDOs that follow distinct samples (the
-newest sample before each), per second of the window. Times are kernel receive stamps on the
+answer counts as none). p50/p99 are the answered probes' latencies; a probe never answered is a
+sample that never reached the wheels (overwritten by a newer one). The timing match (the first new
+RPDO after a sample frame) is printed too: it cannot tell an answer later than the next sample from
+that sample's own, so it reads short when the latency nears the sample period. An RPDO that repeats
+the drive's previous payload is the bridge's periodic refresh, not an answer (the noise makes every
+answer differ). The rate counts the new RPDOs that follow distinct samples (the newest sample
+before each), per second of the window. Times are kernel receive stamps on the
 player's socket: the bus as the devices see it.
 
-Default (no --robot): the simulated node set's parameters (config/sim_params.yaml: 100 Hz) on
-wall time, the robot sitting, the wheel velocity toggled every 0.5 s: the first current frame
-that changes after a toggle ends the path (in SIT the ground PD commands -10 A per rad/s).
+Default (no --robot): the simulated node set's parameters (config/sim_params.yaml) on wall time,
+the robot sitting, the wheel velocity toggled every 0.5 s: the first current frame that changes
+after a toggle ends the path (in SIT the ground PD commands -10 A per rad/s).
 
     .venv/bin/python bench/bench_ros_latency.py --robot [--seconds 20] [--load 2] [--json]
     .venv/bin/python bench/bench_ros_latency.py [--seconds 20]
