@@ -3,8 +3,8 @@ can_bridge and adrc_controller (real processes, DDS, udp_multicast CAN), and the
 
 --robot: the robot's configuration. Wall clock, no simulator, the robot's parameter files
 (krang_cli.node_set.params_files(sim=False)) with the device map on private udp_multicast ports,
-DMU samples, the controller's rate_hz (and the bridge's publish_rate_hz, while it has one) at
---rate-hz (500) by parameter, plus CONTROLLER_OVERRIDES below. A separate process plays the
+DMU samples and the controller's rate_hz at --rate-hz (500) by parameter, plus
+CONTROLLER_OVERRIDES below. A separate process plays the
 devices (bench/device_player.py: DMU, AMC start-up and TPDOs at --tpdo-hz, 500 here and 1 kHz on
 the robot, PowerCube modules); the robot sits,
 the controller is enabled and asked to stand up, the player pitches the robot up to the nominal
@@ -263,7 +263,7 @@ def run_robot(seconds, rate_hz, load, tpdo_hz):
         for role in ('can', 'relay'):
             children.append(_start([py, str(BENCH / 'ref_chain.py'), role,
                                     '--port', str(port + 15)], logs, f'ref_{role}'))
-        nodes.start('can_bridge', {'devices_file': devices_file, 'publish_rate_hz': rate_hz})
+        nodes.start('can_bridge', {'devices_file': devices_file})
         nodes.start('adrc_controller', CONTROLLER_OVERRIDES | {'rate_hz': rate_hz})
         client, context = open_session_client()
         try:
