@@ -3,7 +3,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from krang_com_estimator.online import OnlineLearner
+from krang_com_estimator.online import OnlineLearner, pitch_standard_error
 from krang_ros.names import BALANCED_POSE as BALANCED_POSE_TOPIC, BASE_PITCH, BETA as BETA_TOPIC
 
 from .reader import iter_messages
@@ -33,14 +33,16 @@ class RelearnResult:
 
 
 def balanced_poses(bag, robot):
-    """(q_base, joints) of every /balanced_pose message, in order; malformed ones are skipped."""
+    """(q_base, joints, pitch standard error or None) of every /balanced_pose message, in order;
+    malformed ones are skipped."""
     poses = []
     for _, _, msg in iter_messages(bag, [BALANCED_POSE_TOPIC]):
         index = {n: i for i, n in enumerate(msg.name)}
         if BASE_PITCH not in index or any(j not in index for j in robot.pose_joints):
             continue
         poses.append((float(msg.position[index[BASE_PITCH]]),
-                      np.array([msg.position[index[j]] for j in robot.pose_joints])))
+                      np.array([msg.position[index[j]] for j in robot.pose_joints]),
+                      pitch_standard_error(msg)))
     return poses
 
 
@@ -57,6 +59,6 @@ def relearn(bag, robot, method='map-online', beta0=None):
         beta0 = recorded[0]
     learner = OnlineLearner(robot, beta0, method)
     poses = balanced_poses(bag, robot)
-    for q_base, joints in poses:
-        learner.add_balanced_pose(q_base, joints)
+    for q_base, joints, sigma in poses:
+        learner.add_balanced_pose(q_base, joints, sigma)
     return RelearnResult(np.asarray(beta0), np.array(learner.history), recorded, poses)

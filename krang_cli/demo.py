@@ -7,9 +7,10 @@ from tqdm import tqdm
 
 from krang_bag.reader import message_counts
 from krang_bag.session_report import session_figures
-from krang_model.beta import load_beta
+from krang_model.beta import load_beta, save_beta
 from krang_model.robot import load_krang
 from krang_sim.session_config import session_devices_file, sim_truth_file
+from krang_sim.truths import generate_truth
 
 from .bringup import start_node_set
 from .node_set import STOP_ORDER
@@ -38,6 +39,17 @@ def register(subparsers):
                    help='s to wait for the robot to balance')
     p.add_argument('--pose-timeout', type=float, default=90.0,
                    help='s to wait for each balanced pose')
+    p.add_argument('--true-beta', metavar='FILE',
+                   help='the hidden truth the simulated robot has: a beta YAML/JSON, or the '
+                        "authors' .txt with --row (default: sim_params.yaml's true_beta, "
+                        'config/sim_demo_true_beta.yaml)')
+    p.add_argument('--row', type=int, default=None, help='row of a .txt --true-beta (from 0)')
+    p.add_argument('--truth-seed', type=int, default=None,
+                   help='instead of a file: a hidden truth drawn by krang_sim.truths (masses '
+                        'within 8 %%, CoMs moved up to 3 cm, forward error 12-25 mm) from this '
+                        'seed')
+    p.add_argument('--seed', type=int, default=0,
+                   help="seed of the simulator's and CAN devices' noise (default 0)")
     p.add_argument('--keep-logs', action='store_true',
                    help='keep node logs in DIR/logs (always kept on failure)')
     p.set_defaults(func=run)
@@ -54,10 +66,20 @@ def run(args):
     if bag.exists():
         bag.unlink()
     robot = load_krang()
-    true_beta = load_beta(sim_truth_file(), robot)
+    if args.truth_seed is not None:
+        truth = generate_truth(robot, args.truth_seed)
+        truth_source, true_beta, meta = truth.describe(), truth.beta, truth.meta()
+    else:
+        truth_source = Path(args.true_beta) if args.true_beta else sim_truth_file()
+        true_beta = load_beta(truth_source, robot, row=args.row)
+        meta = {'source': f'{truth_source}' + (f' row {args.row}' if args.row is not None
+                                               else '')}
+    truth_file = save_beta(out / 'true_beta.yaml', true_beta, robot, **meta)
     devices = session_devices_file(out)
     beta_file = (out / 'beta.yaml').resolve()
-    overrides = {'sim_krang': {'devices_file': devices}, 'can_bridge': {'devices_file': devices},
+    overrides = {'sim_krang': {'devices_file': devices, 'seed': args.seed,
+                               'true_beta': str(Path(truth_file).resolve())},
+                 'can_bridge': {'devices_file': devices},
                  'com_estimator': {'output': beta_file, 'method': args.method}}
     started = time.monotonic()
     nodes = start_node_set(sim=True, record=str(bag), log_dir=out / 'logs', overrides=overrides)
@@ -91,6 +113,7 @@ def run(args):
     (curve, lateral), figures = session_figures(bag, robot, true_beta, out)
     result = {'poses': learned, 'com_error_before_m': float(curve[0]),
               'com_error_after_m': float(curve[-1]),
+              'true_beta': str(truth_source), 'true_beta_row': args.row, 'seed': args.seed,
               'bag': str(bag)}
     write_report(out, result, curve, lateral, figures, message_counts(bag), wall, args, failure)
     print(f'{learned} poses learned in {wall:.0f} s: mean forward CoM error {1000 * curve[0]:.1f} '
@@ -103,6 +126,9 @@ def write_report(out, result, curve, lateral, figures, counts, wall, args, failu
     lines = ['# krang demo: online CoM learning on the simulated Krang', '',
              f'- poses learned: {result["poses"]} of {args.poses} (estimator `{args.method}`), '
              f'wall time {wall:.0f} s',
+             f'- hidden truth: `{result["true_beta"]}`'
+             + (f' row {result["true_beta_row"]}' if result['true_beta_row'] is not None else '')
+             + f' (copied to `true_beta.yaml`); simulator seed {result["seed"]}',
              '- mean forward CoM error (the paper\'s |x_com| at the true balance pitch) against '
              'the hidden true model, over 2000 held-out configurations: '
              f'**{1000 * result["com_error_before_m"]:.2f} mm before, '

@@ -47,6 +47,13 @@ def register(subparsers):
     p.add_argument('--com-std', type=float, default=0.03, help='MAP prior: CoM std per axis, m (default 0.03)')
     p.add_argument('--total-mass', type=float, default=None,
                    help='known total mass, kg (default: the URDF total, 162.158 kg)')
+    p.add_argument('--calibrate', action='store_true',
+                   help='map: the pitch noise and the prior scales by evidence maximisation on '
+                        'the training poses, inside every fold of the cross-validation too '
+                        '(--sigma-*, --mass-frac and --com-std are then not used)')
+    p.add_argument('--pitch-offset-std', type=float, default=None, metavar='RAD',
+                   help='map: also estimate an IMU pitch offset with this prior std (rad), '
+                        'reported with its posterior std')
     p.add_argument('--folds', type=int, default=10, help='k of the k-fold cross-validation (0 = skip; default 10)')
     p.add_argument('--seed', type=int, default=0, help='seed of the fold split (default 0)')
     p.add_argument('--json', action='store_true', help='print the summary as JSON on the last line')
@@ -61,8 +68,11 @@ def run(args):
         raise ValueError(f'{args.poses}: no poses')
     noise = est.NoiseModel(sigma_imu_rad=math.radians(args.sigma_imu_deg), sigma_hand_rad=args.sigma_hand_rad)
     kw = dict(noise=noise, mass_frac=args.mass_frac, com_std=args.com_std, total_mass=args.total_mass,
-              eta=args.eta)
-    beta, info = est.make_estimator(args.method, robot, beta0, **kw).fit(q_base, joints)
+              eta=args.eta, calibrate=args.calibrate, pitch_offset_std=args.pitch_offset_std)
+    estimator = est.make_estimator(args.method, robot, beta0, **kw)
+    beta, info = estimator.fit(q_base, joints)
+    offset = info.get('pitch_offset_rad', 0.0)
+    q_base = q_base - offset           # as the model sees the poses (0 without an offset term)
     xc0 = x_com(robot, q_base, joints, beta0)
     xc = x_com(robot, q_base, joints, beta)
     cons = est.physical_consistency(robot, beta, total_mass=args.total_mass)
@@ -82,6 +92,13 @@ def run(args):
                     'violations': cons['violations'],
                     'com_moved_m': {bd['name']: bd['com_moved_m'] for bd in cons['bodies']},
                     'mass_change_kg': {bd['name']: bd['mass_change_kg'] for bd in cons['bodies']}})
+    cov = estimator.covariance
+    if cov is not None:
+        std = est.com_shift_std(robot, beta, cov)
+        summary['com_moved_std_m'] = dict(zip(robot.body_names, (float(v) for v in std)))
+    for key in ('calibration', 'pitch_offset_rad', 'pitch_offset_std_rad'):
+        if key in info:
+            summary[key] = info[key]
     save_beta(args.out, beta, robot, method=args.method, poses=str(args.poses), beta0=str(args.beta0),
               **{k: v for k, v in summary.items() if k.endswith('_m') or k in ('cv_folds',)})
     if not args.json:
@@ -104,8 +121,18 @@ def _print_report(s, info):
     print(f'  total mass {s["total_mass_kg"]:.3f} kg; physically consistent: {"yes" if s["physically_consistent"] else "NO"}')
     for v in s['violations']:
         print(f'    - {v}')
-    print('  body        CoM moved [cm]  mass change [kg]')
+    if 'calibration' in s:
+        c = s['calibration']
+        print(f'  calibrated by evidence maximisation: pitch noise '
+              f'{1000 * c["sigma_pitch_rad"]:.2f} mrad, prior mass std {100 * c["mass_frac"]:.1f} %, CoM std '
+              f'{100 * c["com_std_m"]:.2f} cm')
+    if 'pitch_offset_rad' in s:
+        print(f'  IMU pitch offset {1000 * s["pitch_offset_rad"]:+.2f} +- '
+              f'{1000 * s["pitch_offset_std_rad"]:.2f} mrad')
+    std = s.get('com_moved_std_m', {})
+    print('  body        CoM moved [cm]  +- 1 std  mass change [kg]')
     for name, moved in s['com_moved_m'].items():
-        print(f'  {name:<10} {100 * moved:10.2f} {s["mass_change_kg"][name]:14.3f}')
+        sd = f'{100 * std[name]:8.2f}' if name in std else '       -'
+        print(f'  {name:<10} {100 * moved:10.2f}  {sd} {s["mass_change_kg"][name]:14.3f}')
     if info.get('inequality_qp'):
         print('  (the Gaussian MAP left the physical bounds; the bounded QP solution was used)')

@@ -24,7 +24,7 @@ Estimators: one registry (ESTIMATORS, filled by @register_estimator; make_estima
 beta0, **options)) and one protocol (Estimator: `update(q_base, joints)` learns from one balanced
 pose with the estimator's own measurement model and returns the paper's x_com error before the
 update; `beta`, `covariance`, `n_updates`, `reset(beta0=None)`, and the batch `fit(q_base,
-joints)`):
+joints)`; `update` also takes an optional `sigma`, the pose's pitch std in rad):
 - `paper-gd`: the paper's GD, beta <- beta - eta (phi^T beta - y) phi (eta = 300), with the stop rule
   |phi^T beta| < x_tol for the last `window` poses, and the authors' unused mass penalty u.
 - `paper-gd-mass`: the same step followed by the Lagrange-multiplier projection that keeps the total
@@ -68,7 +68,7 @@ def pitch_rows(robot, q_base, joints):
     return (np.cos(q_base)[:, None] * base[:, 1] + np.sin(q_base)[:, None] * base[:, 2]) / robot.nominal_mass
 
 
-def balanced_pose_rows(robot, q_meas, joints, beta_lin, noise=None, model='angle'):
+def balanced_pose_rows(robot, q_meas, joints, beta_lin, noise=None, model='angle', sigma_pitch=None):
     """Linear measurement rows of balanced poses for MAPEstimator / map_batch: (rows, y, var).
 
     model='angle' (default, one row per pose): the CoM angle at the measured pitch,
@@ -79,7 +79,9 @@ def balanced_pose_rows(robot, q_meas, joints, beta_lin, noise=None, model='angle
     model='phi': the paper's regression, row phi, y = 0, same variance (biased by the noisy pitch).
     model='eiv': 'phi' plus the first-order errors-in-variables correction, a second row psi with
     y = 0 and NEGATIVE variance -r/sigma^2 (removes the expected sigma^2 psi psi^T / r; corrected least
-    squares); unbiased to first order only (second-order bias grows with the number of poses)."""
+    squares); unbiased to first order only (second-order bias grows with the number of poses).
+    sigma_pitch: per-pose standard errors of the pitch (rad; NaN = none), added in quadrature to
+    the noise model's (NoiseModel.pitch_std)."""
     noise = noise or NoiseModel()
     q_meas = np.atleast_1d(np.asarray(q_meas, dtype=float))
     joints = np.atleast_2d(joints)
@@ -88,7 +90,7 @@ def balanced_pose_rows(robot, q_meas, joints, beta_lin, noise=None, model='angle
     beta_lin = np.asarray(beta_lin, dtype=float)
     x = P @ beta_lin
     z = Psi @ beta_lin
-    r = (noise.sigma_pitch * z) ** 2 + noise.sigma_x_m ** 2
+    r = (noise.pitch_std(sigma_pitch, len(z)) * z) ** 2 + noise.sigma_x_m ** 2
     if model == 'angle':
         return P - (x / z)[:, None] * Psi, -x, r
     if model == 'phi' or (model == 'eiv' and noise.sigma_pitch == 0):
@@ -99,7 +101,7 @@ def balanced_pose_rows(robot, q_meas, joints, beta_lin, noise=None, model='angle
     rows = np.empty((2 * n, P.shape[1]))
     rows[0::2], rows[1::2] = P, Psi
     var = np.empty(2 * n)
-    var[0::2], var[1::2] = r, -r / noise.sigma_pitch ** 2
+    var[0::2], var[1::2] = r, -r / noise.pitch_std(sigma_pitch, n) ** 2
     return rows, np.zeros(2 * n), var
 
 
@@ -119,6 +121,15 @@ class NoiseModel:
     @property
     def sigma_pitch(self):
         return math.hypot(self.sigma_imu_rad, self.sigma_hand_rad)
+
+    def pitch_std(self, sigma_pitch=None, n=1):
+        """(n,) pitch std of each pose: the model's sigma_pitch (what no single measurement
+        reports: detector bias, model error) and, in quadrature, the pose's own standard error
+        where one is given (finite), e.g. the detector's for its window mean."""
+        if sigma_pitch is None:
+            return np.full(n, self.sigma_pitch)
+        s = np.broadcast_to(np.asarray(sigma_pitch, dtype=float), (n,))
+        return np.hypot(self.sigma_pitch, np.where(np.isfinite(s), s, 0.0))
 
     def variance(self, robot, q_base, joints, beta_ref):
         """(N,) variance of y for each pose (z_com from the reference beta, e.g. the prior mean)."""
@@ -278,6 +289,24 @@ def physical_consistency(robot, beta, total_mass=None, bounds=None, tol=1e-6):
     return {'ok': not violations, 'violations': violations, 'total_mass': mass, 'bodies': bodies}
 
 
+def com_shift_std(robot, beta, covariance, reference=None):
+    """Posterior std (m) of how far each body's CoM moved from `reference` (default CAD), by the
+    delta method: c = (m c)/m, J = [-(m c)/m^2, I/m], var(c) = J Sigma_body J^T, projected on the
+    direction of the shift (the whole 3-d std where the CoM did not move). (n_bodies,) array."""
+    beta = np.asarray(beta, dtype=float)
+    ref = robot.nominal_beta if reference is None else np.asarray(reference, dtype=float)
+    out = np.empty(robot.n_bodies)
+    for i in range(robot.n_bodies):
+        m, mc = beta[4 * i], beta[4 * i + 1:4 * i + 4]
+        J = np.column_stack([-mc / m ** 2, np.eye(3) / m])
+        cov = J @ covariance[4 * i:4 * i + 4, 4 * i:4 * i + 4] @ J.T
+        d = mc / m - ref[4 * i + 1:4 * i + 4] / ref[4 * i]
+        norm = np.linalg.norm(d)
+        out[i] = math.sqrt(max(d @ cov @ d / norm ** 2, 0.0)) if norm > 1e-9 else \
+            math.sqrt(max(np.trace(cov), 0.0))
+    return out
+
+
 # ---------------------------------------------------------------- linear MAP, batch forms
 def condition_on_constraints(mean, cov, A, b):
     """Gaussian N(mean, cov) conditioned on A beta = b (noise-free linear observations)."""
@@ -360,40 +389,130 @@ def _constraint_basis(A, b, n):
     return hit
 
 
-def angle_rows(P, Psi, beta_lin, noise=None):
+def angle_rows(P, Psi, beta_lin, noise=None, sigma_pitch=None):
     """The 'angle' rows of balanced_pose_rows from precomputed phi (P) and psi (Psi) rows."""
     noise = noise or NoiseModel()
     x = P @ beta_lin
     z = Psi @ beta_lin
-    return P - (x / z)[:, None] * Psi, -x, (noise.sigma_pitch * z) ** 2 + noise.sigma_x_m ** 2
+    s = noise.pitch_std(sigma_pitch, len(z))
+    return P - (x / z)[:, None] * Psi, -x, (s * z) ** 2 + noise.sigma_x_m ** 2
+
+
+def offset_rows(P, Psi, beta_lin, noise=None, sigma_pitch=None):
+    """angle_rows with one more column for an IMU pitch offset b (q_meas = q_true + b + noise):
+    the CoM angle at the measured pitch is then b + noise, so the row is [g, -z] (z = psi^T
+    beta_lin), y = -x as before. The state is [beta, b]."""
+    rows, y, var = angle_rows(P, Psi, beta_lin, noise, sigma_pitch)
+    return np.column_stack([rows, -(Psi @ beta_lin)]), y, var
 
 
 def map_gauss_newton(robot, q_meas, joints, beta0, prior_std, noise=None, A=None, b=None, iterations=20,
-                     tol=1e-10, beta_start=None):
+                     tol=1e-10, beta_start=None, sigma_pitch=None, pitch_offset_std=None):
     """Batch MAP of the CoM-angle model by Gauss-Newton: linearise every pose at the current iterate
     (start: beta_start or the prior mean), solve the linear MAP, repeat until the step is below tol
     (relative to |beta0|). Returns (beta, covariance, beta_lin), beta_lin being the linearisation
-    point of the last solve (= beta at convergence)."""
+    point of the last solve (= beta at convergence). sigma_pitch: per-pose pitch std (rad).
+    pitch_offset_std: also estimate an IMU pitch offset b with prior N(0, pitch_offset_std^2)
+    (offset_rows); beta, covariance and beta_lin then have one more entry, b, last."""
     q_meas = np.atleast_1d(np.asarray(q_meas, dtype=float))
     joints = np.atleast_2d(joints)
     return map_gauss_newton_rows(phi_fn(robot, q_meas, joints), pitch_rows(robot, q_meas, joints), beta0,
-                                 prior_std, noise, A, b, iterations, tol, beta_start)
+                                 prior_std, noise, A, b, iterations, tol, beta_start,
+                                 sigma_pitch=sigma_pitch, pitch_offset_std=pitch_offset_std)
 
 
 def map_gauss_newton_rows(P, Psi, beta0, prior_std, noise=None, A=None, b=None, iterations=20, tol=1e-10,
-                          beta_start=None, covariance=True):
+                          beta_start=None, covariance=True, sigma_pitch=None, pitch_offset_std=None):
     """map_gauss_newton from precomputed phi and psi rows of the poses (measured pitch)."""
-    beta0 = np.asarray(beta0, dtype=float)
+    beta0, prior_std, A, b, rows_fn = _with_offset(beta0, prior_std, A, b, pitch_offset_std)
+    n = P.shape[1]
     lin = beta0.copy() if beta_start is None else np.asarray(beta_start, dtype=float).copy()
+    if len(lin) < len(beta0):
+        lin = np.append(lin, 0.0)
     scale = np.abs(beta0).max()
     for it in range(max(1, iterations)):
-        rows, y, var = angle_rows(P, Psi, lin, noise)
+        rows, y, var = rows_fn(P, Psi, lin[:n], noise, sigma_pitch)
         beta, _ = map_batch(beta0, prior_std, rows, y, var, A, b, covariance=False)
         if np.abs(beta - lin).max() < tol * scale or it == iterations - 1:
             break
         lin = beta
     beta, cov = map_batch(beta0, prior_std, rows, y, var, A, b, covariance=covariance)
     return beta, cov, lin
+
+
+def _with_offset(beta0, prior_std, A, b, pitch_offset_std):
+    """(beta0, prior_std, A, b, rows function) of the state [beta] or [beta, pitch offset]."""
+    beta0 = np.asarray(beta0, dtype=float)
+    if pitch_offset_std is None:
+        return beta0, prior_std, A, b, angle_rows
+    n = len(beta0)
+    A = np.zeros((0, n)) if A is None else np.atleast_2d(A)
+    return (np.append(beta0, 0.0), np.append(prior_std, float(pitch_offset_std)),
+            np.column_stack([A, np.zeros(len(A))]), b, offset_rows)
+
+
+def log_evidence(P, Psi, beta_lin, beta0, prior_std, noise=None, A=None, b=None, sigma_pitch=None,
+                 pitch_offset_std=None):
+    """log p(data | noise, prior) of the angle model linearised at beta_lin (its MAP, for the
+    Laplace-style evidence used by calibrate_scales): y ~ N(G mu0, G S0 G^T + R), mu0, S0 the
+    prior conditioned on A beta = b."""
+    beta0, prior_std, A, b, rows_fn = _with_offset(beta0, prior_std, A, b, pitch_offset_std)
+    mu, S = np.asarray(beta0, float), np.diag(np.asarray(prior_std, float) ** 2)
+    if A is not None and len(A):
+        mu, S = condition_on_constraints(mu, S, A, b)
+    G, y, var = rows_fn(P, Psi, np.asarray(beta_lin, float)[:P.shape[1]], noise, sigma_pitch)
+    C = G @ S @ G.T + np.diag(var)
+    L = np.linalg.cholesky(0.5 * (C + C.T))
+    d = np.linalg.solve(L, y - G @ mu)
+    return float(-0.5 * d @ d - np.log(np.diag(L)).sum() - 0.5 * len(y) * math.log(2 * math.pi))
+
+
+#: plausibility bounds of calibrate_scales: pitch noise (rad), relative mass std, CoM std (m)
+CALIBRATION_BOUNDS = {'sigma_pitch_rad': (1e-4, 0.05), 'mass_frac': (0.01, 0.5),
+                      'com_std_m': (0.002, 0.1)}
+
+
+def calibrate_scales(robot, q_meas, joints, beta0, A=None, b=None, start=None, sigma_pitch=None,
+                     pitch_offset_std=None, rounds=3):
+    """Noise and prior scales from the data by evidence maximisation (type-II maximum
+    likelihood): the pitch noise sigma_pitch and the prior's mass_frac and com_std
+    (physical_prior_std) that maximise log_evidence, alternating with the Gauss-Newton MAP they
+    give (the linearisation point), within CALIBRATION_BOUNDS. Per-pose sigma_pitch values, if
+    given, are added in quadrature (NoiseModel.pitch_std). Returns a dict (sigma_pitch_rad, mass_frac, com_std_m, log_evidence)."""
+    q_meas = np.atleast_1d(np.asarray(q_meas, dtype=float))
+    joints = np.atleast_2d(joints)
+    P, Psi = phi_fn(robot, q_meas, joints), pitch_rows(robot, q_meas, joints)
+    start = start or {'sigma_pitch_rad': math.radians(0.1), 'mass_frac': 0.1, 'com_std_m': 0.03}
+    keys = ('sigma_pitch_rad', 'mass_frac', 'com_std_m')
+    bounds = [tuple(np.log(CALIBRATION_BOUNDS[k])) for k in keys]
+    theta = np.log([start[k] for k in keys])
+
+    def unpack(t):
+        s, mf, cs = np.exp(t)
+        std = physical_prior_std(robot, beta0, mass_frac=mf, com_std=cs)
+        return NoiseModel(sigma_imu_rad=s), sigma_pitch, std
+
+    def fit(t):
+        noise, sp, std = unpack(t)
+        return map_gauss_newton_rows(P, Psi, beta0, std, noise, A, b, sigma_pitch=sp,
+                                     pitch_offset_std=pitch_offset_std, covariance=False)[0]
+
+    def cost(t, lin):
+        noise, sp, std = unpack(t)
+        return -log_evidence(P, Psi, lin, beta0, std, noise, A, b, sp, pitch_offset_std)
+
+    lin = fit(theta)
+    best = None
+    for _ in range(rounds):
+        res = minimize(cost, theta, args=(lin,), method='L-BFGS-B', bounds=bounds)
+        theta = res.x
+        lin = fit(theta)
+        if best is not None and abs(best - res.fun) < 1e-3:
+            break
+        best = res.fun
+    out = dict(zip(keys, (float(v) for v in np.exp(theta))))
+    out['log_evidence'] = -cost(theta, lin)
+    return out
 
 
 def map_constrained(beta0, prior_std, phi_rows, y=None, noise_var=1e-6, A=None, b=None, G=None, h=None,
@@ -510,7 +629,9 @@ class Estimator:
     def covariance(self):
         return None
 
-    def update(self, q_base, joints):
+    def update(self, q_base, joints, sigma=None):
+        """Learn from one balanced pose; `sigma` (optional): the pose's own pitch standard error
+        in rad (the detector's), which estimators with a noise model add to it for this pose."""
         raise NotImplementedError
 
     def fit(self, q_base, joints):
@@ -569,8 +690,8 @@ class PaperGD(RowUpdates, Estimator):
         self.total_mass = float(np.sum(np.asarray(beta0)[0::4]) if total_mass is None else total_mass)
         super().__init__(robot, beta0)
 
-    def update(self, q_base, joints):
-        """phi at the measured pitch, y = 0."""
+    def update(self, q_base, joints, sigma=None):
+        """phi at the measured pitch, y = 0 (the paper's step has no noise model: sigma unused)."""
         return self.update_row(phi_fn(self.robot, [q_base], np.atleast_2d(joints))[0], 0.0)
 
     def _step(self, phi_row, y, err):
@@ -714,20 +835,23 @@ class MAPOnline(Estimator):
         self.prior_mean = self._map.prior_mean
         self._beta = self._map.beta
         self.beta_lin = self.prior_mean.copy()
-        self.q, self.joints = [], []
+        self.q, self.joints, self.sigmas = [], [], []
         self.relinearizations = 0
 
     @property
     def covariance(self):
         return self._map.covariance
 
-    def update(self, q_base, joints):
+    def update(self, q_base, joints, sigma=None):
+        """sigma: this pose's own pitch standard error (rad), added in quadrature to the noise
+        model's (NoiseModel.pitch_std; None: the model's alone)."""
         joints = np.asarray(joints, dtype=float).reshape(-1)
         x_err = float(phi_fn(self.robot, [q_base], joints[None])[0] @ self._beta)
         self.q.append(float(q_base))
         self.joints.append(joints.copy())
+        self.sigmas.append(math.nan if sigma is None else float(sigma))
         rows, y, var = balanced_pose_rows(self.robot, [q_base], joints[None], self.beta_lin,
-                                          self.noise)
+                                          self.noise, sigma_pitch=self.sigmas[-1:])
         self._map.update_row(rows[0], float(y[0]), float(var[0]))
         self._beta = self._map.beta
         if self.relinearize_tol is not None and self._linearisation_error() > self.relinearize_tol:
@@ -748,7 +872,7 @@ class MAPOnline(Estimator):
     def _relinearize(self, iterations=1):
         beta, cov, lin = map_gauss_newton(self.robot, np.array(self.q), np.array(self.joints), self.beta0,
                                           self.prior_std, self.noise, self.A, self.b, iterations=iterations,
-                                          beta_start=self._beta)
+                                          beta_start=self._beta, sigma_pitch=np.array(self.sigmas))
         self._set_posterior(beta, cov, lin)
         self.relinearizations += 1
 
@@ -775,23 +899,49 @@ class MAPOnline(Estimator):
 class MAP(MAPOnline):
     """map: the posterior of map-online, with fit() in closed form: the batch Gauss-Newton MAP of
     all poses (map_gauss_newton), then, with physical=True, the inequality-constrained QP if the
-    Gaussian MAP leaves the physically consistent region (map_constrained). Online: map-online."""
+    Gaussian MAP leaves the physically consistent region (map_constrained). Online: map-online.
+
+    calibrate=True: the noise and prior scales (sigma_pitch, mass_frac, com_std) come from the
+    training poses by evidence maximisation (calibrate_scales) before the fit. pitch_offset_std
+    (rad): also estimate an IMU pitch offset with that prior std (offset_rows); the estimate and
+    its posterior std are `pitch_offset` and `pitch_offset_std_post` (in fit's info too)."""
 
     def __init__(self, robot, beta0, prior_std=None, noise=None, A=None, b=None,
                  relinearize_tol=1e-4, mass_frac=0.1, com_std=0.03, total_mass=None,
-                 physical=True):
+                 physical=True, calibrate=False, pitch_offset_std=None):
         self.physical = physical
+        self.calibrate = calibrate
+        self.pitch_offset_std = pitch_offset_std
+        self.calibration = None
+        self.pitch_offset = self.pitch_offset_std_post = None
         super().__init__(robot, beta0, prior_std, noise, A, b, relinearize_tol, mass_frac, com_std,
                          total_mass)
 
     def fit(self, q_base, joints):
         q_base = np.atleast_1d(np.asarray(q_base, dtype=float))
         joints = np.atleast_2d(joints)
+        info = {'method': self.name, 'poses': int(len(q_base))}
+        if self.calibrate:
+            self.calibration = calibrate_scales(self.robot, q_base, joints, self.beta0, self.A,
+                                                self.b, pitch_offset_std=self.pitch_offset_std)
+            c = self.calibration
+            self.noise = NoiseModel(sigma_imu_rad=c['sigma_pitch_rad'])
+            self.prior_std = physical_prior_std(self.robot, self.beta0, mass_frac=c['mass_frac'],
+                                                com_std=c['com_std_m'])
+            info['calibration'] = dict(c)
         self.reset()
+        n = self.robot.n_beta
         beta, cov, lin = map_gauss_newton(self.robot, q_base, joints, self.beta0, self.prior_std,
-                                          self.noise, self.A, self.b)
-        info = {'method': self.name, 'poses': int(len(q_base)),
-                'covariance_trace': float(np.trace(cov))}
+                                          self.noise, self.A, self.b,
+                                          pitch_offset_std=self.pitch_offset_std)
+        if self.pitch_offset_std is not None:
+            self.pitch_offset = float(beta[n])
+            self.pitch_offset_std_post = float(math.sqrt(cov[n, n]))
+            info.update(pitch_offset_rad=self.pitch_offset,
+                        pitch_offset_std_rad=self.pitch_offset_std_post)
+            q_base = q_base - self.pitch_offset         # the poses as the model now sees them
+            beta, cov, lin = beta[:n], cov[:n, :n], lin[:n]
+        info['covariance_trace'] = float(np.trace(cov))
         if self.physical:
             G, h = inequality_constraints(self.robot)
             info['inequality_qp'] = bool(np.any(G @ beta < h - 1e-12))
@@ -801,6 +951,7 @@ class MAP(MAPOnline):
                                        G, h, beta_start=beta)
         self.q = [float(v) for v in q_base]
         self.joints = [j.copy() for j in np.asarray(joints, dtype=float)]
+        self.sigmas = [math.nan] * len(self.q)
         self.n_updates = len(q_base)
         self._set_posterior(beta, cov, lin)
         return self.beta, info
@@ -808,8 +959,9 @@ class MAP(MAPOnline):
 
 def cross_validate(method, robot, q_base, joints, beta0, folds=10, seed=0, **kw):
     """k-fold CV of the estimator's `fit` (options `kw`) on balanced poses: predictions
-    x_com = phi^T beta on each held-out record and the pitch error atan2(x_com, psi^T beta).
-    Training records keep their order."""
+    x_com = phi^T beta on each held-out record and the pitch error atan2(x_com, psi^T beta), at
+    the measured pitch less the estimator's `pitch_offset` if it estimated one. Training records
+    keep their order."""
     q_base = np.atleast_1d(np.asarray(q_base, dtype=float))
     joints = np.atleast_2d(joints)
     n = len(q_base)
@@ -821,7 +973,13 @@ def cross_validate(method, robot, q_base, joints, beta0, folds=10, seed=0, **kw)
     pitch = np.empty(n)
     for f in parts:
         tr = np.setdiff1d(np.arange(n), f)
-        beta, _ = make_estimator(method, robot, beta0, **kw).fit(q_base[tr], joints[tr])
-        pred[f] = P[f] @ beta
-        pitch[f] = np.arctan2(pred[f], Psi[f] @ beta)
+        estimator = make_estimator(method, robot, beta0, **kw)
+        beta, _ = estimator.fit(q_base[tr], joints[tr])
+        offset = getattr(estimator, 'pitch_offset', None)
+        Pf, Psif = P[f], Psi[f]
+        if offset:
+            Pf, Psif = (phi_fn(robot, q_base[f] - offset, joints[f]),
+                        pitch_rows(robot, q_base[f] - offset, joints[f]))
+        pred[f] = Pf @ beta
+        pitch[f] = np.arctan2(pred[f], Psif @ beta)
     return pred, pitch

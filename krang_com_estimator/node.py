@@ -6,7 +6,8 @@ from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PointStamped
 from rclpy.node import Node
 from sensor_msgs.msg import JointState
-from std_msgs.msg import Float64MultiArray
+import numpy as np
+from std_msgs.msg import Float64MultiArray, MultiArrayDimension
 from std_srvs.srv import Trigger
 
 from krang_model.beta import load_beta, save_beta
@@ -14,7 +15,7 @@ from krang_model.robot import load_krang
 from krang_ros import messages, names, topics
 from krang_ros.spin import run_node
 
-from .online import OnlineLearner
+from .online import POSTERIOR, OnlineLearner, pitch_standard_error
 
 
 class ComEstimatorNode(Node):
@@ -30,6 +31,7 @@ class ComEstimatorNode(Node):
         qos = topics.QOS
         self.beta_pub = self.create_publisher(Float64MultiArray, names.BETA, qos[names.BETA])
         self.com_pub = self.create_publisher(PointStamped, names.COM, qos[names.COM])
+        self.posterior_pub = self.create_publisher(Float64MultiArray, POSTERIOR, topics.LATCHED)
         self.diag_pub = self.create_publisher(DiagnosticArray, names.DIAGNOSTICS,
                                               qos[names.DIAGNOSTICS])
         self.create_subscription(JointState, names.BALANCED_POSE, self.on_balanced_pose,
@@ -50,7 +52,8 @@ class ComEstimatorNode(Node):
                                     f'finite (got {list(msg.name)})')
             return
         try:
-            beta = self.learner.add_balanced_pose(float(pitch[0]), joints)
+            beta = self.learner.add_balanced_pose(float(pitch[0]), joints,
+                                                  pitch_standard_error(msg))
         except ValueError as err:
             self.rejected += 1
             self.get_logger().error(f'rejected balanced pose: {err}')
@@ -67,6 +70,15 @@ class ComEstimatorNode(Node):
 
     def publish_beta(self):
         self.beta_pub.publish(messages.labelled_array(self.learner.beta, self.labels))
+        beta, cov = self.learner.posterior()
+        n = len(beta)
+        cov = np.zeros((n, n)) if cov is None else cov
+        msg = Float64MultiArray()
+        msg.layout.dim = [MultiArrayDimension(label='row 0 beta, rows 1.. covariance', size=n + 1,
+                                              stride=(n + 1) * n),
+                          MultiArrayDimension(label='beta entry', size=n, stride=n)]
+        msg.data = np.vstack([beta, cov]).ravel().tolist()
+        self.posterior_pub.publish(msg)
 
     def on_save(self, request, response):
         path = save_beta(self.output, self.learner.beta, self.robot, method=self.learner.method,

@@ -6,8 +6,13 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from krang_model.com import com_frame0
+from krang_ros.names import BASE_PITCH
 
 from .estimators import NoiseModel, make_estimator
+
+#: The estimator's posterior (latched): a (n_beta + 1) x n_beta Float64MultiArray, row 0 = beta,
+#: rows 1.. = its covariance (none: zeros). The pose server's adaptive choice reads it.
+POSTERIOR = '/com_estimator/posterior'
 
 
 @dataclass
@@ -27,17 +32,25 @@ class OnlineLearner:
     def beta(self):
         return self.estimator.beta
 
-    def add_balanced_pose(self, q_base, joints):
-        """Learn from one balanced pose (q_base in rad, joints in pose order); returns the new beta."""
+    def add_balanced_pose(self, q_base, joints, sigma=None):
+        """Learn from one balanced pose (q_base in rad, joints in pose order; sigma: its pitch
+        standard error in rad, if known); returns the new beta."""
         joints = np.asarray(joints, dtype=float)
         if joints.shape != (len(self.robot.pose_joints),) or not np.all(np.isfinite(joints)) \
                 or not np.isfinite(q_base):
             raise ValueError(f'balanced pose needs {len(self.robot.pose_joints)} finite joints and a finite q_base')
         # the estimator's own measurement model (MAP: errors in the measured pitch, not in x_com)
-        self.estimator.update(float(q_base), joints)
+        if sigma is None:
+            self.estimator.update(float(q_base), joints)
+        else:
+            self.estimator.update(float(q_base), joints, sigma=float(sigma))
         self.poses.append((float(q_base), joints.copy()))
         self.history.append(self.estimator.beta)
         return self.estimator.beta
+
+    def posterior(self):
+        """(beta, covariance) now; the covariance is None for estimators without one."""
+        return self.estimator.beta, self.estimator.covariance
 
     def com(self, q_base, joints):
         """The estimated CoM (frame 0) at a pose."""
@@ -45,3 +58,13 @@ class OnlineLearner:
 
     def reset(self):
         self.__post_init__()
+
+
+def pitch_standard_error(msg):
+    """The standard error of the base pitch in a /balanced_pose message: its `effort` entry (the
+    controller's convention: effort[i] is the standard error of position[i], README topic table),
+    or None when absent, not finite or not positive."""
+    if len(msg.effort) != len(msg.name) or BASE_PITCH not in msg.name:
+        return None
+    se = float(msg.effort[list(msg.name).index(BASE_PITCH)])
+    return se if np.isfinite(se) and se > 0 else None

@@ -73,9 +73,16 @@ class StraightLineMove:
     @classmethod
     def plan(cls, start, goal, velocity_limit, speed_fraction=0.8):
         start, goal = np.asarray(start, dtype=float), np.asarray(goal, dtype=float)
-        times = np.abs(goal - start) / (speed_fraction * np.asarray(velocity_limit, dtype=float))
-        return cls(start, goal, float(times.max(initial=0.0)))
+        return cls(start, goal, float(move_times(start, goal, velocity_limit, speed_fraction)))
 
     def at(self, t):
         s = 1.0 if self.duration <= 0 else min(max(t / self.duration, 0.0), 1.0)
         return self.start + s * (self.goal - self.start)
+
+
+def move_times(start, goals, velocity_limit, speed_fraction=0.8):
+    """Duration (s) of the straight-line move from `start` to each goal (rows, or one pose): the
+    slowest joint at `speed_fraction` of its limit sets the time."""
+    d = np.abs(np.asarray(goals, dtype=float) - np.asarray(start, dtype=float))
+    speed = speed_fraction * np.asarray(velocity_limit, dtype=float)
+    return (d / speed).max(axis=-1, initial=0.0)

@@ -34,6 +34,7 @@ from krang_adrc_controller.controller import (BalanceController, ControlSample, 
 from krang_adrc_controller.metrics import BalancingRun
 from krang_com_estimator.estimators import make_estimator
 from krang_model.com import balance_pitch
+from krang_pose_server.sequence import StraightLineMove
 
 from .physics import KrangSim, SimConfig
 
@@ -342,6 +343,7 @@ class SessionResult:
     wall_s: float
     failures: list = field(default_factory=list)
     loop: object = None
+    poses: np.ndarray = None            # the commanded poses (the chooser's picks, if adaptive)
 
     @property
     def beta(self):
@@ -377,18 +379,45 @@ def stand_pose(robot, beta_est, base=TABLE2_POSE, target_theta_rad=-6.0 * math.p
     return out
 
 
+def _stream_move(loop, goal, speed_fraction, rate_hz):
+    """Schedule the pose server's move to `goal` (krang_pose_server.sequence.StraightLineMove: every
+    joint arrives at once, at `speed_fraction` of the joint speed limits), streamed as joint targets
+    at `rate_hz` as the node streams /joint_position_cmd. rate_hz=0: the goal at once (each joint
+    then dashes at its own top speed)."""
+    sim = loop.sim
+    if not rate_hz:
+        sim.command_joints(goal)
+        return 0.0
+    move = StraightLineMove.plan(sim.joint_targets, goal, loop.robot.velocity_limit,
+                                 speed_fraction)
+    ts = np.arange(0.0, move.duration, 1.0 / rate_hz)
+    loop.schedule(*(Disturbance(sim.t + t, 'joints', move.at(t)) for t in ts),
+                  Disturbance(sim.t + move.duration, 'joints', move.goal))
+    return move.duration
+
+
 def run_online_session(robot, true_beta, beta0, poses, learner=None, *, start_pose=None,
                        seed: int = 0, controller_config: ControllerConfig | None = None,
                        sim_config: SimConfig | None = None, pose_timeout_s: float = 90.0,
                        stand_timeout_s: float = 30.0, progress: bool = True,
-                       log_rate_hz: float = 0.0) -> SessionResult:
+                       log_rate_hz: float = 0.0, speed_fraction: float = 0.8,
+                       stream_rate_hz: float = 20.0, n_poses: int | None = None) -> SessionResult:
     """Stand up in `start_pose` (default: ``stand_pose(robot, beta0)``, the Table II pose with the waist
     set so that beta0 agrees to stand up), then for each pose (rows of joints, pose order): command it, balance
     while the joints move, wait for the detector's point, ``learner.update(q_base, joints)``,
     ``controller.set_beta(learner.beta)``. `learner`: an estimator of the registry, by default
     ``make_estimator('paper-gd', robot, beta0)``. A pose without a point within `pose_timeout_s`
-    is skipped (listed in failures); if the robot leaves BALANCE the session ends there."""
-    poses = np.atleast_2d(np.asarray(poses, float))
+    is skipped (listed in failures); if the robot leaves BALANCE the session ends there.
+
+    `poses` is a fixed list, or a chooser with ``choose(beta, covariance, current_joints)`` returning
+    an object with ``joints`` (krang_pose_server.selection.AdaptiveSelector), asked before each of
+    `n_poses` moves with the learner's current posterior. Each move is the pose server's streamed
+    straight line (`speed_fraction` of the joint speed limits, targets at `stream_rate_hz`)."""
+    adaptive = not isinstance(poses, (np.ndarray, list, tuple))
+    if adaptive:
+        chooser, poses = poses, [None] * int(n_poses)
+    else:
+        poses = np.atleast_2d(np.asarray(poses, float))
     learner = learner if learner is not None else make_estimator('paper-gd', robot, beta0)
     if start_pose is None:
         start_pose = stand_pose(robot, learner.beta)
@@ -406,19 +435,25 @@ def run_online_session(robot, true_beta, beta0, poses, learner=None, *, start_po
                            f'(mode {ctl.mode.value}; events {loop.events[-3:]})')
     stood = loop.sim.t
     betas = [np.array(learner.beta, float)]
-    points, idx, timings, true_pitch, failures = [], [], [], [], []
+    points, idx, timings, true_pitch, failures, chosen = [], [], [], [], [], []
     bar = None
     if progress:
         from tqdm import tqdm
         bar = tqdm(total=len(poses), desc='online session', unit='pose', leave=False)
     try:
         for i, pose in enumerate(poses):
+            if adaptive:
+                choice = chooser.choose(learner.beta, learner.covariance, loop.sim.joint_targets)
+                if choice is None:
+                    break
+                pose = choice.joints
+                chosen.append(pose)
             t0 = loop.sim.t
-            loop.sim.command_joints(pose)
+            t_arrive = t0 + _stream_move(loop, pose, speed_fraction, stream_rate_hz)
             moved = [None]
 
-            def done(o, moved=moved):
-                if moved[0] is None and not loop.sim._moving:
+            def done(o, moved=moved, t_arrive=t_arrive):
+                if moved[0] is None and loop.sim.t >= t_arrive and not loop.sim._moving:
                     moved[0] = loop.sim.t
                 return o.balanced_point is not None or o.mode != 'balance'
 
@@ -434,7 +469,10 @@ def run_online_session(robot, true_beta, beta0, poses, learner=None, *, start_po
                 continue
             p = out.balanced_point
             true_pitch.append(loop.sim.balance_pitch())
-            learner.update(p.q_base, p.joints)
+            if p.q_base_se > 0:      # the detector's standard error, as /balanced_pose carries it
+                learner.update(p.q_base, p.joints, sigma=p.q_base_se)
+            else:
+                learner.update(p.q_base, p.joints)
             beta = learner.beta
             ctl.set_beta(beta)
             betas.append(np.array(beta, float))
@@ -450,4 +488,4 @@ def run_online_session(robot, true_beta, beta0, poses, learner=None, *, start_po
             bar.close()
     wall = time.perf_counter() - wall
     return SessionResult(np.array(betas), points, idx, timings, true_pitch, stood, loop.sim.t, wall,
-                         failures, loop)
+                         failures, loop, np.array(chosen) if adaptive else poses)

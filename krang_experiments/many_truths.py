@@ -1,0 +1,140 @@
+"""The online session on many hidden truths: fixed pose list against adaptive pose selection.
+
+Each truth is drawn by krang_sim.truths.generate_truth (masses within 8 %, CoMs moved up to 3 cm,
+total mass kept, wheels centred, forward error of the nominal model 12-25 mm). For each truth and
+each selection the offline closed loop (krang_sim.closed_loop.run_online_session: the simulated
+robot under the BalanceController, the pose server's streamed straight-line moves, the detector's
+balanced points) learns online from the nominal model with the same estimator:
+- 'fixed': the meta-learned list config/excitatory_poses.csv in its order (the paper's method);
+- 'adaptive': krang_pose_server.selection.AdaptiveSelector on a pool of safe, balanced poses.
+The forward CoM error after each pose is measured as `krang demo` measures it (krang_model.com.
+com_error over the 2000 held-out configurations of krang_bag.session_report).
+"""
+import json
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from krang_bag.session_report import held_out_configurations
+from krang_com_estimator.estimators import make_estimator
+from krang_model.com import com_error
+from krang_model.config import config_path
+from krang_model.poses import load_poses
+from krang_model.robot import KRANG_POSE_COLUMNS, load_krang
+from krang_pose_server.pool import generate_pool
+from krang_pose_server.selection import AdaptiveSelector
+from krang_sim.closed_loop import run_online_session
+from krang_sim.truths import TruthRecipe, generate_truth
+
+from .common import subplots
+
+SELECTIONS = ('fixed', 'adaptive')
+
+
+@dataclass
+class Params:
+    truth_seeds: tuple = tuple(range(5000, 5010))
+    n_poses: int = 12
+    selections: tuple = SELECTIONS
+    method: str = 'map-online'
+    pool_size: int = 1000
+    pool_seed: int = 7
+    sim_seed: int = 0
+    error_range_m: tuple = (0.012, 0.025)
+    criterion: str = 'forward'
+    progress: bool = False
+    extra: dict = field(default_factory=dict)
+
+
+def session(robot, true_beta, selection, params, pool=None, held_out=None):
+    """One online session; returns a dict with the forward-error curve (m, one value per learned
+    pose and the start), the failures, the poses learned and the timings."""
+    held_out = held_out_configurations(robot) if held_out is None else held_out
+    learner = make_estimator(params.method, robot, robot.nominal_beta)
+    if selection == 'fixed':
+        _, poses, _ = load_poses(config_path('excitatory_poses.csv'), KRANG_POSE_COLUMNS)
+        chooser = poses[:params.n_poses]
+    elif selection == 'adaptive':
+        pool = generate_pool(params.pool_size, seed=params.pool_seed, robot=robot) \
+            if pool is None else pool
+        chooser = AdaptiveSelector(robot, pool.joints, criterion=params.criterion)
+    else:
+        raise ValueError(f'selection must be one of {SELECTIONS}, not {selection!r}')
+    res = run_online_session(robot, true_beta, robot.nominal_beta, chooser, learner,
+                             seed=params.sim_seed, progress=params.progress,
+                             n_poses=params.n_poses)
+    curve = [com_error(robot, b, true_beta, held_out) for b in res.betas]
+    return {'curve_m': curve, 'learned': len(res.points), 'failures': [list(f) for f in
+                                                                       res.failures],
+            'timings': res.timings, 'sim_s': res.sim_s, 'wall_s': res.wall_s,
+            'pitch_error_rad': [p.q_base - t for p, t in zip(res.points, res.true_pitch)]}
+
+
+def run(params=None):
+    params = params or Params()
+    robot = load_krang()
+    recipe = TruthRecipe(error_range_m=tuple(params.error_range_m))
+    held_out = held_out_configurations(robot)
+    pool = generate_pool(params.pool_size, seed=params.pool_seed, robot=robot)
+    wall = time.perf_counter()
+    truths, runs = [], {s: [] for s in params.selections}
+    for seed in params.truth_seeds:
+        truth = generate_truth(robot, seed, recipe)
+        truths.append({'seed': seed, 'draw': truth.draw,
+                       'forward_error_m': truth.forward_error_m})
+        for sel in params.selections:
+            runs[sel].append(session(robot, truth.beta, sel, params, pool, held_out))
+    return {'params': params, 'truths': truths, 'runs': runs,
+            'summary': summarise(runs, params.n_poses),
+            'wall_s': time.perf_counter() - wall}
+
+
+def summarise(runs, n_poses):
+    """Per selection: how many sessions completed every pose without leaving balance, and the
+    median / worst forward error after the last pose (completed sessions' last value otherwise)."""
+    out = {}
+    for sel, rs in runs.items():
+        final = np.array([r['curve_m'][-1] for r in rs])
+        out[sel] = {'sessions': len(rs),
+                    'complete': int(sum(r['learned'] == n_poses and not r['failures']
+                                        for r in rs)),
+                    'median_final_m': float(np.median(final)),
+                    'worst_final_m': float(final.max())}
+    return out
+
+
+def report(result, out_dir):
+    """Writes out_dir/many_truths.json and many_truths.png; returns the summary text."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    params, runs = result['params'], result['runs']
+    fig, ax = subplots(figsize=(9, 5.5))
+    colours = {'fixed': 'C0', 'adaptive': 'C3'}
+    for sel, rs in runs.items():
+        for r in rs:
+            c = 1000 * np.asarray(r['curve_m'])
+            ax.plot(np.arange(len(c)), c, '-', color=colours.get(sel, 'k'), lw=0.6, alpha=0.35)
+        full = [r['curve_m'] for r in rs if len(r['curve_m']) == params.n_poses + 1]
+        if full:
+            med = 1000 * np.median(np.array(full), axis=0)
+            ax.plot(np.arange(len(med)), med, 'o-', color=colours.get(sel, 'k'), lw=2,
+                    label=f'{sel}: median of the {len(full)} complete sessions')
+    ax.axhline(1.0, color='grey', lw=0.8, ls='--', label='1 mm')
+    ax.set_yscale('log')
+    ax.set_xlabel('balanced poses learned (online, map-online estimator)')
+    ax.set_ylabel('forward CoM error (mm): mean |x_com| over 2000 held-out configurations')
+    ax.set_title(f'{len(result["truths"])} hidden truths (thin lines: one session each); '
+                 'fixed meta-learned list vs adaptive selection')
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(out / 'many_truths.png', dpi=110)
+    doc = {'params': asdict(params), 'truths': result['truths'], 'summary': result['summary'],
+           'wall_s': result['wall_s'],
+           'runs': {s: [{k: v for k, v in r.items()} for r in rs] for s, rs in runs.items()}}
+    (out / 'many_truths.json').write_text(json.dumps(doc, indent=1, default=float))
+    lines = [f'{s}: {v["complete"]}/{v["sessions"]} complete, median '
+             f'{1000 * v["median_final_m"]:.2f} mm, worst {1000 * v["worst_final_m"]:.2f} mm '
+             f'after {params.n_poses} poses' for s, v in result['summary'].items()]
+    return '\n'.join(lines)
