@@ -27,6 +27,7 @@ even when the answer comes later than the next samples (bench_ros_latency.py).
 import argparse
 import math
 import resource
+import socket
 import sys
 import threading
 import time
@@ -47,6 +48,7 @@ REF_REQUEST_ID, REF_ANSWER_ID = 0x7E0, 0x7E1
 SIT_PITCH = -1.7628       # on the caster in the pose below (config/sim_params.yaml)
 GYRO_NOISE_RAD_S = 0.001  # about 7 LSB of the DMU
 ACCEL_NOISE_M_S2 = 0.002
+RECEIVE_BUFFER = 4 << 20  # bytes (the kernel caps it at net.core.rmem_max)
 
 
 def bench_pose():
@@ -62,6 +64,17 @@ def balance_pitch(robot, joints):
     q = np.array([joints[j] for j in robot.pose_joints])
     m = base_regressor(robot, q[None])[0] @ robot.nominal_beta
     return -math.atan2(-m[2], m[1])
+
+
+def enlarge_receive_buffer(bus, size=RECEIVE_BUFFER):
+    """The player hears its own frames too (8000 a second on the wheel bus at 500 Hz): with the
+    default socket buffer (about 200 KB, a few hundred frames) a stall of a few tens of ms on a
+    loaded machine would drop frames from the record."""
+    sock = socket.fromfd(bus.fileno(), socket.AF_INET, socket.SOCK_DGRAM)
+    try:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, size)
+    finally:
+        sock.close()
 
 
 class Pitch:
@@ -102,6 +115,8 @@ class Player:
         self.buses = {n: can.Bus(**config.buses[n].bus_kwargs()) for n in config.buses_in_use()}
         self.ref_bus = can.Bus(interface='udp_multicast', channel=args.ref_channel,
                                port=args.ref_port)
+        for bus in [*self.buses.values(), self.ref_bus]:
+            enlarge_receive_buffer(bus)
         self.lock = threading.Lock()
         self.stop = threading.Event()
         self.probing = False
