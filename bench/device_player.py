@@ -109,9 +109,7 @@ class Player:
         rpdo = amc_proto.RPDO_CURRENT
         self.rpdo_ids = {amc_proto.AmcDriveCodec(d, config.wheels, dbc).ids[rpdo]: d.joint
                          for d in config.wheels.drives}
-        # frames the devices on the wheel bus act on (the rest there is our own echo)
-        self.host_ids = {0, 0x90, *self.rpdo_ids,
-                         *(0x600 + d.node_id for d in config.wheels.drives)}
+        self.streamed = set()  # ids of our own DMU and TPDO frames: their echoes are skipped
         self.buses = {n: can.Bus(**config.buses[n].bus_kwargs()) for n in config.buses_in_use()}
         self.ref_bus = can.Bus(interface='udp_multicast', channel=args.ref_channel,
                                port=args.ref_port)
@@ -140,7 +138,7 @@ class Player:
             if wheel_bus and aid in self.rpdo_ids and len(msg.data) == 4:
                 self.commands.append((msg.timestamp, aid,
                                       int.from_bytes(msg.data[2:4], 'little', signed=True)))
-            elif wheel_bus and aid not in self.host_ids:
+            elif wheel_bus and aid in self.streamed:
                 continue
             with self.lock:
                 replies = self.devices.on_frame(name, msg)
@@ -169,6 +167,7 @@ class Player:
 
     # ---- send ----------------------------------------------------------------------------------
     def send(self, frames):
+        self.streamed.update(f.msg.arbitration_id for f in frames)
         for f in frames:
             self.buses[f.bus].send(f.msg)
 
