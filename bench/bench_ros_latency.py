@@ -271,6 +271,7 @@ def run_robot(seconds, rate_hz, load, tpdo_hz):
         except SessionError as exc:
             raise SessionError(f'{exc} (logs in {logs})') from exc
         modes_before = len(client.modes)
+        client.pause(1.0)                  # the command noise without probes (noise_level)
         tell('probe')
         busy = [subprocess.Popen([py, '-c', 'while True: pass']) for _ in range(load)]
         client.pause(1.0)
