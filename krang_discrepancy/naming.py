@@ -500,9 +500,41 @@ def name_effects(replay: Replay, base: ModelTerms | None = None, candidates=None
             if best is None:
                 break
             selected = best
+            reduced = _drop_redundant(replay, base, selected, cfg, folds, blocks, nominal)
+            if reduced is not None:                 # the newcomer made an earlier effect moot
+                combos.append(reduced)
+                selected = reduced
+                break
     timing['combos_s'] = time.perf_counter() - t2
     timing['total_s'] = time.perf_counter() - t0
     return NamingResult(selected, singles, combos, nominal, replay.scales, cfg, folds, blocks, timing)
+
+
+def _drop_redundant(replay, base, selected: Fit, cfg, folds, blocks, nominal):
+    """Backward step after a forward one: refit the set without each earlier effect; if the
+    full set does not beat the best such subset by the selection rule, the subset (which still
+    holds the newcomer) replaces it. Two near-duplicates (an IMU bias and a waist offset both
+    shift the balance) otherwise both stay, one of them at about zero."""
+    if len(selected.effects) < 3:
+        return None
+    subsets, x0s = [], []
+    for i in range(len(selected.effects) - 1):
+        keep = [k for k in range(len(selected.effects)) if k != i]
+        subsets.append([selected.effects[k] for k in keep])
+        x0s.append([selected.values[k] for k in keep])
+    fits = fit_candidates(replay, base, subsets, cfg, folds, blocks, x0s,
+                          [nominal] * len(subsets))
+    best = min(fits, key=lambda f: float(np.nansum(f.heldout_loss)))
+    imp, t, frac, tw, n_eff = _compare(best.heldout_loss, selected.heldout_loss, blocks,
+                                       replay.active, np.ones(len(replay)))
+    probe = Fit(selected.effects, selected.values, selected.uncertainty, 0.0,
+                selected.heldout_loss, selected.fold_values, improvement=imp, t=t,
+                t_weighted=tw, weighted_blocks=n_eff)
+    if _accept(probe, cfg):
+        return None
+    best.improvement_vs_nominal = best.improvement
+    best.reference = 'nominal (backward step from ' + selected.key + ')'
+    return best
 
 
 def extended_terms(base: ModelTerms, fit: Fit | None) -> ModelTerms:
@@ -525,3 +557,65 @@ def gaps(replay: Replay, base: ModelTerms, result: NamingResult) -> dict:
     return {'before': before, 'after': after,
             'heldout_loss_before': float(np.nanmean(result.nominal_heldout)),
             'heldout_loss_after': held_after}
+
+
+def split_values(replay: Replay, base: ModelTerms, fit: Fit, cfg: NamingConfig, groups,
+                 names) -> dict:
+    """The selected effects fitted to each group of windows alone (``groups``: a label per
+    window, -1 = unused; ``names``: one per label), with cluster-robust uncertainties, and per
+    effect the consistency of the groups' values: chi^2 of the values about their weighted mean
+    over the degrees of freedom, and their spread relative to the effect's size. One physical
+    effect has one value; groups that disagree far beyond their uncertainty (chi2/dof > 4) by a
+    spread of more than 10 % of the effect are the sign of an effect absorbing something else
+    (between records) or of an effect that changes in time (between the thirds of a record)."""
+    labels = [g for g in range(len(names))
+              if np.count_nonzero(replay.active & (groups == g)) >= 20]
+    if len(labels) < 2 or fit is None:
+        return {}
+    wsets = [np.flatnonzero(replay.active & (groups == g)) for g in labels]
+    lo = np.array([e.bounds[0] for e in fit.effects], float)
+    hi = np.array([e.bounds[1] for e in fit.effects], float)
+    jobs = []
+    for k in range(len(labels)):
+        x = _interior(fit.values, lo, hi, margin=1e-4)
+        jobs.append(_Job(list(fit.effects), k, x, lo, hi, _fd_steps(fit.effects, x, lo, hi)))
+    _batched_fit(replay, base, jobs, wsets, max_iter=cfg.max_nfev)
+    e_per = replay.measured.shape[1] * replay.measured.shape[2]
+    vals, sds = [], []
+    for j, w in zip(jobs, wsets):
+        cl = np.floor(replay.win_t[w] / cfg.cluster_s).astype(int)
+        cov = _cluster_cov(j.jac, j.res, cl, e_per)
+        vals.append(j.x.copy())
+        sds.append(np.sqrt(np.clip(np.nan_to_num(np.diag(cov), nan=np.inf), 0, None)))
+    vals, sds = np.array(vals), np.array(sds)
+    out = {'groups': [names[g] for g in labels], 'effects': {}}
+    for i, e in enumerate(fit.effects):
+        w = 1.0 / np.maximum(sds[:, i], 1e-300) ** 2
+        mean = float(np.sum(w * vals[:, i]) / np.sum(w))
+        chi2 = float(np.sum(w * (vals[:, i] - mean) ** 2)) / (len(labels) - 1)
+        size = abs(float(fit.values[i]) - start_value(e, base))
+        rel = float(np.std(vals[:, i])) / max(size, 1e-12)
+        scale = e.display_scale(base)
+        out['effects'][e.key] = {
+            'values': [float(e.display(float(v), base)[0]) for v in vals[:, i]],
+            'uncertainties': [float(sd * scale) for sd in sds[:, i]],
+            'unit': e.unit, 'chi2_per_dof': chi2, 'relative_spread': rel,
+            'inconsistent': bool(chi2 > 4.0 and rel > 0.10)}
+    return out
+
+
+def per_record_values(replay: Replay, base: ModelTerms, fit: Fit, cfg: NamingConfig) -> dict:
+    """``split_values`` over the records."""
+    return split_values(replay, base, fit, cfg, replay.win_record,
+                        [r.name for r in replay.records])
+
+
+def per_third_values(replay: Replay, base: ModelTerms, fit: Fit, cfg: NamingConfig) -> dict:
+    """``split_values`` over the first, middle and last third of every record (pooled)."""
+    third = np.zeros(len(replay), int)
+    for ri, rec in enumerate(replay.records):
+        m = replay.win_record == ri
+        third[m] = np.minimum((3 * (replay.win_t[m] - rec.t[0]) / max(rec.duration, 1e-9))
+                              .astype(int), 2)
+    return split_values(replay, base, fit, cfg, third, ['first third', 'middle third',
+                                                         'last third'])

@@ -33,7 +33,7 @@ from .record import CHANNEL_UNITS, CHANNELS, resample
 from .replay import Replay, ReplayConfig, gap_metrics
 from .effects import ModelTerms, apply_effects, get_effect, library
 from .locate import PHASE_COLOURS, locate, plot_location, shade_phases
-from .naming import NamingConfig, extended_terms, name_effects
+from .naming import NamingConfig, extended_terms, name_effects, per_record_values, per_third_values
 from .verdict import MAX_GAP, residual_structure
 
 FORMAT = 'krang_discrepancy/extended_model/1'
@@ -346,6 +346,13 @@ def run_discrepancy(measured, out_dir, *, model: NominalModel | None = None, can
                                    result.blocks)
     timing['structure_s'] = time.perf_counter() - t
     t = time.perf_counter()
+    per_record = per_record_values(replay, base, result.selected, result.config)
+    drift = per_third_values(replay, base, result.selected, result.config)
+    timing['per_record_s'] = time.perf_counter() - t
+    split = [k for k, v in per_record.get('effects', {}).items() if v['inconsistent']]
+    if split:
+        say(f'per-record values disagree beyond their uncertainty: {", ".join(split)}')
+    t = time.perf_counter()
     ypath = out_dir / 'extended_model.yaml'
     sources = [r.source or r.name for r in records]
     write_extended_model(ypath, result.selected, model, sources=sources, base=base, baseline=base_doc)
@@ -367,11 +374,12 @@ def run_discrepancy(measured, out_dir, *, model: NominalModel | None = None, can
     heldout = {'before': float(np.nanmean(result.nominal_heldout)),
                'after': float(np.nanmean(result.selected.heldout_loss)) if result.selected else
                float(np.nanmean(result.nominal_heldout))}
-    verdict, reason = _verdict(result, structure, gaps_yaml, ref_scales is not None)
+    verdict, reason = _verdict(result, structure, gaps_yaml, ref_scales is not None, drift)
     say(f'verdict: {verdict}' + (f' ({reason})' if reason else ''))
     r1a = r1[replay.active]
     own = np.sqrt(np.median(r1a ** 2, axis=0) / 0.4549) + 1e-12
     extra = {'verdict': verdict, 'verdict_reason': reason, 'signature': structure.as_dict(),
+             'per_record': per_record, 'per_third': drift,
              'reference': {'scales': own.tolist(), 'horizon_s': replay.horizon,
                            'n_eval': int(replay.measured.shape[1]),
                            'meaning': 'robust RMS error of this model on its own data, per '
@@ -386,6 +394,13 @@ def run_discrepancy(measured, out_dir, *, model: NominalModel | None = None, can
     js = _with_verdict(js, verdict, reason, structure, result, base)
     if base_doc is not None:
         js['baseline'] = str(baseline)
+    if per_record:
+        js['per_record'] = per_record
+        if split:
+            js['misattribution_warning'] = (
+                f'{", ".join(split)}: the records give values that differ far beyond their '
+                'uncertainties (chi2/dof > 4, spread > 10 %): one robot has one value, so the '
+                'effect is absorbing something else that differs between the runs')
     timing['resimulate_s'] = time.perf_counter() - t
     files = []
     t = time.perf_counter()
@@ -406,7 +421,7 @@ def run_discrepancy(measured, out_dir, *, model: NominalModel | None = None, can
     with open(out_dir / 'result.json', 'w') as f:
         json.dump(_plain(js), f, indent=1)
     return {'json': js, 'result': result, 'location': loc, 'replay': replay, 'timing': timing,
-            'structure': structure, 'verdict': verdict,
+            'structure': structure, 'verdict': verdict, 'per_third': drift,
             'files': files, 'gaps': gaps_yaml, 'per_phase': per_phase, 'heldout': heldout,
             'extended_terms': ext_terms}
 
@@ -419,20 +434,32 @@ def _reference_scales(base_doc, replay, say):
             say('baseline has no reference scales: the gap is in units of its errors on these data')
         return None
     sc = np.asarray(ref['scales'], float)
-    if sc.shape != replay.measured.shape[1:] or abs(ref['horizon_s'] - replay.horizon) > 1e-6:
-        say('baseline reference scales are for another horizon: not used')
+    # records at another sample rate land on a slightly different horizon; the scales of a
+    # horizon within 10 % still measure the same thing
+    if sc.shape != replay.measured.shape[1:] or abs(ref['horizon_s'] - replay.horizon) > \
+            0.1 * replay.horizon:
+        say(f'baseline reference scales are for a {ref["horizon_s"]:.3g} s horizon, not '
+            f'{replay.horizon:.3g} s: not used (pass --horizon to match)')
         return None
     return sc
 
 
-def _verdict(result, structure, gaps_yaml, referenced: bool):
+def _verdict(result, structure, gaps_yaml, referenced: bool, drift=None):
     """('unexplained' | 'named' | 'none', reason). Unexplained when the residual after the
-    selected effects is still predictable by generic forces (verdict.py), or when, judged
-    against a baseline's own yardstick, the model is still more than MAX_GAP times its typical
-    error off."""
+    selected effects is still predictable by generic forces (verdict.py), when a selected effect's
+    value changes between the thirds of the records (it is not a constant of the robot), or when,
+    judged against a baseline's own yardstick, the model is still more than MAX_GAP times its
+    typical error off."""
     if structure.significant:
         return 'unexplained', ('the residual after the library effects is still structured: '
                                + structure.sentence())
+    moving = [k for k, v in (drift or {}).get('effects', {}).items() if v['inconsistent']]
+    if moving:
+        v = drift['effects'][moving[0]]
+        return 'unexplained', (
+            f'{", ".join(moving)} changes in time: fitted on the first, middle and last thirds '
+            'of the records it is ' + ', '.join(f'{x:.4g}' for x in v['values'])
+            + f' {v["unit"]} (chi2/dof {v["chi2_per_dof"]:.1f}): not a constant of the robot')
     gap = gaps_yaml['after']['gap']
     if referenced and gap > MAX_GAP:
         return 'unexplained', (f'the model is still {gap:.3g}x its own typical error off after the '
@@ -494,6 +521,19 @@ def _write_report(path, records, replay, loc, result, gaps_yaml, per_phase, held
             f'{e["effect"]} = {e["value"]:.4g} ± {e["uncertainty"]:.2g} {e["unit"]}'
             + (f' ({", ".join(f"{k} {v}" for k, v in e["detail"].items())})' if e.get('detail') else '')
             for e in items) + '**\n')
+    if js.get('misattribution_warning'):
+        L.append('**Warning (misattributed effect?):** ' + js['misattribution_warning'] + '.\n')
+        L.append('| effect | ' + ' | '.join(js['per_record']['records']) + ' | chi2/dof |')
+        L.append('|---|' + '---|' * (len(js['per_record']['records']) + 1))
+        for k, v in js['per_record']['effects'].items():
+            L.append(f'| {k} ({v["unit"]}) | ' + ' | '.join(
+                f'{x:.4g} ± {u:.2g}' for x, u in zip(v['values'], v['uncertainties']))
+                + f' | {v["chi2_per_dof"]:.1f} |')
+        L.append('')
+    if js.get('baseline'):
+        L.append(f'Judged against the baseline `{js["baseline"]}`: the gap is in units of that '
+                 'model\'s typical error on its own data (1 = as good as there); the effects named '
+                 'are what changed since, on top of it.\n')
     g0, g1 = gaps_yaml['before']['gap'], gaps_yaml['after']['gap']
     b, a = gaps_yaml['before'], gaps_yaml['after']
     L.append(f'Gap (RMS whitened error of the {replay.horizon:.3g} s predictions over the four signals, fitting '

@@ -6,7 +6,8 @@ structure: then the missing physics is outside the library (a drive deadband, an
 error, a mass that grows, ...) or the library effect that was named absorbed part of something
 else. A library-free test tells the two apart: generic generalised forces on the wheel and on the pitch
 equation, each a fixed shape of the state and command (a constant, the torque, its sign, its
-square, the wheel-to-body and ground speeds and their sign, the pitch, the pitch rate, the time)
+square, the wheel-to-body and ground speeds and their sign, the pitch, the pitch rate, the time,
+the body's CoM angle as the pose sets it)
 times a free coefficient, and scale factors of the gyro and the wheel-rate sensor, are linearised about the model (one batched prediction), fitted to the
 whitened residual on the training folds (robust least squares) and judged on the held-out blocks
 with the same rule as an effect (improvement >= ``min_improvement`` of the held-out loss, paired t
@@ -82,6 +83,7 @@ FORCE_SHAPES = (
     ('pitch', lambda s: (s.q_base + 1.55) / 0.1),
     ('pitch rate', lambda s: s.dq_base),
     ('time', lambda s: s.t / 30.0),
+    ('CoM angle of the pose', lambda s: (s.theta - s.q_base) / 0.1),
 )
 FORCE_STEP = 0.5                    # N m per unit shape: the finite-difference amplitude
 
