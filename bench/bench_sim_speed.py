@@ -1,9 +1,10 @@
 """How fast the simulated node set runs: sim_krang, can_bridge and adrc_controller as processes on
-their udp_multicast buses, balancing, at the configured real-time factor (1: real time) and unpaced
-(0: as fast as the control loop keeps up; the simulator's control-lag guard holds it within
-max_control_lag_s of the last wheel command, a soft lockstep).
+their udp_multicast buses, balancing, in lockstep (krang_sim/node.py: the physics waits for the
+wheel command that answers each sample), at the configured real-time factor (1: real time) and
+unpaced (0: as fast as the control path answers). Also prints the lockstep's waits and misses and
+the mean round trip per sample (wall time per simulated sample while unpaced).
 
-    .venv/bin/python bench/bench_sim_speed.py [--seconds 15] [--factors 1 0]
+    .venv/bin/python bench/bench_sim_speed.py [--seconds 15] [--factors 1 0] [--rate-hz 500]
 """
 
 import argparse
@@ -12,39 +13,69 @@ import tempfile
 import time
 
 import rclpy
+import yaml
+from diagnostic_msgs.msg import DiagnosticArray
 from rosgraph_msgs.msg import Clock
 
 from krang_cli.node_set import params_files
 from krang_cli.processes import NodeSet
+from krang_model.config import config_path
+from krang_ros import names
 from krang_ros.session_client import open_session_client
 from krang_sim.session_config import session_devices_file
 
+SIM_RATE_HZ = yaml.safe_load(open(config_path('sim_params.yaml')))['sim_krang']['ros__parameters'][
+    'feedback_rate_hz'
+]
 
-def measure(factor, seconds):
-    """Simulated seconds per wall second while balancing, and the controller modes seen."""
+
+def rate_overrides(rate_hz):
+    """Per node: the parameters that put the sample and control rate at `rate_hz` (None: the
+    configured one)."""
+    if rate_hz is None:
+        return {}, {}, {}
+    return (
+        {'feedback_rate_hz': rate_hz, 'clock_rate_hz': rate_hz},
+        {'imu_sample_period_s': 1.0 / rate_hz},
+        {'rate_hz': rate_hz},
+    )
+
+
+def measure(factor, seconds, rate_hz=None):
+    """Simulated seconds per wall second while balancing, and sim_krang's lockstep figures."""
     tmp = tempfile.mkdtemp(prefix='krang_sim_speed_')
     devices = session_devices_file(tmp)
+    sim, bridge, controller = rate_overrides(rate_hz)
     nodes = NodeSet(params_files(sim=True, extra=()), log_dir=os.path.join(tmp, 'logs'))
-    nodes.start('sim_krang', {'devices_file': devices, 'real_time_factor': factor})
-    nodes.start('can_bridge', {'devices_file': devices})
-    nodes.start('adrc_controller')
+    nodes.start('sim_krang', {'devices_file': devices, 'real_time_factor': factor, **sim})
+    nodes.start('can_bridge', {'devices_file': devices, **bridge})
+    nodes.start('adrc_controller', controller)
     client, context = open_session_client()
-    clock = []
+    clock, diag = [], {}
     client.create_subscription(
         Clock,
-        '/clock',
+        names.CLOCK,
         lambda m: clock.append((time.monotonic(), m.clock.sec + m.clock.nanosec * 1e-9)),
         10,
     )
+
+    def on_diag(msg):
+        for s in msg.status:
+            diag[s.name] = {kv.key: kv.value for kv in s.values}
+
+    client.create_subscription(DiagnosticArray, names.DIAGNOSTICS, on_diag, 50)
     try:
         client.enable_controller(60.0)
         client.wait_for_balance(120.0)
         client.pause(2.0)
         wall0, sim0 = clock[-1]
-        modes_before = len(client.modes)
+        before = dict(diag.get('sim_krang', {}))
         client.pause(seconds)
         wall1, sim1 = clock[-1]
-        return (sim1 - sim0) / (wall1 - wall0), sorted(set(client.modes[modes_before:]))
+        after = diag.get('sim_krang', {})
+        ratio = (sim1 - sim0) / (wall1 - wall0)
+        misses = int(after.get('lockstep_misses', 0)) - int(before.get('lockstep_misses', 0))
+        return ratio, misses, client.mode
     finally:
         client.close()
         rclpy.try_shutdown(context=context)
@@ -63,14 +94,22 @@ def main():
         default=[1.0, 0.0],
         help='sim_krang real_time_factor values (0 = unpaced)',
     )
+    parser.add_argument(
+        '--rate-hz',
+        type=float,
+        default=None,
+        help=f'sample and control rate (default: config/sim_params.yaml, {SIM_RATE_HZ:g} Hz)',
+    )
     args = parser.parse_args()
     os.environ.setdefault('ROS_DOMAIN_ID', str(130 + os.getpid() % 50))
     os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
     for factor in args.factors:
-        ratio, modes = measure(factor, args.seconds)
+        ratio, misses, mode = measure(factor, args.seconds, args.rate_hz)
+        rate = args.rate_hz or SIM_RATE_HZ
         print(
-            f'real_time_factor {factor:g}: {ratio:.2f}x real time while balancing (controller '
-            f'modes: {", ".join(modes)})'
+            f'real_time_factor {factor:g}: {ratio:.2f}x real time while balancing at '
+            f'{rate:g} Hz (mode {mode}; {1e3 / (ratio * rate):.2f} ms wall per sample; lockstep '
+            f'misses {misses})'
         )
 
 

@@ -25,7 +25,14 @@ Safety rules, all enforced here so the ROS shell cannot get them wrong:
   start-up succeeded); then
   wheel commands are zero current and joint commands produce no frames;
 - an effort command older than `wheels.command_timeout_s` is replaced by zero current
-  (`wheel_command_frames`), because an AMC drive holds its last current forever.
+  (`wheel_command_frames`), because an AMC drive holds its last current forever; the node sends
+  the current frames from each command and, while commands stop, from a watchdog timer
+  (`wheel_watchdog_frames`: the same frames, so zero current once the command is stale or motion
+  is not allowed, within `WATCHDOG_QUIET_PERIODS` refresh periods).
+
+`on_frame` returns which sample a frame completed (`IMU_SAMPLE`: the DMU's rates and
+accelerations of one sequence number; `WHEEL_SAMPLE`: position, velocity and current of every
+drive since the last one), so the node publishes each sample as soon as its frames are in.
 
 Every produced frame is a `BusFrame(bus, msg)`: the same ids are used on several buses (left and
 right arm).
@@ -56,6 +63,11 @@ OK, WARN, ERROR, STALE = 0, 1, 2, 3  # diagnostic_msgs/DiagnosticStatus levels
 NMT_ID = 0x000
 EMCY_BASE, SDO_RESPONSE_BASE, SDO_REQUEST_BASE, HEARTBEAT_BASE = 0x080, 0x580, 0x600, 0x700
 REJECTION_WARN_S = 10.0  # /diagnostics WARNs this long after a rejected command
+# The watchdog timer sends only when no current frame went out for this many refresh periods
+# (1 / wheels.command_rate_hz): commands that flow at least that often are never doubled.
+WATCHDOG_QUIET_PERIODS = 2.0
+IMU_SAMPLE, WHEEL_SAMPLE = 'imu', 'wheels'  # what on_frame completed
+WHEEL_SAMPLE_KINDS = frozenset({'position', 'velocity', 'current'})
 
 
 class BusFrame(NamedTuple):
@@ -64,11 +76,14 @@ class BusFrame(NamedTuple):
 
 
 class JointStateSnapshot(NamedTuple):
-    """Joints with known values only (URDF names; body joints first, then wheels)."""
+    """Joints with known values only (URDF names; body joints first, then wheels). efforts: the
+    wheels' measured currents as torque at the wheel [N m] (krang_model.drivetrain), NaN for the
+    body joints (not measured)."""
 
     names: list[str]
     positions: list[float]
     velocities: list[float]
+    efforts: list[float]
 
 
 class ImuSnapshot(NamedTuple):
@@ -125,6 +140,7 @@ class _WheelState:
     emcy: str | None = None
     started: bool = False  # the node's start-up (or recovery) sequence enabled this drive
     armed: bool = False  # started and seen OPERATION_ENABLED: leaving it is a fault
+    fresh: set = field(default_factory=set)  # TPDO kinds received since the last wheel sample
 
 
 @dataclass
@@ -189,6 +205,7 @@ class BridgeCore:
         self._wheel_echo_ids.add(amc_proto.HEARTBEAT_BASE + w.watchdog.node_id)  # our heartbeat
         self._wheel_command: tuple[float, float, float] | None = None  # (left, right, time)
         self._command_loop_at: float | None = None
+        self._wheel_sent_at: float | None = None
         self._fault = ''
 
         self._imu_device = _Device('imu', config.imu.required, config.imu.silence_timeout_s)
@@ -236,21 +253,24 @@ class BridgeCore:
         return self.config.bus_for_channel(msg.channel) if msg.channel is not None else None
 
     # ---- receive --------------------------------------------------------------------------------
-    def on_frame(self, msg: can.Message, now: float | None = None, bus: str | None = None) -> None:
-        """Consume one received frame. Never raises on bad input: it is counted instead."""
+    def on_frame(
+        self, msg: can.Message, now: float | None = None, bus: str | None = None
+    ) -> str | None:
+        """Consume one received frame; IMU_SAMPLE or WHEEL_SAMPLE when it completed one, else
+        None. Never raises on bad input: it is counted instead."""
         now = self._now(now)
         bus = self._bus_of(msg, bus)
         c = self.counters
         c.frames += 1
         if msg.is_error_frame:
             c.error_frames[bus] = c.error_frames.get(bus, 0) + 1
-            return
+            return None
         aid = msg.arbitration_id
         try:
             if bus == self.config.wheels.bus and aid in self._wheel_by_id:
-                self._on_wheel(self._wheel_by_id[aid], msg, now)
+                return self._on_wheel(self._wheel_by_id[aid], msg, now)
             elif bus == self.config.imu.bus and aid in self.dmu.feedback_ids:
-                self._on_imu(msg, now)
+                return self._on_imu(msg, now)
             elif (
                 bus is not None
                 and pc.ACK_BASE < aid <= pc.ACK_BASE + pc.MODULE_ID_MASK
@@ -274,6 +294,7 @@ class BridgeCore:
             c.malformed += 1
             c.last_malformed = f'{bus} 0x{aid:03X}: unexpected {type(exc).__name__}: {exc}'
             self._log('malformed', f'malformed frame {c.last_malformed}', logging.ERROR)
+        return None
 
     def _is_echo(self, bus: str | None, aid: int) -> bool:
         """Frames a host sends (ours looped back by udp_multicast, or another host's)."""
@@ -285,7 +306,7 @@ class BridgeCore:
             return True
         return pc.is_host_frame(aid)
 
-    def _on_wheel(self, state: _WheelState, msg: can.Message, now: float) -> None:
+    def _on_wheel(self, state: _WheelState, msg: can.Message, now: float) -> str | None:
         try:
             reading = state.codec.decode(msg)
         except ProtocolError:
@@ -302,6 +323,12 @@ class BridgeCore:
         elif reading.kind == 'current':
             state.current = reading.value
         state.device.last_seen = now
+        state.fresh.add(reading.kind)
+        if all(WHEEL_SAMPLE_KINDS <= w.fresh for w in self._wheels.values()):
+            for w in self._wheels.values():
+                w.fresh.clear()
+            return WHEEL_SAMPLE
+        return None
 
     def _on_emcy(self, state: _WheelState, msg: can.Message) -> None:
         """An EMCY latches a drive fault unless its error code is 0 (DS301 "error reset")."""
@@ -380,7 +407,7 @@ class BridgeCore:
         for w in self._wheels.values():
             w.emcy = None
 
-    def _on_imu(self, msg: can.Message, now: float) -> None:
+    def _on_imu(self, msg: can.Message, now: float) -> str | None:
         try:
             sample = self.dmu.decode(msg)
         except ProtocolError:
@@ -393,7 +420,7 @@ class BridgeCore:
             self._imu_accel = sample
         r, a = self._imu_rates, self._imu_accel
         if r is None or a is None or r.sequence != a.sequence:
-            return
+            return None
         self._imu_rates = self._imu_accel = None  # one filter update per paired sample
         est: PitchEstimate = self._imu_estimator.update((r.x, r.y, r.z), (a.x, a.y, a.z), now)
         w = self._imu_estimator.corrected_rates((r.x, r.y, r.z))
@@ -406,6 +433,7 @@ class BridgeCore:
             est.variance,
             now,
         )
+        return IMU_SAMPLE
 
     def _on_module(self, state: _ModuleState, msg: can.Message, now: float) -> None:
         try:
@@ -524,14 +552,25 @@ class BridgeCore:
         self._wheel_command = (left, right, now)
 
     def wheel_command_frames(self, now: float | None = None) -> list[BusFrame]:
-        """Periodic refresh: the latest command if younger than command_timeout_s, else zero
-        current."""
+        """The current frames of the latest command if younger than command_timeout_s, else zero
+        current (sent on each command, and by `wheel_watchdog_frames`)."""
         now = self._now(now)
-        self._command_loop_at = now
+        self._command_loop_at = self._wheel_sent_at = now
         cmd = self._wheel_command
         if cmd is None or now - cmd[2] > self.config.wheels.command_timeout_s:
             return self.wheel_current_frames(0.0, 0.0, now)
         return self.wheel_current_frames(cmd[0], cmd[1], now)
+
+    def wheel_watchdog_frames(self, now: float | None = None) -> list[BusFrame]:
+        """The wheel command loop's timer: `wheel_command_frames` when no current frame went out
+        for WATCHDOG_QUIET_PERIODS refresh periods (commands stopped), else []. Either way the
+        loop counts as running, which keeps the drives' watchdog fed."""
+        now = self._now(now)
+        self._command_loop_at = now
+        quiet = WATCHDOG_QUIET_PERIODS / self.config.wheels.command_rate_hz
+        if self._wheel_sent_at is not None and now - self._wheel_sent_at < quiet:
+            return []
+        return self.wheel_command_frames(now)
 
     # ---- joint commands -------------------------------------------------------------------------
     def _module_target(
@@ -679,7 +718,7 @@ class BridgeCore:
     def joint_state(self, now: float | None = None) -> JointStateSnapshot:
         """Joints whose devices have all been heard from within their silence timeouts."""
         now = self._now(now)
-        names, pos, vel = [], [], []
+        names, pos, vel, eff = [], [], [], []
         for joint in self.config.powercube.joints:
             states = [self._modules[(m.bus, m.module_id)] for m in joint.modules]
             if any(s.position is None or s.device.silent(now) for s in states):
@@ -691,13 +730,19 @@ class BridgeCore:
                 if all(s.velocity is not None for s in states)
                 else math.nan
             )
+            eff.append(math.nan)
         for joint, w in self._wheels.items():
             if w.position is None or w.device.silent(now):
                 continue
             names.append(joint)
             pos.append(w.position)
             vel.append(w.velocity if w.velocity is not None else math.nan)
-        return JointStateSnapshot(names, pos, vel)
+            eff.append(
+                self.config.wheels.current_to_effort(w.current)
+                if w.current is not None
+                else math.nan
+            )
+        return JointStateSnapshot(names, pos, vel, eff)
 
     def wheel_state(self, joint: str) -> _WheelState:
         return self._wheels[joint]

@@ -5,15 +5,23 @@ config/can_devices_robot.yaml; a bare file name is looked up in config/, so the 
 passes `can_devices.yaml` in config/sim_params.yaml). A bus that cannot be opened ends the node
 with one line naming the interface (and, for SocketCAN, the `ip link` command) and exit code 1.
 Each bus has a python-can Notifier thread that feeds frames to the core (under a lock), so the
-executor never blocks on CAN; the AMC start-up and the recovery (blocking SDO transfers through
+executor never blocks on CAN. The node is event-driven: the Notifier thread publishes each sample
+as soon as the core says its frames are in (rclpy publishers may be called from any thread; the
+message is built outside the lock), and the wheel current frames go out from the command
+callback; the AMC start-up and the recovery (blocking SDO transfers through
 canopen) run in their own threads, and so does the drive-side watchdog's heartbeat, which the core
 withholds when the wheel command loop (the executor) stops running (docs/can.md).
 
 Topics:
 - publishes /joint_states (sensor_msgs/JointState: body joints + JLWheel/JRWheel, URDF names; only
-  joints with data), /imu/data (sensor_msgs/Imu, sensor-data QoS), /diagnostics (1 Hz);
-- subscribes /wheel_effort_cmd (std_msgs/Float64MultiArray [left, right] N m at the wheel,
-  reliable) and /joint_position_cmd (sensor_msgs/JointState, positions by name);
+  joints with data; effort: the wheels' measured currents as torque at the wheel [N m], NaN for the
+  body joints) on each complete wheel sample (position, velocity and current TPDOs of both drives),
+  at most at publish_rate_hz; /imu/data (sensor_msgs/Imu, sensor-data QoS) on each DMU sample
+  (rates and accelerations of one sequence number), stamped with the sample's time;
+  /diagnostics (1 Hz);
+- subscribes /wheel_effort_cmd (sensor_msgs/JointState: name [JLWheel, JRWheel], effort N m at the
+  wheel, header.stamp = the /imu/data sample it answers; reliable) and /joint_position_cmd
+  (sensor_msgs/JointState, positions by name);
 - publishes /can_bridge/drive_fault (std_msgs/String, latched): the latched drive fault's reason,
   '' when clear (BridgeCore: a FAULT or EMCY of any drive stops both wheels);
 - serves ~/recover (std_srvs/Trigger, /can_bridge/recover): DS402 fault reset and the enable
@@ -26,9 +34,10 @@ components and linear_acceleration (specific force, m/s^2) are the bias-correcte
 turned by the mount angle into x forward, y left, z up (at zero pitch). Roll and yaw are not
 observed: their orientation variances are set to 1e6.
 
-Wheel currents are refreshed at wheels.command_rate_hz from the latest command; a command older
-than wheels.command_timeout_s, a malformed one, a silent device, or an AMC start-up not (yet) done
-or whose drive constants disagree with the config gives zero current (see BridgeCore).
+Wheel currents go out from each command; a watchdog timer at wheels.command_rate_hz sends them
+only while commands stop (BridgeCore.wheel_watchdog_frames). A command older than
+wheels.command_timeout_s, a malformed one, a silent device, or an AMC start-up not (yet) done or
+whose drive constants disagree with the config gives zero current (see BridgeCore).
 
 Parameters: BridgeParams below (`can_bridge --help`), read once at start. With use_sim_time every
 time of the core (IMU filter steps, silence and command timeouts) is the simulator's /clock, not
@@ -50,10 +59,10 @@ from diagnostic_msgs.msg import DiagnosticArray
 import rclpy
 from rclpy.node import Node
 from sensor_msgs.msg import Imu, JointState
-from std_msgs.msg import Float64MultiArray, String
+from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
-from krang_can_bridge.bridge import BridgeCore, BusFrame
+from krang_can_bridge.bridge import IMU_SAMPLE, WHEEL_SAMPLE, BridgeCore, BusFrame
 from krang_can_bridge.config import (
     BusConfig,
     load_devices,
@@ -87,7 +96,11 @@ class BridgeParams:
         ),
     )
     publish_rate_hz: float = field(
-        default=200.0, metadata=_doc('/joint_states and /imu/data rate [Hz]')
+        default=500.0,
+        metadata=_doc(
+            'most /joint_states per second (wheel samples beyond it are skipped); 0: every wheel '
+            'sample. /imu/data: every DMU sample'
+        ),
     )
     amc_startup: bool = field(
         default=True,
@@ -112,11 +125,11 @@ class BridgeParams:
     )
 
     def __post_init__(self):
-        for name in ('publish_rate_hz', 'sdo_timeout_s', 'startup_retry_s', 'recover_timeout_s'):
+        for name in ('sdo_timeout_s', 'startup_retry_s', 'recover_timeout_s'):
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
                 raise ValueError(f'{name} must be a positive number, got {value!r}')
-        for name in ('send_timeout_s', 'imu_sample_period_s'):
+        for name in ('publish_rate_hz', 'send_timeout_s', 'imu_sample_period_s'):
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0):
                 raise ValueError(f'{name} must be a number >= 0, got {value!r}')
@@ -204,6 +217,11 @@ class CanBridgeNode(Node):
         else:
             self._frame_time = self._device_time = time.monotonic
             self._newest_frame = self._frame_time()
+        # Stamps: the device time as ROS time (wall time on the robot, by one offset fixed at
+        # start so the spacing of the samples stays the devices'; /clock with use_sim_time)
+        self._stamp_offset = (
+            0.0 if self.get_parameter('use_sim_time').value else time.time() - time.monotonic()
+        )
         self.core = BridgeCore(self.config, clock=self._device_time)
         # imu_sample_period_s > 0: DMU samples are timed by their sequence counter
         # (sample_clock.py); kept within 0.04 s of the clock, inside the IMU's 0.05 s silence
@@ -220,6 +238,9 @@ class CanBridgeNode(Node):
         self._sdo_timeout = p.sdo_timeout_s
         self._recover_timeout = p.recover_timeout_s
         self._published_fault: str | None = None
+        self._joint_period = 1.0 / p.publish_rate_hz if p.publish_rate_hz > 0 else 0.0
+        self._joints_published_at = -math.inf
+        self.published = {names.IMU: 0, names.JOINT_STATES: 0}
 
         self._log_handler = _RosLogHandler(self.get_logger())
         logging.getLogger('krang_can_bridge').addHandler(self._log_handler)
@@ -251,7 +272,7 @@ class CanBridgeNode(Node):
         self.publish_fault()
         self.create_service(Trigger, '~/recover', self.on_recover)
         self.create_subscription(
-            Float64MultiArray,
+            JointState,
             names.WHEEL_EFFORT_CMD,
             self.on_wheel_effort,
             qos[names.WHEEL_EFFORT_CMD],
@@ -263,8 +284,8 @@ class CanBridgeNode(Node):
             qos[names.JOINT_POSITION_CMD],
         )
 
-        self.create_timer(1.0 / p.publish_rate_hz, self.publish_state)
-        self.create_timer(1.0 / self.config.wheels.command_rate_hz, self.send_wheel_commands)
+        # watchdog only: sends while commands stop (the commands themselves send their frames)
+        self.create_timer(1.0 / self.config.wheels.command_rate_hz, self.wheel_watchdog)
         self.create_timer(1.0 / self.config.powercube.poll_rate_hz, self.poll_modules)
         self.create_timer(0.5 * self.config.imu.stream_toggle_retry_s, self.check_imu_stream)
         self.create_timer(1.0, self.publish_diagnostics)
@@ -303,10 +324,37 @@ class CanBridgeNode(Node):
                 and msg.arbitration_id in self.core.dmu.feedback_ids
             ):
                 now = self._imu_sample_time(msg, now)
-            self.core.on_frame(msg, now, bus)
+            sample = self.core.on_frame(msg, now, bus)
+            out = self._sample_message(sample, now) if sample else None
+        if out is not None:
+            out[0].publish(out[1])
+            self.published[out[2]] += 1
         if bus == self.config.wheels.bus and not msg.is_error_frame:
             # SDO responses for the start-up
             self.canopen.notify(msg.arbitration_id, msg.data, msg.timestamp)
+
+    def _sample_message(self, sample: str, now: float):
+        """(publisher, message, topic) of the sample a frame completed at `now`, or None (a
+        /joint_states sample beyond publish_rate_hz, a silent device); called under the lock."""
+        if sample == IMU_SAMPLE:
+            imu = self.core.imu_state(now)
+            if imu is None:
+                return None
+            return self.imu_pub, self._imu_message(imu, self._stamp(imu.stamp)), names.IMU
+        if sample != WHEEL_SAMPLE or now - self._joints_published_at < 0.999 * self._joint_period:
+            return None
+        joints = self.core.joint_state(now)
+        if not joints.names:
+            return None
+        self._joints_published_at = now
+        msg = messages.joint_state(
+            self._stamp(now), joints.names, joints.positions, joints.velocities
+        )
+        msg.effort = joints.efforts
+        return self.joint_pub, msg, names.JOINT_STATES
+
+    def _stamp(self, t: float):
+        return messages.stamp(t + self._stamp_offset)
 
     def _imu_sample_time(self, msg: can.Message, now: float) -> float:
         """Time of a DMU frame from its sequence counter (see imu_sample_period_s); `now` if
@@ -446,9 +494,12 @@ class CanBridgeNode(Node):
             time.sleep(0.01)
 
     # ---- commands -------------------------------------------------------------------------------
-    def on_wheel_effort(self, msg: Float64MultiArray) -> None:
+    def on_wheel_effort(self, msg: JointState) -> None:
+        """Sends the current frames at once (the wheels' efforts by name; anything else is one
+        invalid command: zero current on both wheels)."""
+        efforts = messages.wheel_efforts(msg, names.WHEEL_JOINTS)
         with self._lock:
-            self.core.set_wheel_effort_command(list(msg.data), self._device_time())
+            self.core.set_wheel_effort_command(efforts, self._device_time())
             frames = self.core.wheel_command_frames(self._device_time())
         self.send(frames)
 
@@ -471,6 +522,12 @@ class CanBridgeNode(Node):
         self.send(frames)
         self.publish_fault()
 
+    def wheel_watchdog(self) -> None:
+        with self._lock:
+            frames = self.core.wheel_watchdog_frames(self._device_time())
+        self.send(frames)
+        self.publish_fault()
+
     def poll_modules(self) -> None:
         with self._lock:
             frames = self.core.poll_frames()
@@ -484,18 +541,6 @@ class CanBridgeNode(Node):
         self.send(frames)
 
     # ---- state out ------------------------------------------------------------------------------
-    def publish_state(self) -> None:
-        with self._lock:
-            joints = self.core.joint_state()
-            imu = self.core.imu_state()
-        stamp = self.get_clock().now().to_msg()
-        if joints.names:
-            self.joint_pub.publish(
-                messages.joint_state(stamp, joints.names, joints.positions, joints.velocities)
-            )
-        if imu is not None:
-            self.imu_pub.publish(self._imu_message(imu, stamp))
-
     def _imu_message(self, imu, stamp) -> Imu:
         """The DMU's rates and specific force turned by the mount angle into x forward, y left,
         z up (at zero pitch); the pitch rate is the filtered one."""
@@ -532,6 +577,15 @@ class CanBridgeNode(Node):
                         HARDWARE_ID,
                     )
                 )
+        statuses.append(
+            messages.diagnostic_status(
+                'can_bridge: samples published',
+                'ok',
+                ', '.join(f'{n} {topic}' for topic, n in self.published.items()),
+                {topic: str(n) for topic, n in self.published.items()},
+                HARDWARE_ID,
+            )
+        )
         for joint, status in self._startup_status.items():
             statuses.append(
                 messages.diagnostic_status(

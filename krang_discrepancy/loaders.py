@@ -173,7 +173,6 @@ def save_bag(rec: Record, path, rate_hz: float | None = None) -> Path:
     Times start at 1.7e9 s (an arbitrary wall-clock epoch)."""
     # the ROS message packages (and the writer built on them) load only when a bag is written
     from sensor_msgs.msg import Imu, JointState
-    from std_msgs.msg import Float64MultiArray
     from krang_bag.writer import BagWriter, OfferedQos
 
     robot = load_krang()
@@ -193,7 +192,7 @@ def save_bag(rec: Record, path, rate_hz: float | None = None) -> Path:
     with BagWriter(path) as bag:
         bag.add_topic('/joint_states', 'sensor_msgs/msg/JointState')
         bag.add_topic('/imu/data', 'sensor_msgs/msg/Imu', offered_qos=[OfferedQos.sensor_data()])
-        bag.add_topic('/wheel_effort_cmd', 'std_msgs/msg/Float64MultiArray')
+        bag.add_topic('/wheel_effort_cmd', 'sensor_msgs/msg/JointState')
         for tt, kind, k in events:
             ns = t0_ns + int(round(tt * 1e9))
             if kind == 0:
@@ -213,11 +212,9 @@ def save_bag(rec: Record, path, rate_hz: float | None = None) -> Path:
                 imu.angular_velocity.y = float(rate[k])
                 bag.write_message('/imu/data', imu, ns)
             else:
-                bag.write_message(
-                    '/wheel_effort_cmd',
-                    Float64MultiArray(data=[float(v) for v in rec.cmd_torque[k]]),
-                    ns,
-                )
+                cmd = JointState(name=list(WHEEL_JOINTS))
+                cmd.effort = [float(v) for v in rec.cmd_torque[k]]
+                bag.write_message('/wheel_effort_cmd', cmd, ns)
     return path
 
 

@@ -3,6 +3,7 @@
 import math
 
 import numpy as np
+from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from sensor_msgs.msg import Imu, JointState
 from std_msgs.msg import Float64MultiArray, MultiArrayDimension
@@ -28,6 +29,37 @@ def joint_state(stamp, names, positions, velocities=None):
     if velocities is not None:
         msg.velocity = [float(v) for v in velocities]
     return msg
+
+
+def stamp(t):
+    """builtin_interfaces/Time of `t` seconds, rounded to the nanosecond."""
+    sec, nanosec = divmod(int(round(t * 1e9)), 1_000_000_000)
+    return Time(sec=sec, nanosec=nanosec)
+
+
+def stamp_seconds(stamp):
+    return stamp.sec + stamp.nanosec * 1e-9
+
+
+def wheel_effort(stamp, names, efforts):
+    """The wheel command (/wheel_effort_cmd): efforts [N m] by joint name, stamped with the
+    sample it answers (the convention of effort-commanded joints)."""
+    msg = JointState()
+    msg.header.stamp = stamp
+    msg.name = list(names)
+    msg.effort = [float(v) for v in efforts]
+    return msg
+
+
+def wheel_efforts(msg, names):
+    """The efforts of `names` (in that order) from a wheel command, or None unless each name
+    appears once with an effort (the values are not checked: the bridge core judges them)."""
+    if len(msg.effort) != len(msg.name) or len(set(msg.name)) != len(msg.name):
+        return None
+    index = {n: i for i, n in enumerate(msg.name)}
+    if set(index) != set(names):
+        return None
+    return [msg.effort[index[n]] for n in names]
 
 
 def joints_from_state(msg, names):

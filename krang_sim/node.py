@@ -8,9 +8,20 @@ AMC drives (current commands in, TPDO feedback out), the DMU IMU and the PowerCu
 move the body joints at their speed limits. With `publish_clock` the node publishes /clock (at
 `clock_rate_hz`, right after the sensor frames of that step), so nodes running with use_sim_time
 follow the simulated time whether it runs faster or slower than real time: `krang demo` runs the
-node set that way, because a simulator starved of CPU slows down. With `max_control_lag_s` it also
-waits for the control loop (see there). Ground truth for evaluation goes to
-/sim_krang/ground_truth.
+node set that way, because a simulator starved of CPU slows down. Ground truth for evaluation goes
+to /sim_krang/ground_truth.
+
+Lockstep (`lockstep`): after each sensor sample the physics waits until the wheel current frames
+that answer it are on the bus (an RPDO from every drive, applied to the emulated drives before the
+physics goes on), so the node set runs as fast as the control path allows (with
+`real_time_factor` 0) and every command acts from the same simulated time in every run, however
+late it came in wall time. It waits on the bus, not on /wheel_effort_cmd: the current takes effect
+when the drive receives its frame, and a message on the topic can overtake the bridge's frames.
+The topic arms it: lockstep holds while wheel commands arrive (within `lockstep_timeout_s` of wall
+time), so a node set without a controller, or one that stopped, still runs; a sample left
+unanswered that long is counted (`lockstep_misses` in /diagnostics) and the physics goes on. The
+answer acts from `lockstep_delay_s` after its sample in simulated time (whole physics steps, less
+than one sample period), the latency the simulated robot sees, whatever the wall-clock one was.
 
 Fault injection: `silent_devices` (string array, settable at run time, e.g. through
 /sim_krang/set_parameters) silences devices as devices.py describes: 'imu', a wheel joint for its
@@ -31,7 +42,7 @@ from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rosgraph_msgs.msg import Clock
-from sensor_msgs.msg import Imu
+from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
 
 from krang_can_bridge.protocols import amc as amc_proto
@@ -110,24 +121,18 @@ class SimKrangNode(Node):
         self.sent_frames = 0
         self.slips = 0
         self.max_lag = p('max_lag_s', 0.02).value
-        # Control-loop guard (0 = off): the simulated time does not run more than
-        # `max_control_lag_s` past the last beat of the control loop: the bridge's last /imu/data
-        # (its stamp: when the bridge published it), the controller's last /wheel_effort_cmd and
-        # the bridge's last current RPDO on the CAN bus, whichever is oldest. The /imu/data beat
-        # catches a bridge whose executor is starved while its CAN threads still refresh the
-        # drives: its IMU rate fell to 16-25 Hz for seconds, the controller stepped on stale
-        # samples, and a pose move ended in a 49 A oscillation. On a shared machine a node can be
-        # descheduled for a few hundred ms while this process keeps the CPU (measured at load 11-15
-        # on 2 cores: 200-360 ms without a controller step, and the robot fell); the robot's own
-        # computer has no such stalls. Within the bound the loop's real latency stays in the
-        # simulation; beyond it the simulator waits (and so slips, as when it is starved itself).
-        # The guard arms at the first command and lets go when no command comes for
-        # `control_guard_timeout_s` of wall time (the controller stopped).
-        self.max_control_lag = p('max_control_lag_s', 0.0).value
-        self.guard_timeout = p('control_guard_timeout_s', 1.0).value
-        # (sim t, wall t) of the last beat
-        self.controller_beat = self.bridge_beat = self.imu_beat = None
-        self.guard_wait_s = 0.0
+        self.lockstep = p('lockstep', False).value
+        self.lockstep_timeout = p('lockstep_timeout_s', 0.5).value
+        # the answer to a sample acts from this long after it in simulated time (the control path's
+        # latency; at most one sample period less one physics step)
+        self.lockstep_delay_steps = min(
+            self.feedback_every - 1, max(0, round(p('lockstep_delay_s', 0.001).value * self.rate))
+        )
+        self.answered = threading.Condition(self.lock)
+        self.rpdo_seen = set()  # drives whose current frame came in since the last sample
+        self.command_at = -math.inf  # wall time of the last /wheel_effort_cmd
+        self.lockstep_misses = 0
+        self.lockstep_wait_s = 0.0
         self.rpdo_ids = {w.codec.ids[amc_proto.RPDO_CURRENT] for w in self.devices.wheels.values()}
         self.buses = {}
         self.notifiers = []
@@ -137,14 +142,13 @@ class SimKrangNode(Node):
             self.notifiers.append(can.Notifier(bus, [_Inbox(self, name)], timeout=0.05))
         qos = topics.QOS
         self.clock_pub = self.create_publisher(Clock, names.CLOCK, qos[names.CLOCK])
-        if self.max_control_lag > 0:
+        if self.lockstep:
             self.create_subscription(
-                Float64MultiArray,
+                JointState,
                 names.WHEEL_EFFORT_CMD,
                 self.on_effort_command,
                 qos[names.WHEEL_EFFORT_CMD],
             )
-            self.create_subscription(Imu, names.IMU, self.on_imu_published, qos[names.IMU])
         self.truth_pub = self.create_publisher(
             Float64MultiArray, names.GROUND_TRUTH, qos[names.GROUND_TRUTH]
         )
@@ -172,14 +176,17 @@ class SimKrangNode(Node):
             f'simulated Krang: truth {truth_file}, sitting at q_base '
             f'{self.sim.q_base:+.3f} rad, true balance '
             f'{self.sim.balance_pitch():+.3f} rad, {self.rate:.0f} Hz physics '
-            f'at {self.factor:g}x real time, buses {sorted(self.buses)}'
+            f'at {self.factor:g}x real time{", lockstep" if self.lockstep else ""}, '
+            f'buses {sorted(self.buses)}'
         )
 
     def on_host_frame(self, bus_name, msg):
         with self.lock:
             replies = self.devices.on_frame(bus_name, msg)
             if msg.arbitration_id in self.rpdo_ids:
-                self.bridge_beat = (self.sim.t, time.monotonic())
+                self.rpdo_seen.add(msg.arbitration_id)
+                if self.rpdo_seen == self.rpdo_ids:
+                    self.answered.notify()
         self.send(replies)
 
     def on_parameters(self, params):
@@ -204,24 +211,19 @@ class SimKrangNode(Node):
         self.publish_diagnostics()
 
     def on_effort_command(self, msg):
-        self.controller_beat = (self.sim.t, time.monotonic())
+        self.command_at = time.monotonic()
 
-    def on_imu_published(self, msg):
-        self.imu_beat = (msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9, time.monotonic())
-
-    def control_loop_behind(self):
-        """True while the guard holds the simulated time (see max_control_lag_s)."""
-        beats = (self.controller_beat, self.bridge_beat)
-        # a silenced DMU: nothing to publish
-        if self.imu_beat is not None and 'imu' not in self.devices.silent:
-            beats += (self.imu_beat,)
-        if self.max_control_lag <= 0 or None in beats:
-            return False
-        sim_t, wall_t = min(beats)
-        return (
-            self.sim.t - sim_t > self.max_control_lag
-            and time.monotonic() - wall_t < self.guard_timeout
-        )
+    def wait_for_answer(self):
+        """Lockstep: hold the physics until every drive's current frame answered the last sample
+        (called with self.lock held; the wait releases it for the bus threads)."""
+        if not self.lockstep or time.monotonic() - self.command_at > self.lockstep_timeout:
+            return
+        start = time.monotonic()
+        if not self.answered.wait_for(
+            lambda: self.rpdo_seen == self.rpdo_ids or not self.running, self.lockstep_timeout
+        ):
+            self.lockstep_misses += 1
+        self.lockstep_wait_s += time.monotonic() - start
 
     def send(self, frames):
         for frame in frames:
@@ -237,15 +239,11 @@ class SimKrangNode(Node):
         dt = 1.0 / self.rate
         start = time.monotonic()
         k = 0
+        answer_due = None  # the step from which the answer to the last sample acts
         while self.running:
-            if self.control_loop_behind():
-                waited = time.monotonic()
-                time.sleep(0.0005)
-                waited = time.monotonic() - waited
-                start += waited  # the wait is a slip, not a debt to catch up
-                self.guard_wait_s += waited
-                continue
             with self.lock:
+                if k == answer_due:
+                    self.wait_for_answer()
                 self.devices.step(dt)
                 joints = self.devices.joint_positions()
                 currents = self.devices.wheel_currents()
@@ -254,6 +252,8 @@ class SimKrangNode(Node):
                 self.sim.step()
                 frames = []
                 if k % self.feedback_every == 0:
+                    answer_due = k + 1 + self.lockstep_delay_steps
+                    self.rpdo_seen = set()
                     read = self.sim.sensors()
                     frames = self.devices.wheel_feedback_frames(
                         {'JLWheel': read.wheel_left, 'JRWheel': read.wheel_right},
@@ -304,7 +304,8 @@ class SimKrangNode(Node):
             'true_balance_pitch': f'{bal:+.4f}',
             'frames_sent': self.sent_frames,
             'real_time_slips': self.slips,
-            'control_guard_wait_s': f'{self.guard_wait_s:.1f}',
+            'lockstep_wait_s': f'{self.lockstep_wait_s:.1f}',
+            'lockstep_misses': self.lockstep_misses,
         }
         if silent:
             values.update(silent_devices=', '.join(silent), silent_since_s=f'{since:.4f}')
@@ -320,7 +321,9 @@ class SimKrangNode(Node):
         )
 
     def close(self):
-        self.running = False
+        with self.lock:
+            self.running = False
+            self.answered.notify_all()
         self.thread.join(timeout=2.0)
         for n in self.notifiers:
             n.stop()

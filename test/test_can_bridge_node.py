@@ -18,16 +18,22 @@ pytest.importorskip('msgpack')  # python-can's udp_multicast needs it
 from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data  # noqa: E402
+from builtin_interfaces.msg import Time  # noqa: E402
 from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
 from sensor_msgs.msg import Imu, JointState  # noqa: E402
-from std_msgs.msg import Float64MultiArray, String  # noqa: E402
+from std_msgs.msg import String  # noqa: E402
 
 from krang_can_bridge.config import load_devices  # noqa: E402
 from krang_can_bridge.node import CanBridgeNode  # noqa: E402
 from krang_model.drivetrain import drivetrain  # noqa: E402
 from krang_model.robot import load_krang  # noqa: E402
-from krang_ros import names, topics  # noqa: E402
+from krang_ros import messages, names, topics  # noqa: E402
 from krang_sim.devices import KrangCanDevices  # noqa: E402
+
+
+def wheel_command(efforts):
+    """A /wheel_effort_cmd as the controller sends it (unstamped here)."""
+    return messages.wheel_effort(Time(), names.WHEEL_JOINTS, efforts)
 
 
 @pytest.fixture
@@ -122,7 +128,7 @@ def test_node_bridges_states_and_commands(devices_file):
         String, names.DRIVE_FAULT, lambda m: got.__setitem__('fault', m), topics.LATCHED
     )
     effort_pub = probe.create_publisher(
-        Float64MultiArray,
+        JointState,
         '/wheel_effort_cmd',
         QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE),
     )
@@ -165,7 +171,7 @@ def test_node_bridges_states_and_commands(devices_file):
         expected = 8.0 / (drive.torque_constant * drive.gear_ratio)
 
         def current_arrived():
-            effort_pub.publish(Float64MultiArray(data=[8.0, 8.0]))
+            effort_pub.publish(wheel_command([8.0, 8.0]))
             c = robot.devices.wheel_currents()
             return abs(c['JLWheel'] - expected) < 0.01 and abs(c['JRWheel'] - expected) < 0.01
 
@@ -174,7 +180,7 @@ def test_node_bridges_states_and_commands(devices_file):
 
         # half-invalid: both wheels stop, and /diagnostics WARNs with the count and the reason
         def both_zero_and_warned():
-            effort_pub.publish(Float64MultiArray(data=[math.nan, 20.0]))
+            effort_pub.publish(wheel_command([math.nan, 20.0]))
             d = got.get('diag')
             warned = d is not None and any(
                 s.name == 'can_bridge: commands' and s.level == b'\x01' and 'JLWheel' in s.message

@@ -30,10 +30,12 @@ pytestmark = pytest.mark.ros
 rclpy = pytest.importorskip('rclpy')
 pytest.importorskip('msgpack')  # python-can's udp_multicast needs it
 
+from builtin_interfaces.msg import Time  # noqa: E402
 from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
 from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
-from std_msgs.msg import Float64MultiArray, String  # noqa: E402
+from sensor_msgs.msg import JointState  # noqa: E402
+from std_msgs.msg import String  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
 
 from krang_can_bridge.config import default_devices_file, load_devices, resolve_devices_file  # noqa: E402
@@ -43,7 +45,12 @@ from krang_cli.processes import NodeSet  # noqa: E402
 from krang_model.config import load_config  # noqa: E402
 from krang_model.drivetrain import drivetrain  # noqa: E402
 from krang_model.robot import load_krang  # noqa: E402
-from krang_ros import names, topics  # noqa: E402
+from krang_ros import messages, names, topics  # noqa: E402
+
+
+def wheel_command(efforts):
+    """A /wheel_effort_cmd as the controller sends it (unstamped here)."""
+    return messages.wheel_effort(Time(), names.WHEEL_JOINTS, efforts)
 
 PEER = Path(__file__).with_name('ds402_peer_drive.py')
 KILL_DEADLINE_S = 0.3
@@ -163,7 +170,7 @@ class Probe:
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)
         self.effort = self.node.create_publisher(
-            Float64MultiArray, names.WHEEL_EFFORT_CMD, topics.QOS[names.WHEEL_EFFORT_CMD]
+            JointState, names.WHEEL_EFFORT_CMD, topics.QOS[names.WHEEL_EFFORT_CMD]
         )
         self.fault, self.diag = None, {}
         self.node.create_subscription(
@@ -182,7 +189,7 @@ class Probe:
         end = time.monotonic() + seconds
         while time.monotonic() < end:
             if self.command is not None:
-                self.effort.publish(Float64MultiArray(data=list(self.command)))
+                self.effort.publish(wheel_command(list(self.command)))
             self.executor.spin_once(timeout_sec=0.01)
             if until is not None and until():
                 return True

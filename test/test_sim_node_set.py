@@ -1,7 +1,7 @@
 """The balancing node set as processes: sim_krang, can_bridge and adrc_controller on udp_multicast buses.
 
-Unpaced (real_time_factor 0), the simulator runs as fast as the control loop keeps up, and the robot
-must keep balancing. Faults: the robot stands up and balances; then sim_krang's fault injection silences a device (it stops transmitting,
+Unpaced (real_time_factor 0), the simulator runs in lockstep as fast as the control loop answers, and
+the robot must keep balancing, however loaded the machine. Faults: the robot stands up and balances; then sim_krang's fault injection silences a device (it stops transmitting,
 as a broken TX line would). The bridge must cut the wheel current within the device's silence timeout
 (the drives, which still listen, apply zero), and the controller must go to safe stop within the silence
 timeout plus its own stale timeout.
@@ -99,12 +99,10 @@ def balancing_robot(tmp_path):
         yield robot
 
 
-@pytest.mark.slow                   # needs an idle machine: see the README's known issues
 @pytest.mark.timeout(240)
 def test_unpaced_simulation_keeps_balancing(tmp_path):
-    """real_time_factor 0: no pacing, only the control-lag guard. The robot balances on: it stays in
-    BALANCE and its true pitch stays within 0.05 rad of the true balance pitch (bench_sim_speed.py gives
-    the speed: 1.6x real time on the 2-core machine)."""
+    """real_time_factor 0: no pacing, only the lockstep. The robot balances on: it stays in BALANCE and
+    its true pitch stays within 0.05 rad of the true balance pitch (bench_sim_speed.py gives the speed)."""
     with balancing_node_set(tmp_path, real_time_factor=0.0) as (client, observer, _):
         start = len(observer.truth_rows)
         observer.safe_stop_at = None            # the one before the enable does not count
