@@ -77,7 +77,8 @@ def run(args):
     truth_file = save_beta(out / 'true_beta.yaml', true_beta, robot, **meta)
     devices = session_devices_file(out)
     beta_file = (out / 'beta.yaml').resolve()
-    overrides = {'sim_krang': {'devices_file': devices, 'seed': args.seed,
+    # unpaced: the simulator runs in lockstep with the control path, as fast as it answers
+    overrides = {'sim_krang': {'devices_file': devices, 'seed': args.seed, 'real_time_factor': 0.0,
                                'true_beta': str(Path(truth_file).resolve())},
                  'can_bridge': {'devices_file': devices},
                  'com_estimator': {'output': beta_file, 'method': args.method}}

@@ -14,8 +14,8 @@ to /sim_krang/ground_truth.
 Lockstep (`lockstep`): after each sensor sample the physics waits until the wheel current frames
 that answer it are on the bus (an RPDO from every drive, applied to the emulated drives before the
 physics goes on), so the node set runs as fast as the control path allows (with
-`real_time_factor` 0) and every command acts from the same simulated time in every run, however
-late it came in wall time. It waits on the bus, not on /wheel_effort_cmd: the current takes effect
+`real_time_factor` 0; real time until the commands come) and every command acts from the same
+simulated time in every run, however late it came in wall time. It waits on the bus, not on /wheel_effort_cmd: the current takes effect
 when the drive receives its frame, and a message on the topic can overtake the bridge's frames.
 The topic arms it: lockstep holds while wheel commands arrive (within `lockstep_timeout_s` of wall
 time), so a node set without a controller, or one that stopped, still runs; a sample left
@@ -213,10 +213,14 @@ class SimKrangNode(Node):
     def on_effort_command(self, msg):
         self.command_at = time.monotonic()
 
+    def armed(self):
+        """Lockstep holds: wheel commands came within lockstep_timeout_s."""
+        return self.lockstep and time.monotonic() - self.command_at <= self.lockstep_timeout
+
     def wait_for_answer(self):
         """Lockstep: hold the physics until every drive's current frame answered the last sample
         (called with self.lock held; the wait releases it for the bus threads)."""
-        if not self.lockstep or time.monotonic() - self.command_at > self.lockstep_timeout:
+        if not self.armed():
             return
         start = time.monotonic()
         if not self.answered.wait_for(
@@ -240,6 +244,7 @@ class SimKrangNode(Node):
         start = time.monotonic()
         k = 0
         answer_due = None  # the step from which the answer to the last sample acts
+        paced_at = self.factor
         while self.running:
             with self.lock:
                 if k == answer_due:
@@ -273,8 +278,15 @@ class SimKrangNode(Node):
                 clock.clock.nanosec = nanosec
                 self.clock_pub.publish(clock)
             k += 1
-            if self.factor > 0:
-                ahead = start + self.sim.t / self.factor - time.monotonic()
+            factor = self.factor
+            if factor <= 0 and self.lockstep and not self.armed():
+                # unpaced lockstep without a control loop (yet): real time, not a free run of
+                # simulated minutes before the nodes are up
+                factor = 1.0
+            if factor > 0:
+                if factor != paced_at:  # a new schedule from here
+                    paced_at, start = factor, time.monotonic() - self.sim.t / factor
+                ahead = start + self.sim.t / factor - time.monotonic()
                 if ahead > 0:
                     time.sleep(ahead)
                 elif ahead < -self.max_lag:

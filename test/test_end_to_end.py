@@ -13,7 +13,7 @@ import pytest
 from conftest import REPO
 from krang_cli.relearn import REPRODUCTION_TOLERANCE
 
-# In the default run: ~90 s on the 2-core machine.
+# In the default run: ~75 s on the 2-core machine (simulator in lockstep, unpaced).
 pytestmark = pytest.mark.ros
 
 
@@ -60,6 +60,22 @@ def test_bag_is_read_identically_by_rosbags_and_mcap_ros2(demo):
     assert mcap_counts['/balanced_pose'] == summary['poses']
     for topic in ('/joint_states', '/imu/data', '/wheel_effort_cmd', '/diagnostics', '/pose_server/target'):
         assert mcap_counts[topic] > 0, topic
+
+
+def test_wheel_commands_name_the_wheels_and_the_sample_they_answer(demo):
+    """/wheel_effort_cmd is a JointState of both wheels stamped with the /imu/data sample it
+    answers (the controller steps on each one): the link from a command to its sample."""
+    out, _ = demo
+    from krang_bag.reader import bag_info, iter_messages
+    bag = out / 'session.mcap'
+    assert bag_info(bag).topics['/wheel_effort_cmd'].type_name == 'sensor_msgs/msg/JointState'
+    imu = {(m.header.stamp.sec, m.header.stamp.nanosec)
+           for _, _, m in iter_messages(bag, ['/imu/data'])}
+    commands = [m for _, _, m in iter_messages(bag, ['/wheel_effort_cmd'])]
+    assert all(list(m.name) == ['JLWheel', 'JRWheel'] and len(m.effort) == 2 for m in commands)
+    answered = sum((m.header.stamp.sec, m.header.stamp.nanosec) in imu for m in commands)
+    # the recorder, a best-effort subscriber on a busy machine, may miss some samples it answered
+    assert answered > 0.5 * len(commands), (answered, len(commands))
 
 
 def test_relearn_reproduces_the_online_beta(demo, tmp_path):
