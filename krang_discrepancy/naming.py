@@ -19,16 +19,18 @@ Procedure (``name_effects``):
    t = paired t over blocks of log(loss_nominal_b / loss_candidate_b), a test over blocks that does
    not pretend overlapping windows are independent (and, on log ratios, is not dominated by the most
    excited blocks).
-5. Selection (forward): the best single candidate is accepted if improvement >= ``min_improvement``
-   AND t >= ``min_t``; then every remaining effect is scanned on top of the accepted set, the
-   ``combo_candidates`` best are fitted jointly with it, and one more effect is accepted only if it
-   removes a further ``min_improvement`` of the remaining held-out loss, again with t >= ``min_t``;
-   up to ``max_effects``. With a long record an information criterion alone admits spurious terms
-   (notes/identification.md §4); the minimum effect size on held-out data does not.
-6. Uncertainty: cluster-robust sandwich covariance of the full-data fit, A^-1 B A^-1 with A the
-   Gauss-Newton Hessian of the soft-L1 loss and B the sum over ``cluster_s`` clusters of the outer
-   products of the summed scores, so the autocorrelated, overlapping windows are not counted as
-   independent evidence.
+5. Selection: an effect (alone, or added to the accepted set) is accepted if it removes at
+   least ``min_improvement`` of the (remaining) held-out loss AND either t >= ``min_t`` or the
+   evidence-weighted t (blocks weighted by how much the effect changes the predictions there, see
+   ``_compare``) is >= ``min_t`` over at least ``min_weighted_blocks`` effective blocks. Forward up
+   to ``max_effects`` (partners ranked by a conditional scan whose grids hold each effect's zero),
+   with a backward step once a third effect enters (``_drop_redundant``). With a long record an
+   information criterion alone admits spurious terms (notes/identification.md §4); the minimum
+   effect size on held-out data does not.
+6. Uncertainty: the larger of the cluster-robust sandwich (``cluster_s`` clusters) and the
+   delete-a-fold jackknife of the fold fits (``_uncertainty``).
+7. Consistency: ``per_record_values`` / ``per_third_values`` refit the selection per record and
+   per third of the records (``split_values``).
 """
 from __future__ import annotations
 

@@ -4,14 +4,15 @@ The library can only name what it holds. After the best library effects are fitt
 (measured - predicted, whitened) is either noise the data cannot explain, or it still has
 structure: then the missing physics is outside the library (a drive deadband, an IMU scale-factor
 error, a mass that grows, ...) or the library effect that was named absorbed part of something
-else. A library-free test tells the two apart: generic generalised forces on the wheel and on the pitch
-equation, each a fixed shape of the state and command (a constant, the torque, its sign, its
-square, the wheel-to-body and ground speeds and their sign, the pitch, the pitch rate, the time,
-the body's CoM angle as the pose sets it)
-times a free coefficient, and scale factors of the gyro and the wheel-rate sensor, are linearised about the model (one batched prediction), fitted to the
-whitened residual on the training folds (robust least squares) and judged on the held-out blocks
-with the same rule as an effect (improvement >= ``min_improvement`` of the held-out loss, paired t
-over blocks >= ``min_t``). Noise cannot be predicted by forces; a missing dynamic effect can.
+else. A library-free test tells the two apart: generic generalised forces on the wheel and on
+the pitch equation, each a fixed shape of the state and command (a constant, the torque, its
+sign, its square, the wheel-to-body and ground speeds and their sign, the pitch, the pitch rate,
+the time, the body's CoM angle as the pose sets it) times a free coefficient, and scale factors of
+the gyro and the wheel-rate sensor, are linearised about the model (batched predictions), fitted
+to the whitened residual on the training folds (robust least squares) and judged on the
+held-out blocks with the same rule as an effect (improvement >= ``min_improvement`` of the
+held-out loss, paired t over blocks >= ``min_t``). Noise cannot be predicted by forces; a
+missing dynamic effect can.
 
 ``residual_structure`` returns the test and the residual's signature: which signals carry the
 predictable part, which phases, which features predict it, and the lag structure (decorrelation
@@ -63,11 +64,11 @@ class Structure:
         ph = sorted(((p, v['loss']) for p, v in self.phases.items()), key=lambda kv: -kv[1])
         feats = ', '.join(f'{f} ({s:.0%})' for f, s in self.features[:3])
         lags = ', '.join(f'{c} {self.decorrelation_s.get(c, math.nan):.2f} s' for c, _ in sig[:2])
-        return (f'the residual is {"" if self.significant else "not "}predictable from the measured '
-                f'state and commands (held-out improvement {self.improvement:.2f}, t {self.t:.1f}); '
-                f'signals: ' + ', '.join(f'{c} {v:.0%}' for c, v in sig) + '; worst phases: '
-                + ', '.join(f'{p} (loss {v:.2g})' for p, v in ph[:2]) + f'; predicted by: {feats}; '
-                f'decorrelation time {lags}')
+        return (f'the residual is {"" if self.significant else "not "}predictable from the '
+                f'measured state and commands (held-out improvement {self.improvement:.2f}, '
+                f't {self.t:.1f}); signals: ' + ', '.join(f'{c} {v:.0%}' for c, v in sig)
+                + '; worst phases: ' + ', '.join(f'{p} (loss {v:.2g})' for p, v in ph[:2])
+                + f'; predicted by: {feats}; decorrelation time {lags}')
 
 
 #: generic generalised-force shapes g(s) (each O(1)); each acts on the wheel equation and, as a
@@ -177,7 +178,8 @@ def residual_structure(replay: Replay, terms, folds, blocks, *, min_improvement=
     zr, pr = z.reshape(shape), pred.reshape(shape)
     for c, ch in enumerate(CHANNELS):
         v = float(np.mean(zr[:, :, c] ** 2))
-        st.signals[ch] = float(1.0 - np.mean((zr[:, :, c] - pr[:, :, c]) ** 2) / v) if v > 0 else 0.0
+        left = float(np.mean((zr[:, :, c] - pr[:, :, c]) ** 2))
+        st.signals[ch] = 1.0 - left / v if v > 0 else 0.0
     for ph in PHASES:
         m = replay.win_phase[act] == ph
         if m.any():

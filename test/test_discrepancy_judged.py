@@ -141,8 +141,8 @@ def test_validation_suite(case, tmp_path):
     10 % and 4 sigma; outside the library -> unexplained or the stated equivalent."""
     import importlib.util
     from pathlib import Path
-    spec = importlib.util.spec_from_file_location(
-        'bench_discrepancy', Path(__file__).resolve().parents[1] / 'bench' / 'bench_discrepancy.py')
+    path = Path(__file__).resolve().parents[1] / 'bench' / 'bench_discrepancy.py'
+    spec = importlib.util.spec_from_file_location('bench_discrepancy', path)
     bench = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(bench)
     r = bench.hidden_case(case)
