@@ -71,10 +71,9 @@ def run(args):
               eta=args.eta, calibrate=args.calibrate, pitch_offset_std=args.pitch_offset_std)
     estimator = est.make_estimator(args.method, robot, beta0, **kw)
     beta, info = estimator.fit(q_base, joints)
-    offset = info.get('pitch_offset_rad', 0.0)
-    q_base = q_base - offset           # as the model sees the poses (0 without an offset term)
+    offset = info.get('pitch_offset_rad', 0.0)      # the model sees the poses at q - offset
     xc0 = x_com(robot, q_base, joints, beta0)
-    xc = x_com(robot, q_base, joints, beta)
+    xc = x_com(robot, q_base - offset, joints, beta)
     cons = est.physical_consistency(robot, beta, total_mass=args.total_mass)
     summary = {
         'method': args.method, 'poses': int(len(q_base)), 'out': str(args.out),

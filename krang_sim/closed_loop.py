@@ -6,9 +6,11 @@ controller at its own rate (500 Hz) and the physics at 1 kHz.
 * ``run_balance``: sit -> stand up -> balance for T seconds; returns a ``metrics.BalancingRun``
   (currents, x_wheel_rad, dx_wheel_rad_s, theta, ...) logged at the hardware's 30 Hz, so the
   paper's Table II definitions (20-sample smoothing, mJ-per-step "power") mean what they meant.
-* ``run_online_session``: the online learning loop: command a pose, keep balancing while the
-  joints move, wait for the detector's point, update beta with the learner, push it into the
-  controller, repeat.
+* ``run_online_session``: the online learning loop: command a pose (a fixed list, or a chooser
+  such as krang_pose_server.selection.AdaptiveSelector asked with the learner's posterior), move
+  there as the pose server does (a straight line streamed at 20 Hz), keep balancing while the
+  joints move, wait for the detector's point, update beta with the learner (with the point's
+  standard error), push it into the controller, repeat.
   The learner is any estimator of the registry (krang_com_estimator.estimators.make_estimator;
   default the paper's GD, ``paper-gd``): ``update(q_base, joints)``, then ``beta``.
 

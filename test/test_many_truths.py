@@ -78,6 +78,7 @@ def test_move_cost_steers_the_choice_to_near_poses():
     assert paid[2][np.argmax(paid[0])] <= free[2][np.argmax(free[0])]
 
 
+@pytest.mark.timeout(900)
 def test_few_truths_few_poses_fast():
     result = run(Params(truth_seeds=(7100, 7101), n_poses=3, selections=('adaptive',)))
     complete, final = _check_sessions(result, 3)
@@ -86,6 +87,7 @@ def test_few_truths_few_poses_fast():
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(5400)
 def test_ten_truths_twelve_poses_under_a_millimetre():
     result = run(Params(truth_seeds=tuple(range(7100, 7110)), n_poses=12,
                         selections=('adaptive',)))
