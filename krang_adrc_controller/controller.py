@@ -501,7 +501,7 @@ class BalanceController:
             self._waist = float(sample.joints[0])
         k_step = self._k
         self._k = k_step + 1
-        if finite and (sample.joints_moving or self._moving or self._pose is None
+        if finite and not stale and (sample.joints_moving or self._moving or self._pose is None
                        or k_step % self._pose_check_every == 0):
             self._track_pose(t, sample.joints, sample.joints_moving)
         # 1. state

@@ -145,7 +145,6 @@ def test_names_move_with_the_namespace_and_read_only_parameters_refuse(tmp_path)
         client.spin_until(lambda: expected_services <= graph()[0]
                           and expected_topics <= graph()[1], 60.0,
                           'the namespaced controller in the graph')
-        assert ('adrc_controller', '/robot1') in client.get_node_names_and_namespaces()
         set_parameters = client.create_client(SetParameters,
                                               '/robot1/adrc_controller/set_parameters')
         for name, value in (('adrc.eso.omega_o', 5.0), ('step_on_imu', True)):
