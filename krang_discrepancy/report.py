@@ -523,8 +523,8 @@ def _write_report(path, records, replay, loc, result, gaps_yaml, per_phase, held
             for e in items) + '**\n')
     if js.get('misattribution_warning'):
         L.append('**Warning (misattributed effect?):** ' + js['misattribution_warning'] + '.\n')
-        L.append('| effect | ' + ' | '.join(js['per_record']['records']) + ' | chi2/dof |')
-        L.append('|---|' + '---|' * (len(js['per_record']['records']) + 1))
+        L.append('| effect | ' + ' | '.join(js['per_record']['groups']) + ' | chi2/dof |')
+        L.append('|---|' + '---|' * (len(js['per_record']['groups']) + 1))
         for k, v in js['per_record']['effects'].items():
             L.append(f'| {k} ({v["unit"]}) | ' + ' | '.join(
                 f'{x:.4g} ± {u:.2g}' for x, u in zip(v['values'], v['uncertainties']))

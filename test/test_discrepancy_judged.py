@@ -131,6 +131,21 @@ def test_baseline_chain_of_two_names_what_changed_in_physical_units(tmp_path):
     assert terms.drive.torque_constant == pytest.approx(0.8 * KT, rel=0.05)
 
 
+@pytest.mark.slow
+def test_records_that_disagree_raise_the_misattribution_warning(tmp_path):
+    """Two records of 'one robot' whose torque constants differ (0.8 x and 0.6 x): pooled, the
+    per-record refits disagree far beyond their uncertainty and the report says so."""
+    recs = [simulate_record(SimEffects(torque_constant_scale=k), seed=s, name=f'run{s}', **RECORD)
+            for k, s in ((0.8, 3), (0.6, 4))]
+    out = run_discrepancy(recs, tmp_path, plots=False, replay_config=SIM_REPLAY)
+    js = out['json']
+    per = js['per_record']['effects']['torque_constant']
+    assert per['values'][0] == pytest.approx(0.8 * KT, rel=0.05)
+    assert per['values'][1] == pytest.approx(0.6 * KT, rel=0.05)
+    assert 'torque_constant' in js['misattribution_warning']
+    assert 'misattributed' in (tmp_path / 'report.md').read_text()
+
+
 # ----------------------------------------------------------------------------- the suite (slow)
 
 
