@@ -13,7 +13,7 @@ import pytest
 from conftest import REPO
 from krang_cli.relearn import REPRODUCTION_TOLERANCE
 
-# In the default run: ~75 s on the 2-core machine (simulator in lockstep, unpaced).
+# In the default run: ~55 s on the 2-core machine (simulator in lockstep, unpaced).
 pytestmark = pytest.mark.ros
 
 
