@@ -536,3 +536,50 @@ def test_watchdog_settings_are_validated_at_load(tmp_path, change, complaint):
     path.write_text(yaml.safe_dump(data))
     with pytest.raises(ConfigError, match=complaint):
         load_devices(path)
+
+
+def test_on_frame_reports_each_sample_when_its_frames_are_in():
+    """The node publishes on these events: a DMU sample once both of its frames (same sequence
+    number) are in; a wheel sample once position, velocity and current of both drives are in. The
+    wheels' effort is the measured current as torque at the wheel (Kt x gear)."""
+    core, dev, t = healthy_core()
+    t += 0.002
+    rates = struct.pack('<hhhBB', 0, 0, 0, 0, dev.seq)
+    accel = struct.pack('<hhhBB', 0, 0, round(9.81 / (9.80665 * 0.0003)), 0, dev.seq)
+    assert core.on_frame(msg(0x40, rates), t, 'can3') is None
+    assert core.on_frame(msg(0x50, accel), t, 'can3') == bridge.IMU_SAMPLE
+    assert core.imu_state(t).stamp == t
+    events, amps = [], {'JLWheel': 3.0, 'JRWheel': -2.0}
+    for d in CFG.wheels.drives:
+        base = 0x200 + 7 * d.node_id
+        events.append(core.on_frame(msg(base + 3, struct.pack('<Hi', 0x0027, 0)), t, 'can3'))
+        events.append(core.on_frame(msg(base + 4, struct.pack('<Hi', 0x0027, 0)), t, 'can3'))
+        codec = core.wheel_state(d.joint).codec
+        current = codec.encode_actual_current(amps[d.joint], 0x0027)
+        events.append(core.on_frame(current, t, 'can3'))
+        events.append(core.on_frame(msg(base + 6, struct.pack('<H', 0x0027)), t, 'can3'))
+    # HandDevices sent no current TPDO: the first sample completes with the right drive's current
+    assert events == [None] * 6 + [bridge.WHEEL_SAMPLE, None]
+    js = core.joint_state(t)
+    drive = drivetrain(load_krang())
+    efforts = dict(zip(js.names, js.efforts))
+    nm_per_a = drive.torque_constant * drive.gear_ratio
+    for joint, a in amps.items():
+        assert efforts[joint] == pytest.approx(a * nm_per_a, rel=2e-3)
+    assert all(math.isnan(efforts[j.joint]) for j in CFG.powercube.joints)
+    assert len(js.efforts) == len(js.names)
+
+
+def test_watchdog_sends_only_while_commands_stop():
+    """Commands send their own frames; the watchdog timer adds none while they flow, and once they
+    stop it sends the (stale: zero) current within WATCHDOG_QUIET_PERIODS refresh periods."""
+    core, _, t = healthy_core()
+    period = 1.0 / CFG.wheels.command_rate_hz
+    core.set_wheel_effort_command([10.0, 10.0], t)
+    assert [wheel_amps_by_hand(f) for f in core.wheel_command_frames(t)] != [0.0, 0.0]
+    assert core.wheel_watchdog_frames(t + 0.5 * period) == []
+    assert core.wheel_watchdog_frames(t + (bridge.WATCHDOG_QUIET_PERIODS - 0.1) * period) == []
+    late = t + CFG.wheels.command_timeout_s + period
+    assert [wheel_amps_by_hand(f) for f in core.wheel_watchdog_frames(late)] == [0.0, 0.0]
+    # the loop counts as running either way: the drives' watchdog keeps being fed
+    assert core.watchdog_frames(late) != []
