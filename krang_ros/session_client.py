@@ -68,24 +68,40 @@ class SessionClient(Node):
 
     def enable_controller(self, timeout):
         """Enable the balance controller as soon as it accepts (it refuses until sensor data
-        flow), wait until it sits powered, then ask it to stand up (enable alone does not)."""
+        flow), wait until it sits powered, then ask it to stand up (enable alone does not).
+        A lost answer (DDS drops a service response whose reader it has not matched yet) is
+        retried: enable is idempotent, and a stand_up is judged by the mode topic."""
         deadline = time.monotonic() + timeout
+
+        def left():
+            return max(1.0, deadline - time.monotonic())
+
         while True:
-            reply = self.call(self.enable, SetBool.Request(data=True),
-                              timeout=max(1.0, deadline - time.monotonic()))
+            try:
+                reply = self.call(self.enable, SetBool.Request(data=True),
+                                  timeout=min(5.0, left()))
+            except SessionError:
+                if time.monotonic() > deadline:
+                    raise
+                continue
             if reply.success:
                 break
             if time.monotonic() > deadline:
                 raise SessionError(f'adrc_controller did not accept enable: {reply.message}')
             self.pause(1.0)
-        self.spin_until(lambda: self.mode in ('sit', 'stand_up', 'balance'),
-                        max(1.0, deadline - time.monotonic()), 'the controller to sit powered')
-        if self.mode != 'sit':
-            return f'{reply.message}; already {self.mode}'
-        stand = self.operate(names.STAND_UP, timeout=max(1.0, deadline - time.monotonic()))
-        if not stand.success:
-            raise SessionError(f'adrc_controller did not stand up: {stand.message}')
-        return f'{reply.message}; {stand.message}'
+        self.spin_until(lambda: self.mode in ('sit', 'stand_up', 'balance'), left(),
+                        'the controller to sit powered')
+        while self.mode == 'sit':
+            try:
+                stand = self.operate(names.STAND_UP, timeout=min(5.0, left()))
+            except SessionError:
+                if time.monotonic() > deadline:
+                    raise
+                continue
+            if not stand.success:
+                raise SessionError(f'adrc_controller did not stand up: {stand.message}')
+            return f'{reply.message}; {stand.message}'
+        return f'{reply.message}; already {self.mode}'
 
     def wait_for_balance(self, timeout):
         self.spin_until(lambda: self.mode is not None and 'balance' in self.mode.lower(), timeout,
