@@ -95,3 +95,20 @@ def test_ten_truths_twelve_poses_under_a_millimetre():
     assert all(complete)
     assert np.median(final) < 1.0e-3
     assert final.max() < 1.5e-3
+
+
+def test_report_draws_both_selections_and_writes_the_json(tmp_path):
+    from krang_experiments.many_truths import report, summarise
+    import json
+    params = Params(truth_seeds=(1, 2), n_poses=2)
+    runs = {'fixed': [{'curve_m': [0.015, 0.004, 0.002], 'learned': 2, 'failures': []},
+                      {'curve_m': [0.013], 'learned': 0, 'failures': [[0, 'left balance']]}],
+            'adaptive': [{'curve_m': [0.015, 0.003, 0.001], 'learned': 2, 'failures': []},
+                         {'curve_m': [0.013, 0.002, 0.0009], 'learned': 2, 'failures': []}]}
+    result = {'params': params, 'truths': [{'seed': 1}, {'seed': 2}], 'runs': runs,
+              'summary': summarise(runs, 2), 'wall_s': 1.0}
+    text = report(result, tmp_path)
+    assert 'fixed: 1/2 complete' in text and 'adaptive: 2/2 complete' in text
+    assert (tmp_path / 'many_truths.png').stat().st_size > 0
+    doc = json.loads((tmp_path / 'many_truths.json').read_text())
+    assert doc['summary']['adaptive']['median_final_m'] == pytest.approx(0.00095)
