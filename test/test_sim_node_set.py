@@ -54,6 +54,7 @@ class Observer:
         self.truth_rows = []                    # every ground-truth field by name
         self.fault_at = None
         self.safe_stop_at = None
+        self.sim = {}                           # sim_krang's latest diagnostics values
         client.create_subscription(Float64MultiArray, GROUND_TRUTH, self.on_truth, 50)
         client.create_subscription(DiagnosticArray, topics.DIAGNOSTICS, self.on_diagnostics,
                                    topics.QOS[topics.DIAGNOSTICS])
@@ -66,6 +67,8 @@ class Observer:
     def on_diagnostics(self, msg):
         for status in msg.status:
             values = {kv.key: kv.value for kv in status.values}
+            if status.name == 'sim_krang':
+                self.sim = values
             if status.name == 'sim_krang' and 'silent_since_s' in values and self.fault_at is None:
                 self.fault_at = float(values['silent_since_s'])
             if status.name == 'adrc_controller' and values.get('mode') == 'safe_stop' and self.safe_stop_at is None:
@@ -106,8 +109,11 @@ def test_unpaced_simulation_keeps_balancing(tmp_path):
     with balancing_node_set(tmp_path, real_time_factor=0.0) as (client, observer, _):
         start = len(observer.truth_rows)
         observer.safe_stop_at = None            # the one before the enable does not count
+        misses = int(observer.sim['lockstep_misses'])
         client.pause(8.0)
         truth = observer.truth_rows[start:]
+    # every sample answered: nothing lost from the DMU frames to the current frames
+    assert int(observer.sim['lockstep_misses']) == misses
     assert len(truth) > 40
     assert observer.safe_stop_at is None and client.mode == 'balance'
     simulated = truth[-1]['t'] - truth[0]['t']
