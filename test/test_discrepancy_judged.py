@@ -102,6 +102,22 @@ def test_no_effect_is_none_and_its_residual_unstructured(tmp_path):
 # ----------------------------------------------------------------------------- baselines
 
 
+def test_far_off_a_baseline_is_unexplained_not_none():
+    """Judged in a baseline's units, a model still > MAX_GAP x its typical error off after the
+    library effects is 'unexplained' even when nothing is named and the residual test is quiet;
+    without a baseline the same figures give 'none'."""
+    from types import SimpleNamespace
+    from krang_discrepancy.report import _verdict
+    from krang_discrepancy.verdict import MAX_GAP, Structure
+    quiet = Structure(0.0, 0.0, False)
+    nothing = SimpleNamespace(selected=None)
+    far = {'after': {'gap': 4.0 * MAX_GAP}}
+    assert _verdict(nothing, quiet, far, True)[0] == 'unexplained'
+    assert _verdict(nothing, quiet, far, False)[0] == 'none'
+    assert _verdict(nothing, quiet, {'after': {'gap': 0.5 * MAX_GAP}}, True)[0] == 'none'
+
+
+
 def test_baseline_chain_of_two_names_what_changed_in_physical_units(tmp_path):
     """A: slope 0.02 rad (its own run). B = A + torque constant 0.8 x, judged against A: names
     the torque constant as N m/A, its file holds slope + Kt. C = B + 5 kg on the left gripper,
