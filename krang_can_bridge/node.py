@@ -23,7 +23,8 @@ Topics:
   wheel, header.stamp = the /imu/data sample it answers; reliable) and /joint_position_cmd
   (sensor_msgs/JointState, positions by name);
 - publishes /can_bridge/drive_fault (std_msgs/String, latched): the latched drive fault's reason,
-  '' when clear (BridgeCore: a FAULT or EMCY of any drive stops both wheels);
+  '' when clear (BridgeCore: a FAULT or EMCY of any drive stops both wheels; the frame that latches
+  it sends zero current at once);
 - serves ~/recover (std_srvs/Trigger, /can_bridge/recover): DS402 fault reset and the enable
   sequence (the start-up again), then unlatches only if every drive reports OPERATION_ENABLED;
   refused with the reason otherwise.
@@ -324,8 +325,16 @@ class CanBridgeNode(Node):
                 and msg.arbitration_id in self.core.dmu.feedback_ids
             ):
                 now = self._imu_sample_time(msg, now)
+            fault = self.core.fault_reason
             sample = self.core.on_frame(msg, now, bus)
             out = self._sample_message(sample, now) if sample else None
+            # a drive fault this frame latched: zero current at once, not at the next command
+            stop = (
+                self.core.wheel_current_frames(0.0, 0.0, self._device_time())
+                if self.core.fault_reason and not fault
+                else []
+            )
+        self.send(stop)
         if out is not None:
             out[0].publish(out[1])
             self.published[out[2]] += 1
