@@ -38,7 +38,7 @@ import time
 import can
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
-from rcl_interfaces.msg import SetParametersResult
+from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rosgraph_msgs.msg import Clock
@@ -50,7 +50,7 @@ from krang_can_bridge.protocols import amc as amc_proto
 from krang_can_bridge.config import default_devices_file, load_devices
 from krang_model.beta import load_beta
 from krang_model.robot import load_krang
-from krang_ros import messages, names, topics
+from krang_ros import messages, names, params, topics
 from krang_ros.spin import run_node
 
 from .devices import KrangCanDevices
@@ -58,6 +58,95 @@ from .physics import KrangSim, SensorNoise, SimConfig, SimEffects
 from .session_config import resolve_config_file
 
 GROUND_TRUTH_FIELDS = ('t', 'q_base', 'x_m', 'balance_pitch', 'current_left_a', 'current_right_a')
+
+
+def _doc(default, text):
+    return dataclasses.field(default=default, metadata={'doc': text})
+
+
+@dataclasses.dataclass(frozen=True)
+class SimNodeParams:
+    """sim_krang's parameters (all read at start, except `silent_devices`)."""
+
+    devices_file: str = _doc(
+        '',
+        "device map; '' = config/can_devices.yaml (the simulator's "
+        'udp_multicast buses); a bare name is looked up in config/',
+    )
+    true_beta: str = _doc(
+        '',
+        "the hidden true beta file; '' = config/sim_true_beta.yaml; a bare "
+        'name is looked up in config/',
+    )
+    initial_pose: tuple[float, ...] = _doc(
+        (), 'the 16 body joints in pose order, rad (empty = all zero)'
+    )
+    initial_q_base: float = _doc(math.nan, 'initial base pitch, rad (NaN = resting on the caster)')
+    physics_rate_hz: float = _doc(1000.0, 'physics steps per simulated second, > 0')
+    feedback_rate_hz: float = _doc(250.0, "the DMU's and the drives' sample rate, Hz, > 0")
+    real_time_factor: float = _doc(
+        1.0, 'pace: 1 = real time, 0 = as fast as the CPU (or the lockstep) allows, >= 0'
+    )
+    publish_clock: bool = _doc(False, 'publish /clock for nodes with use_sim_time')
+    clock_rate_hz: float = _doc(0.0, '/clock rate, Hz (0 = with each sensor sample)')
+    seed: int = _doc(0, 'seed of the sensor noise')
+    max_lag_s: float = _doc(0.02, 'catch up at most this far behind the wall clock, then slip, s')
+    lockstep: bool = _doc(
+        False,
+        'advance the physics only when the commands answering the last sample are on the bus',
+    )
+    lockstep_timeout_s: float = _doc(
+        0.5,
+        'wall time to wait for an answer before going on (a '
+        'miss, counted in /diagnostics), s, > 0',
+    )
+    lockstep_delay_s: float = _doc(
+        0.001,
+        'simulated latency from a sample to the action of its '
+        'answer, s (less than one sample period)',
+    )
+    gil_switch_interval_s: float = _doc(
+        0.001, "Python's thread switch interval while the physics runs behind real time, s, > 0"
+    )
+
+    def __post_init__(self):
+        for name in (
+            'physics_rate_hz',
+            'feedback_rate_hz',
+            'lockstep_timeout_s',
+            'gil_switch_interval_s',
+        ):
+            if not getattr(self, name) > 0:
+                raise ValueError(f'{name} must be > 0, got {getattr(self, name)}')
+        if (
+            self.real_time_factor < 0
+            or self.clock_rate_hz < 0
+            or self.max_lag_s < 0
+            or self.lockstep_delay_s < 0
+        ):
+            raise ValueError(
+                'real_time_factor, clock_rate_hz, max_lag_s and lockstep_delay_s must be >= 0'
+            )
+
+
+#: SimEffects fields that are ROS parameters `effects.<name>` (the hidden physical effects).
+EFFECT_FIELDS = tuple(
+    f for f in dataclasses.fields(SimEffects) if isinstance(f.default, (float, str))
+)
+
+
+def describe_parameters():
+    lines = params.describe(SimNodeParams)
+    lines += [
+        f'effects.{f.name} ({type(f.default).__name__}, {f.default!r}): a hidden physical '
+        'effect of the true robot (krang_sim/physics.py SimEffects)'
+        for f in EFFECT_FIELDS
+    ]
+    lines.append(
+        'silent_devices (list of str, []): devices that stop transmitting (fault '
+        "injection: 'imu', a wheel joint, a body joint); settable at run time"
+    )
+    return lines
 
 
 class _Inbox(can.Listener):
@@ -72,27 +161,31 @@ class SimKrangNode(Node):
     def __init__(self):
         super().__init__('sim_krang')
         self.robot = load_krang()
-        p = self.declare_parameter
-        devices_file = p('devices_file', str(default_devices_file())).value
-        truth_file = str(resolve_config_file(p('true_beta', '').value, 'sim_true_beta.yaml'))
-        pose = list(p('initial_pose', [0.0] * len(self.robot.pose_joints)).value)
-        q_base = p('initial_q_base', math.nan).value
-        self.rate = p('physics_rate_hz', 1000.0).value
-        self.feedback_every = max(1, round(self.rate / p('feedback_rate_hz', 250.0).value))
-        self.factor = p('real_time_factor', 1.0).value
-        self.publish_clock = p('publish_clock', False).value
+        cfg = params.declare(self, SimNodeParams)
+        devices_file = str(resolve_config_file(cfg.devices_file, default_devices_file().name))
+        truth_file = str(resolve_config_file(cfg.true_beta, 'sim_true_beta.yaml'))
+        pose = list(cfg.initial_pose) or [0.0] * len(self.robot.pose_joints)
+        if len(pose) != len(self.robot.pose_joints):
+            raise params.ParameterError(
+                f'sim_krang: initial_pose has {len(pose)} values, the '
+                f'robot {len(self.robot.pose_joints)} body joints'
+            )
+        q_base = cfg.initial_q_base
+        self.rate = cfg.physics_rate_hz
+        self.feedback_every = max(1, round(self.rate / cfg.feedback_rate_hz))
+        self.factor = cfg.real_time_factor
+        self.publish_clock = cfg.publish_clock
         # /clock every `clock_every` physics steps (default: with each sensor feedback). Every node
         # on use_sim_time pays for each /clock message (rclpy re-evaluates its timers), so the rate
         # is the coarsest the nodes' timers need.
-        self.clock_every = max(
-            1, round(self.rate / p('clock_rate_hz', self.rate / self.feedback_every).value)
-        )
-        seed = p('seed', 0).value
+        clock_rate = cfg.clock_rate_hz or self.rate / self.feedback_every
+        self.clock_every = max(1, round(self.rate / clock_rate))
+        seed = cfg.seed
+        read_only = ParameterDescriptor(read_only=True, description='a hidden physical effect')
         effects = SimEffects(
             **{
-                f.name: p(f'effects.{f.name}', f.default).value
-                for f in dataclasses.fields(SimEffects)
-                if isinstance(f.default, (float, str))
+                f.name: self.declare_parameter(f'effects.{f.name}', f.default, read_only).value
+                for f in EFFECT_FIELDS
             }
         )
         self.config = load_devices(devices_file)
@@ -120,13 +213,13 @@ class SimKrangNode(Node):
         self.lock = threading.Lock()
         self.sent_frames = 0
         self.slips = 0
-        self.max_lag = p('max_lag_s', 0.02).value
-        self.lockstep = p('lockstep', False).value
-        self.lockstep_timeout = p('lockstep_timeout_s', 0.5).value
+        self.max_lag = cfg.max_lag_s
+        self.lockstep = cfg.lockstep
+        self.lockstep_timeout = cfg.lockstep_timeout_s
         # the answer to a sample acts from this long after it in simulated time (the control path's
         # latency; at most one sample period less one physics step)
         self.lockstep_delay_steps = min(
-            self.feedback_every - 1, max(0, round(p('lockstep_delay_s', 0.001).value * self.rate))
+            self.feedback_every - 1, max(0, round(cfg.lockstep_delay_s * self.rate))
         )
         self.answered = threading.Condition(self.lock)
         self.rpdo_seen = set()  # drives whose current frame came in since the last sample
@@ -162,11 +255,13 @@ class SimKrangNode(Node):
         # interpreter's 5 ms switch interval at a time; the nine bus threads then get it in turn
         # and a wheel current command waited tens of simulated ms before it reached the drive. 1 ms
         # slices bound that to about a millisecond per waiting thread.
-        sys.setswitchinterval(
-            min(sys.getswitchinterval(), p('gil_switch_interval_s', 0.001).value)
-        )
+        sys.setswitchinterval(min(sys.getswitchinterval(), cfg.gil_switch_interval_s))
         self.silent_since = None
-        silent = p('silent_devices', Parameter.Type.STRING_ARRAY).value
+        silent = self.declare_parameter(
+            'silent_devices',
+            Parameter.Type.STRING_ARRAY,
+            ParameterDescriptor(description=describe_parameters()[-1]),
+        ).value
         if silent:
             self.silence(silent)
         self.add_on_set_parameters_callback(self.on_parameters)
