@@ -15,13 +15,14 @@ Lockstep (`lockstep`): after each sensor sample the physics waits until the whee
 that answer it are on the bus (an RPDO from every drive, applied to the emulated drives before the
 physics goes on), so the node set runs as fast as the control path allows (with
 `real_time_factor` 0; real time until the commands come) and every command acts from the same
-simulated time in every run, however late it came in wall time. It waits on the bus, not on /wheel_effort_cmd: the current takes effect
-when the drive receives its frame, and a message on the topic can overtake the bridge's frames.
-The topic arms it: lockstep holds while wheel commands arrive (within `lockstep_timeout_s` of wall
-time), so a node set without a controller, or one that stopped, still runs; a sample left
-unanswered that long is counted (`lockstep_misses` in /diagnostics) and the physics goes on. The
-answer acts from `lockstep_delay_s` after its sample in simulated time (whole physics steps, less
-than one sample period), the latency the simulated robot sees, whatever the wall-clock one was.
+simulated time in every run, however late it came in wall time. It waits on the bus, not on
+/wheel_effort_cmd: the current takes effect when the drive receives its frame, and a message on the
+topic can overtake the bridge's frames. The topic arms it: lockstep holds while wheel commands
+arrive (within `lockstep_timeout_s` of wall time), so a node set without a controller, or one that
+stopped, still runs; a sample left unanswered that long is counted (`lockstep_misses` in
+/diagnostics) and the physics goes on. The answer acts from `lockstep_delay_s` after its sample in
+simulated time (whole physics steps, less than one sample period), the latency the simulated robot
+sees, whatever the wall-clock one was.
 
 Fault injection: `silent_devices` (string array, settable at run time, e.g. through
 /sim_krang/set_parameters) silences devices as devices.py describes: 'imu', a wheel joint for its
