@@ -63,11 +63,6 @@ def describe_parameters():
     return [f'{name} ({kind.__name__}, {default!r}): {doc}' for name, kind, default, doc in rows]
 
 
-def relative(name):
-    """A graph name of krang_ros.names as a name relative to the node's namespace."""
-    return name.lstrip('/')
-
-
 class AdrcControllerNode(Node):
     def __init__(self):
         super().__init__('adrc_controller')
@@ -93,7 +88,7 @@ class AdrcControllerNode(Node):
         qos = topics.QOS
 
         def publisher(kind, name, private=False, profile=None):
-            topic = '~/' + name.rsplit('/', 1)[1] if private else relative(name)
+            topic = names.private(name) if private else names.relative(name)
             return self.create_publisher(kind, topic, profile or qos[name])
 
         self.effort_pub = publisher(JointState, names.WHEEL_EFFORT_CMD)
@@ -104,18 +99,18 @@ class AdrcControllerNode(Node):
         # Control acts on the newest sample only: after a stall, a queue of older samples (sensor
         # QoS keeps 5, /joint_states 10) would be worked off one control step each, all late.
         latest = QoSProfile(depth=1, reliability=ReliabilityPolicy.BEST_EFFORT)
-        self.create_subscription(Imu, relative(names.IMU), self.on_imu, latest)
+        self.create_subscription(Imu, names.relative(names.IMU), self.on_imu, latest)
         self.create_subscription(
-            JointState, relative(names.JOINT_STATES), self.on_joint_states, latest
+            JointState, names.relative(names.JOINT_STATES), self.on_joint_states, latest
         )
         self.create_subscription(
-            Float64MultiArray, relative(names.BETA), self.on_beta, qos[names.BETA]
+            Float64MultiArray, names.relative(names.BETA), self.on_beta, qos[names.BETA]
         )
         self.create_subscription(
-            JointState, relative(names.POSE_TARGET), self.on_target, qos[names.POSE_TARGET]
+            JointState, names.relative(names.POSE_TARGET), self.on_target, qos[names.POSE_TARGET]
         )
         self.create_subscription(
-            String, relative(names.DRIVE_FAULT), self.on_drive_fault, topics.LATCHED
+            String, names.relative(names.DRIVE_FAULT), self.on_drive_fault, topics.LATCHED
         )
         self.create_service(SetBool, '~/enable', self.on_enable)
         for name, call in (
@@ -124,7 +119,7 @@ class AdrcControllerNode(Node):
             (names.HALT, self.on_halt),
             (names.CONTROLLER_RECOVER, self.on_recover),
         ):
-            self.create_service(Trigger, '~/' + name.rsplit('/', 1)[1], call)
+            self.create_service(Trigger, names.private(name), call)
         self.period = 1.0 / self.config.rate_hz
         self.last_step = None
         self.last_sample_t = None
@@ -286,8 +281,13 @@ class AdrcControllerNode(Node):
         out = self.controller.step(sample, stale=stale)
         self.last_output = out
         # stamped with the sample it answers (sim_krang's lockstep, latency measurements)
-        self.effort_pub.publish(messages.wheel_effort(
-            stamp or self.get_clock().now().to_msg(), WHEELS, (out.torque_left, out.torque_right)))
+        self.effort_pub.publish(
+            messages.wheel_effort(
+                stamp or self.get_clock().now().to_msg(),
+                WHEELS,
+                (out.torque_left, out.torque_right),
+            )
+        )
         for event in out.events:
             self.get_logger().info(event)
         if out.mode != self.mode:

@@ -1,6 +1,7 @@
-"""One balanced pose in, one beta out: the glue shared by the com_estimator node and `krang relearn`,
-so that replaying a bag runs exactly the computation the robot ran. `method` is any name of the
-estimator registry (estimators.make_estimator)."""
+"""One balanced pose in, one beta out: the glue shared by the com_estimator node and `krang
+relearn`, so that replaying a bag runs exactly the computation the robot ran. `method` is any name
+of the estimator registry (estimators.make_estimator)."""
+
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -9,10 +10,6 @@ from krang_model.com import com_frame0
 from krang_ros.names import BASE_PITCH
 
 from .estimators import NoiseModel, make_estimator
-
-#: The estimator's posterior (latched): a (n_beta + 1) x n_beta Float64MultiArray, row 0 = beta,
-#: rows 1.. = its covariance (none: zeros). The pose server's adaptive choice reads it.
-POSTERIOR = '/com_estimator/posterior'
 
 
 @dataclass
@@ -36,9 +33,15 @@ class OnlineLearner:
         """Learn from one balanced pose (q_base in rad, joints in pose order; sigma: its pitch
         standard error in rad, if known); returns the new beta."""
         joints = np.asarray(joints, dtype=float)
-        if joints.shape != (len(self.robot.pose_joints),) or not np.all(np.isfinite(joints)) \
-                or not np.isfinite(q_base):
-            raise ValueError(f'balanced pose needs {len(self.robot.pose_joints)} finite joints and a finite q_base')
+        if (
+            joints.shape != (len(self.robot.pose_joints),)
+            or not np.all(np.isfinite(joints))
+            or not np.isfinite(q_base)
+        ):
+            raise ValueError(
+                f'balanced pose needs {len(self.robot.pose_joints)} finite joints and a finite '
+                f'q_base'
+            )
         # the estimator's own measurement model (MAP: errors in the measured pitch, not in x_com)
         if sigma is None:
             self.estimator.update(float(q_base), joints)
@@ -54,7 +57,9 @@ class OnlineLearner:
 
     def com(self, q_base, joints):
         """The estimated CoM (frame 0) at a pose."""
-        return com_frame0(self.robot, [q_base], np.asarray(joints, dtype=float)[None], self.estimator.beta)[0]
+        return com_frame0(
+            self.robot, [q_base], np.asarray(joints, dtype=float)[None], self.estimator.beta
+        )[0]
 
     def reset(self):
         self.__post_init__()

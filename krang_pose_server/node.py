@@ -4,81 +4,146 @@ selection 'adaptive' (default): from a pool of safe, balanced poses (pool_file, 
 drawn at start with pool_seed), the pose that most lowers the expected forward CoM error per
 second of move and settle, given the estimator's posterior on /com_estimator/posterior
 (krang_pose_server.selection). selection 'fixed': the meta-learned list poses_file in order (the
-paper's method)."""
+paper's method).
+
+~/next_pose is refused unless the controller balances (its latched mode topic) and while a move is
+under way; a move stops where it is if the controller leaves balance."""
+
+import math
 import sys
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.node import Node
 from sensor_msgs.msg import JointState
-from std_msgs.msg import Float64MultiArray
+from std_msgs.msg import Float64MultiArray, String
 from std_srvs.srv import Trigger
-
-from krang_com_estimator.online import POSTERIOR
 
 from krang_model.config import config_path
 from krang_model.poses import load_poses
 from krang_model.robot import KRANG_POSE_COLUMNS, load_krang
-from krang_ros import messages, names, topics
+from krang_ros import messages, names, params, topics
 from krang_ros.spin import run_node
 
 from .pool import generate_pool
-from .selection import AdaptiveSelector
+from .selection import CRITERIA, AdaptiveSelector
 from .sequence import PoseSequence, StraightLineMove
+
+
+def _doc(default, text):
+    return field(default=default, metadata={'doc': text})
+
+
+@dataclass(frozen=True)
+class PoseServerParams:
+    """pose_server's parameters (read at start)."""
+
+    selection: str = _doc(
+        'adaptive',
+        "'adaptive' (from the pool, by the estimator's posterior) "
+        "or 'fixed' (poses_file in order, the paper's method)",
+    )
+    poses_file: str = _doc('', "the fixed list ('' = config/excitatory_poses.csv)")
+    pool_file: str = _doc('', "adaptive: pose CSV of the pool ('' = draw pool_size poses)")
+    pool_size: int = _doc(1000, 'adaptive: safe, balanced poses drawn at start, >= 1')
+    pool_seed: int = _doc(0, 'adaptive: seed of that draw')
+    criterion: str = _doc('forward', 'adaptive: ' + ' | '.join(CRITERIA))
+    sigma_pitch_rad: float = _doc(
+        math.radians(0.1), "adaptive: a balanced pose's pitch noise, rad, > 0"
+    )
+    settle_s: float = _doc(12.0, 'adaptive: time to settle and learn after a move, s, >= 0')
+    speed_fraction: float = _doc(
+        0.8, "moves run at this fraction of the joints' speed limits, (0, 1]"
+    )
+    stream_rate_hz: float = _doc(20.0, 'rate of the streamed joint targets during a move, > 0')
+
+    def __post_init__(self):
+        if self.selection not in ('adaptive', 'fixed'):
+            raise ValueError(f"selection must be 'adaptive' or 'fixed', got {self.selection!r}")
+        if self.criterion not in CRITERIA:
+            raise ValueError(f'criterion must be one of {CRITERIA}, got {self.criterion!r}')
+        if not 0 < self.speed_fraction <= 1:
+            raise ValueError(f'speed_fraction must be in (0, 1], got {self.speed_fraction}')
+        if not (
+            self.stream_rate_hz > 0
+            and self.sigma_pitch_rad > 0
+            and self.pool_size >= 1
+            and self.settle_s >= 0
+        ):
+            raise ValueError(
+                'stream_rate_hz and sigma_pitch_rad must be > 0, pool_size >= 1, settle_s >= 0'
+            )
+
+
+def describe_parameters():
+    return params.describe(PoseServerParams)
 
 
 class PoseServer(Node):
     def __init__(self):
         super().__init__('pose_server')
         self.robot = load_krang()
-        p = self.declare_parameter
-        poses_file = p('poses_file', '').value or str(config_path('excitatory_poses.csv'))
+        cfg = params.declare(self, PoseServerParams)
+        poses_file = cfg.poses_file or str(config_path('excitatory_poses.csv'))
         self.sequence = PoseSequence.from_csv(poses_file, self.robot, KRANG_POSE_COLUMNS)
-        self.selection = p('selection', 'adaptive').value
-        self.speed_fraction = p('speed_fraction', 0.8).value
+        self.selection = cfg.selection
+        self.speed_fraction = cfg.speed_fraction
         self.selector = None
         self.posterior = None
         self.chosen = 0
+        self.mode = None  # the controller's, from its latched mode topic
         if self.selection == 'adaptive':
-            self.selector = self._make_selector(p)
-        elif self.selection != 'fixed':
-            raise ValueError(f"selection must be 'adaptive' or 'fixed', not {self.selection!r}")
+            self.selector = self._make_selector(cfg)
         else:
             self.get_logger().info(f'{len(self.sequence)} poses from {poses_file}')
         qos = topics.QOS
-        self.cmd_pub = self.create_publisher(JointState, names.JOINT_POSITION_CMD,
-                                             qos[names.JOINT_POSITION_CMD])
-        self.target_pub = self.create_publisher(JointState, names.POSE_TARGET,
-                                                qos[names.POSE_TARGET])
-        self.diag_pub = self.create_publisher(DiagnosticArray, names.DIAGNOSTICS,
-                                              qos[names.DIAGNOSTICS])
-        self.create_service(Trigger, names.NEXT_POSE, self.on_next_pose)
-        self.create_service(Trigger, names.POSE_RESET, self.on_reset)
-        self.create_subscription(JointState, names.JOINT_STATES, self.on_joint_states,
-                                 qos[names.JOINT_STATES])
-        self.create_subscription(Float64MultiArray, POSTERIOR, self.on_posterior, topics.LATCHED)
-        self.stream_rate = p('stream_rate_hz', 20.0).value
+        self.cmd_pub = self.create_publisher(
+            JointState, names.relative(names.JOINT_POSITION_CMD), qos[names.JOINT_POSITION_CMD]
+        )
+        self.target_pub = self.create_publisher(
+            JointState, names.private(names.POSE_TARGET), qos[names.POSE_TARGET]
+        )
+        self.diag_pub = self.create_publisher(
+            DiagnosticArray, names.relative(names.DIAGNOSTICS), qos[names.DIAGNOSTICS]
+        )
+        self.create_service(Trigger, names.private(names.NEXT_POSE), self.on_next_pose)
+        self.create_service(Trigger, names.private(names.POSE_RESET), self.on_reset)
+        self.create_subscription(
+            JointState,
+            names.relative(names.JOINT_STATES),
+            self.on_joint_states,
+            qos[names.JOINT_STATES],
+        )
+        self.create_subscription(
+            Float64MultiArray, names.relative(names.POSTERIOR), self.on_posterior, topics.LATCHED
+        )
+        self.create_subscription(String, names.relative(names.MODE), self.on_mode, topics.LATCHED)
+        self.stream_rate = cfg.stream_rate_hz
         self.measured = None
         self.move = None
         self.move_started = None
         self.create_timer(1.0 / self.stream_rate, self.stream_move)
         self.create_timer(1.0, self.publish_diagnostics)
 
-    def _make_selector(self, p):
-        pool_file = p('pool_file', '').value
-        if pool_file:
-            _, joints, _ = load_poses(pool_file, KRANG_POSE_COLUMNS)
-            source = pool_file
+    def _make_selector(self, cfg):
+        if cfg.pool_file:
+            _, joints, _ = load_poses(
+                cfg.pool_file, KRANG_POSE_COLUMNS, (self.robot.lower, self.robot.upper)
+            )
+            source = cfg.pool_file
         else:
-            n, seed = p('pool_size', 1000).value, p('pool_seed', 0).value
-            joints = generate_pool(n, seed=seed, robot=self.robot).joints
-            source = f'{n} safe, balanced poses drawn with seed {seed}'
-        sigma = p('sigma_pitch_rad', float(np.radians(0.1))).value
-        selector = AdaptiveSelector(self.robot, joints, sigma_pitch_rad=sigma,
-                                    criterion=p('criterion', 'forward').value,
-                                    settle_s=p('settle_s', 12.0).value,
-                                    speed_fraction=self.speed_fraction)
+            joints = generate_pool(cfg.pool_size, seed=cfg.pool_seed, robot=self.robot).joints
+            source = f'{cfg.pool_size} safe, balanced poses drawn with seed {cfg.pool_seed}'
+        selector = AdaptiveSelector(
+            self.robot,
+            joints,
+            sigma_pitch_rad=cfg.sigma_pitch_rad,
+            criterion=cfg.criterion,
+            settle_s=cfg.settle_s,
+            speed_fraction=self.speed_fraction,
+        )
         self.get_logger().info(f'adaptive pose selection ({selector.criterion}) from {source}')
         return selector
 
@@ -86,8 +151,9 @@ class PoseServer(Node):
         n = self.robot.n_beta
         data = np.asarray(msg.data, dtype=float)
         if data.size != (n + 1) * n:
-            self.get_logger().error(f'posterior of {data.size} numbers ignored '
-                                    f'(needs {(n + 1) * n})')
+            self.get_logger().error(
+                f'posterior of {data.size} numbers ignored (needs {(n + 1) * n})'
+            )
             return
         data = data.reshape(n + 1, n)
         self.posterior = (data[0], data[1:])
@@ -97,11 +163,13 @@ class PoseServer(Node):
         if self.selector is None:
             target = self.sequence.advance()
             if target is None:
-                return None, (f'no poses left (all {len(self.sequence)} done); call '
-                              f'{names.POSE_RESET} to start over')
+                return None, (
+                    f'no poses left (all {len(self.sequence)} done); call '
+                    f'{names.POSE_RESET} to start over'
+                )
             return target.joints, target.describe()
         if self.posterior is None:
-            return None, f'no posterior from com_estimator yet ({POSTERIOR})'
+            return None, f'no posterior from com_estimator yet ({names.POSTERIOR})'
         beta, cov = self.posterior
         if not np.any(cov):
             return None, 'the estimator reports no covariance: use selection:=fixed with it'
@@ -109,9 +177,17 @@ class PoseServer(Node):
         if choice is None:
             return None, f'pool used up; call {names.POSE_RESET} to start over'
         self.chosen += 1
-        return choice.joints, (f'adaptive pose {self.chosen} (pool pose {choice.index}; '
-                               f'predicted RMS forward error {1000 * choice.rms_before_m:.2f} -> '
-                               f'{1000 * choice.rms_after_m:.2f} mm)')
+        return choice.joints, (
+            f'adaptive pose {self.chosen} (pool pose {choice.index}; '
+            f'predicted RMS forward error {1000 * choice.rms_before_m:.2f} -> '
+            f'{1000 * choice.rms_after_m:.2f} mm)'
+        )
+
+    def on_mode(self, msg):
+        self.mode = msg.data
+        if self.move is not None and self.mode != 'balance':
+            self.get_logger().warning(f'controller left balance ({self.mode}): the move stops')
+            self.move = None
 
     def on_joint_states(self, msg):
         joints = messages.joints_from_state(msg, self.robot.pose_joints)
@@ -125,30 +201,46 @@ class PoseServer(Node):
         if self.move is None:
             return
         t = self.now() - self.move_started
-        self.cmd_pub.publish(messages.joint_state(self.get_clock().now().to_msg(),
-                                                  self.robot.pose_joints, self.move.at(t)))
+        self.cmd_pub.publish(
+            messages.joint_state(
+                self.get_clock().now().to_msg(), self.robot.pose_joints, self.move.at(t)
+            )
+        )
         if t >= self.move.duration:
             self.move = None
 
     def on_next_pose(self, request, response):
-        start = self.measured if self.measured is not None else (
-            self.move.goal if self.move else None)
-        goal, text = self._next_target(start if start is not None else
-                                       np.zeros(len(self.robot.pose_joints)))
+        if self.mode != 'balance':
+            response.success = False
+            response.message = (
+                f'refused: the robot is not balancing (controller mode: '
+                f'{self.mode or "unknown"}); stand it up first'
+            )
+            return response
+        if self.move is not None:
+            response.success = False
+            response.message = 'refused: a move is still under way'
+            return response
+        start = self.measured
+        goal, text = self._next_target(
+            start if start is not None else np.zeros(len(self.robot.pose_joints))
+        )
         if goal is None:
             response.success = False
             response.message = text
             return response
         start = goal if start is None else start
-        self.move = StraightLineMove.plan(start, goal, self.robot.velocity_limit,
-                                          self.speed_fraction)
+        self.move = StraightLineMove.plan(
+            start, goal, self.robot.velocity_limit, self.speed_fraction
+        )
         self.move_started = self.now()
-        self.target_pub.publish(messages.joint_state(self.get_clock().now().to_msg(),
-                                                     self.robot.pose_joints, goal))
+        self.target_pub.publish(
+            messages.joint_state(self.get_clock().now().to_msg(), self.robot.pose_joints, goal)
+        )
         duration = self.move.duration
         self.stream_move()
         response.success = True
-        response.message = f'{text} (moving for {duration:.1f} s)'
+        response.message = f'{text} (a move of {duration:.1f} s)'
         self.get_logger().info(f'commanding {response.message}')
         return response
 
@@ -158,8 +250,11 @@ class PoseServer(Node):
             self.selector.reset()
             self.chosen = 0
         response.success = True
-        response.message = (f'back to the start of {len(self.sequence)} poses'
-                            if self.selector is None else 'every pool pose available again')
+        response.message = (
+            f'back to the start of {len(self.sequence)} poses'
+            if self.selector is None
+            else 'every pool pose available again'
+        )
         self.get_logger().info(response.message)
         return response
 
@@ -174,8 +269,11 @@ class PoseServer(Node):
             else:
                 text = f'waiting for next_pose ({len(self.sequence)} poses)'
             values = {'cursor': self.sequence.cursor, 'total': len(self.sequence)}
-        self.diag_pub.publish(messages.diagnostics(
-            self.get_clock().now().to_msg(), 'pose_server', 'ok', text, values))
+        self.diag_pub.publish(
+            messages.diagnostics(
+                self.get_clock().now().to_msg(), 'pose_server', 'ok', text, values
+            )
+        )
 
 
 def main(args=None):

@@ -1,5 +1,6 @@
 """Drives an online learning session over the node set's services (used by `krang demo` and the
 tests)."""
+
 import time
 
 import rclpy
@@ -21,15 +22,18 @@ class SessionClient(Node):
         self.modes = []
         self.betas = []
         qos = topics.QOS
-        self.create_subscription(String, names.MODE, self.on_mode, topics.LATCHED)
-        self.create_subscription(Float64MultiArray, names.BETA, self.on_beta, qos[names.BETA])
-        self.next_pose = self.create_client(Trigger, names.NEXT_POSE)
-        self.save = self.create_client(Trigger, names.SAVE)
-        self.enable = self.create_client(SetBool, names.ENABLE)
+        self.create_subscription(String, names.relative(names.MODE), self.on_mode, topics.LATCHED)
+        self.create_subscription(
+            Float64MultiArray, names.relative(names.BETA), self.on_beta, qos[names.BETA]
+        )
+        self.next_pose = self.create_client(Trigger, names.relative(names.NEXT_POSE))
+        self.save = self.create_client(Trigger, names.relative(names.SAVE))
+        self.enable = self.create_client(SetBool, names.relative(names.ENABLE))
         # the controller's operator controls (README, "Running on the robot")
-        self.controls = {name: self.create_client(Trigger, name)
-                         for name in (names.STAND_UP, names.SIT_DOWN, names.HALT,
-                                      names.CONTROLLER_RECOVER)}
+        self.controls = {
+            name: self.create_client(Trigger, names.relative(name))
+            for name in (names.STAND_UP, names.SIT_DOWN, names.HALT, names.CONTROLLER_RECOVER)
+        }
         self.spinner = SingleThreadedExecutor(context=context)
         self.spinner.add_node(self)
 
@@ -78,8 +82,9 @@ class SessionClient(Node):
 
         while True:
             try:
-                reply = self.call(self.enable, SetBool.Request(data=True),
-                                  timeout=min(5.0, left()))
+                reply = self.call(
+                    self.enable, SetBool.Request(data=True), timeout=min(5.0, left())
+                )
             except SessionError:
                 if time.monotonic() > deadline:
                     raise
@@ -89,8 +94,11 @@ class SessionClient(Node):
             if time.monotonic() > deadline:
                 raise SessionError(f'adrc_controller did not accept enable: {reply.message}')
             self.pause(1.0)
-        self.spin_until(lambda: self.mode in ('sit', 'stand_up', 'balance'), left(),
-                        'the controller to sit powered')
+        self.spin_until(
+            lambda: self.mode in ('sit', 'stand_up', 'balance'),
+            left(),
+            'the controller to sit powered',
+        )
         while self.mode == 'sit':
             try:
                 stand = self.operate(names.STAND_UP, timeout=min(5.0, left()))
@@ -104,8 +112,11 @@ class SessionClient(Node):
         return f'{reply.message}; already {self.mode}'
 
     def wait_for_balance(self, timeout):
-        self.spin_until(lambda: self.mode is not None and 'balance' in self.mode.lower(), timeout,
-                        'the robot to stand up and balance (adrc_controller mode)')
+        self.spin_until(
+            lambda: self.mode is not None and 'balance' in self.mode.lower(),
+            timeout,
+            'the robot to stand up and balance (adrc_controller mode)',
+        )
 
     def learn_next_pose(self, timeout):
         """Command the next pose and wait until the estimator has learned from it; returns the
@@ -114,8 +125,11 @@ class SessionClient(Node):
         reply = self.call(self.next_pose, Trigger.Request())
         if not reply.success:
             raise SessionError(f'next_pose refused: {reply.message}')
-        self.spin_until(lambda: len(self.betas) > before, timeout,
-                        f'a balanced pose and a new beta after "{reply.message}"')
+        self.spin_until(
+            lambda: len(self.betas) > before,
+            timeout,
+            f'a balanced pose and a new beta after "{reply.message}"',
+        )
         return reply.message
 
     def close(self):
