@@ -1,4 +1,5 @@
 """ament_python package krang_com: one ROS package, several Python packages (one per part)."""
+
 from glob import glob
 
 from setuptools import find_packages, setup
@@ -26,7 +27,7 @@ setup(
         'pin',
         'control',
         'python-can',
-        'msgpack',            # python-can's udp_multicast interface (the simulated buses)
+        'msgpack',  # python-can's udp_multicast interface (the simulated buses)
         'canopen',
         'cantools',
         'mcap',
@@ -34,10 +35,18 @@ setup(
         'pyyaml',
         'tqdm',
         'matplotlib',
-        'foxglove-sdk',       # krang view: the live Foxglove WebSocket server
+        'foxglove-sdk',  # krang view: the live Foxglove WebSocket server
     ],
-    extras_require={'test': ['pytest', 'pytest-timeout', 'rosbags', 'colcon-common-extensions',
-                             'ruff', 'websockets']},
+    extras_require={
+        'test': [
+            'pytest',
+            'pytest-timeout',
+            'rosbags',
+            'colcon-common-extensions',
+            'ruff',
+            'websockets',
+        ]
+    },
     zip_safe=True,
     maintainer='krang_com developers',
     maintainer_email='dev@krang-com.example',

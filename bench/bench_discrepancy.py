@@ -4,7 +4,8 @@ The record is simulated (KrangSim + ADRC, sit -> stand -> balance with pose chan
 excitation; a hidden floor slope of 0.02 rad); its generation is timed separately and is not part
 of the workflow. The workflow runs as the CLI would, with the whole library, plots and report.
 
-    .venv/bin/python bench/bench_discrepancy.py [--seconds 60] [--stride 0.05] [--no-plots] [--csv FILE]
+    .venv/bin/python bench/bench_discrepancy.py [--seconds 60] [--stride 0.05] [--no-plots] [--csv
+    FILE]
 
 --csv runs the workflow on a hardware log instead (e.g. balancing_runs/table2/beta190_trial0.csv).
 --validate prints the per-effect validation table of docs/discrepancy.md instead (the settings of
@@ -14,6 +15,7 @@ small effects, pairs, effects outside the library): answer, values, 2-sigma cove
 --real DIR runs the baseline on all Table II runs of the kit at DIR (balancing_runs/table2) and
 judges one new-tyre run against it, timed.
 """
+
 import argparse
 import json
 import sys
@@ -25,7 +27,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     ap.add_argument('--seconds', type=float, default=60.0)
     ap.add_argument('--stride', type=float, default=0.05)
     ap.add_argument('--no-plots', action='store_true')
@@ -54,9 +58,11 @@ def main(argv=None):
         cfg = ReplayConfig(stride_s=args.stride)
         what = f'hardware log {Path(args.csv).name}'
     else:
-        rec = simulate_record(SimEffects(floor_slope_rad=0.02), seconds=args.seconds, seed=args.seed)
+        rec = simulate_record(
+            SimEffects(floor_slope_rad=0.02), seconds=args.seconds, seed=args.seed
+        )
         cfg = ReplayConfig(stride_s=args.stride, pose_delay_s=0.01)
-        what = f'simulated record, hidden floor_slope 0.02 rad'
+        what = 'simulated record, hidden floor_slope 0.02 rad'
     gen = time.perf_counter() - t0
     with tempfile.TemporaryDirectory() as out:
         t1 = time.perf_counter()
@@ -64,8 +70,11 @@ def main(argv=None):
         total = time.perf_counter() - t1
     timing = res['timing']
     rp = res['replay']
-    print(f'{what}: {rec.duration:.1f} s at {1 / rec.period:.0f} Hz, {len(rp)} windows '
-          f'({int(rp.active.sum())} fitting), horizon {rp.horizon:.2f} s, sub-step {rp.substep * 1e3:.2f} ms')
+    print(
+        f'{what}: {rec.duration:.1f} s at {1 / rec.period:.0f} Hz, {len(rp)} windows '
+        f'({int(rp.active.sum())} fitting), horizon {rp.horizon:.2f} s, sub-step '
+        f'{rp.substep * 1e3:.2f} ms'
+    )
     if not args.csv:
         print(f'record generation (not part of the workflow): {gen:.2f} s')
     print(f'full discrepancy run: {total:.2f} s')
@@ -73,10 +82,20 @@ def main(argv=None):
         print(f'  {k:16s} {v:7.2f} s  {100 * v / total:5.1f} %')
     nt = res['result'].timing
     print('  naming detail: ' + ', '.join(f'{k} {v:.2f} s' for k, v in nt.items()))
-    print(f'  predictions: {rp.timing.get("predict_calls", 0)} batched calls, '
-          f'{rp.timing.get("predict_sets", 0)} parameter sets, {rp.timing.get("predict_s", 0):.2f} s')
-    print('result: ' + json.dumps({k: res['json'][k] for k in ('effect', 'value', 'gap_before', 'gap_after')
-                                   if k in res['json']}))
+    print(
+        f'  predictions: {rp.timing.get("predict_calls", 0)} batched calls, '
+        f'{rp.timing.get("predict_sets", 0)} parameter sets, {rp.timing.get("predict_s", 0):.2f} s'
+    )
+    print(
+        'result: '
+        + json.dumps(
+            {
+                k: res['json'][k]
+                for k in ('effect', 'value', 'gap_before', 'gap_after')
+                if k in res['json']
+            }
+        )
+    )
     return 0
 
 
@@ -87,6 +106,7 @@ def validate(seed):
     from krang_discrepancy.synthetic import simulate_record
     from krang_discrepancy.naming import gaps, name_effects
     from krang_sim.physics import SimEffects
+
     cases = [
         ('none', SimEffects(), None),
         ('imu_pitch_bias', SimEffects(imu_pitch_bias_rad=0.02), 0.02),
@@ -95,14 +115,20 @@ def validate(seed):
         ('payload', SimEffects(payload_kg=5.0), 5.0),
         ('wheel_viscous_friction', SimEffects(wheel_viscous_Nm_s=2.0), 2.0),
         ('wheel_coulomb_friction', SimEffects(wheel_coulomb_Nm=2.0), 2.0),
-        ('torque_constant', SimEffects(torque_constant_scale=0.8),
-         0.8 * nominal_drive().torque_constant),
+        (
+            'torque_constant',
+            SimEffects(torque_constant_scale=0.8),
+            0.8 * nominal_drive().torque_constant,
+        ),
         ('actuation_delay', SimEffects(actuation_delay_s=0.02), 0.02),
         ('encoder_offset', SimEffects(encoder_offset_rad=0.05), 0.05),
     ]
     model = NominalModel.default()
-    print('| hidden | true value | named | value +- 1 sigma | error | held-out improvement | t | runner-up (improvement) '
-          '| gap before -> after | naming (s) |')
+    print(
+        '| hidden | true value | named | value +- 1 sigma | error | held-out improvement | t | '
+        'runner-up (improvement) '
+        '| gap before -> after | naming (s) |'
+    )
     print('|---|---|---|---|---|---|---|---|---|---|')
     for name, hidden, truth in cases:
         rec = simulate_record(hidden, seconds=22.0, seed=seed, hold_s=2.0, sit_down=False)
@@ -114,17 +140,24 @@ def validate(seed):
         sel = res.selected
         if sel is None:
             best = res.singles[0]
-            print(f'| {name} | - | none | - | - | best {best.key}: {best.improvement:+.3f} | {best.t:.1f} | - | '
-                  f'{g["before"]["gap"]:.3f} -> {g["after"]["gap"]:.3f} | {dt:.1f} |')
+            print(
+                f'| {name} | - | none | - | - | best {best.key}: {best.improvement:+.3f} | '
+                f'{best.t:.1f} | - | '
+                f'{g["before"]["gap"]:.3f} -> {g["after"]["gap"]:.3f} | {dt:.1f} |'
+            )
             continue
         e = sel.effects[0]
         v, unit = e.display(float(sel.values[0]))
         u = float(sel.uncertainty[0]) * e.display_scale()
         ru = [f for f in res.singles if f is not sel][0]
         err = f'{100 * (v - truth) / truth:+.2f} %' if truth else '-'
-        print(f'| {name} | {truth:.4g} {unit} | {res.name} | {v:.5g} +- {u:.2g} | {err} | {sel.improvement:.3f} | '
-              f'{sel.t:.1f} | {ru.key} ({ru.improvement:.3f}) | {g["before"]["gap"]:.3f} -> {g["after"]["gap"]:.3f} '
-              f'(x{g["before"]["gap"] / g["after"]["gap"]:.1f}) | {dt:.1f} |')
+        print(
+            f'| {name} | {truth:.4g} {unit} | {res.name} | {v:.5g} +- {u:.2g} | {err} | '
+            f'{sel.improvement:.3f} | '
+            f'{sel.t:.1f} | {ru.key} ({ru.improvement:.3f}) | {g["before"]["gap"]:.3f} -> '
+            f'{g["after"]["gap"]:.3f} '
+            f'(x{g["before"]["gap"] / g["after"]["gap"]:.1f}) | {dt:.1f} |'
+        )
     return 0
 
 
@@ -136,17 +169,29 @@ def hidden_case(case, seconds=22.0):
     from krang_discrepancy.report import run_discrepancy
     from krang_discrepancy.synthetic import Unmodelled, simulate_record
     from krang_sim.physics import SensorNoise, SimEffects
+
     cid, fx, um, seed, noise_k, truth, equivalents = case
     base = SensorNoise()
-    noise = replace(base, imu_pitch_std_rad=base.imu_pitch_std_rad * noise_k,
-                    gyro_std_rad_s=base.gyro_std_rad_s * noise_k,
-                    joint_std_rad=base.joint_std_rad * noise_k)
-    rec = simulate_record(SimEffects(**fx), seed=seed, seconds=seconds, hold_s=2.0, sit_down=False,
-                          unmodelled=Unmodelled(**um), noise=noise)
+    noise = replace(
+        base,
+        imu_pitch_std_rad=base.imu_pitch_std_rad * noise_k,
+        gyro_std_rad_s=base.gyro_std_rad_s * noise_k,
+        joint_std_rad=base.joint_std_rad * noise_k,
+    )
+    rec = simulate_record(
+        SimEffects(**fx),
+        seed=seed,
+        seconds=seconds,
+        hold_s=2.0,
+        sit_down=False,
+        unmodelled=Unmodelled(**um),
+        noise=noise,
+    )
     with tempfile.TemporaryDirectory() as out:
         t0 = time.perf_counter()
-        res = run_discrepancy([rec], out, plots=False,
-                              replay_config=ReplayConfig(pose_delay_s=0.01, stride_s=0.1))
+        res = run_discrepancy(
+            [rec], out, plots=False, replay_config=ReplayConfig(pose_delay_s=0.01, stride_s=0.1)
+        )
         secs = time.perf_counter() - t0
     js = res['json']
     items = js.get('effects') or ([js] if js['effect'] not in ('none', 'unexplained') else [])
@@ -156,65 +201,109 @@ def hidden_case(case, seconds=22.0):
         right = set(named) == expected
     else:
         expected = {'none'} if not um and not fx else {'unexplained', *equivalents}
-        answer = js['effect'] if js['effect'] in ('none', 'unexplained') else '+'.join(sorted(named))
+        answer = (
+            js['effect'] if js['effect'] in ('none', 'unexplained') else '+'.join(sorted(named))
+        )
         right = answer in expected
     checks = []
     for name, true in truth.items():
         if name in named:
             e = named[name]
             err = e['value'] - true
-            checks.append({'effect': name, 'true': true, 'value': e['value'], 'sigma': e['uncertainty'],
-                           'rel_err': err / true, 'z': err / e['uncertainty'] if e['uncertainty'] else math.inf})
+            checks.append(
+                {
+                    'effect': name,
+                    'true': true,
+                    'value': e['value'],
+                    'sigma': e['uncertainty'],
+                    'rel_err': err / true,
+                    'z': err / e['uncertainty'] if e['uncertainty'] else math.inf,
+                }
+            )
     false = sorted(set(named) - set(truth)) if truth else (sorted(named) if right is False else [])
-    return {'case': cid, 'answer': js['effect'] if not items else '+'.join(e['effect'] for e in items),
-            'right': right, 'checks': checks, 'false_names': false, 'seconds': secs,
-            'gap': (js['gap_before'], js['gap_after'])}
+    return {
+        'case': cid,
+        'answer': js['effect'] if not items else '+'.join(e['effect'] for e in items),
+        'right': right,
+        'checks': checks,
+        'false_names': false,
+        'seconds': secs,
+        'gap': (js['gap_before'], js['gap_after']),
+    }
 
 
 def hidden():
     from krang_discrepancy.synthetic import VALIDATION_SUITE
+
     rows = []
     print('| case | answer | right | values (rel. error, z = error/sigma) | gap | s |')
     print('|---|---|---|---|---|---|')
     for case in VALIDATION_SUITE:
         r = hidden_case(case)
         rows.append(r)
-        vals = '; '.join(f'{c["effect"]} {c["value"]:.4g} ({c["rel_err"]:+.1%}, z {c["z"]:+.1f})'
-                         for c in r['checks'])
-        print(f'| {r["case"]} | {r["answer"]} | {"yes" if r["right"] else "**no**"} | {vals} | '
-              f'{r["gap"][0]:.3g} -> {r["gap"][1]:.3g} | {r["seconds"]:.1f} |', flush=True)
+        vals = '; '.join(
+            f'{c["effect"]} {c["value"]:.4g} ({c["rel_err"]:+.1%}, z {c["z"]:+.1f})'
+            for c in r['checks']
+        )
+        print(
+            f'| {r["case"]} | {r["answer"]} | {"yes" if r["right"] else "**no**"} | {vals} | '
+            f'{r["gap"][0]:.3g} -> {r["gap"][1]:.3g} | {r["seconds"]:.1f} |',
+            flush=True,
+        )
     checks = [c for r in rows for c in r['checks']]
-    print(f'named right {sum(r["right"] for r in rows)}/{len(rows)}; values within 5 %: '
-          f'{sum(abs(c["rel_err"]) <= 0.05 for c in checks)}/{len(checks)}; within 2 sigma: '
-          f'{sum(abs(c["z"]) <= 2 for c in checks)}/{len(checks)}; false names: '
-          f'{sum(len(r["false_names"]) for r in rows)} '
-          f'({", ".join(n for r in rows for n in r["false_names"]) or "-"})')
+    print(
+        f'named right {sum(r["right"] for r in rows)}/{len(rows)}; values within 5 %: '
+        f'{sum(abs(c["rel_err"]) <= 0.05 for c in checks)}/{len(checks)}; within 2 sigma: '
+        f'{sum(abs(c["z"]) <= 2 for c in checks)}/{len(checks)}; false names: '
+        f'{sum(len(r["false_names"]) for r in rows)} '
+        f'({", ".join(n for r in rows for n in r["false_names"]) or "-"})'
+    )
     return 0
 
 
 def real(kit):
     from krang_discrepancy.replay import ReplayConfig
     from krang_discrepancy.report import run_discrepancy
+
     cfg = ReplayConfig(stride_s=0.1)
     runs = kit / 'balancing_runs'
     with tempfile.TemporaryDirectory() as out:
         t0 = time.perf_counter()
-        a = run_discrepancy([runs / 'table2'], Path(out) / 'table2', replay_config=cfg, plots=False)
+        a = run_discrepancy(
+            [runs / 'table2'], Path(out) / 'table2', replay_config=cfg, plots=False
+        )
         t1 = time.perf_counter()
         new = sorted((runs / 'new_tire').glob('*.csv'))[0]
-        b = run_discrepancy([new], Path(out) / 'new', replay_config=cfg, plots=False,
-                            baseline=Path(out) / 'table2' / 'extended_model.yaml')
+        b = run_discrepancy(
+            [new],
+            Path(out) / 'new',
+            replay_config=cfg,
+            plots=False,
+            baseline=Path(out) / 'table2' / 'extended_model.yaml',
+        )
         t2 = time.perf_counter()
-    for label, res, secs in (('baseline: all Table II runs', a, t1 - t0),
-                             (f'judged: {new.name} against it', b, t2 - t1)):
+    for label, res, secs in (
+        ('baseline: all Table II runs', a, t1 - t0),
+        (f'judged: {new.name} against it', b, t2 - t1),
+    ):
         print(f'{label}: {secs:.1f} s; ' + json.dumps(_brief(res['json'])))
     return 0
 
 
 def _brief(js):
-    keep = ('effect', 'value', 'unit', 'uncertainty', 'effects', 'partial', 'gap_before',
-            'gap_after', 'reason')
+    keep = (
+        'effect',
+        'value',
+        'unit',
+        'uncertainty',
+        'effects',
+        'partial',
+        'gap_before',
+        'gap_after',
+        'reason',
+    )
     return {k: js[k] for k in keep if k in js}
+
 
 if __name__ == '__main__':
     sys.exit(main())

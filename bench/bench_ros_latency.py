@@ -35,6 +35,7 @@ after a toggle ends the path (in SIT the ground PD commands -10 A per rad/s).
     .venv/bin/python bench/bench_ros_latency.py --robot [--seconds 20] [--load 2] [--json]
     .venv/bin/python bench/bench_ros_latency.py [--seconds 20]
 """
+
 import argparse
 import importlib
 import json
@@ -71,7 +72,7 @@ BENCH = Path(__file__).resolve().parent
 #: a stall of 0.1 s (the robot's stale timeout) or 0.5 s (the simulator's), seen on the shared
 #: 2-core box, ends the measurement in SAFE_STOP, where every command is zero; 2 s rides it out.
 CONTROLLER_OVERRIDES = {'adrc.use_disturbance_rejection': False, 'safety.stale_timeout_s': 2.0}
-MIN_PROBES = 20           # answered probes needed for percentiles by probe
+MIN_PROBES = 20  # answered probes needed for percentiles by probe
 JSON_KEYS = ('p50_ms', 'p99_ms', 'rate_hz', 'configured_rate_hz', 'ref_p50_ms', 'ref_p99_ms')
 
 
@@ -117,11 +118,11 @@ def probe_match(sample_t, probe, cmd_t, cmd_v):
     for t0, t1, sign, b in zip(starts, ends, signs, base_idx):
         hi = np.searchsorted(cmd_t, t1, side='right')
         if b >= 0 and hi > b + 1:
-            windows.append((t0, cmd_t[b + 1:hi], sign * (cmd_v[b + 1:hi] - cmd_v[b])))
+            windows.append((t0, cmd_t[b + 1 : hi], sign * (cmd_v[b + 1 : hi] - cmd_v[b])))
     if not windows:
         return np.array([]), 0.0
     largest = np.array([d.max() for _, _, d in windows])
-    response = float(np.median(np.sort(largest)[len(largest) // 2:]))
+    response = float(np.median(np.sort(largest)[len(largest) // 2 :]))
     latencies = []
     for t0, ts, d in windows:
         hit = np.flatnonzero(d > 0.5 * response)
@@ -167,21 +168,34 @@ def analyse(record, window, rate_hz):
     ref_lat, ref_lost = reference_latencies(record['ref_req'], record['ref_ans'], window)
     cmd_in = (cmd_t >= w0) & (cmd_t <= w1)
     ms = lambda x, q: float(1e3 * np.percentile(x, q)) if len(x) else float('nan')  # noqa: E731
-    out = {'p50_ms': ms(lat, 50), 'p99_ms': ms(lat, 99),
-           'rate_hz': answered / duration, 'configured_rate_hz': rate_hz,
-           'ref_p50_ms': ms(ref_lat, 50), 'ref_p99_ms': ms(ref_lat, 99)}
-    out.update({'p50_ratio': out['p50_ms'] / out['ref_p50_ms'],
-                'p99_ratio': out['p99_ms'] / out['ref_p99_ms'],
-                'rate_ratio': out['rate_hz'] / rate_hz,
-                'match': 'probe' if by_probe else 'timing',
-                'timing_p50_ms': ms(t_lat, 50), 'timing_p99_ms': ms(t_lat, 99),
-                'max_ms': float(1e3 * lat.max()) if len(lat) else float('nan'),
-                'probes': probes, 'probes_answered': len(p_lat),
-                'probe_response_dc2': response, 'command_noise_dc2': noise,
-                'dmu_rate_hz': int(inside.sum()) / duration,
-                'new_commands_hz': int(cmd_in.sum()) / duration,
-                'ref_frames': len(ref_lat) + ref_lost, 'ref_lost': ref_lost,
-                'seconds': duration})
+    out = {
+        'p50_ms': ms(lat, 50),
+        'p99_ms': ms(lat, 99),
+        'rate_hz': answered / duration,
+        'configured_rate_hz': rate_hz,
+        'ref_p50_ms': ms(ref_lat, 50),
+        'ref_p99_ms': ms(ref_lat, 99),
+    }
+    out.update(
+        {
+            'p50_ratio': out['p50_ms'] / out['ref_p50_ms'],
+            'p99_ratio': out['p99_ms'] / out['ref_p99_ms'],
+            'rate_ratio': out['rate_hz'] / rate_hz,
+            'match': 'probe' if by_probe else 'timing',
+            'timing_p50_ms': ms(t_lat, 50),
+            'timing_p99_ms': ms(t_lat, 99),
+            'max_ms': float(1e3 * lat.max()) if len(lat) else float('nan'),
+            'probes': probes,
+            'probes_answered': len(p_lat),
+            'probe_response_dc2': response,
+            'command_noise_dc2': noise,
+            'dmu_rate_hz': int(inside.sum()) / duration,
+            'new_commands_hz': int(cmd_in.sum()) / duration,
+            'ref_frames': len(ref_lat) + ref_lost,
+            'ref_lost': ref_lost,
+            'seconds': duration,
+        }
+    )
     return out
 
 
@@ -212,18 +226,23 @@ def bring_to_balance(client, tell, timeout, dead=dict):
         if dead():
             raise SessionError(f'node(s) exited: {dead()}')
         if time.monotonic() > deadline:
-            raise SessionError(f'no BALANCE within {timeout:.0f} s (modes seen: {client.modes}; '
-                               f'last reply: {reply.message if reply else None})')
+            raise SessionError(
+                f'no BALANCE within {timeout:.0f} s (modes seen: {client.modes}; '
+                f'last reply: {reply.message if reply else None})'
+            )
         mode = client.mode
         if mode in (None, 'safe_stop'):
             if ramp:
                 tell('sit')
                 ramp = False
-            reply = client.call(client.enable, SetBool.Request(data=True),
-                                timeout=max(1.0, deadline - time.monotonic()))
+            reply = client.call(
+                client.enable,
+                SetBool.Request(data=True),
+                timeout=max(1.0, deadline - time.monotonic()),
+            )
             client.pause(1.0)
         elif mode == 'sit':
-            client.pause(1.0)              # the controller's pose from complete joint states
+            client.pause(1.0)  # the controller's pose from complete joint states
             if client.mode == 'sit':
                 reply = client.operate(names.STAND_UP)
                 client.pause(0.2)
@@ -245,10 +264,26 @@ def run_robot(seconds, rate_hz, load, tpdo_hz):
     record_file = os.path.join(tmp, 'record.npz')
     py = sys.executable
     player, player_log = _start(
-        [py, str(BENCH / 'device_player.py'), '--devices', str(devices_file),
-         '--ref-port', str(port + 15), '--rate-hz', str(rate_hz), '--tpdo-hz', str(tpdo_hz),
-         '--out', record_file], logs, 'device_player', stdin=subprocess.PIPE,
-        stdout=subprocess.PIPE, text=True)
+        [
+            py,
+            str(BENCH / 'device_player.py'),
+            '--devices',
+            str(devices_file),
+            '--ref-port',
+            str(port + 15),
+            '--rate-hz',
+            str(rate_hz),
+            '--tpdo-hz',
+            str(tpdo_hz),
+            '--out',
+            record_file,
+        ],
+        logs,
+        'device_player',
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        text=True,
+    )
     children = [(player, player_log)]
     busy = []
     nodes = NodeSet(params_files(sim=False), log_dir=logs)
@@ -257,12 +292,18 @@ def run_robot(seconds, rate_hz, load, tpdo_hz):
     def tell(word):
         player.stdin.write(word + '\n')
         player.stdin.flush()
+
     try:
         if player.stdout.readline().strip() != 'ready':
             raise RuntimeError(f'device player did not start (see {logs}/device_player.log)')
         for role in ('can', 'relay'):
-            children.append(_start([py, str(BENCH / 'ref_chain.py'), role,
-                                    '--port', str(port + 15)], logs, f'ref_{role}'))
+            children.append(
+                _start(
+                    [py, str(BENCH / 'ref_chain.py'), role, '--port', str(port + 15)],
+                    logs,
+                    f'ref_{role}',
+                )
+            )
         nodes.start('can_bridge', {'devices_file': devices_file})
         nodes.start('adrc_controller', CONTROLLER_OVERRIDES | {'rate_hz': rate_hz})
         client, context = open_session_client()
@@ -271,7 +312,7 @@ def run_robot(seconds, rate_hz, load, tpdo_hz):
         except SessionError as exc:
             raise SessionError(f'{exc} (logs in {logs})') from exc
         modes_before = len(client.modes)
-        client.pause(1.0)                  # the command noise without probes (noise_level)
+        client.pause(1.0)  # the command noise without probes (noise_level)
         tell('probe')
         busy = [subprocess.Popen([py, '-c', 'while True: pass']) for _ in range(load)]
         client.pause(1.0)
@@ -302,23 +343,35 @@ def run_robot(seconds, rate_hz, load, tpdo_hz):
 
 
 def print_robot(fig, load):
-    print(f'robot configuration, wall clock, {fig["configured_rate_hz"]:.0f} Hz configured, '
-          f'{load} busy loop(s), {fig["seconds"]:.1f} s balancing')
-    print(f'sensor frame -> wheel command frame (can_bridge + adrc_controller): '
-          f'p50 {fig["p50_ms"]:.2f} ms, p99 {fig["p99_ms"]:.2f} ms, max {fig["max_ms"]:.2f} ms '
-          f'(matched by {fig["match"]}; {fig["probes_answered"]} of {fig["probes"]} probes '
-          f'answered)')
-    print(f'  by timing alone (first new RPDO after the sample): p50 {fig["timing_p50_ms"]:.2f} '
-          f'ms, p99 {fig["timing_p99_ms"]:.2f} ms')
-    print(f'control rate: {fig["rate_hz"]:.1f} Hz of commands answering distinct samples, '
-          f'{fig["configured_rate_hz"]:.0f} Hz configured ({100 * fig["rate_ratio"]:.1f} %; DMU '
-          f'played at {fig["dmu_rate_hz"]:.1f} Hz)')
-    print(f'reference (bare rclpy chain, same run): p50 {fig["ref_p50_ms"]:.2f} ms, '
-          f'p99 {fig["ref_p99_ms"]:.2f} ms, {fig["ref_lost"]} of {fig["ref_frames"]} lost')
+    print(
+        f'robot configuration, wall clock, {fig["configured_rate_hz"]:.0f} Hz configured, '
+        f'{load} busy loop(s), {fig["seconds"]:.1f} s balancing'
+    )
+    print(
+        f'sensor frame -> wheel command frame (can_bridge + adrc_controller): '
+        f'p50 {fig["p50_ms"]:.2f} ms, p99 {fig["p99_ms"]:.2f} ms, max {fig["max_ms"]:.2f} ms '
+        f'(matched by {fig["match"]}; {fig["probes_answered"]} of {fig["probes"]} probes '
+        f'answered)'
+    )
+    print(
+        f'  by timing alone (first new RPDO after the sample): p50 {fig["timing_p50_ms"]:.2f} '
+        f'ms, p99 {fig["timing_p99_ms"]:.2f} ms'
+    )
+    print(
+        f'control rate: {fig["rate_hz"]:.1f} Hz of commands answering distinct samples, '
+        f'{fig["configured_rate_hz"]:.0f} Hz configured ({100 * fig["rate_ratio"]:.1f} %; DMU '
+        f'played at {fig["dmu_rate_hz"]:.1f} Hz)'
+    )
+    print(
+        f'reference (bare rclpy chain, same run): p50 {fig["ref_p50_ms"]:.2f} ms, '
+        f'p99 {fig["ref_p99_ms"]:.2f} ms, {fig["ref_lost"]} of {fig["ref_frames"]} lost'
+    )
     print(f'ratio to the reference: p50 {fig["p50_ratio"]:.2f}x, p99 {fig["p99_ratio"]:.2f}x')
     if fig['left_balance']:
-        print(f'NOT VALID: the controller left BALANCE during the measurement '
-              f'({", ".join(fig["left_balance"])}): the figures mix in its zero commands')
+        print(
+            f'NOT VALID: the controller left BALANCE during the measurement '
+            f'({", ".join(fig["left_balance"])}): the figures mix in its zero commands'
+        )
 
 
 # ---- default: the simulated node set's parameters ---------------------------------------------
@@ -334,7 +387,7 @@ def run_sim_params(seconds):
     codec = AmcDriveCodec(left, config.wheels, load_dbc(config.dbc_path))
     buses = {name: can.Bus(**config.buses[name].bus_kwargs()) for name in config.buses_in_use()}
     lock = threading.Lock()
-    currents = []          # (time, amps) of the left current RPDO frames
+    currents = []  # (time, amps) of the left current RPDO frames
 
     class Devices(can.Listener):
         def __init__(self, name):
@@ -351,6 +404,7 @@ def run_sim_params(seconds):
                 replies = devices.on_frame(self.name, msg)
             for reply in replies:
                 buses[reply.bus].send(reply.msg)
+
     notifiers = [can.Notifier(bus, [Devices(name)], timeout=0.05) for name, bus in buses.items()]
 
     # the simulated node set's parameters, but on wall time: this benchmark plays the robot, with
@@ -372,31 +426,41 @@ def run_sim_params(seconds):
                 next_toggle = now + 0.5
             with lock:
                 devices.step(0.005)
-                frames = devices.wheel_feedback_frames({'JLWheel': 1.76, 'JRWheel': 1.76},
-                                                       {'JLWheel': velocity, 'JRWheel': velocity})
+                frames = devices.wheel_feedback_frames(
+                    {'JLWheel': 1.76, 'JRWheel': 1.76}, {'JLWheel': velocity, 'JRWheel': velocity}
+                )
                 frames += devices.imu_frames_from_pitch(-1.763, 0.0)
             for f in frames:
                 buses[f.bus].send(f.msg)
             time.sleep(max(0.0, 0.005 - (time.perf_counter() - now)))
+
     thread = threading.Thread(target=robot_loop, daemon=True)
     thread.start()
     client, context = open_session_client()
     try:
         deadline = time.monotonic() + 60.0
-        while not client.call(client.enable, SetBool.Request(data=True),
-                              timeout=max(1.0, deadline - time.monotonic())).success:
+        while not client.call(
+            client.enable,
+            SetBool.Request(data=True),
+            timeout=max(1.0, deadline - time.monotonic()),
+        ).success:
             if time.monotonic() > deadline:
                 raise SessionError('adrc_controller did not accept enable')
             client.pause(1.0)
         # whatever message type the wheel command has (it carries the sample's stamp or not)
-        client.spin_until(lambda: names.WHEEL_EFFORT_CMD in dict(
-            client.get_topic_names_and_types()), 10.0, names.WHEEL_EFFORT_CMD)
+        client.spin_until(
+            lambda: names.WHEEL_EFFORT_CMD in dict(client.get_topic_names_and_types()),
+            10.0,
+            names.WHEEL_EFFORT_CMD,
+        )
         kind = dict(client.get_topic_names_and_types())[names.WHEEL_EFFORT_CMD][0]
         package, _, name = kind.split('/')
-        client.create_subscription(getattr(importlib.import_module(f'{package}.msg'), name),
-                                   names.WHEEL_EFFORT_CMD,
-                                   lambda m: efforts.append(time.perf_counter()),
-                                   topics.QOS[names.WHEEL_EFFORT_CMD])
+        client.create_subscription(
+            getattr(importlib.import_module(f'{package}.msg'), name),
+            names.WHEEL_EFFORT_CMD,
+            lambda m: efforts.append(time.perf_counter()),
+            topics.QOS[names.WHEEL_EFFORT_CMD],
+        )
         client.pause(seconds)
     finally:
         stop.set()
@@ -421,27 +485,44 @@ def run_sim_params(seconds):
     window = eff[eff > eff[0] + 2.0] if len(eff) else eff
     rate = (len(window) - 1) / (window[-1] - window[0]) if len(window) > 1 else float('nan')
     lat = 1000 * np.array(latencies)
-    print(f'sensor frame -> wheel command frame over {len(lat)} steps: '
-          f'p50 {np.percentile(lat, 50):.1f} ms, p99 {np.percentile(lat, 99):.1f} ms, '
-          f'max {lat.max():.1f} ms')
-    print(f'control rate achieved: {rate:.1f} Hz /wheel_effort_cmd (configured: see '
-          f'config/sim_params.yaml); {len(toggles) - len(lat)} of {len(toggles)} steps not seen '
-          f'within 0.5 s')
+    print(
+        f'sensor frame -> wheel command frame over {len(lat)} steps: '
+        f'p50 {np.percentile(lat, 50):.1f} ms, p99 {np.percentile(lat, 99):.1f} ms, '
+        f'max {lat.max():.1f} ms'
+    )
+    print(
+        f'control rate achieved: {rate:.1f} Hz /wheel_effort_cmd (configured: see '
+        f'config/sim_params.yaml); {len(toggles) - len(lat)} of {len(toggles)} steps not seen '
+        f'within 0.5 s'
+    )
 
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__.split('\n')[0])
-    parser.add_argument('--robot', action='store_true',
-                        help="the robot's configuration (default: the simulated node set's)")
+    parser.add_argument(
+        '--robot',
+        action='store_true',
+        help="the robot's configuration (default: the simulated node set's)",
+    )
     parser.add_argument('--seconds', type=float, default=20.0, help='measured seconds')
-    parser.add_argument('--rate-hz', type=float, default=500.0,
-                        help='--robot: DMU sample rate and the controller rate_hz')
-    parser.add_argument('--tpdo-hz', type=float, default=500.0,
-                        help='--robot: AMC TPDO sets per second (1 kHz on the robot)')
-    parser.add_argument('--load', type=int, default=0,
-                        help='--robot: busy-loop processes during the measurement')
-    parser.add_argument('--json', action='store_true',
-                        help='--robot: print the figures as JSON on the last line')
+    parser.add_argument(
+        '--rate-hz',
+        type=float,
+        default=500.0,
+        help='--robot: DMU sample rate and the controller rate_hz',
+    )
+    parser.add_argument(
+        '--tpdo-hz',
+        type=float,
+        default=500.0,
+        help='--robot: AMC TPDO sets per second (1 kHz on the robot)',
+    )
+    parser.add_argument(
+        '--load', type=int, default=0, help='--robot: busy-loop processes during the measurement'
+    )
+    parser.add_argument(
+        '--json', action='store_true', help='--robot: print the figures as JSON on the last line'
+    )
     args = parser.parse_args()
     os.environ.setdefault('ROS_DOMAIN_ID', str(180 + os.getpid() % 50))
     os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
@@ -451,8 +532,12 @@ def main():
     fig = run_robot(args.seconds, args.rate_hz, args.load, args.tpdo_hz)
     print_robot(fig, args.load)
     if args.json:
-        print(json.dumps({k: fig[k] for k in JSON_KEYS}
-                         | {k: v for k, v in fig.items() if k not in JSON_KEYS}))
+        print(
+            json.dumps(
+                {k: fig[k] for k in JSON_KEYS}
+                | {k: v for k, v in fig.items() if k not in JSON_KEYS}
+            )
+        )
 
 
 if __name__ == '__main__':

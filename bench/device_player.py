@@ -24,6 +24,7 @@ first one that moves with it by more than half the probes' response, which the o
 never do and the next probe does the other way, so a probe carries its identity into the command
 even when the answer comes later than the next samples (bench_ros_latency.py).
 """
+
 import argparse
 import math
 import resource
@@ -45,7 +46,7 @@ from krang_model.robot import load_krang
 from krang_sim.devices import KrangCanDevices
 
 REF_REQUEST_ID, REF_ANSWER_ID = 0x7E0, 0x7E1
-SIT_PITCH = -1.7628       # on the caster in the pose below (config/sim_params.yaml)
+SIT_PITCH = -1.7628  # on the caster in the pose below (config/sim_params.yaml)
 GYRO_NOISE_RAD_S = 0.001  # about 7 LSB of the DMU
 ACCEL_NOISE_M_S2 = 0.002
 RECEIVE_BUFFER = 4 << 20  # bytes (the kernel caps it at net.core.rmem_max)
@@ -91,8 +92,10 @@ class Pitch:
         if s >= 1.0:
             return self.target, 0.0
         d = self.target - self.sit
-        return (self.sit + d * 0.5 * (1.0 - math.cos(math.pi * s)),
-                d * 0.5 * math.pi * math.sin(math.pi * s) / self.ramp_s)
+        return (
+            self.sit + d * 0.5 * (1.0 - math.cos(math.pi * s)),
+            d * 0.5 * math.pi * math.sin(math.pi * s) / self.ramp_s,
+        )
 
 
 class Player:
@@ -101,28 +104,35 @@ class Player:
         config = load_devices(args.devices)
         self.config = config
         self.robot, joints = bench_pose()
-        self.devices = KrangCanDevices(config, initial_joint_positions=joints,
-                                       imu_rate_noise_std_rad_s=GYRO_NOISE_RAD_S,
-                                       imu_accel_noise_std_m_s2=ACCEL_NOISE_M_S2, seed=args.seed)
+        self.devices = KrangCanDevices(
+            config,
+            initial_joint_positions=joints,
+            imu_rate_noise_std_rad_s=GYRO_NOISE_RAD_S,
+            imu_accel_noise_std_m_s2=ACCEL_NOISE_M_S2,
+            seed=args.seed,
+        )
         self.pitch = Pitch(SIT_PITCH, balance_pitch(self.robot, joints), args.ramp_s)
         dbc = load_dbc(config.dbc_path)
         rpdo = amc_proto.RPDO_CURRENT
-        self.rpdo_ids = {amc_proto.AmcDriveCodec(d, config.wheels, dbc).ids[rpdo]: d.joint
-                         for d in config.wheels.drives}
+        self.rpdo_ids = {
+            amc_proto.AmcDriveCodec(d, config.wheels, dbc).ids[rpdo]: d.joint
+            for d in config.wheels.drives
+        }
         self.streamed = set()  # ids of our own DMU and TPDO frames: their echoes are skipped
         self.buses = {n: can.Bus(**config.buses[n].bus_kwargs()) for n in config.buses_in_use()}
-        self.ref_bus = can.Bus(interface='udp_multicast', channel=args.ref_channel,
-                               port=args.ref_port)
+        self.ref_bus = can.Bus(
+            interface='udp_multicast', channel=args.ref_channel, port=args.ref_port
+        )
         for bus in [*self.buses.values(), self.ref_bus]:
             enlarge_receive_buffer(bus)
         self.lock = threading.Lock()
         self.stop = threading.Event()
         self.probing = False
-        self.probe_sign = -1       # probes alternate in sign, the first is positive
-        self.samples = []      # (kernel time of the 0x50 frame, sequence)
-        self.sent = []         # (sequence, probe sign or 0) of every sample sent, in order
-        self.commands = []     # (kernel time, RPDO id, DC2 raw value)
-        self.ref = {REF_REQUEST_ID: [], REF_ANSWER_ID: []}   # (kernel time, counter)
+        self.probe_sign = -1  # probes alternate in sign, the first is positive
+        self.samples = []  # (kernel time of the 0x50 frame, sequence)
+        self.sent = []  # (sequence, probe sign or 0) of every sample sent, in order
+        self.commands = []  # (kernel time, RPDO id, DC2 raw value)
+        self.ref = {REF_REQUEST_ID: [], REF_ANSWER_ID: []}  # (kernel time, counter)
 
     # ---- receive -------------------------------------------------------------------------------
     def receive(self, name, bus):
@@ -136,8 +146,9 @@ class Player:
                 self.samples.append((msg.timestamp, msg.data[7]))
                 continue
             if wheel_bus and aid in self.rpdo_ids and len(msg.data) == 4:
-                self.commands.append((msg.timestamp, aid,
-                                      int.from_bytes(msg.data[2:4], 'little', signed=True)))
+                self.commands.append(
+                    (msg.timestamp, aid, int.from_bytes(msg.data[2:4], 'little', signed=True))
+                )
             elif wheel_bus and aid in self.streamed:
                 continue
             with self.lock:
@@ -149,8 +160,9 @@ class Player:
         while not self.stop.is_set():
             msg = self.ref_bus.recv(0.05)
             if msg is not None and msg.arbitration_id in self.ref and len(msg.data) == 4:
-                self.ref[msg.arbitration_id].append((msg.timestamp,
-                                                     int.from_bytes(msg.data, 'little')))
+                self.ref[msg.arbitration_id].append(
+                    (msg.timestamp, int.from_bytes(msg.data, 'little'))
+                )
 
     def commands_in(self):
         for line in sys.stdin:
@@ -189,18 +201,23 @@ class Player:
 
     def tpdos(self, dt):
         q, dq = self.pitch.at(time.monotonic())
-        wheel = SIT_PITCH - q          # the axle stays put while the body pitches
+        wheel = SIT_PITCH - q  # the axle stays put while the body pitches
         with self.lock:
             self.devices.step(dt)
-            frames = self.devices.wheel_feedback_frames({j: wheel for j in self.devices.wheels},
-                                                        {j: -dq for j in self.devices.wheels})
+            frames = self.devices.wheel_feedback_frames(
+                {j: wheel for j in self.devices.wheels}, {j: -dq for j in self.devices.wheels}
+            )
         self.send(frames)
 
     def run(self):
-        threads = [threading.Thread(target=self.receive, args=item, daemon=True)
-                   for item in self.buses.items()]
-        threads += [threading.Thread(target=self.receive_ref, daemon=True),
-                    threading.Thread(target=self.commands_in, daemon=True)]
+        threads = [
+            threading.Thread(target=self.receive, args=item, daemon=True)
+            for item in self.buses.items()
+        ]
+        threads += [
+            threading.Thread(target=self.receive_ref, daemon=True),
+            threading.Thread(target=self.commands_in, daemon=True),
+        ]
         for t in threads:
             t.start()
         print('ready', flush=True)
@@ -209,8 +226,11 @@ class Player:
         # (next time, period, action): DMU samples, the reference frame a quarter period later,
         # the TPDOs half a period later (free-running drives land anywhere in the period)
         start = time.monotonic() + 0.1
-        jobs = [[start, period, 'dmu'], [start + 0.25 * period, period, 'ref'],
-                [start + 0.5 * period, 1.0 / a.tpdo_hz, 'tpdo']]
+        jobs = [
+            [start, period, 'dmu'],
+            [start + 0.25 * period, period, 'ref'],
+            [start + 0.5 * period, 1.0 / a.tpdo_hz, 'tpdo'],
+        ]
         k = ref = 0
         while not self.stop.is_set():
             job = min(jobs, key=lambda j: j[0])
@@ -221,20 +241,28 @@ class Player:
                 self.dmu_sample(k % a.probe_every)
                 k += 1
             elif job[2] == 'ref':
-                self.ref_bus.send(can.Message(arbitration_id=REF_REQUEST_ID, is_extended_id=False,
-                                              data=ref.to_bytes(4, 'little')))
+                self.ref_bus.send(
+                    can.Message(
+                        arbitration_id=REF_REQUEST_ID,
+                        is_extended_id=False,
+                        data=ref.to_bytes(4, 'little'),
+                    )
+                )
                 ref += 1
             else:
                 self.tpdos(job[1])
             job[0] += job[1]
             behind = time.monotonic() - job[0]
-            if behind > job[1]:            # descheduled: skip what is missed, no burst
+            if behind > job[1]:  # descheduled: skip what is missed, no burst
                 job[0] += math.ceil(behind / job[1]) * job[1]
         for t in threads[:-1]:
             t.join(1.0)
         use = resource.getrusage(resource.RUSAGE_SELF)
-        print(f'device player: {use.ru_utime + use.ru_stime:.1f} s of CPU in '
-              f'{time.monotonic() - start:.1f} s', file=sys.stderr)
+        print(
+            f'device player: {use.ru_utime + use.ru_stime:.1f} s of CPU in '
+            f'{time.monotonic() - start:.1f} s',
+            file=sys.stderr,
+        )
         self.save(a.out)
         for bus in [*self.buses.values(), self.ref_bus]:
             bus.shutdown()
@@ -251,11 +279,17 @@ class Player:
                 probe[n] = self.sent[i][1]
                 i += 1
         cmd = np.array(self.commands, float).reshape(-1, 3)
-        np.savez(path, sample_t=np.array([s[0] for s in self.samples]), sample_probe=probe,
-                 cmd_t=cmd[:, 0], cmd_id=cmd[:, 1].astype(int), cmd_value=cmd[:, 2],
-                 left_id=next(i for i, j in self.rpdo_ids.items() if j == 'JLWheel'),
-                 ref_req=np.array(self.ref[REF_REQUEST_ID], float).reshape(-1, 2),
-                 ref_ans=np.array(self.ref[REF_ANSWER_ID], float).reshape(-1, 2))
+        np.savez(
+            path,
+            sample_t=np.array([s[0] for s in self.samples]),
+            sample_probe=probe,
+            cmd_t=cmd[:, 0],
+            cmd_id=cmd[:, 1].astype(int),
+            cmd_value=cmd[:, 2],
+            left_id=next(i for i, j in self.rpdo_ids.items() if j == 'JLWheel'),
+            ref_req=np.array(self.ref[REF_REQUEST_ID], float).reshape(-1, 2),
+            ref_ans=np.array(self.ref[REF_ANSWER_ID], float).reshape(-1, 2),
+        )
 
 
 def main():

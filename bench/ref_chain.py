@@ -12,6 +12,7 @@ sends 0x7E0 and times the answer on the bus.
     .venv/bin/python bench/ref_chain.py can --channel 239.74.163.99 --port 45000
     .venv/bin/python bench/ref_chain.py relay
 """
+
 import argparse
 import signal
 
@@ -42,8 +43,9 @@ class CanEnd(Node):
         super().__init__('bench_ref_can')
         self.bus = can.Bus(interface='udp_multicast', channel=channel, port=port)
         self.pub = self.create_publisher(Float64MultiArray, OUT, topics.QOS[names.IMU])
-        self.create_subscription(Float64MultiArray, BACK, self.on_back,
-                                 topics.QOS[names.WHEEL_EFFORT_CMD])
+        self.create_subscription(
+            Float64MultiArray, BACK, self.on_back, topics.QOS[names.WHEEL_EFFORT_CMD]
+        )
         self.notifier = can.Notifier(self.bus, [_Listener(self)], timeout=0.1)
 
     def on_frame(self, msg):
@@ -52,8 +54,13 @@ class CanEnd(Node):
 
     def on_back(self, msg):
         counter = int(msg.data[0]) & 0xFFFFFFFF
-        self.bus.send(can.Message(arbitration_id=REF_ANSWER_ID, is_extended_id=False,
-                                  data=counter.to_bytes(4, 'little')))
+        self.bus.send(
+            can.Message(
+                arbitration_id=REF_ANSWER_ID,
+                is_extended_id=False,
+                data=counter.to_bytes(4, 'little'),
+            )
+        )
 
     def close(self):
         self.notifier.stop()
@@ -65,8 +72,9 @@ class Relay(Node):
 
     def __init__(self):
         super().__init__('bench_ref_relay')
-        self.pub = self.create_publisher(Float64MultiArray, BACK,
-                                         topics.QOS[names.WHEEL_EFFORT_CMD])
+        self.pub = self.create_publisher(
+            Float64MultiArray, BACK, topics.QOS[names.WHEEL_EFFORT_CMD]
+        )
         self.create_subscription(Float64MultiArray, OUT, self.pub.publish, topics.QOS[names.IMU])
 
     def close(self):

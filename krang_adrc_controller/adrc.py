@@ -26,6 +26,7 @@ estimates. Motor constants and the current limit come from the one drive-train d
 This is the one implementation of the law, and it is the controller's 500 Hz hot path: it runs on
 floats (eso.py), because numpy's per-call cost on 2- and 3-vectors would dominate the loop.
 """
+
 from __future__ import annotations
 
 import math
@@ -40,21 +41,40 @@ from .eso import EsoConfig, ExtendedStateObserver
 @dataclass(frozen=True)
 class AdrcConfig:
     """The ADRC law (parameters ``adrc.*``), paper §II-D."""
-    use_disturbance_rejection: bool = field(default=True, metadata={
-        'doc': 'false = plain LQR (the observers still run, for the rates and a bumpless switch)'})
-    eso_input: str = field(default='nominal', metadata={
-        'doc': "what the ESOs are fed: 'nominal' (the authors' code) or 'applied' (winds up "
-               'with a wrong CoM; analysis only)'})
-    use_measured_rates: bool = field(default=True, metadata={
-        'doc': 'feedback on the IMU rate and the wheel speed (false: on the ESO estimates)'})
-    f_limit_x: float = field(default=0.0, metadata={
-        'doc': '|f_hat| clamp of the x channel, m/s^2 (0 = none)'})
-    f_limit_theta: float = field(default=0.0, metadata={
-        'doc': '|f_hat| clamp of the theta channel, rad/s^2 (0 = none)'})
-    left_share: float = field(default=0.5, metadata={
-        'doc': 'fraction of the total wheel torque sent to the left wheel'})
-    torque_limit_nm: float = field(default=0.0, metadata={
-        'doc': 'per-wheel torque clamp before the current clamp, N m (0 = none)'})
+
+    use_disturbance_rejection: bool = field(
+        default=True,
+        metadata={
+            'doc': 'false = plain LQR (the observers still run, for the rates and a bumpless '
+            'switch)'
+        },
+    )
+    eso_input: str = field(
+        default='nominal',
+        metadata={
+            'doc': "what the ESOs are fed: 'nominal' (the authors' code) or 'applied' (winds up "
+            'with a wrong CoM; analysis only)'
+        },
+    )
+    use_measured_rates: bool = field(
+        default=True,
+        metadata={
+            'doc': 'feedback on the IMU rate and the wheel speed (false: on the ESO estimates)'
+        },
+    )
+    f_limit_x: float = field(
+        default=0.0, metadata={'doc': '|f_hat| clamp of the x channel, m/s^2 (0 = none)'}
+    )
+    f_limit_theta: float = field(
+        default=0.0, metadata={'doc': '|f_hat| clamp of the theta channel, rad/s^2 (0 = none)'}
+    )
+    left_share: float = field(
+        default=0.5, metadata={'doc': 'fraction of the total wheel torque sent to the left wheel'}
+    )
+    torque_limit_nm: float = field(
+        default=0.0,
+        metadata={'doc': 'per-wheel torque clamp before the current clamp, N m (0 = none)'},
+    )
     eso: EsoConfig = EsoConfig()
 
     def __post_init__(self):
@@ -66,6 +86,7 @@ class AdrcConfig:
 
 class WheelCommand(NamedTuple):
     """One control step's output. Torques at the wheels [N m], currents at the motors [A]."""
+
     tau_left: float
     tau_right: float
     i_left: float
@@ -90,8 +111,17 @@ class AdrcController:
     config : the law's settings (``AdrcConfig``, with its ESO design).
     """
 
-    def __init__(self, f_x, f_theta, b_x: float, b_theta: float, drive: Drivetrain, *,
-                 sample_period_s: float, config: AdrcConfig = AdrcConfig()):
+    def __init__(
+        self,
+        f_x,
+        f_theta,
+        b_x: float,
+        b_theta: float,
+        drive: Drivetrain,
+        *,
+        sample_period_s: float,
+        config: AdrcConfig = AdrcConfig(),
+    ):
         if drive.torque_constant <= 0 or drive.gear_ratio <= 0 or drive.current_limit <= 0:
             raise ValueError('motor constants and current limit must be positive')
         self.h = float(sample_period_s)
@@ -104,10 +134,12 @@ class AdrcController:
         self.use_disturbance_rejection = bool(config.use_disturbance_rejection)
         self.use_measured_rates = bool(config.use_measured_rates)
         self.eso_input = config.eso_input
-        self.eso_x = ExtendedStateObserver.from_config(b_x, self.h, config.eso,
-                                                       config.f_limit_x or None)
-        self.eso_theta = ExtendedStateObserver.from_config(b_theta, self.h, config.eso,
-                                                           config.f_limit_theta or None)
+        self.eso_x = ExtendedStateObserver.from_config(
+            b_x, self.h, config.eso, config.f_limit_x or None
+        )
+        self.eso_theta = ExtendedStateObserver.from_config(
+            b_theta, self.h, config.eso, config.f_limit_theta or None
+        )
         self.set_gains(f_x, f_theta, b_x, b_theta)
         self._u_prev_x = 0.0
         self._u_prev_theta = 0.0
@@ -116,8 +148,9 @@ class AdrcController:
     @classmethod
     def from_design(cls, design: Mapping, drive: Drivetrain, **kwargs) -> 'AdrcController':
         """Build from a ``GainCache.design(...)`` dict."""
-        return cls(design['F_x'], design['F_theta'], design['b_x'], design['b_theta'], drive,
-                   **kwargs)
+        return cls(
+            design['F_x'], design['F_theta'], design['b_x'], design['b_theta'], drive, **kwargs
+        )
 
     # ------------------------------------------------------------------ configuration
     def set_gains(self, f_x, f_theta, b_x: float, b_theta: float) -> None:
@@ -166,8 +199,15 @@ class AdrcController:
         `step` with no motion, which must not read as an acceleration."""
         self.eso_theta.shift(step)
 
-    def update(self, theta: float, x: float, dt: float | None = None, *,
-               dtheta: float | None = None, dx: float | None = None) -> WheelCommand:
+    def update(
+        self,
+        theta: float,
+        x: float,
+        dt: float | None = None,
+        *,
+        dtheta: float | None = None,
+        dx: float | None = None,
+    ) -> WheelCommand:
         """One control step from the measured CoM angle theta [rad] and wheel position x.
 
         dt: the period since the previous call (None = nominal). dtheta, dx: measured rates

@@ -1,22 +1,25 @@
-"""Where the robot really balances, from an ESO: the disturbance of a wrong CoM, rejected through the lean.
+"""Where the robot really balances, from an ESO: the disturbance of a wrong CoM, rejected through
+the lean.
 
-A wrong CoM estimate is, to the controller, a constant disturbance torque about the axle (paper §II-D).
-The paper's law cancels the estimated disturbance in the wheel torque, but a static torque about the axle
-cannot be cancelled by the wheels of a pendulum: at rest the wheel torque must be zero and the true CoM
-must be over the axle. So that law, like plain LQR, comes to rest at theta = delta (the CoM-angle error)
-and pays for it with a position offset x - x_ref = -F_theta0 delta / F_x0 (10.3 m per rad in the Table II
-pose; docs/control.md). The one place to reject this disturbance is the balance point itself.
+A wrong CoM estimate is, to the controller, a constant disturbance torque about the axle (paper
+§II-D). The paper's law cancels the estimated disturbance in the wheel torque, but a static torque
+about the axle cannot be cancelled by the wheels of a pendulum: at rest the wheel torque must be
+zero and the true CoM must be over the axle. So that law, like plain LQR, comes to rest at theta =
+delta (the CoM-angle error) and pays for it with a position offset x - x_ref = -F_theta0 delta /
+F_x0 (10.3 m per rad in the Table II pose; docs/control.md). The one place to reject this
+disturbance is the balance point itself.
 
 This observer is an ESO on the theta channel with the LQR(q) linear model as its known part,
 
     theta'' = a theta + a_dx x' + a_dth theta' + b tau + f      (theta = 0: the model's balance),
 
-fed with the applied torque. The plant differs from the model by f = -a delta at rest (exactly, whatever
-the control does), so delta_hat = -f_hat / a, low-pass filtered over `time_constant_s` and limited to
-`limit_rad`. The controller regulates theta - delta_hat instead of theta: it comes to rest at x_ref with
-the true CoM over the axle. The filter keeps this trim slow next to the balance dynamics (the ESO itself
-runs at the ADRC's bandwidth), so the LQR(q) design is not disturbed.
+fed with the applied torque. The plant differs from the model by f = -a delta at rest (exactly,
+whatever the control does), so delta_hat = -f_hat / a, low-pass filtered over `time_constant_s` and
+limited to `limit_rad`. The controller regulates theta - delta_hat instead of theta: it comes to
+rest at x_ref with the true CoM over the axle. The filter keeps this trim slow next to the balance
+dynamics (the ESO itself runs at the ADRC's bandwidth), so the LQR(q) design is not disturbed.
 """
+
 from __future__ import annotations
 
 import math
@@ -30,26 +33,50 @@ class ObserverConfig:
     """The balance-point observer (parameters ``balance_point.*``). The paper's law alone rests
     1.66 m from its reference with a 2.5 cm CoM error; with the observer, within 1 cm
     (docs/control.md)."""
-    enabled: bool = field(default=True, metadata={
-        'doc': "regulate about the estimated balance point (false = the paper's law)"})
-    time_constant_s: float = field(default=1.0, metadata={
-        'doc': 'low-pass of the estimate, s: slow next to the balance dynamics'})
-    limit_rad: float = field(default=0.3, metadata={
-        'doc': '|delta_hat| bound, rad of CoM angle (0.3: ~25 cm of CoM error)'})
-    hold_s: float = field(default=0.5, metadata={
-        'doc': 'estimate held while the joints move and this long after, s (the ESO re-converges)'
-    })
-    track_moves: bool = field(default=False, metadata={
-        'doc': 'keep estimating while the joints move (false = hold, see hold_s)'})
-    converged_tol_rad: float = field(default=0.005, metadata={
-        'doc': 'converged when the low-passed gap between the raw estimate and delta_hat is below '
-               'this, rad (~2.5 mm of CoM at 0.5 m height)'})
+
+    enabled: bool = field(
+        default=True,
+        metadata={'doc': "regulate about the estimated balance point (false = the paper's law)"},
+    )
+    time_constant_s: float = field(
+        default=1.0,
+        metadata={'doc': 'low-pass of the estimate, s: slow next to the balance dynamics'},
+    )
+    limit_rad: float = field(
+        default=0.3,
+        metadata={'doc': '|delta_hat| bound, rad of CoM angle (0.3: ~25 cm of CoM error)'},
+    )
+    hold_s: float = field(
+        default=0.5,
+        metadata={
+            'doc': 'estimate held while the joints move and this long after, s (the ESO '
+            're-converges)'
+        },
+    )
+    track_moves: bool = field(
+        default=False,
+        metadata={'doc': 'keep estimating while the joints move (false = hold, see hold_s)'},
+    )
+    converged_tol_rad: float = field(
+        default=0.005,
+        metadata={
+            'doc': 'converged when the low-passed gap between the raw estimate and delta_hat is '
+            'below '
+            'this, rad (~2.5 mm of CoM at 0.5 m height)'
+        },
+    )
 
     def __post_init__(self):
-        if (self.time_constant_s <= 0 or self.limit_rad <= 0 or self.hold_s < 0
-                or self.converged_tol_rad <= 0):
-            raise ValueError('balance_point.time_constant_s, limit_rad and converged_tol_rad must '
-                             'be positive, hold_s not negative')
+        if (
+            self.time_constant_s <= 0
+            or self.limit_rad <= 0
+            or self.hold_s < 0
+            or self.converged_tol_rad <= 0
+        ):
+            raise ValueError(
+                'balance_point.time_constant_s, limit_rad and converged_tol_rad must '
+                'be positive, hold_s not negative'
+            )
 
 
 class BalancePointObserver:
@@ -62,7 +89,7 @@ class BalancePointObserver:
         self.hold_s = float(config.hold_s)
         self.track_moves = bool(config.track_moves)
         self.converged_tol = float(config.converged_tol_rad)
-        self.gap = math.inf             # low-passed (raw estimate - delta_hat), rad
+        self.gap = math.inf  # low-passed (raw estimate - delta_hat), rad
         self.a = self.a_dx = self.a_dth = 0.0
         self.b = 1.0
         self.delta = 0.0
@@ -89,9 +116,9 @@ class BalancePointObserver:
         return abs(self.gap) < self.converged_tol
 
     def shift(self, delta_offset: float, same_pose: bool) -> None:
-        """The model's theta offset moved by `delta_offset`: the measured theta jumps with no motion.
-        A new beta at the same pose moves the error by as much (the true balance pitch stays); at a new
-        pose the best guess is that the CoM-angle error stays what it was."""
+        """The model's theta offset moved by `delta_offset`: the measured theta jumps with no
+        motion. A new beta at the same pose moves the error by as much (the true balance pitch
+        stays); at a new pose the best guess is that the CoM-angle error stays what it was."""
         if same_pose:
             self.eso.shift(delta_offset, -self.a * delta_offset)
             self.delta += delta_offset
@@ -99,8 +126,8 @@ class BalancePointObserver:
             self.eso.shift(delta_offset)
 
     def update(self, theta: float, dt: float, hold: bool = False) -> float:
-        """One step with the measurement now; returns delta_hat. `hold`: keep delta_hat (the joints move:
-        their reaction torques are outside the model and would read as a disturbance)."""
+        """One step with the measurement now; returns delta_hat. `hold`: keep delta_hat (the joints
+        move: their reaction torques are outside the model and would read as a disturbance)."""
         eso = self.eso
         eso.step(theta, self._u_prev, dt)
         f = eso.z[2]
@@ -114,6 +141,6 @@ class BalancePointObserver:
         return self.delta
 
     def applied(self, tau: float, theta: float, dx: float, dtheta: float) -> None:
-        """The torque applied from this step on, with the state it was applied in (held over the period):
-        the ESO's input is the model's whole known part, in units of torque."""
+        """The torque applied from this step on, with the state it was applied in (held over the
+        period): the ESO's input is the model's whole known part, in units of torque."""
         self._u_prev = tau + (self.a * theta + self.a_dx * dx + self.a_dth * dtheta) / self.b

@@ -4,7 +4,8 @@ and the balanced-pose detector. Pure Python, no rclpy; used by the offline close
 
 One ``step(sample)`` per control period, in stages:
 
-1. **State.** ``theta`` = CoM angle from vertical of the WHOLE robot (wheels included) computed from
+1. **State.** ``theta`` = CoM angle from vertical of the WHOLE robot (wheels included) computed
+   from
    the IMU pitch, the joint encoders and the ESTIMATED beta, as the hardware did
    (``theta = q_base + com_offset_full(joints, beta)``, krang_model.wip). ``x = r (mean(wheel
    encoders) + q_base)`` in metres (the ground-referenced wheel angle, krang_model/README.md),
@@ -29,13 +30,14 @@ One ``step(sample)`` per control period, in stages:
 6. **Clamping** (``_clamp``): each wheel's current to the drive train's limit.
 
 Notes. With the authors' ESO input alone the ADRC comes to rest where plain LQR does,
-x - x_ref = -F_theta0 delta / F_x0 (delta = theta error of the beta), with the TRUE CoM over the axle
-(adrc.py). The balance-point observer (balance_point.py) estimates delta and the ADRC regulates
-theta - delta_hat, so the robot rests at x_ref. Either rest is what the detector needs: its q_base
-is the true balance pitch whatever the beta. ``rezero_x_on_balance`` (default off) reproduces the
-2018 code's reset of the x reference at every mode change; off, the ADRC keeps the stand-up's
-reference and the handover does not move the robot a second time.
+x - x_ref = -F_theta0 delta / F_x0 (delta = theta error of the beta), with the TRUE CoM over the
+axle (adrc.py). The balance-point observer (balance_point.py) estimates delta and the ADRC
+regulates theta - delta_hat, so the robot rests at x_ref. Either rest is what the detector needs:
+its q_base is the true balance pitch whatever the beta. ``rezero_x_on_balance`` (default off)
+reproduces the 2018 code's reset of the x reference at every mode change; off, the ADRC keeps the
+stand-up's reference and the handover does not move the robot a second time.
 """
+
 from __future__ import annotations
 
 import math
@@ -70,10 +72,15 @@ class ControllerConfig:
     """Every parameter of the controller, one group per module; the defaults are the shipped
     values. As ROS parameters the names are dotted (``adrc.eso.omega_o``, krang_ros/params.py);
     config/controller.yaml and config/sim_params.yaml hold only what differs."""
-    rate_hz: float = field(default=500.0, metadata={
-        'doc': 'control loop rate, Hz; the ESO is discretised at 1/rate_hz'})
-    rezero_x_on_balance: bool = field(default=False, metadata={
-        'doc': "true = the 2018 code's x-reference reset on STAND_UP -> BALANCE"})
+
+    rate_hz: float = field(
+        default=500.0,
+        metadata={'doc': 'control loop rate, Hz; the ESO is discretised at 1/rate_hz'},
+    )
+    rezero_x_on_balance: bool = field(
+        default=False,
+        metadata={'doc': "true = the 2018 code's x-reference reset on STAND_UP -> BALANCE"},
+    )
     lqr: LqrConfig = LqrConfig()
     adrc: AdrcConfig = AdrcConfig()
     balance_point: ObserverConfig = ObserverConfig()
@@ -97,8 +104,8 @@ def default_config_path() -> Path:
 
 
 def load_controller_config(path=None, overrides: dict | None = None) -> ControllerConfig:
-    """ControllerConfig from a node-parameter YAML (``adrc_controller: ros__parameters: {...}``, or a
-    plain mapping; names dotted or nested); default config/controller.yaml. ``overrides`` (dotted
+    """ControllerConfig from a node-parameter YAML (``adrc_controller: ros__parameters: {...}``, or
+    a plain mapping; names dotted or nested); default config/controller.yaml. ``overrides`` (dotted
     names) are applied on top."""
     path = Path(path) if path else default_config_path()
     with open(path) as f:
@@ -118,51 +125,61 @@ def load_controller_config(path=None, overrides: dict | None = None) -> Controll
 @dataclass(slots=True)
 class ControlSample:
     """One synchronised sensor sample. Angles rad, rates rad/s, t in s (sensor clock)."""
+
     t: float
-    q_base: float               # IMU pitch (krang_model/README.md convention)
+    q_base: float  # IMU pitch (krang_model/README.md convention)
     pitch_rate: float
-    wheel_left: float           # wheel encoder angles relative to the body (rad, wheel side)
+    wheel_left: float  # wheel encoder angles relative to the body (rad, wheel side)
     wheel_right: float
     wheel_left_rate: float
     wheel_right_rate: float
-    joints: np.ndarray          # body joints, pose order
+    joints: np.ndarray  # body joints, pose order
     joints_moving: bool = False
 
 
 @dataclass(slots=True)
 class ControlOutput:
     mode: str
-    torque_left: float          # N m at the wheel
+    torque_left: float  # N m at the wheel
     torque_right: float
-    current_left: float         # A at the motor (positive drives x forward)
+    current_left: float  # A at the motor (positive drives x forward)
     current_right: float
     balanced_point: BalancedPoint | None
-    theta: float                # CoM angle from vertical with the estimated beta (rad)
-    x: float                    # ground-referenced wheel position r (mean encoders + q_base), m
+    theta: float  # CoM angle from vertical with the estimated beta (rad)
+    x: float  # ground-referenced wheel position r (mean encoders + q_base), m
     f_hat_x: float
     f_hat_theta: float
     events: list = field(default_factory=list)
-    dtheta: float = 0.0         # rad/s (IMU rate)
-    dx: float = 0.0             # m/s
-    x_ref: float = 0.0          # m, the position reference of STAND_UP/BALANCE
-    psi: float = 0.0            # wheel radians
+    dtheta: float = 0.0  # rad/s (IMU rate)
+    dx: float = 0.0  # m/s
+    x_ref: float = 0.0  # m, the position reference of STAND_UP/BALANCE
+    psi: float = 0.0  # wheel radians
     saturated: bool = False
-    balance_trim: float = 0.0   # rad, the balance-point observer's delta_hat (0 when it is off)
-    balance_converged: bool = False     # BALANCE with a settled balance estimate (see step)
+    balance_trim: float = 0.0  # rad, the balance-point observer's delta_hat (0 when it is off)
+    balance_converged: bool = False  # BALANCE with a settled balance estimate (see step)
 
 
 @dataclass(frozen=True)
 class Reply:
     """The answer to an operator's request: accepted or not, and why."""
+
     ok: bool
     message: str
 
 
 def sample_from_sensors(sensors, joints_moving: bool = False) -> ControlSample:
     """ControlSample from a ``krang_sim.physics.Sensors`` reading."""
-    return ControlSample(sensors.t, sensors.q_base, sensors.pitch_rate, sensors.wheel_left,
-                         sensors.wheel_right, sensors.wheel_left_rate, sensors.wheel_right_rate,
-                         sensors.joints, joints_moving)
+    return ControlSample(
+        sensors.t,
+        sensors.q_base,
+        sensors.pitch_rate,
+        sensors.wheel_left,
+        sensors.wheel_right,
+        sensors.wheel_left_rate,
+        sensors.wheel_right_rate,
+        sensors.joints,
+        joints_moving,
+    )
 
 
 # ----------------------------------------------------------------------------- the controller
@@ -177,7 +194,7 @@ class BalanceController:
         self.h = 1.0 / cfg.rate_hz
         self.drive = drive = drivetrain(robot)
         self.r = drive.wheel_radius
-        self.k_motor = drive.torque_constant * drive.gear_ratio     # wheel N m per motor A
+        self.k_motor = drive.torque_constant * drive.gear_ratio  # wheel N m per motor A
         self.designer = LqrDesigner(cfg.lqr, position_unit='m', wheel_radius_m=self.r)
         self.gains = GainCache(self._linearize, self.designer)
         first = Mode.SIT if cfg.modes.start_enabled else Mode.SAFE_STOP
@@ -190,29 +207,29 @@ class BalanceController:
         self._current_limit = drive.current_limit
         self._caster_limit = drive.caster_pitch + cfg.safety.caster_margin_rad
         self._caster_since: float | None = None
-        self._on_caster = False          # caught on the caster in BALANCE: sit (modes.py)
+        self._on_caster = False  # caught on the caster in BALANCE: sit (modes.py)
         self._pose_check_every = max(1, int(round(cfg.lqr.pose_check_period_s * cfg.rate_hz)))
         self.enabled = bool(cfg.modes.start_enabled)
         self._auto_stand = cfg.modes.auto_stand
-        self._stand_once = False         # an operator's stand_up(), consumed in SIT
-        self._fault: str | None = None   # a drive fault reported by the bridge, latched
+        self._stand_once = False  # an operator's stand_up(), consumed in SIT
+        self._fault: str | None = None  # a drive fault reported by the bridge, latched
         self._stop_requested = False
         self._sit_requested = False
         self._reset_pending = False
-        self._steady = False             # no request pending: BALANCE continues (see _requests)
+        self._steady = False  # no request pending: BALANCE continues (see _requests)
         self._requests()
         self._beta = np.array(beta, dtype=float)
         self._beta_version = 0
         self._body_memo = None
-        self._pose = None                # reference pose of the current design
-        self._offset = 0.0               # theta = q_base + offset (whole robot, estimated beta)
+        self._pose = None  # reference pose of the current design
+        self._offset = 0.0  # theta = q_base + offset (whole robot, estimated beta)
         self._design = None
         self.adrc: AdrcController | None = None
-        self.balance_point = None        # BalancePointObserver when config.balance_point.enabled
-        self._balance_point_active = False   # ... and the ADRC regulates about its estimate
+        self.balance_point = None  # BalancePointObserver when config.balance_point.enabled
+        self._balance_point_active = False  # ... and the ADRC regulates about its estimate
         self._moving = False
-        self._t_still = -math.inf        # when the joints last stopped
-        self._t_balance = -math.inf      # when BALANCE was entered
+        self._t_still = -math.inf  # when the joints last stopped
+        self._t_balance = -math.inf  # when BALANCE was entered
         self._t_offset = -math.inf
         self._t_gain = -math.inf
         self._t_prev = None
@@ -221,9 +238,9 @@ class BalanceController:
         self.psi_ref = 0.0
         self._refused = False
         self._t_stand = 0.0
-        self._sit_from = (0.0, 0.0)      # (t, IMU pitch) at SIT_DOWN entry
+        self._sit_from = (0.0, 0.0)  # (t, IMU pitch) at SIT_DOWN entry
         self._stop_reason = None
-        self._waist: float | None = None     # of the latest finite sample (the sit guard)
+        self._waist: float | None = None  # of the latest finite sample (the sit guard)
         self.last_output: ControlOutput | None = None
         self.points: list[BalancedPoint] = []
         self.redesigns = 0
@@ -291,8 +308,10 @@ class BalanceController:
         if mode is Mode.SAFE_STOP:
             return Reply(True, 'already disabled (safe_stop, zero current)')
         if mode is not Mode.SIT:
-            return Reply(False, f'refused: the robot is in {mode.value}, off its caster; '
-                                'use sit_down or halt')
+            return Reply(
+                False,
+                f'refused: the robot is in {mode.value}, off its caster; use sit_down or halt',
+            )
         self.set_enabled(False)
         return Reply(True, 'disabled: zero current (safe_stop)')
 
@@ -315,15 +334,19 @@ class BalanceController:
         return Reply(True, 'started: standing up (the mode topic reports stand_up, then balance)')
 
     def _not_sitting(self, mode: Mode) -> str:
-        return {Mode.SAFE_STOP: self._stopped_why(),
-                Mode.STAND_UP: 'already standing up',
-                Mode.BALANCE: 'already balancing',
-                Mode.SIT_DOWN: 'sitting down; stand_up once the mode is sit'}[mode]
+        return {
+            Mode.SAFE_STOP: self._stopped_why(),
+            Mode.STAND_UP: 'already standing up',
+            Mode.BALANCE: 'already balancing',
+            Mode.SIT_DOWN: 'sitting down; stand_up once the mode is sit',
+        }[mode]
 
     def _stopped_why(self) -> str:
         if self._fault:
-            return f'in safe_stop with a drive fault ({self._fault}); call /can_bridge/recover, ' \
-                   'then recover'
+            return (
+                f'in safe_stop with a drive fault ({self._fault}); call /can_bridge/recover, '
+                'then recover'
+            )
         return 'in safe_stop (zero current); call recover first'
 
     def request_sit(self) -> 'Reply':
@@ -334,8 +357,9 @@ class BalanceController:
         if mode is Mode.SAFE_STOP:
             return Reply(False, f'refused: {self._stopped_why()}')
         if mode is Mode.SIT or mode is Mode.SIT_DOWN:
-            return Reply(False, 'refused: already '
-                                + ('sitting' if mode is Mode.SIT else 'sitting down'))
+            return Reply(
+                False, 'refused: already ' + ('sitting' if mode is Mode.SIT else 'sitting down')
+            )
         if self._sit_requested:
             return Reply(False, 'refused: sit_down already requested')
         why = self.modes.sit_refusal(self._waist, self.theta_on_caster())
@@ -368,8 +392,9 @@ class BalanceController:
         if self.mode is not Mode.SAFE_STOP:
             return Reply(False, f'refused: not in safe_stop (mode {self.mode.value})')
         if self._fault:
-            return Reply(False, f'refused: drive fault ({self._fault}); call /can_bridge/recover '
-                                'first')
+            return Reply(
+                False, f'refused: drive fault ({self._fault}); call /can_bridge/recover first'
+            )
         self.set_enabled(True, stand=False)
         return Reply(True, 'recovering: safe_stop -> sit (powered, on the caster)')
 
@@ -390,11 +415,17 @@ class BalanceController:
     def _requests(self) -> None:
         """After any request: can the mode machine be skipped in BALANCE (nothing pending, no fall
         check)?"""
-        self._steady = (self.enabled and not self._stop_requested and not self._sit_requested
-                        and not self._reset_pending and self.modes.fall_angle is None)
+        self._steady = (
+            self.enabled
+            and not self._stop_requested
+            and not self._sit_requested
+            and not self._reset_pending
+            and self.modes.fall_angle is None
+        )
 
     def expected_rest_offset(self) -> float:
-        """x - x_ref (m) where ADRC/LQR come to rest for a CoM-angle error of 1 rad: -F_th0/F_x0."""
+        """x - x_ref (m) where ADRC/LQR come to rest for a CoM-angle error of 1 rad:
+        -F_th0/F_x0."""
         d = self._design
         return -d['F_theta'][0] / d['F_x'][0]
 
@@ -426,13 +457,16 @@ class BalanceController:
         self.redesigns += 1
         cfg = self.config
         if self.adrc is None:
-            self.adrc = AdrcController.from_design(d, self.drive, sample_period_s=self.h,
-                                                   config=cfg.adrc)
+            self.adrc = AdrcController.from_design(
+                d, self.drive, sample_period_s=self.h, config=cfg.adrc
+            )
             if cfg.balance_point.enabled:
                 self.balance_point = BalancePointObserver(
-                    self.h, cfg.adrc.eso.omega_o or BALANCE_POINT_OMEGA_O, cfg.balance_point)
-            self._balance_point_active = (self.balance_point is not None
-                                          and cfg.adrc.use_disturbance_rejection)
+                    self.h, cfg.adrc.eso.omega_o or BALANCE_POINT_OMEGA_O, cfg.balance_point
+                )
+            self._balance_point_active = (
+                self.balance_point is not None and cfg.adrc.use_disturbance_rejection
+            )
         else:
             self.adrc.set_gains(d['F_x'], d['F_theta'], d['b_x'], d['b_theta'])
         if self.balance_point is not None:
@@ -488,7 +522,9 @@ class BalanceController:
             self._redesign(joints)
 
     # ------------------------------------------------------------------ the loop
-    def step(self, sample: ControlSample, stale: bool = False, now: float | None = None) -> ControlOutput:
+    def step(
+        self, sample: ControlSample, stale: bool = False, now: float | None = None
+    ) -> ControlOutput:
         """One control period. ``stale=True`` (the caller's watchdog) or ``now - sample.t >
         safety.stale_timeout_s`` (when ``now`` is given) or non-finite data -> SAFE_STOP."""
         t = sample.t
@@ -501,8 +537,16 @@ class BalanceController:
             self._waist = float(sample.joints[0])
         k_step = self._k
         self._k = k_step + 1
-        if finite and not stale and (sample.joints_moving or self._moving or self._pose is None
-                       or k_step % self._pose_check_every == 0):
+        if (
+            finite
+            and not stale
+            and (
+                sample.joints_moving
+                or self._moving
+                or self._pose is None
+                or k_step % self._pose_check_every == 0
+            )
+        ):
             self._track_pose(t, sample.joints, sample.joints_moving)
         # 1. state
         r = self.r
@@ -520,21 +564,28 @@ class BalanceController:
         mode_before = self.modes.mode
         if mode_before is Mode.STAND_UP or mode_before is Mode.BALANCE:
             self._safety(t, dx, qb, mode_before, finite)
-        if (mode_before is Mode.BALANCE and self._steady and finite and not stale
-                and (now is None or now - t <= self.modes.stale_timeout_s)):
+        if (
+            mode_before is Mode.BALANCE
+            and self._steady
+            and finite
+            and not stale
+            and (now is None or now - t <= self.modes.stale_timeout_s)
+        ):
             # the mode machine can do nothing in BALANCE without a request, stale data or a fall
             # check (modes.py): skip building its inputs (the 500 Hz hot path)
             mode, ground_gains, events = mode_before, None, []
         else:
-            mode, ground_gains, events = self._mode(sample, mode_before, theta, x, dx, psi, finite,
-                                                    stale, now)
+            mode, ground_gains, events = self._mode(
+                sample, mode_before, theta, x, dx, psi, finite, stale, now
+            )
         # 4./5. the mode's law, 6. clamping
         point = None
         trim = fx = ft = 0.0
         sat = converged = False
         if mode is Mode.BALANCE:
             il, ir, fx, ft, sat, trim, point, converged = self._balance_law(
-                sample, theta, x, dx, dth, psi, dpsi, dt, k_step + 1, events)
+                sample, theta, x, dx, dth, psi, dpsi, dt, k_step + 1, events
+            )
         elif ground_gains is None:
             il = ir = 0.0
         else:
@@ -543,8 +594,26 @@ class BalanceController:
         k = self.k_motor
         if mode is Mode.BALANCE and self._balance_point_active:
             self.balance_point.applied((il + ir) * k, theta, dx, dth)
-        out = ControlOutput(mode.value, il * k, ir * k, il, ir, point, theta, x, fx, ft, events,
-                            dth, dx, self.x_ref, psi, sat or clamped, trim, converged)
+        out = ControlOutput(
+            mode.value,
+            il * k,
+            ir * k,
+            il,
+            ir,
+            point,
+            theta,
+            x,
+            fx,
+            ft,
+            events,
+            dth,
+            dx,
+            self.x_ref,
+            psi,
+            sat or clamped,
+            trim,
+            converged,
+        )
         self.last_output = out
         return out
 
@@ -561,8 +630,10 @@ class BalanceController:
             elif t - self._caster_since >= catch and not self._on_caster:
                 self._on_caster = True
                 self._sit_requested = True
-                self._stop_reason = (f'caster contact: IMU pitch {qb:+.4f} rad below '
-                                     f'{self._caster_limit:+.4f} for {catch:g} s')
+                self._stop_reason = (
+                    f'caster contact: IMU pitch {qb:+.4f} rad below '
+                    f'{self._caster_limit:+.4f} for {catch:g} s'
+                )
                 self._requests()
         why = None
         if max_speed and abs(dx) > max_speed and finite:
@@ -582,8 +653,12 @@ class BalanceController:
         stop = self._stop_requested or not self.enabled
         sit = self._sit_requested and (mode_before is Mode.STAND_UP or mode_before is Mode.BALANCE)
         reset = self._reset_pending
-        stand = (self.enabled and mode_before is Mode.SIT and not self._sit_requested
-                 and (self._auto_stand or self._stand_once))
+        stand = (
+            self.enabled
+            and mode_before is Mode.SIT
+            and not self._sit_requested
+            and (self._auto_stand or self._stand_once)
+        )
         if stale or not finite:
             last_t = -math.inf
             mt = t if finite else 0.0
@@ -592,14 +667,23 @@ class BalanceController:
         else:
             last_t, mt = None, t
         qb = sample.q_base
-        mo = modes.step(ModeInputs(t=mt, imu_pitch=qb if finite else 0.0,
-                                   theta_com=theta if finite else 0.0,
-                                   dtheta=sample.pitch_rate if finite else 0.0,
-                                   waist=float(sample.joints[0]), last_sensor_t=last_t,
-                                   stand_request=stand, sit_request=sit, stop_request=stop,
-                                   reset_request=reset, on_caster=self._on_caster))
+        mo = modes.step(
+            ModeInputs(
+                t=mt,
+                imu_pitch=qb if finite else 0.0,
+                theta_com=theta if finite else 0.0,
+                dtheta=sample.pitch_rate if finite else 0.0,
+                waist=float(sample.joints[0]),
+                last_sensor_t=last_t,
+                stand_request=stand,
+                sit_request=sit,
+                stop_request=stop,
+                reset_request=reset,
+                on_caster=self._on_caster,
+            )
+        )
         if reset and (mode_before is not Mode.SAFE_STOP or mo.mode is not Mode.SAFE_STOP):
-            self._reset_pending = False      # consumed; kept while SAFE_STOP refuses it (stale data)
+            self._reset_pending = False  # consumed; kept while SAFE_STOP refuses it (stale data)
             self._requests()
         if stand and self._stand_once and mo.mode is not Mode.SIT:
             self._stand_once = False
@@ -607,7 +691,7 @@ class BalanceController:
         for e in mo.events:
             if e.startswith('stand_refused'):
                 if self._stand_once:
-                    self._stand_once = False     # an operator's request is answered once
+                    self._stand_once = False  # an operator's request is answered once
                 elif self._refused:
                     continue
                 self._refused = True
@@ -622,7 +706,7 @@ class BalanceController:
         if mode is Mode.STAND_UP:
             self._t_stand = t
         if mode is Mode.SIT_DOWN:
-            self._sit_from = (t, theta - self._offset)     # the IMU pitch now
+            self._sit_from = (t, theta - self._offset)  # the IMU pitch now
         if mode is Mode.SIT and self._on_caster:
             self._on_caster = False
             self._caster_since = None
@@ -660,8 +744,12 @@ class BalanceController:
             hold = not bp.track_moves and (self._moving or still < bp.hold_s)
             trim = bp.update(theta, dt, hold)
             theta_c = theta - trim
-            converged = (not hold and still >= bp.hold_s + bp.time_constant
-                         and t - self._t_balance >= bp.hold_s + bp.time_constant and bp.converged)
+            converged = (
+                not hold
+                and still >= bp.hold_s + bp.time_constant
+                and t - self._t_balance >= bp.hold_s + bp.time_constant
+                and bp.converged
+            )
         c = self.adrc.update(theta_c, x - self.x_ref, dt, dtheta=dth, dx=dx)
         il, ir = c.i_left, c.i_right
         kp, kd, lim = self._spin
@@ -672,8 +760,9 @@ class BalanceController:
             ir -= u_spin
         point = None
         if k % self._detector_every == 0:
-            point = self.detector.update(t, sample.q_base, dth, dx, c.fhat_theta, sample.joints,
-                                         sample.joints_moving)
+            point = self.detector.update(
+                t, sample.q_base, dth, dx, c.fhat_theta, sample.joints, sample.joints_moving
+            )
             if point is not None:
                 self.points.append(point)
                 events.append(f'balanced_point: q_base={point.q_base:.5f}')
@@ -685,8 +774,10 @@ class BalanceController:
         modes = self.config.modes
         if not modes.sit_rate_rad_s:
             return modes.sit_imu_limit_rad
-        return max(modes.sit_imu_limit_rad,
-                   self._sit_from[1] - modes.sit_rate_rad_s * (t - self._sit_from[0]))
+        return max(
+            modes.sit_imu_limit_rad,
+            self._sit_from[1] - modes.sit_rate_rad_s * (t - self._sit_from[0]),
+        )
 
     def _ground_law(self, g, t, mode, qb, theta, x, dx, dth, psi, dpsi):
         """The PD of SIT, STAND_UP and SIT_DOWN (A per wheel radian, modes.py); SIT_DOWN's theta

@@ -21,6 +21,7 @@ restarts the window.
 Thresholds are ``DetectorConfig``: our choices, except pitch_rate_max = 0.03 rad/s, the hardware's
 "standing still" rate threshold (docs/control.md).
 """
+
 from __future__ import annotations
 
 from collections import deque
@@ -32,23 +33,40 @@ import numpy as np
 @dataclass(frozen=True)
 class DetectorConfig:
     """The balanced-pose detector (parameters ``detector.*``), fed in BALANCE only."""
-    rate_hz: float = field(default=50.0, metadata={
-        'doc': 'feed rate, Hz (decimated: the window statistics need no more)'})
+
+    rate_hz: float = field(
+        default=50.0,
+        metadata={'doc': 'feed rate, Hz (decimated: the window statistics need no more)'},
+    )
     window_s: float = field(default=2.0, metadata={'doc': 'settled window, s'})
     pitch_rate_max: float = field(default=0.03, metadata={'doc': '|pitch rate| bound, rad/s'})
-    wheel_speed_max: float = field(default=0.008, metadata={
-        'doc': '|ground speed| bound, m/s: r (mean wheel rate + pitch rate); its noise ~0.0015'})
-    fhat_band: float = field(default=0.6, metadata={
-        'doc': "max - min of the theta ESO's f_hat over the window, rad/s^2 (noise std 0.065 at "
-               "an ESO bandwidth of 20 rad/s; ~1.9 with the authors' gains)"})
-    joint_tol_rad: float = field(default=2e-3, metadata={
-        'doc': 'every joint within this of its window mean, rad'})
-    rearm_tol_rad: float = field(default=0.02, metadata={
-        'doc': 're-arm when a joint leaves this band around the emitted pose, rad'})
-    q_base_std_max: float = field(default=0.0, metadata={
-        'doc': 'std bound on q_base over the window, rad (0 = off)'})
-    max_gap_s: float = field(default=0.2, metadata={
-        'doc': 'a longer gap between samples restarts the window, s'})
+    wheel_speed_max: float = field(
+        default=0.008,
+        metadata={
+            'doc': '|ground speed| bound, m/s: r (mean wheel rate + pitch rate); its noise ~0.0015'
+        },
+    )
+    fhat_band: float = field(
+        default=0.6,
+        metadata={
+            'doc': "max - min of the theta ESO's f_hat over the window, rad/s^2 (noise std 0.065 "
+            'at '
+            "an ESO bandwidth of 20 rad/s; ~1.9 with the authors' gains)"
+        },
+    )
+    joint_tol_rad: float = field(
+        default=2e-3, metadata={'doc': 'every joint within this of its window mean, rad'}
+    )
+    rearm_tol_rad: float = field(
+        default=0.02,
+        metadata={'doc': 're-arm when a joint leaves this band around the emitted pose, rad'},
+    )
+    q_base_std_max: float = field(
+        default=0.0, metadata={'doc': 'std bound on q_base over the window, rad (0 = off)'}
+    )
+    max_gap_s: float = field(
+        default=0.2, metadata={'doc': 'a longer gap between samples restarts the window, s'}
+    )
     min_samples: int = field(default=10, metadata={'doc': 'fewest samples in a window'})
 
     def __post_init__(self):
@@ -73,14 +91,14 @@ def standard_error(samples: np.ndarray) -> np.ndarray:
 
 @dataclass
 class BalancedPoint:
-    t: float                 # time of the last sample of the window
-    q_base: float            # window mean of the measured base pitch [rad]
-    joints: np.ndarray       # window mean of the body joints [rad]
+    t: float  # time of the last sample of the window
+    q_base: float  # window mean of the measured base pitch [rad]
+    joints: np.ndarray  # window mean of the body joints [rad]
     q_base_std: float
     n_samples: int
     window_s: float
-    q_base_se: float = 0.0   # standard error of q_base [rad] (standard_error)
-    joints_se: np.ndarray | None = None     # ... of the joints [rad]
+    q_base_se: float = 0.0  # standard error of q_base [rad] (standard_error)
+    joints_se: np.ndarray | None = None  # ... of the joints [rad]
 
 
 class BalancedPoseDetector:
@@ -106,15 +124,25 @@ class BalancedPoseDetector:
     def _clear(self) -> None:
         self._buf.clear()
 
-    def update(self, t: float, q_base: float, dtheta: float, wheel_speed: float,
-               fhat: float, joints, joints_moving: bool) -> BalancedPoint | None:
+    def update(
+        self,
+        t: float,
+        q_base: float,
+        dtheta: float,
+        wheel_speed: float,
+        fhat: float,
+        joints,
+        joints_moving: bool,
+    ) -> BalancedPoint | None:
         """Feed one sample; returns a BalancedPoint exactly once per settled pose, else None."""
         joints = np.asarray(joints, float).ravel()
         if self._buf and (t - self._buf[-1][0] > self.max_gap_s or t <= self._buf[-1][0]):
             self._clear()
         if not self.armed:
-            left = (self.last_point is not None
-                    and np.max(np.abs(joints - self.last_point.joints)) > self.rearm_tol)
+            left = (
+                self.last_point is not None
+                and np.max(np.abs(joints - self.last_point.joints)) > self.rearm_tol
+            )
             if joints_moving or left:
                 self.armed = True
                 self._clear()
@@ -146,8 +174,16 @@ class BalancedPoseDetector:
         qb = np.array([s[1] for s in self._buf])
         if self.q_base_std_max is not None and qb.std() > self.q_base_std_max:
             return None
-        point = BalancedPoint(float(t), float(qb.mean()), jmean, float(qb.std()), n, float(span),
-                              float(standard_error(qb)), standard_error(jw))
+        point = BalancedPoint(
+            float(t),
+            float(qb.mean()),
+            jmean,
+            float(qb.std()),
+            n,
+            float(span),
+            float(standard_error(qb)),
+            standard_error(jw),
+        )
         self.last_point = point
         self.armed = False
         self._clear()

@@ -28,6 +28,7 @@ State z = [y_hat, ydot_hat, f_hat]. The observer is initialised from the measure
 optional measured rate, f_hat = 0) to avoid peaking. ``f_limit`` optionally saturates f_hat
 (both the output and the internal state, so the estimate cannot wind up).
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -52,17 +53,18 @@ def chain_model(h: float, b: float) -> tuple[np.ndarray, np.ndarray]:
 def continuous_bandwidth_gains(omega_o: float) -> np.ndarray:
     """Gao's bandwidth parameterisation: L = (3w, 3w^2, w^3), a triple pole at -w (continuous)."""
     w = float(omega_o)
-    return np.array([3.0 * w, 3.0 * w * w, w ** 3])
+    return np.array([3.0 * w, 3.0 * w * w, w**3])
 
 
 def bandwidth_gains(omega_o: float, h: float) -> np.ndarray:
-    """Current-ESO gains with all eigenvalues of (I - L C) Ad at beta = exp(-omega_o h) (notes §5)."""
+    """Current-ESO gains with all eigenvalues of (I - L C) Ad at beta = exp(-omega_o h) (notes
+    §5)."""
     if omega_o <= 0 or h <= 0:
         raise ValueError('omega_o and h must be positive')
     beta = np.exp(-omega_o * h)
-    return np.array([1.0 - beta ** 3,
-                     1.5 / h * (1.0 - beta) ** 2 * (1.0 + beta),
-                     (1.0 - beta) ** 3 / h ** 2])
+    return np.array(
+        [1.0 - beta**3, 1.5 / h * (1.0 - beta) ** 2 * (1.0 + beta), (1.0 - beta) ** 3 / h**2]
+    )
 
 
 def continuous_poles(l_cont) -> np.ndarray:
@@ -77,9 +79,9 @@ def current_gains_for_poles(z_poles, h: float) -> np.ndarray:
     Written out rather than calling ct.place, which rejects repeated poles (notes §5).
     """
     ad, _ = chain_model(h, 1.0)
-    c_tilde = _C @ ad                                   # error dynamics Ad - L (C Ad)
+    c_tilde = _C @ ad  # error dynamics Ad - L (C Ad)
     obs = np.vstack([c_tilde, c_tilde @ ad, c_tilde @ ad @ ad])
-    coeffs = np.real(np.poly(np.asarray(z_poles, dtype=complex)))   # z^3 + a1 z^2 + a2 z + a3
+    coeffs = np.real(np.poly(np.asarray(z_poles, dtype=complex)))  # z^3 + a1 z^2 + a2 z + a3
     phi = ad @ ad @ ad + coeffs[1] * ad @ ad + coeffs[2] * ad + coeffs[3] * np.eye(3)
     return (phi @ np.linalg.solve(obs, np.array([0.0, 0.0, 1.0]))).ravel()
 
@@ -90,7 +92,8 @@ def matched_gains(l_cont, h: float) -> np.ndarray:
 
 
 def euler_transition_matrix(l_cont, h: float) -> np.ndarray:
-    """Error-transition matrix I + h (A - L C) of the authors' explicit-Euler ESO (for comparison)."""
+    """Error-transition matrix I + h (A - L C) of the authors' explicit-Euler ESO (for
+    comparison)."""
     lc = np.asarray(l_cont, dtype=float).reshape(3, 1)
     return np.eye(3) + h * (_A_CONT - lc @ _C)
 
@@ -106,13 +109,26 @@ class EsoConfig:
     0.1 deg of IMU noise at 500 Hz they raise the wheel-current noise at rest from 0.4 A (plain
     LQR) to 4.2 A std and the theta ESO's f_hat noise from 0.065 to 1.9 rad/s^2 (docs/control.md).
     """
-    method: str = field(default='current', metadata={
-        'doc': "discretisation: 'current' (stable at every period) or 'zoh' (analysis only)"})
-    omega_o: float = field(default=20.0, metadata={
-        'doc': 'bandwidth (triple pole), rad/s, ~5x the fastest LQR(q) closed-loop pole; '
-               "0 = the authors' continuous gains (continuous_gains)"})
-    continuous_gains: tuple[float, ...] = field(default=AUTHORS_CONTINUOUS_GAINS, metadata={
-        'doc': "(l1, l2, l3) of a continuous design, used when omega_o is 0 (the authors')"})
+
+    method: str = field(
+        default='current',
+        metadata={
+            'doc': "discretisation: 'current' (stable at every period) or 'zoh' (analysis only)"
+        },
+    )
+    omega_o: float = field(
+        default=20.0,
+        metadata={
+            'doc': 'bandwidth (triple pole), rad/s, ~5x the fastest LQR(q) closed-loop pole; '
+            "0 = the authors' continuous gains (continuous_gains)"
+        },
+    )
+    continuous_gains: tuple[float, ...] = field(
+        default=AUTHORS_CONTINUOUS_GAINS,
+        metadata={
+            'doc': "(l1, l2, l3) of a continuous design, used when omega_o is 0 (the authors')"
+        },
+    )
 
     def __post_init__(self):
         if self.method not in ('current', 'zoh'):
@@ -124,10 +140,10 @@ class EsoConfig:
 @dataclass
 class _Discretisation:
     h: float
-    phi: np.ndarray       # error-transition matrix
-    gain: np.ndarray      # L (current form) or None-equivalent
-    gam_u: np.ndarray     # input matrix for u[k-1]
-    gam_y: np.ndarray     # measurement matrix (y[k] for current, y[k-1] for zoh)
+    phi: np.ndarray  # error-transition matrix
+    gain: np.ndarray  # L (current form) or None-equivalent
+    gam_u: np.ndarray  # input matrix for u[k-1]
+    gam_y: np.ndarray  # measurement matrix (y[k] for current, y[k-1] for zoh)
 
 
 class ExtendedStateObserver:
@@ -146,8 +162,16 @@ class ExtendedStateObserver:
     f_limit : optional bound on |f_hat| (same unit as y'').
     """
 
-    def __init__(self, b: float, h: float, *, omega_o: float | None = None,
-                 continuous_gains=None, method: str = 'current', f_limit: float | None = None):
+    def __init__(
+        self,
+        b: float,
+        h: float,
+        *,
+        omega_o: float | None = None,
+        continuous_gains=None,
+        method: str = 'current',
+        f_limit: float | None = None,
+    ):
         if h <= 0:
             raise ValueError('sample period h must be positive')
         if method not in ('current', 'zoh'):
@@ -162,23 +186,27 @@ class ExtendedStateObserver:
         self.b = float(b)
         self.h = float(h)
         self.omega_o = None if omega_o is None else float(omega_o)
-        self.continuous_gains = None if continuous_gains is None else np.asarray(continuous_gains, float)
+        self.continuous_gains = (
+            None if continuous_gains is None else np.asarray(continuous_gains, float)
+        )
         self.method = method
         self.f_limit = None if f_limit is None else abs(float(f_limit))
         self._cache: dict[float, _Discretisation] = {}
         self._floats: dict[float, tuple] = {}
         self._last_dt = self._last = None
-        self.z = [0.0, 0.0, 0.0]          # floats: numpy's per-call cost on 3-vectors dominates a
-        self._y_prev = 0.0                # 500 Hz loop
+        self.z = [0.0, 0.0, 0.0]  # floats: numpy's per-call cost on 3-vectors dominates a
+        self._y_prev = 0.0  # 500 Hz loop
         self._initialised = False
 
     @classmethod
-    def from_config(cls, b: float, h: float, config: EsoConfig,
-                    f_limit: float | None = None) -> 'ExtendedStateObserver':
+    def from_config(
+        cls, b: float, h: float, config: EsoConfig, f_limit: float | None = None
+    ) -> 'ExtendedStateObserver':
         if config.omega_o:
             return cls(b, h, omega_o=config.omega_o, method=config.method, f_limit=f_limit)
-        return cls(b, h, continuous_gains=config.continuous_gains, method=config.method,
-                   f_limit=f_limit)
+        return cls(
+            b, h, continuous_gains=config.continuous_gains, method=config.method, f_limit=f_limit
+        )
 
     # ------------------------------------------------------------------ design
     def discretisation(self, h: float | None = None) -> _Discretisation:
@@ -246,8 +274,11 @@ class ExtendedStateObserver:
         d = self._floats.get(key)
         if d is None:
             m = self.discretisation(dt)
-            d = (tuple(float(v) for v in m.phi.ravel()), tuple(float(v) for v in m.gam_u),
-                 tuple(float(v) for v in m.gam_y))
+            d = (
+                tuple(float(v) for v in m.phi.ravel()),
+                tuple(float(v) for v in m.gam_u),
+                tuple(float(v) for v in m.gam_y),
+            )
             if len(self._floats) > 64:
                 self._floats.clear()
             self._floats[key] = d
@@ -268,7 +299,7 @@ class ExtendedStateObserver:
             self._last = self._float_discretisation(dt)
             self._last_dt = dt
         p, gu, gy = self._last
-        if self.method == 'zoh':          # a predictor: it uses the previous measurement
+        if self.method == 'zoh':  # a predictor: it uses the previous measurement
             y, self._y_prev = self._y_prev, y
         z = self.z
         z0, z1, z2 = z

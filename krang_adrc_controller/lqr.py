@@ -17,6 +17,7 @@ whereas 30000 would give 7.75. Mapped to our order:
 If the model's x is in metres instead of wheel radians, pass ``position_unit='m'`` and the wheel
 radius: the x and xdot weights are divided by r^2 so the design is the same controller.
 """
+
 from __future__ import annotations
 
 from collections import OrderedDict
@@ -35,18 +36,31 @@ AUTHORS_R = 500.0
 @dataclass(frozen=True)
 class LqrConfig:
     """LQR(q) weights and when the controller redoes the design (parameters ``lqr.*``)."""
-    q_diag: tuple[float, ...] = field(default=AUTHORS_Q_DIAG, metadata={
-        'doc': "Q over [x, xdot, theta, thetadot] with x in WHEEL RADIANS (the authors' weights, "
-               're-ordered: krang_adrc_controller/lqr.py); a controller in metres rescales them'})
+
+    q_diag: tuple[float, ...] = field(
+        default=AUTHORS_Q_DIAG,
+        metadata={
+            'doc': "Q over [x, xdot, theta, thetadot] with x in WHEEL RADIANS (the authors' "
+            'weights, '
+            're-ordered: krang_adrc_controller/lqr.py); a controller in metres rescales them'
+        },
+    )
     r: float = field(default=AUTHORS_R, metadata={'doc': 'R on the total wheel torque'})
-    gain_update_period_s: float = field(default=0.1, metadata={
-        'doc': 'while the joints move: LQR(q) redesign at most this often, s'})
-    pose_update_period_s: float = field(default=0.02, metadata={
-        'doc': 'while the joints move: CoM-offset (theta) update period, s'})
-    pose_tol_rad: float = field(default=2e-3, metadata={
-        'doc': 'a settled pose counts as changed when a joint leaves this band, rad'})
-    pose_check_period_s: float = field(default=0.1, metadata={
-        'doc': 'how often a settled pose is compared with its reference, s'})
+    gain_update_period_s: float = field(
+        default=0.1,
+        metadata={'doc': 'while the joints move: LQR(q) redesign at most this often, s'},
+    )
+    pose_update_period_s: float = field(
+        default=0.02,
+        metadata={'doc': 'while the joints move: CoM-offset (theta) update period, s'},
+    )
+    pose_tol_rad: float = field(
+        default=2e-3,
+        metadata={'doc': 'a settled pose counts as changed when a joint leaves this band, rad'},
+    )
+    pose_check_period_s: float = field(
+        default=0.1, metadata={'doc': 'how often a settled pose is compared with its reference, s'}
+    )
 
     def __post_init__(self):
         if len(self.q_diag) != 4 or any(q < 0 for q in self.q_diag) or self.r <= 0:
@@ -87,14 +101,19 @@ class LqrDesigner:
     wheel_radius_m : needed when position_unit == 'm' (config drivetrain / URDF).
     """
 
-    def __init__(self, config: LqrConfig = LqrConfig(), *,
-                 position_unit: str = 'rad', wheel_radius_m: float | None = None):
+    def __init__(
+        self,
+        config: LqrConfig = LqrConfig(),
+        *,
+        position_unit: str = 'rad',
+        wheel_radius_m: float | None = None,
+    ):
         q = np.asarray(config.q_diag, float).ravel()
         if position_unit == 'm':
             if not wheel_radius_m or wheel_radius_m <= 0:
                 raise ValueError("position_unit='m' needs wheel_radius_m")
             q = q.copy()
-            q[:2] /= wheel_radius_m ** 2
+            q[:2] /= wheel_radius_m**2
         elif position_unit != 'rad':
             raise ValueError("position_unit must be 'rad' or 'm'")
         self.q = np.diag(q)
@@ -112,8 +131,15 @@ class GainCache:
     a small LRU keeps the last ``maxsize`` designs so oscillating between two poses is free.
     """
 
-    def __init__(self, linearize: Callable, designer: LqrDesigner | None = None, *,
-                 pose_decimals: int = 3, beta_decimals: int = 6, maxsize: int = 8):
+    def __init__(
+        self,
+        linearize: Callable,
+        designer: LqrDesigner | None = None,
+        *,
+        pose_decimals: int = 3,
+        beta_decimals: int = 6,
+        maxsize: int = 8,
+    ):
         self.linearize = linearize
         self.designer = designer or LqrDesigner()
         self.pose_decimals = pose_decimals

@@ -33,6 +33,7 @@ The authors' definitions (krang_data/README.md "The Table II metrics"), reproduc
     not a power.
 The physical versions are documented in ``physical_metrics``.
 """
+
 from __future__ import annotations
 
 import csv
@@ -53,6 +54,7 @@ from krang_model.robot import load_krang
 @dataclass
 class BalancingRun:
     """Time series of one balancing run (see the module docstring for conventions)."""
+
     t: np.ndarray
     i_left: np.ndarray
     i_right: np.ndarray
@@ -75,8 +77,18 @@ class BalancingRun:
             raise ValueError('a run needs at least two samples')
         if np.any(np.diff(self.t) < 0):
             raise ValueError('time must be non-decreasing')
-        for name in ('i_left', 'i_right', 'x_wheel_rad', 'dx_wheel_rad_s', 'dt', 'theta_rad',
-                     'dtheta_rad_s', 'psi_wheel_rad', 'dpsi_wheel_rad_s', 'q_base_rad'):
+        for name in (
+            'i_left',
+            'i_right',
+            'x_wheel_rad',
+            'dx_wheel_rad_s',
+            'dt',
+            'theta_rad',
+            'dtheta_rad_s',
+            'psi_wheel_rad',
+            'dpsi_wheel_rad_s',
+            'q_base_rad',
+        ):
             v = getattr(self, name)
             if v is None:
                 continue
@@ -97,10 +109,15 @@ class BalancingRun:
 # ----------------------------------------------------------------------------- loaders
 
 HARDWARE_CSV_COLUMNS = {
-    'dt_s': 'dt', 'i_cmd_left_A': 'i_left', 'i_cmd_right_A': 'i_right',
-    'theta_com_rad': 'theta_rad', 'dtheta_com_rad_s': 'dtheta_rad_s',
-    'x_wheel_rad': 'x_wheel_rad', 'dx_wheel_rad_s': 'dx_wheel_rad_s',
-    'psi_wheel_rad': 'psi_wheel_rad', 'dpsi_wheel_rad_s': 'dpsi_wheel_rad_s',
+    'dt_s': 'dt',
+    'i_cmd_left_A': 'i_left',
+    'i_cmd_right_A': 'i_right',
+    'theta_com_rad': 'theta_rad',
+    'dtheta_com_rad_s': 'dtheta_rad_s',
+    'x_wheel_rad': 'x_wheel_rad',
+    'dx_wheel_rad_s': 'dx_wheel_rad_s',
+    'psi_wheel_rad': 'psi_wheel_rad',
+    'dpsi_wheel_rad_s': 'dpsi_wheel_rad_s',
     'q_base_rad': 'q_base_rad',
 }
 
@@ -116,21 +133,27 @@ def load_hardware_csv(path) -> BalancingRun:
     if missing:
         raise ValueError(f'{path}: not a balancing log, missing columns {missing}')
     try:
-        with warnings.catch_warnings():     # a header-only file is reported below, in one line
+        with warnings.catch_warnings():  # a header-only file is reported below, in one line
             warnings.simplefilter('ignore', UserWarning)
             data = np.loadtxt(path, delimiter=',', skiprows=1, ndmin=2)
     except ValueError as err:
         raise ValueError(f'{path}: unreadable row ({err})') from None
     if data.shape[0] < 2 or data.shape[1] != len(header):
-        raise ValueError(f'{path}: {data.shape[0]} data rows of {len(header)} columns; a run needs '
-                         'at least two')
-    cols = {HARDWARE_CSV_COLUMNS[c]: data[:, i] for i, c in enumerate(header)
-            if c in HARDWARE_CSV_COLUMNS}
+        raise ValueError(
+            f'{path}: {data.shape[0]} data rows of {len(header)} columns; a run needs at least two'
+        )
+    cols = {
+        HARDWARE_CSV_COLUMNS[c]: data[:, i]
+        for i, c in enumerate(header)
+        if c in HARDWARE_CSV_COLUMNS
+    }
     for name, column in zip(header, data.T):
         bad = np.flatnonzero(~np.isfinite(column))
         if name in HARDWARE_CSV_COLUMNS and bad.size:
-            raise ValueError(f'{path}: {name} is NaN or infinite in {bad.size} rows (first: data '
-                             f'row {bad[0] + 1})')
+            raise ValueError(
+                f'{path}: {name} is NaN or infinite in {bad.size} rows (first: data '
+                f'row {bad[0] + 1})'
+            )
     return BalancingRun(t=np.cumsum(cols['dt']), name=path.stem, source=str(path), **cols)
 
 
@@ -144,10 +167,16 @@ def run_from_record(rec, drive: Drivetrain | None = None) -> BalancingRun:
     held = np.searchsorted(rec.cmd_t, rec.t, side='right') - 1
     torque = np.where(held[:, None] >= 0, rec.cmd_torque[np.maximum(held, 0)], 0.0)
     current = torque / (drive.torque_constant * drive.gear_ratio)
-    return BalancingRun(t=rec.t, i_left=current[:, 0], i_right=current[:, 1],
-                        x_wheel_rad=rec.wheel + rec.q_base,
-                        dx_wheel_rad_s=rec.wheel_rate + rec.pitch_rate, q_base_rad=rec.q_base,
-                        name=rec.name, source=rec.source)
+    return BalancingRun(
+        t=rec.t,
+        i_left=current[:, 0],
+        i_right=current[:, 1],
+        x_wheel_rad=rec.wheel + rec.q_base,
+        dx_wheel_rad_s=rec.wheel_rate + rec.pitch_rate,
+        q_base_rad=rec.q_base,
+        name=rec.name,
+        source=rec.source,
+    )
 
 
 #: suffix -> loader(path) -> BalancingRun. Add bag readers with ``register_loader``.
@@ -155,7 +184,8 @@ LOADERS: dict[str, Callable[[Path], BalancingRun]] = {'.csv': load_hardware_csv}
 
 
 def register_loader(suffix: str, loader: Callable[[Path], BalancingRun]) -> None:
-    """Hook for other log formats, e.g. register_loader('.mcap', krang_bag.reader.balancing_run)."""
+    """Hook for other log formats, e.g. register_loader('.mcap',
+    krang_bag.reader.balancing_run)."""
     LOADERS[suffix.lower() if suffix.startswith('.') else '.' + suffix.lower()] = loader
 
 
@@ -173,10 +203,11 @@ def load_run(path) -> BalancingRun:
 @dataclass(frozen=True)
 class PaperDefinition:
     """The authors' analysis constants (part of the metric's definition, not robot config)."""
+
     smoothing_window: int = 20
     motion_threshold_a: float = 1.0
     window_s: float = 55.0
-    position_scale: float = 0.27           # the authors' wheel radius
+    position_scale: float = 0.27  # the authors' wheel radius
     resting_from_s: float = 20.0
     resting_band_rad: float = 0.3
     peak_power_window_s: float = 10.0
@@ -193,24 +224,26 @@ def centred_moving_average(x, n: int) -> np.ndarray:
     authors' analysis; for odd n the symmetric window."""
     x = np.asarray(x, float)
     full = np.convolve(x, np.ones(n) / n, mode='full')
-    return full[n // 2:n // 2 + x.size]
+    return full[n // 2 : n // 2 + x.size]
 
 
 @dataclass
 class _Window:
     start: int
-    end: int                 # exclusive
-    smoothed: np.ndarray     # whole run
-    rel: np.ndarray          # t - t[start], whole run
-    complete: bool           # the run lasts the full window after motion start
+    end: int  # exclusive
+    smoothed: np.ndarray  # whole run
+    rel: np.ndarray  # t - t[start], whole run
+    complete: bool  # the run lasts the full window after motion start
 
 
 def _window(run: BalancingRun, d: PaperDefinition) -> _Window:
     s = centred_moving_average(run.i_left, d.smoothing_window)
     above = np.flatnonzero(np.abs(s) > d.motion_threshold_a)
     if above.size == 0:
-        raise ValueError(f'{run.name or "run"}: no motion (smoothed left current never exceeds '
-                         f'{d.motion_threshold_a} A)')
+        raise ValueError(
+            f'{run.name or "run"}: no motion (smoothed left current never exceeds '
+            f'{d.motion_threshold_a} A)'
+        )
     st = int(above[0])
     rel = run.t - run.t[st]
     end = st + int(np.count_nonzero(rel[st:] <= d.window_s))
@@ -248,7 +281,9 @@ def paper_metrics(run: BalancingRun, definition: PaperDefinition = PAPER) -> dic
         'resting_position_m': abs(d.position_scale * rest),
         'time_until_resting_s': t_rest,
         'max_power_w': float(np.max(power[early])),
-        'avg_resting_power_mw': float(np.mean(power[late] * dt[late]) * 1000.0) if late.any() else math.nan,
+        'avg_resting_power_mw': float(np.mean(power[late] * dt[late]) * 1000.0)
+        if late.any()
+        else math.nan,
         'motion_start_index': w.start,
         'motion_start_s': float(run.t[w.start]),
         'complete_window': w.complete,
@@ -262,10 +297,14 @@ def paper_metrics(run: BalancingRun, definition: PaperDefinition = PAPER) -> dic
 DEFAULT_WINDING_RESISTANCE_OHM = 0.09
 
 
-def physical_metrics(run: BalancingRun, drive: Drivetrain, *,
-                     winding_resistance_ohm: float = DEFAULT_WINDING_RESISTANCE_OHM,
-                     settle_band_m: float = 0.08,
-                     definition: PaperDefinition = PAPER) -> dict:
+def physical_metrics(
+    run: BalancingRun,
+    drive: Drivetrain,
+    *,
+    winding_resistance_ohm: float = DEFAULT_WINDING_RESISTANCE_OHM,
+    settle_band_m: float = 0.08,
+    definition: PaperDefinition = PAPER,
+) -> dict:
     """What the Table II columns mean physically, on the same motion start and 55 s window, with
     the wheel radius, gear ratio and torque constant of ``drive``.
 
@@ -306,9 +345,10 @@ def physical_metrics(run: BalancingRun, drive: Drivetrain, *,
     p_l = k * i_l * (w_mean - w_spin)
     p_r = k * i_r * (w_mean + w_spin)
     mech = np.abs(p_l) + np.abs(p_r)
-    elec = winding_resistance_ohm * (i_l ** 2 + i_r ** 2) + p_l + p_r
-    paper_integrand = np.abs(w.smoothed[sl] * d.gear_ratio * d.torque_constant_nm_per_a
-                             * run.dx_wheel_rad_s[sl])
+    elec = winding_resistance_ohm * (i_l**2 + i_r**2) + p_l + p_r
+    paper_integrand = np.abs(
+        w.smoothed[sl] * d.gear_ratio * d.torque_constant_nm_per_a * run.dx_wheel_rad_s[sl]
+    )
     late = (rel >= d.resting_power_from_s) & (rel <= d.window_s)
 
     def mean_power(p):
@@ -334,13 +374,23 @@ def physical_metrics(run: BalancingRun, drive: Drivetrain, *,
 # ----------------------------------------------------------------------------- bundle
 
 
-PAPER_KEYS = ('max_position_m', 'resting_position_m', 'time_until_resting_s', 'max_power_w',
-              'avg_resting_power_mw')
+PAPER_KEYS = (
+    'max_position_m',
+    'resting_position_m',
+    'time_until_resting_s',
+    'max_power_w',
+    'avg_resting_power_mw',
+)
 
 
-def compute_metrics(run: BalancingRun, wheel_radius_m: float | None = None, *,
-                    drive: Drivetrain | None = None, settle_band_m: float = 0.08,
-                    definition: PaperDefinition = PAPER) -> dict:
+def compute_metrics(
+    run: BalancingRun,
+    wheel_radius_m: float | None = None,
+    *,
+    drive: Drivetrain | None = None,
+    settle_band_m: float = 0.08,
+    definition: PaperDefinition = PAPER,
+) -> dict:
     """Both definitions in the ``krang metrics --json`` shape (NaN -> None). The physical ones use
     ``drive`` (default: the robot's, krang_model.drivetrain), its wheel radius replaced by
     ``wheel_radius_m`` when given."""

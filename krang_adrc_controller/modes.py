@@ -27,6 +27,7 @@ the hardware. The thresholds above are the hardware's; ``ModesConfig`` says wher
 As on the hardware, the caller re-zeroes the x/psi references when ``entered`` is set, and in
 SIT_DOWN uses (IMU pitch - sit_imu_limit_rad) as the theta error of the sit gains.
 """
+
 from __future__ import annotations
 
 import enum
@@ -52,44 +53,80 @@ class ModesConfig:
     """Mode guards and the PD gains of the modes (parameters ``modes.*``). PD gains are (th, dth,
     x, dx, psi, dpsi) in A/rad and A/(rad/s). Where our robot differs from the 2018 hardware's
     guards, the reason is given."""
-    auto_stand: bool = field(default=True, metadata=_doc(
-        'when enabled and sitting, ask to stand (the joystick button on the hardware)'))
-    start_enabled: bool = field(default=False, metadata=_doc(
-        'false = start in SAFE_STOP until enabled'))
-    stand_error_min_rad: float = field(default=-0.20944, metadata=_doc(
-        'stand only if the CoM-angle error is above this, rad. -12 deg, the authors\' sim: in our '
-        'sim the robot sits at q_base -1.7628 and balances at -1.568 with the true beta, theta = '
-        '-11.2 deg on the caster, so the hardware\'s -10 deg would refuse a perfect model'))
-    stand_error_max_rad: float = field(default=0.0, metadata=_doc(
-        'stand only if the CoM-angle error is below this, rad'))
-    balance_imu_min_rad: float = field(default=-1.76278, metadata=_doc(
-        'STAND_UP -> BALANCE needs the IMU pitch above this, rad (-101 deg)'))
-    balance_rate_max: float = field(default=0.03, metadata=_doc(
-        '... and |pitch rate| below this, rad/s, continuously for stand_settle_s'))
-    stand_settle_s: float = field(default=3.33, metadata=_doc(
-        'settle time before BALANCE, s (100 loops of the 30 Hz hardware)'))
-    sit_waist_min_rad: float = field(default=2.61799, metadata=_doc(
-        'sit down only with the waist above this, rad (150 deg)'))
-    sit_theta_max_rad: float = field(default=-0.05, metadata=_doc(
-        'sit down only if the CoM angle the model predicts on the caster is below this, rad '
-        '(ours): nearer the axle the robot lands on its caster, bounces off past its balance '
-        'point and tips forward under the ground PD (over ROS in the sim at -0.02 rad)'))
-    sit_rate_rad_s: float = field(default=0.2, metadata=_doc(
-        'SIT_DOWN lowers its pitch reference from the pitch at the sit request to '
-        'sit_imu_limit_rad at this rate, rad/s (ours; 0 = the hardware\'s step). From the '
-        'sim\'s start pose the step lands at 0.80 rad/s, no gentler than a torque-free fall '
-        '(0.74); 0.2 rad/s lands at 0.37 (docs/control.md)'))
-    sit_imu_limit_rad: float = field(default=-1.75406, metadata=_doc(
-        'SIT_DOWN -> SIT below this IMU pitch, rad. -100.5 deg: the hardware used -103 deg, but '
-        'the sim\'s caster holds the robot at -101.1 deg, so -103 deg is never reached'))
-    ground_gains: tuple[float, ...] = field(default=GROUND_LO_GAINS, metadata=_doc(
-        'PD gains in SIT (the hardware\'s GroundLo)'))
-    stand_gains: tuple[float, ...] = field(default=STAND_GAINS, metadata=_doc(
-        'PD gains in STAND_UP'))
-    sit_gains: tuple[float, ...] = field(default=SIT_GAINS, metadata=_doc(
-        'PD gains in SIT_DOWN'))
-    spin_gains: tuple[float, ...] = field(default=(0.0, -10.0), metadata=_doc(
-        '(psi, dpsi) spin PD in BALANCE (the hardware\'s BalLo), A/rad, A/(rad/s)'))
+
+    auto_stand: bool = field(
+        default=True,
+        metadata=_doc(
+            'when enabled and sitting, ask to stand (the joystick button on the hardware)'
+        ),
+    )
+    start_enabled: bool = field(
+        default=False, metadata=_doc('false = start in SAFE_STOP until enabled')
+    )
+    stand_error_min_rad: float = field(
+        default=-0.20944,
+        metadata=_doc(
+            "stand only if the CoM-angle error is above this, rad. -12 deg, the authors' sim: in "
+            'our '
+            'sim the robot sits at q_base -1.7628 and balances at -1.568 with the true beta, '
+            'theta = '
+            "-11.2 deg on the caster, so the hardware's -10 deg would refuse a perfect model"
+        ),
+    )
+    stand_error_max_rad: float = field(
+        default=0.0, metadata=_doc('stand only if the CoM-angle error is below this, rad')
+    )
+    balance_imu_min_rad: float = field(
+        default=-1.76278,
+        metadata=_doc('STAND_UP -> BALANCE needs the IMU pitch above this, rad (-101 deg)'),
+    )
+    balance_rate_max: float = field(
+        default=0.03,
+        metadata=_doc('... and |pitch rate| below this, rad/s, continuously for stand_settle_s'),
+    )
+    stand_settle_s: float = field(
+        default=3.33,
+        metadata=_doc('settle time before BALANCE, s (100 loops of the 30 Hz hardware)'),
+    )
+    sit_waist_min_rad: float = field(
+        default=2.61799, metadata=_doc('sit down only with the waist above this, rad (150 deg)')
+    )
+    sit_theta_max_rad: float = field(
+        default=-0.05,
+        metadata=_doc(
+            'sit down only if the CoM angle the model predicts on the caster is below this, rad '
+            '(ours): nearer the axle the robot lands on its caster, bounces off past its balance '
+            'point and tips forward under the ground PD (over ROS in the sim at -0.02 rad)'
+        ),
+    )
+    sit_rate_rad_s: float = field(
+        default=0.2,
+        metadata=_doc(
+            'SIT_DOWN lowers its pitch reference from the pitch at the sit request to '
+            "sit_imu_limit_rad at this rate, rad/s (ours; 0 = the hardware's step). From the "
+            "sim's start pose the step lands at 0.80 rad/s, no gentler than a torque-free fall "
+            '(0.74); 0.2 rad/s lands at 0.37 (docs/control.md)'
+        ),
+    )
+    sit_imu_limit_rad: float = field(
+        default=-1.75406,
+        metadata=_doc(
+            'SIT_DOWN -> SIT below this IMU pitch, rad. -100.5 deg: the hardware used -103 deg, '
+            'but '
+            "the sim's caster holds the robot at -101.1 deg, so -103 deg is never reached"
+        ),
+    )
+    ground_gains: tuple[float, ...] = field(
+        default=GROUND_LO_GAINS, metadata=_doc("PD gains in SIT (the hardware's GroundLo)")
+    )
+    stand_gains: tuple[float, ...] = field(
+        default=STAND_GAINS, metadata=_doc('PD gains in STAND_UP')
+    )
+    sit_gains: tuple[float, ...] = field(default=SIT_GAINS, metadata=_doc('PD gains in SIT_DOWN'))
+    spin_gains: tuple[float, ...] = field(
+        default=(0.0, -10.0),
+        metadata=_doc("(psi, dpsi) spin PD in BALANCE (the hardware's BalLo), A/rad, A/(rad/s)"),
+    )
     spin_limit_a: float = field(default=30.0, metadata=_doc('|spin current| clamp, A'))
 
     def __post_init__(self):
@@ -105,22 +142,38 @@ class SafetyConfig:
     """Stops (parameters ``safety.*``); 0 = off where noted. stand_timeout_s and max_speed_m_s
     are ours, not in the 2018 code: a stand-up that does not settle, or a runaway (e.g. the robot
     pushed along on its caster when the estimated CoM angle is near 0), ends in SAFE_STOP."""
-    stale_timeout_s: float = field(default=0.1, metadata=_doc(
-        'SAFE_STOP when the newest sensor sample is older than this, s'))
-    fall_angle_rad: float = field(default=0.0, metadata=_doc(
-        'SAFE_STOP when |theta| exceeds this in STAND_UP/BALANCE, rad (0 = off, as on the '
-        'hardware)'))
-    stand_timeout_s: float = field(default=20.0, metadata=_doc(
-        'SAFE_STOP when STAND_UP has not settled within this, s (0 = off)'))
-    max_speed_m_s: float = field(default=3.0, metadata=_doc(
-        'SAFE_STOP above this |ground speed| in STAND_UP/BALANCE, m/s (0 = off)'))
-    caster_catch_s: float = field(default=0.1, metadata=_doc(
-        'BALANCE -> SIT when the IMU pitch has stayed within caster_margin_rad of the caster '
-        'contact this long, s (0 = off): the pose\'s true balance pitch lies beyond the caster '
-        '(a CoM error during a pose move), and balancing on would push the robot along on its '
-        'caster at full current until max_speed_m_s'))
-    caster_margin_rad: float = field(default=0.003, metadata=_doc(
-        'caster contact: IMU pitch below the caster\'s contact pitch plus this, rad'))
+
+    stale_timeout_s: float = field(
+        default=0.1, metadata=_doc('SAFE_STOP when the newest sensor sample is older than this, s')
+    )
+    fall_angle_rad: float = field(
+        default=0.0,
+        metadata=_doc(
+            'SAFE_STOP when |theta| exceeds this in STAND_UP/BALANCE, rad (0 = off, as on the '
+            'hardware)'
+        ),
+    )
+    stand_timeout_s: float = field(
+        default=20.0,
+        metadata=_doc('SAFE_STOP when STAND_UP has not settled within this, s (0 = off)'),
+    )
+    max_speed_m_s: float = field(
+        default=3.0,
+        metadata=_doc('SAFE_STOP above this |ground speed| in STAND_UP/BALANCE, m/s (0 = off)'),
+    )
+    caster_catch_s: float = field(
+        default=0.1,
+        metadata=_doc(
+            'BALANCE -> SIT when the IMU pitch has stayed within caster_margin_rad of the caster '
+            "contact this long, s (0 = off): the pose's true balance pitch lies beyond the caster "
+            '(a CoM error during a pose move), and balancing on would push the robot along on its '
+            'caster at full current until max_speed_m_s'
+        ),
+    )
+    caster_margin_rad: float = field(
+        default=0.003,
+        metadata=_doc("caster contact: IMU pitch below the caster's contact pitch plus this, rad"),
+    )
 
     def __post_init__(self):
         if self.stale_timeout_s <= 0:
@@ -140,35 +193,40 @@ class Mode(enum.Enum):
 @dataclass
 class ModeInputs:
     """One loop's inputs. Angles in rad, rates in rad/s, times in s (any monotonic clock)."""
+
     t: float
     imu_pitch: float
     theta_com: float
     dtheta: float
     waist: float | None = None
-    last_sensor_t: float | None = None      # newest sensor stamp; None = treat as fresh
+    last_sensor_t: float | None = None  # newest sensor stamp; None = treat as fresh
     stand_request: bool = False
     sit_request: bool = False
     stop_request: bool = False
     reset_request: bool = False
-    on_caster: bool = False                  # BALANCE only: the body rests on its caster
+    on_caster: bool = False  # BALANCE only: the body rests on its caster
 
 
 @dataclass
 class ModeOutput:
     mode: Mode
-    controller: str                 # 'ground_pd' | 'stand_pd' | 'adrc' | 'sit_pd' | 'off'
-    gains: tuple | None             # PD gains of the mode (None for adrc / off)
+    controller: str  # 'ground_pd' | 'stand_pd' | 'adrc' | 'sit_pd' | 'off'
+    gains: tuple | None  # PD gains of the mode (None for adrc / off)
     zero_torque: bool
-    entered: bool                   # True on the step a mode was entered (re-zero x reference,
-                                    # reset the ADRC observers)
+    entered: bool  # True on the step a mode was entered (re-zero x reference,
+    # reset the ADRC observers)
     events: list = field(default_factory=list)
 
 
 class ModeMachine:
     """See the module docstring. ``step(inputs) -> ModeOutput``."""
 
-    def __init__(self, config: ModesConfig = ModesConfig(), safety: SafetyConfig = SafetyConfig(),
-                 initial_mode: Mode = Mode.SIT):
+    def __init__(
+        self,
+        config: ModesConfig = ModesConfig(),
+        safety: SafetyConfig = SafetyConfig(),
+        initial_mode: Mode = Mode.SIT,
+    ):
         self.stand_error_min = config.stand_error_min_rad
         self.stand_error_max = config.stand_error_max_rad
         self.balance_imu_min = config.balance_imu_min_rad
@@ -179,32 +237,40 @@ class ModeMachine:
         self.sit_theta_max = config.sit_theta_max_rad
         self.stale_timeout_s = safety.stale_timeout_s
         self.fall_angle = safety.fall_angle_rad or None
-        self.gains = {Mode.SIT: ('ground_pd', tuple(config.ground_gains)),
-                      Mode.STAND_UP: ('stand_pd', tuple(config.stand_gains)),
-                      Mode.BALANCE: ('adrc', None),
-                      Mode.SIT_DOWN: ('sit_pd', tuple(config.sit_gains)),
-                      Mode.SAFE_STOP: ('off', None)}
+        self.gains = {
+            Mode.SIT: ('ground_pd', tuple(config.ground_gains)),
+            Mode.STAND_UP: ('stand_pd', tuple(config.stand_gains)),
+            Mode.BALANCE: ('adrc', None),
+            Mode.SIT_DOWN: ('sit_pd', tuple(config.sit_gains)),
+            Mode.SAFE_STOP: ('off', None),
+        }
         self.mode = initial_mode
         self._settle_since: float | None = None
 
     def stand_refusal(self, theta_com: float) -> str | None:
-        """Why SIT -> STAND_UP is refused at this CoM-angle error, or None (the hardware's window).
-        """
+        """Why SIT -> STAND_UP is refused at this CoM-angle error, or None (the hardware's
+        window)."""
         if self.stand_error_min <= theta_com <= self.stand_error_max:
             return None
-        return (f'CoM-angle error {theta_com:+.4f} rad outside '
-                f'[{self.stand_error_min:.4f}, {self.stand_error_max:.4f}] rad')
+        return (
+            f'CoM-angle error {theta_com:+.4f} rad outside '
+            f'[{self.stand_error_min:.4f}, {self.stand_error_max:.4f}] rad'
+        )
 
     def sit_refusal(self, waist: float | None, theta_on_caster: float | None = None) -> str | None:
         """Why STAND_UP/BALANCE -> SIT_DOWN is refused with this waist angle and predicted CoM
         angle on the caster (None: not checked), or None."""
         if waist is None or waist <= self.sit_waist_min:
-            return (f'waist {"unknown" if waist is None else f"{waist:.3f} rad"} not above the '
-                    f'sit threshold {self.sit_waist_min:.3f} rad')
+            return (
+                f'waist {"unknown" if waist is None else f"{waist:.3f} rad"} not above the '
+                f'sit threshold {self.sit_waist_min:.3f} rad'
+            )
         if theta_on_caster is not None and theta_on_caster > self.sit_theta_max:
-            return (f'on the caster the CoM would be only {-theta_on_caster:.3f} rad behind the '
-                    f'axle (needs {-self.sit_theta_max:.3f}): it could tip forward off the '
-                    'caster; move to a pose with the CoM further back first')
+            return (
+                f'on the caster the CoM would be only {-theta_on_caster:.3f} rad behind the '
+                f'axle (needs {-self.sit_theta_max:.3f}): it could tip forward off the '
+                'caster; move to a pose with the CoM further back first'
+            )
         return None
 
     def _stale(self, u: ModeInputs) -> bool:
@@ -226,9 +292,14 @@ class ModeMachine:
             elif u.reset_request:
                 events.append('reset_refused: ' + ('stale sensors' if stale else 'stop requested'))
         elif u.stop_request or stale:
-            entered = self._go(Mode.SAFE_STOP, events, 'stop request' if u.stop_request else 'stale sensors')
-        elif (self.fall_angle is not None and self.mode in (Mode.STAND_UP, Mode.BALANCE)
-              and abs(u.theta_com) > self.fall_angle):
+            entered = self._go(
+                Mode.SAFE_STOP, events, 'stop request' if u.stop_request else 'stale sensors'
+            )
+        elif (
+            self.fall_angle is not None
+            and self.mode in (Mode.STAND_UP, Mode.BALANCE)
+            and abs(u.theta_com) > self.fall_angle
+        ):
             entered = self._go(Mode.SAFE_STOP, events, 'fall angle exceeded')
         elif self.mode is Mode.BALANCE and u.on_caster:
             entered = self._go(Mode.SIT, events, 'caster contact while balancing')
@@ -258,11 +329,14 @@ class ModeMachine:
             if u.imu_pitch < self.sit_imu_limit:
                 entered = self._go(Mode.SIT, events, 'on the caster')
         controller, gains = self.gains[self.mode]
-        return ModeOutput(self.mode, controller, gains, self.mode is Mode.SAFE_STOP, entered, events)
+        return ModeOutput(
+            self.mode, controller, gains, self.mode is Mode.SAFE_STOP, entered, events
+        )
 
 
-def pd_currents(gains, error, *, spin_limit_a: float,
-                current_limit_a: float) -> tuple[float, float]:
+def pd_currents(
+    gains, error, *, spin_limit_a: float, current_limit_a: float
+) -> tuple[float, float]:
     """Hardware PD law: (i_left, i_right) from error = state - reference over
     (theta, thetadot, x, xdot, psi, psidot), as in 01-balance-kore.cpp:
     u_theta + u_x +/- u_spin with u_spin = -(K_psi e_psi + K_dpsi e_dpsi) clamped to the spin

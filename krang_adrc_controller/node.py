@@ -17,7 +17,6 @@ their progress. A non-empty can_bridge/drive_fault forces a safe stop. Topics ar
 __ns; its services and ~/mode, ~/balance_converged move with __node too.
 """
 
-import ctypes
 import sys
 
 import numpy as np
@@ -342,43 +341,7 @@ class AdrcControllerNode(Node):
         )
 
 
-def single_thread_blas() -> int:
-    """Limit the OpenBLAS libraries loaded in this process (numpy's and scipy's) to one thread.
-
-    Why: the LQR(q) redesign (python-control -> scipy -> LAPACK) on 4x4 matrices gains nothing from
-    threads, but on a loaded machine OpenBLAS's thread pool turned a 1 ms design into 20-65 ms
-    (measured on the shared 2-core dev box), stalling the 500 Hz loop. Same effect as
-    OPENBLAS_NUM_THREADS=1 set before numpy is imported; process-wide, so the node's process sets
-    it, not the controller. Linux only; returns the number of libraries changed (0 when none)."""
-    try:
-        with open('/proc/self/maps') as f:
-            libs = sorted(
-                {line.split()[-1] for line in f if 'openblas' in line.lower() and '/' in line}
-            )
-    except OSError:
-        return 0
-    changed = 0
-    for path in libs:
-        try:
-            lib = ctypes.CDLL(path)
-        except OSError:
-            continue
-        for name in (
-            'scipy_openblas_set_num_threads64_',
-            'scipy_openblas_set_num_threads',
-            'openblas_set_num_threads64_',
-            'openblas_set_num_threads',
-        ):
-            fn = getattr(lib, name, None)
-            if fn is not None:
-                fn(1)
-                changed += 1
-                break
-    return changed
-
-
 def main(args=None):
-    single_thread_blas()
     return run_node(AdrcControllerNode, args)
 
 

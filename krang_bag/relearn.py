@@ -1,4 +1,5 @@
 """Re-learn beta offline from the balanced poses recorded in a bag."""
+
 from dataclasses import dataclass
 
 import numpy as np
@@ -12,9 +13,9 @@ from .reader import iter_messages
 @dataclass
 class RelearnResult:
     beta0: np.ndarray
-    betas: np.ndarray            # (n_poses + 1, n_beta): beta0 and after each pose
-    recorded: np.ndarray         # betas the online estimator published, in order
-    poses: list                  # (q_base, joints)
+    betas: np.ndarray  # (n_poses + 1, n_beta): beta0 and after each pose
+    recorded: np.ndarray  # betas the online estimator published, in order
+    poses: list  # (q_base, joints)
 
     @property
     def max_deviation(self):
@@ -40,9 +41,13 @@ def balanced_poses(bag, robot):
         index = {n: i for i, n in enumerate(msg.name)}
         if BASE_PITCH not in index or any(j not in index for j in robot.pose_joints):
             continue
-        poses.append((float(msg.position[index[BASE_PITCH]]),
-                      np.array([msg.position[index[j]] for j in robot.pose_joints]),
-                      pitch_standard_error(msg)))
+        poses.append(
+            (
+                float(msg.position[index[BASE_PITCH]]),
+                np.array([msg.position[index[j]] for j in robot.pose_joints]),
+                pitch_standard_error(msg),
+            )
+        )
     return poses
 
 

@@ -1,4 +1,5 @@
 """krang demo: the simulated Krang end to end, learning its mass model online over next_pose."""
+
 import logging
 import time
 from pathlib import Path
@@ -21,37 +22,59 @@ log = logging.getLogger('krang.demo')
 
 def register(subparsers):
     p = subparsers.add_parser(
-        'demo', help='THE MAIN JOB: simulated Krang, whole node set, online learning, report',
+        'demo',
+        help='THE MAIN JOB: simulated Krang, whole node set, online learning, report',
         description='Starts sim_krang (a simulated Krang with a hidden true mass model: a '
-                    'physically consistent fit to the real robot\'s balanced poses) and the node '
-                    'set over simulated CAN buses, records every topic to DIR/session.mcap, lets '
-                    'the robot stand up, then walks through the meta-learned poses over '
-                    '/pose_server/next_pose while com_estimator learns beta online from each '
-                    'balanced pose. Writes DIR/beta.yaml, DIR/report.md with PNG figures, and '
-                    'prints a JSON summary.')
-    p.add_argument('--poses', type=int, default=3,
-                   help='number of poses to learn from (default 3; see the README on longer '
-                        'sessions)')
+        "physically consistent fit to the real robot's balanced poses) and the node "
+        'set over simulated CAN buses, records every topic to DIR/session.mcap, lets '
+        'the robot stand up, then walks through the meta-learned poses over '
+        '/pose_server/next_pose while com_estimator learns beta online from each '
+        'balanced pose. Writes DIR/beta.yaml, DIR/report.md with PNG figures, and '
+        'prints a JSON summary.',
+    )
+    p.add_argument(
+        '--poses',
+        type=int,
+        default=3,
+        help='number of poses to learn from (default 3; see the README on longer sessions)',
+    )
     p.add_argument('--out', default='demo_out', help='output directory (default demo_out)')
-    p.add_argument('--method', default='map-online',
-                   help='estimator of com_estimator (default map-online)')
-    p.add_argument('--stand-timeout', type=float, default=120.0,
-                   help='s to wait for the robot to balance')
-    p.add_argument('--pose-timeout', type=float, default=90.0,
-                   help='s to wait for each balanced pose')
-    p.add_argument('--true-beta', metavar='FILE',
-                   help='the hidden truth the simulated robot has: a beta YAML/JSON, or the '
-                        "authors' .txt with --row (default: sim_params.yaml's true_beta, "
-                        'config/sim_demo_true_beta.yaml)')
+    p.add_argument(
+        '--method', default='map-online', help='estimator of com_estimator (default map-online)'
+    )
+    p.add_argument(
+        '--stand-timeout', type=float, default=120.0, help='s to wait for the robot to balance'
+    )
+    p.add_argument(
+        '--pose-timeout', type=float, default=90.0, help='s to wait for each balanced pose'
+    )
+    p.add_argument(
+        '--true-beta',
+        metavar='FILE',
+        help='the hidden truth the simulated robot has: a beta YAML/JSON, or the '
+        "authors' .txt with --row (default: sim_params.yaml's true_beta, "
+        'config/sim_demo_true_beta.yaml)',
+    )
     p.add_argument('--row', type=int, default=None, help='row of a .txt --true-beta (from 0)')
-    p.add_argument('--truth-seed', type=int, default=None,
-                   help='instead of a file: a hidden truth drawn by krang_sim.truths (masses '
-                        'within 8 %%, CoMs moved up to 3 cm, forward error 12-25 mm) from this '
-                        'seed')
-    p.add_argument('--seed', type=int, default=0,
-                   help="seed of the simulator's and CAN devices' noise (default 0)")
-    p.add_argument('--keep-logs', action='store_true',
-                   help='keep node logs in DIR/logs (always kept on failure)')
+    p.add_argument(
+        '--truth-seed',
+        type=int,
+        default=None,
+        help='instead of a file: a hidden truth drawn by krang_sim.truths (masses '
+        'within 8 %%, CoMs moved up to 3 cm, forward error 12-25 mm) from this '
+        'seed',
+    )
+    p.add_argument(
+        '--seed',
+        type=int,
+        default=0,
+        help="seed of the simulator's and CAN devices' noise (default 0)",
+    )
+    p.add_argument(
+        '--keep-logs',
+        action='store_true',
+        help='keep node logs in DIR/logs (always kept on failure)',
+    )
     p.set_defaults(func=run)
 
 
@@ -60,6 +83,7 @@ def run(args):
     from std_srvs.srv import Trigger
 
     from krang_ros.session_client import SessionError, open_session_client
+
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     bag = out / 'session.mcap'
@@ -72,16 +96,21 @@ def run(args):
     else:
         truth_source = Path(args.true_beta) if args.true_beta else sim_truth_file()
         true_beta = load_beta(truth_source, robot, row=args.row)
-        meta = {'source': f'{truth_source}' + (f' row {args.row}' if args.row is not None
-                                               else '')}
+        meta = {'source': f'{truth_source}' + (f' row {args.row}' if args.row is not None else '')}
     truth_file = save_beta(out / 'true_beta.yaml', true_beta, robot, **meta)
     devices = session_devices_file(out)
     beta_file = (out / 'beta.yaml').resolve()
     # unpaced: the simulator runs in lockstep with the control path, as fast as it answers
-    overrides = {'sim_krang': {'devices_file': devices, 'seed': args.seed, 'real_time_factor': 0.0,
-                               'true_beta': str(Path(truth_file).resolve())},
-                 'can_bridge': {'devices_file': devices},
-                 'com_estimator': {'output': beta_file, 'method': args.method}}
+    overrides = {
+        'sim_krang': {
+            'devices_file': devices,
+            'seed': args.seed,
+            'real_time_factor': 0.0,
+            'true_beta': str(Path(truth_file).resolve()),
+        },
+        'can_bridge': {'devices_file': devices},
+        'com_estimator': {'output': beta_file, 'method': args.method},
+    }
     started = time.monotonic()
     nodes = start_node_set(sim=True, record=str(bag), log_dir=out / 'logs', overrides=overrides)
     client = context = None
@@ -112,33 +141,44 @@ def run(args):
         nodes.stop(STOP_ORDER)
     wall = time.monotonic() - started
     (curve, lateral), figures = session_figures(bag, robot, true_beta, out)
-    result = {'poses': learned, 'com_error_before_m': float(curve[0]),
-              'com_error_after_m': float(curve[-1]),
-              'true_beta': str(truth_source), 'true_beta_row': args.row, 'seed': args.seed,
-              'bag': str(bag)}
+    result = {
+        'poses': learned,
+        'com_error_before_m': float(curve[0]),
+        'com_error_after_m': float(curve[-1]),
+        'true_beta': str(truth_source),
+        'true_beta_row': args.row,
+        'seed': args.seed,
+        'bag': str(bag),
+    }
     write_report(out, result, curve, lateral, figures, message_counts(bag), wall, args, failure)
-    print(f'{learned} poses learned in {wall:.0f} s: mean forward CoM error {1000 * curve[0]:.1f} '
-          f'mm -> {1000 * curve[-1]:.1f} mm; report {out / "report.md"}')
+    print(
+        f'{learned} poses learned in {wall:.0f} s: mean forward CoM error {1000 * curve[0]:.1f} '
+        f'mm -> {1000 * curve[-1]:.1f} mm; report {out / "report.md"}'
+    )
     print_json(result)
     return 0 if failure is None else 1
 
 
 def write_report(out, result, curve, lateral, figures, counts, wall, args, failure):
-    lines = ['# krang demo: online CoM learning on the simulated Krang', '',
-             f'- poses learned: {result["poses"]} of {args.poses} (estimator `{args.method}`), '
-             f'wall time {wall:.0f} s',
-             f'- hidden truth: `{result["true_beta"]}`'
-             + (f' row {result["true_beta_row"]}' if result['true_beta_row'] is not None else '')
-             + f' (copied to `true_beta.yaml`); simulator seed {result["seed"]}',
-             '- mean forward CoM error (the paper\'s |x_com| at the true balance pitch) against '
-             'the hidden true model, over 2000 held-out configurations: '
-             f'**{1000 * result["com_error_before_m"]:.2f} mm before, '
-             f'{1000 * result["com_error_after_m"]:.2f} mm after**',
-             f'- mean sideways CoM error: {1000 * lateral[0]:.2f} mm before, '
-             f'{1000 * lateral[-1]:.2f} mm after. A robot that balances in pitch never observes '
-             'it: it stays where the prior put it.',
-             f'- learned beta: `beta.yaml`; bag: `{Path(result["bag"]).name}` '
-             f'({sum(counts.values())} messages)', '']
+    lines = [
+        '# krang demo: online CoM learning on the simulated Krang',
+        '',
+        f'- poses learned: {result["poses"]} of {args.poses} (estimator `{args.method}`), '
+        f'wall time {wall:.0f} s',
+        f'- hidden truth: `{result["true_beta"]}`'
+        + (f' row {result["true_beta_row"]}' if result['true_beta_row'] is not None else '')
+        + f' (copied to `true_beta.yaml`); simulator seed {result["seed"]}',
+        "- mean forward CoM error (the paper's |x_com| at the true balance pitch) against "
+        'the hidden true model, over 2000 held-out configurations: '
+        f'**{1000 * result["com_error_before_m"]:.2f} mm before, '
+        f'{1000 * result["com_error_after_m"]:.2f} mm after**',
+        f'- mean sideways CoM error: {1000 * lateral[0]:.2f} mm before, '
+        f'{1000 * lateral[-1]:.2f} mm after. A robot that balances in pitch never observes '
+        'it: it stays where the prior put it.',
+        f'- learned beta: `beta.yaml`; bag: `{Path(result["bag"]).name}` '
+        f'({sum(counts.values())} messages)',
+        '',
+    ]
     if failure:
         lines += [f'**The session stopped early:** {failure}. Node logs are in `logs/`.', '']
     lines += ['| poses | forward CoM error (mm) | sideways (mm) |', '|---|---|---|']

@@ -199,7 +199,7 @@ def _table2_args(p):
         default=None,
         metavar='YAML',
         help='simulate the robot with the effects `krang discrepancy` found (its '
-             'extended_model.yaml, '
+        'extended_model.yaml, '
         'e.g. from the hardware Table II runs), to compare the simulated table with the hardware',
     )
     p.add_argument(
@@ -244,14 +244,23 @@ register_experiment(
 def _many_truths_args(p):
     p.add_argument('--out', default='out/many_truths', help='output folder (PNG, JSON)')
     p.add_argument('--truths', type=int, default=10, help='number of hidden truths (default 10)')
-    p.add_argument('--first-seed', type=int, default=5000,
-                   help='truth seeds first-seed, first-seed + 1, ... (default 5000)')
+    p.add_argument(
+        '--first-seed',
+        type=int,
+        default=5000,
+        help='truth seeds first-seed, first-seed + 1, ... (default 5000)',
+    )
     p.add_argument('--poses', type=int, default=12, help='poses per session (default 12)')
-    p.add_argument('--selection', choices=('fixed', 'adaptive', 'both'), default='both',
-                   help='pose selection: the meta-learned list, adaptive, or both (default)')
+    p.add_argument(
+        '--selection',
+        choices=('fixed', 'adaptive', 'both'),
+        default='both',
+        help='pose selection: the meta-learned list, adaptive, or both (default)',
+    )
     p.add_argument('--method', default='map-online', help='estimator (default map-online)')
-    p.add_argument('--json', action='store_true',
-                   help='print a JSON summary as the last stdout line')
+    p.add_argument(
+        '--json', action='store_true', help='print a JSON summary as the last stdout line'
+    )
 
 
 def _run_many_truths(args):
@@ -260,7 +269,11 @@ def _run_many_truths(args):
     selections = many_truths.SELECTIONS if args.selection == 'both' else (args.selection,)
     params = many_truths.Params(
         truth_seeds=tuple(range(args.first_seed, args.first_seed + args.truths)),
-        n_poses=args.poses, selections=selections, method=args.method, progress=True)
+        n_poses=args.poses,
+        selections=selections,
+        method=args.method,
+        progress=True,
+    )
     result = many_truths.run(params)
     print(many_truths.report(result, args.out))
     if args.json:

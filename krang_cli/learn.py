@@ -1,4 +1,5 @@
 """krang learn: learn the mass model beta from balanced poses (batch or in the online order)."""
+
 import math
 
 import numpy as np
@@ -14,49 +15,105 @@ from .common import print_json
 
 def register(subparsers):
     p = subparsers.add_parser(
-        'learn', help='learn beta from balanced poses (paper GD or our MAP)',
+        'learn',
+        help='learn beta from balanced poses (paper GD or our MAP)',
         description=(
-            'Learn the mass model beta (92 numbers: [m, m*x, m*y, m*z] per body) from balanced poses, '
-            'starting from --beta0. Methods: paper-gd = the paper\'s gradient descent '
-            'beta <- beta - eta (phi^T beta) phi, one pass in file order (eta = 300); paper-gd-mass = the '
-            'same with the total mass held at the known value (Lagrange multiplier); map = Bayesian MAP with '
-            'a physical prior around beta0 (masses +-10 percent, CoMs +-3 cm), the known total mass and wheel '
-            'CoMs on the axle as hard constraints, the IMU/hand-balancing pitch noise, and the positive-mass '
-            'and CoM-inside-the-link bounds enforced (batch); map-online = the same MAP, recursive, in file '
-            'order (the com_estimator node\'s update); estimators registered by plug-ins are '
+            'Learn the mass model beta (92 numbers: [m, m*x, m*y, m*z] per body) from balanced '
+            'poses, '
+            "starting from --beta0. Methods: paper-gd = the paper's gradient descent "
+            'beta <- beta - eta (phi^T beta) phi, one pass in file order (eta = 300); '
+            'paper-gd-mass = the '
+            'same with the total mass held at the known value (Lagrange multiplier); map = '
+            'Bayesian MAP with '
+            'a physical prior around beta0 (masses +-10 percent, CoMs +-3 cm), the known total '
+            'mass and wheel '
+            'CoMs on the axle as hard constraints, the IMU/hand-balancing pitch noise, and the '
+            'positive-mass '
+            'and CoM-inside-the-link bounds enforced (batch); map-online = the same MAP, '
+            'recursive, in file '
+            "order (the com_estimator node's update); estimators registered by plug-ins are "
             'offered too (krang_com_estimator.estimators.register_estimator). Reports the k-fold '
-            'cross-validated |x_com| on held-out records, and how far each body\'s CoM and mass '
-            'moved from beta0.'),
+            "cross-validated |x_com| on held-out records, and how far each body's CoM and mass "
+            'moved from beta0.'
+        ),
         epilog='Example (KIT = the real-data kit): krang learn '
-               '--poses KIT/hardware_balanced_poses_train.csv '
-               '--beta0 KIT/betas/betaVectors1initialBetahardwareAll190Vectors.txt --row 0 '
-               '--out learned.yaml --method map')
-    p.add_argument('--poses', required=True, help='pose CSV (q_base, q_waist, q_torso, q_left_1..7, q_right_1..7)')
-    p.add_argument('--beta0', required=True, help='start/prior beta: authors\' .txt (use --row) or our .yaml/.json')
-    p.add_argument('--row', type=int, default=None, help='row K (from 0) of a multi-row .txt --beta0 (default 0)')
-    p.add_argument('--out', required=True, help='learned beta: .txt = the authors\' one-line format, '
-                                                '.json = JSON, otherwise labelled YAML')
-    p.add_argument('--method', choices=est.estimator_names(), default='map',
-                   help='estimator (default: map)')
+        '--poses KIT/hardware_balanced_poses_train.csv '
+        '--beta0 KIT/betas/betaVectors1initialBetahardwareAll190Vectors.txt --row 0 '
+        '--out learned.yaml --method map',
+    )
+    p.add_argument(
+        '--poses',
+        required=True,
+        help='pose CSV (q_base, q_waist, q_torso, q_left_1..7, q_right_1..7)',
+    )
+    p.add_argument(
+        '--beta0',
+        required=True,
+        help="start/prior beta: authors' .txt (use --row) or our .yaml/.json",
+    )
+    p.add_argument(
+        '--row',
+        type=int,
+        default=None,
+        help='row K (from 0) of a multi-row .txt --beta0 (default 0)',
+    )
+    p.add_argument(
+        '--out',
+        required=True,
+        help="learned beta: .txt = the authors' one-line format, "
+        '.json = JSON, otherwise labelled YAML',
+    )
+    p.add_argument(
+        '--method', choices=est.estimator_names(), default='map', help='estimator (default: map)'
+    )
     p.add_argument('--eta', type=float, default=300.0, help='GD step of paper-gd* (default 300)')
-    p.add_argument('--sigma-imu-deg', type=float, default=0.1, help='IMU pitch noise, deg (default 0.1)')
-    p.add_argument('--sigma-hand-rad', type=float, default=0.008,
-                   help='repeatability of hand balancing, rad (default 0.008: the scatter of the cancelled '
-                        'attempts of the real-data kit; use 0 for poses balanced by the controller)')
-    p.add_argument('--mass-frac', type=float, default=0.1, help='MAP prior: relative mass std (default 0.1)')
-    p.add_argument('--com-std', type=float, default=0.03, help='MAP prior: CoM std per axis, m (default 0.03)')
-    p.add_argument('--total-mass', type=float, default=None,
-                   help='known total mass, kg (default: the URDF total, 162.158 kg)')
-    p.add_argument('--calibrate', action='store_true',
-                   help='map: the pitch noise and the prior scales by evidence maximisation on '
-                        'the training poses, inside every fold of the cross-validation too '
-                        '(--sigma-*, --mass-frac and --com-std are then not used)')
-    p.add_argument('--pitch-offset-std', type=float, default=None, metavar='RAD',
-                   help='map: also estimate an IMU pitch offset with this prior std (rad), '
-                        'reported with its posterior std')
-    p.add_argument('--folds', type=int, default=10, help='k of the k-fold cross-validation (0 = skip; default 10)')
+    p.add_argument(
+        '--sigma-imu-deg', type=float, default=0.1, help='IMU pitch noise, deg (default 0.1)'
+    )
+    p.add_argument(
+        '--sigma-hand-rad',
+        type=float,
+        default=0.008,
+        help='repeatability of hand balancing, rad (default 0.008: the scatter of the cancelled '
+        'attempts of the real-data kit; use 0 for poses balanced by the controller)',
+    )
+    p.add_argument(
+        '--mass-frac', type=float, default=0.1, help='MAP prior: relative mass std (default 0.1)'
+    )
+    p.add_argument(
+        '--com-std', type=float, default=0.03, help='MAP prior: CoM std per axis, m (default 0.03)'
+    )
+    p.add_argument(
+        '--total-mass',
+        type=float,
+        default=None,
+        help='known total mass, kg (default: the URDF total, 162.158 kg)',
+    )
+    p.add_argument(
+        '--calibrate',
+        action='store_true',
+        help='map: the pitch noise and the prior scales by evidence maximisation on '
+        'the training poses, inside every fold of the cross-validation too '
+        '(--sigma-*, --mass-frac and --com-std are then not used)',
+    )
+    p.add_argument(
+        '--pitch-offset-std',
+        type=float,
+        default=None,
+        metavar='RAD',
+        help='map: also estimate an IMU pitch offset with this prior std (rad), '
+        'reported with its posterior std',
+    )
+    p.add_argument(
+        '--folds',
+        type=int,
+        default=10,
+        help='k of the k-fold cross-validation (0 = skip; default 10)',
+    )
     p.add_argument('--seed', type=int, default=0, help='seed of the fold split (default 0)')
-    p.add_argument('--json', action='store_true', help='print the summary as JSON on the last line')
+    p.add_argument(
+        '--json', action='store_true', help='print the summary as JSON on the last line'
+    )
     p.set_defaults(func=run)
 
 
@@ -66,31 +123,54 @@ def run(args):
     q_base, joints, _ = load_poses(args.poses, KRANG_POSE_COLUMNS)
     if len(q_base) == 0:
         raise ValueError(f'{args.poses}: no poses')
-    noise = est.NoiseModel(sigma_imu_rad=math.radians(args.sigma_imu_deg), sigma_hand_rad=args.sigma_hand_rad)
-    kw = dict(noise=noise, mass_frac=args.mass_frac, com_std=args.com_std, total_mass=args.total_mass,
-              eta=args.eta, calibrate=args.calibrate, pitch_offset_std=args.pitch_offset_std)
+    noise = est.NoiseModel(
+        sigma_imu_rad=math.radians(args.sigma_imu_deg), sigma_hand_rad=args.sigma_hand_rad
+    )
+    kw = dict(
+        noise=noise,
+        mass_frac=args.mass_frac,
+        com_std=args.com_std,
+        total_mass=args.total_mass,
+        eta=args.eta,
+        calibrate=args.calibrate,
+        pitch_offset_std=args.pitch_offset_std,
+    )
     estimator = est.make_estimator(args.method, robot, beta0, **kw)
     beta, info = estimator.fit(q_base, joints)
-    offset = info.get('pitch_offset_rad', 0.0)      # the model sees the poses at q - offset
+    offset = info.get('pitch_offset_rad', 0.0)  # the model sees the poses at q - offset
     xc0 = x_com(robot, q_base, joints, beta0)
     xc = x_com(robot, q_base - offset, joints, beta)
     cons = est.physical_consistency(robot, beta, total_mass=args.total_mass)
     summary = {
-        'method': args.method, 'poses': int(len(q_base)), 'out': str(args.out),
-        'start_mean_abs_xcom_m': float(np.abs(xc0).mean()), 'start_max_abs_xcom_m': float(np.abs(xc0).max()),
-        'in_sample_mean_abs_xcom_m': float(np.abs(xc).mean()), 'in_sample_max_abs_xcom_m': float(np.abs(xc).max()),
+        'method': args.method,
+        'poses': int(len(q_base)),
+        'out': str(args.out),
+        'start_mean_abs_xcom_m': float(np.abs(xc0).mean()),
+        'start_max_abs_xcom_m': float(np.abs(xc0).max()),
+        'in_sample_mean_abs_xcom_m': float(np.abs(xc).mean()),
+        'in_sample_max_abs_xcom_m': float(np.abs(xc).max()),
     }
     if args.folds and len(q_base) >= 2:
-        pred, pitch = est.cross_validate(args.method, robot, q_base, joints, beta0, folds=args.folds,
-                                         seed=args.seed, **kw)
-        summary.update({'cv_folds': int(min(args.folds, len(q_base))),
-                        'cv_mean_abs_xcom_m': float(np.abs(pred).mean()),
-                        'cv_max_abs_xcom_m': float(np.abs(pred).max()),
-                        'cv_mean_abs_pitch_deg': float(np.degrees(np.abs(pitch).mean()))})
-    summary.update({'total_mass_kg': cons['total_mass'], 'physically_consistent': cons['ok'],
-                    'violations': cons['violations'],
-                    'com_moved_m': {bd['name']: bd['com_moved_m'] for bd in cons['bodies']},
-                    'mass_change_kg': {bd['name']: bd['mass_change_kg'] for bd in cons['bodies']}})
+        pred, pitch = est.cross_validate(
+            args.method, robot, q_base, joints, beta0, folds=args.folds, seed=args.seed, **kw
+        )
+        summary.update(
+            {
+                'cv_folds': int(min(args.folds, len(q_base))),
+                'cv_mean_abs_xcom_m': float(np.abs(pred).mean()),
+                'cv_max_abs_xcom_m': float(np.abs(pred).max()),
+                'cv_mean_abs_pitch_deg': float(np.degrees(np.abs(pitch).mean())),
+            }
+        )
+    summary.update(
+        {
+            'total_mass_kg': cons['total_mass'],
+            'physically_consistent': cons['ok'],
+            'violations': cons['violations'],
+            'com_moved_m': {bd['name']: bd['com_moved_m'] for bd in cons['bodies']},
+            'mass_change_kg': {bd['name']: bd['mass_change_kg'] for bd in cons['bodies']},
+        }
+    )
     cov = estimator.covariance
     if cov is not None:
         std = est.com_shift_std(robot, beta, cov)
@@ -98,8 +178,15 @@ def run(args):
     for key in ('calibration', 'pitch_offset_rad', 'pitch_offset_std_rad'):
         if key in info:
             summary[key] = info[key]
-    save_beta(args.out, beta, robot, method=args.method, poses=str(args.poses), beta0=str(args.beta0),
-              **{k: v for k, v in summary.items() if k.endswith('_m') or k in ('cv_folds',)})
+    save_beta(
+        args.out,
+        beta,
+        robot,
+        method=args.method,
+        poses=str(args.poses),
+        beta0=str(args.beta0),
+        **{k: v for k, v in summary.items() if k.endswith('_m') or k in ('cv_folds',)},
+    )
     if not args.json:
         _print_report(summary, info)
     if args.json:
@@ -109,25 +196,39 @@ def run(args):
 
 def _print_report(s, info):
     print(f'{s["method"]}: learned from {s["poses"]} balanced poses -> {s["out"]}')
-    print(f'  |x_com| start (beta0):   mean {100 * s["start_mean_abs_xcom_m"]:.2f} cm, '
-          f'max {100 * s["start_max_abs_xcom_m"]:.2f} cm')
-    print(f'  |x_com| on the training poses: mean {100 * s["in_sample_mean_abs_xcom_m"]:.2f} cm, '
-          f'max {100 * s["in_sample_max_abs_xcom_m"]:.2f} cm')
+    print(
+        f'  |x_com| start (beta0):   mean {100 * s["start_mean_abs_xcom_m"]:.2f} cm, '
+        f'max {100 * s["start_max_abs_xcom_m"]:.2f} cm'
+    )
+    print(
+        f'  |x_com| on the training poses: mean {100 * s["in_sample_mean_abs_xcom_m"]:.2f} cm, '
+        f'max {100 * s["in_sample_max_abs_xcom_m"]:.2f} cm'
+    )
     if 'cv_mean_abs_xcom_m' in s:
-        print(f'  |x_com| cross-validated ({s["cv_folds"]}-fold, held-out records): mean '
-              f'{100 * s["cv_mean_abs_xcom_m"]:.2f} cm, max {100 * s["cv_max_abs_xcom_m"]:.2f} cm '
-              f'(balance pitch error {s["cv_mean_abs_pitch_deg"]:.2f} deg mean)')
-    print(f'  total mass {s["total_mass_kg"]:.3f} kg; physically consistent: {"yes" if s["physically_consistent"] else "NO"}')
+        print(
+            f'  |x_com| cross-validated ({s["cv_folds"]}-fold, held-out records): mean '
+            f'{100 * s["cv_mean_abs_xcom_m"]:.2f} cm, max {100 * s["cv_max_abs_xcom_m"]:.2f} cm '
+            f'(balance pitch error {s["cv_mean_abs_pitch_deg"]:.2f} deg mean)'
+        )
+    print(
+        f'  total mass {s["total_mass_kg"]:.3f} kg; physically consistent: '
+        f'{"yes" if s["physically_consistent"] else "NO"}'
+    )
     for v in s['violations']:
         print(f'    - {v}')
     if 'calibration' in s:
         c = s['calibration']
-        print(f'  calibrated by evidence maximisation: pitch noise '
-              f'{1000 * c["sigma_pitch_rad"]:.2f} mrad, prior mass std {100 * c["mass_frac"]:.1f} %, CoM std '
-              f'{100 * c["com_std_m"]:.2f} cm')
+        print(
+            f'  calibrated by evidence maximisation: pitch noise '
+            f'{1000 * c["sigma_pitch_rad"]:.2f} mrad, prior mass std {100 * c["mass_frac"]:.1f} '
+            f'%, CoM std '
+            f'{100 * c["com_std_m"]:.2f} cm'
+        )
     if 'pitch_offset_rad' in s:
-        print(f'  IMU pitch offset {1000 * s["pitch_offset_rad"]:+.2f} +- '
-              f'{1000 * s["pitch_offset_std_rad"]:.2f} mrad')
+        print(
+            f'  IMU pitch offset {1000 * s["pitch_offset_rad"]:+.2f} +- '
+            f'{1000 * s["pitch_offset_std_rad"]:.2f} mrad'
+        )
     std = s.get('com_moved_std_m', {})
     print('  body        CoM moved [cm]  +- 1 std  mass change [kg]')
     for name, moved in s['com_moved_m'].items():

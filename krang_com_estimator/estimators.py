@@ -4,7 +4,8 @@ Measurement model. At a balanced pose the whole-robot CoM is over the axle, so t
 x_com = phi(q)^T beta (phi divided by the nominal mass, krang_model.com.phi) is 0. What we observe
 is q_base from the IMU, off by a pitch error dq (IMU noise, hand-balancing repeatability). Since
     phi(q)^T beta = (sin q Y - cos q Z) / M_nom   (Y, Z: base-frame mass moment, krang_model.com)
-    psi(q)^T beta := d(phi^T beta)/dq_base = (cos q Y + sin q Z) / M_nom = M(beta)/M_nom * z_com(q),
+    psi(q)^T beta := d(phi^T beta)/dq_base = (cos q Y + sin q Z) / M_nom = M(beta)/M_nom *
+    z_com(q),
 a pitch error dq shows up as phi(q_meas)^T beta = z_com dq (+ O(dq^2)), z_com the CoM height above
 the axle (frame 0): the x_com noise is sigma_pitch * z_com.
 
@@ -25,9 +26,11 @@ beta0, **options)) and one protocol (Estimator: `update(q_base, joints)` learns 
 pose with the estimator's own measurement model and returns the paper's x_com error before the
 update; `beta`, `covariance`, `n_updates`, `reset(beta0=None)`, and the batch `fit(q_base,
 joints)`; `update` also takes an optional `sigma`, the pose's pitch std in rad):
-- `paper-gd`: the paper's GD, beta <- beta - eta (phi^T beta - y) phi (eta = 300), with the stop rule
+- `paper-gd`: the paper's GD, beta <- beta - eta (phi^T beta - y) phi (eta = 300), with the stop
+  rule
   |phi^T beta| < x_tol for the last `window` poses, and the authors' unused mass penalty u.
-- `paper-gd-mass`: the same step followed by the Lagrange-multiplier projection that keeps the total
+- `paper-gd-mass`: the same step followed by the Lagrange-multiplier projection that keeps the
+  total
   mass at M_known (the constraint the paper describes and the authors left off).
 - `map-online` / `map`: Bayesian MAP with a Gaussian prior N(beta0, diag(s^2)) from physical
   plausibility and hard linear equality constraints (known total mass, wheel CoMs on the axle)
@@ -39,8 +42,10 @@ joints)`; `update` also takes an optional `sigma`, the pose's pitch std in rad):
   and `MAPOnline.finalize()` equals.
 The paper estimators and MAPEstimator also take linear rows (`update_row`, `update_rows`).
 `map_constrained` adds the inequality constraints of physical consistency (positive masses, every
-CoM inside the inflated collision box of its link) as a QP, used when the Gaussian MAP violates them.
+CoM inside the inflated collision box of its link) as a QP, used when the Gaussian MAP violates
+them.
 """
+
 import importlib.metadata
 import inspect
 import math
@@ -53,11 +58,15 @@ from scipy.optimize import minimize
 
 from krang_model.com import base_regressor, phi as phi_fn
 
+
 # ---------------------------------------------------------------- measurement model
 def pitch_sensitivity(robot, q_base, joints, beta):
-    """d(phi^T beta)/d q_base (N,) = M(beta)/M_nom * z_com: how a pitch error shows up in x_com (m/rad)."""
+    """d(phi^T beta)/d q_base (N,) = M(beta)/M_nom * z_com: how a pitch error shows up in x_com
+    (m/rad)."""
     q_base = np.atleast_1d(np.asarray(q_base, dtype=float))
-    base = base_regressor(robot, joints) @ np.asarray(beta, dtype=float)     # (N, 3) base-frame moment
+    base = base_regressor(robot, joints) @ np.asarray(
+        beta, dtype=float
+    )  # (N, 3) base-frame moment
     return (np.cos(q_base) * base[:, 1] + np.sin(q_base) * base[:, 2]) / robot.nominal_mass
 
 
@@ -65,23 +74,27 @@ def pitch_rows(robot, q_base, joints):
     """psi(q) (N, n_beta) = d phi(q) / d q_base, so that psi^T beta = pitch_sensitivity."""
     q_base = np.atleast_1d(np.asarray(q_base, dtype=float))
     base = base_regressor(robot, joints)
-    return (np.cos(q_base)[:, None] * base[:, 1] + np.sin(q_base)[:, None] * base[:, 2]) / robot.nominal_mass
+    return (
+        np.cos(q_base)[:, None] * base[:, 1] + np.sin(q_base)[:, None] * base[:, 2]
+    ) / robot.nominal_mass
 
 
-def balanced_pose_rows(robot, q_meas, joints, beta_lin, noise=None, model='angle', sigma_pitch=None):
+def balanced_pose_rows(
+    robot, q_meas, joints, beta_lin, noise=None, model='angle', sigma_pitch=None
+):
     """Linear measurement rows of balanced poses for MAPEstimator / map_batch: (rows, y, var).
 
     model='angle' (default, one row per pose): the CoM angle at the measured pitch,
-    h(beta) = phi^T beta / psi^T beta, linearised at beta_lin (x = phi^T beta_lin, z = psi^T beta_lin,
-    h = x / z) and multiplied by z:   g^T beta = -x + z dq,   g = phi - h psi,
-    var = (sigma_pitch z)^2 + sigma_x^2. g^T beta_lin = 0, so the rows carry no information along the
-    scale of beta_lin, whatever the noise; the innovation g^T beta_lin - y = x is the paper's x_com error.
-    model='phi': the paper's regression, row phi, y = 0, same variance (biased by the noisy pitch).
-    model='eiv': 'phi' plus the first-order errors-in-variables correction, a second row psi with
-    y = 0 and NEGATIVE variance -r/sigma^2 (removes the expected sigma^2 psi psi^T / r; corrected least
-    squares); unbiased to first order only (second-order bias grows with the number of poses).
-    sigma_pitch: per-pose standard errors of the pitch (rad; NaN = none), added in quadrature to
-    the noise model's (NoiseModel.pitch_std)."""
+    h(beta) = phi^T beta / psi^T beta, linearised at beta_lin (x = phi^T beta_lin, z = psi^T
+    beta_lin, h = x / z) and multiplied by z:   g^T beta = -x + z dq,   g = phi - h psi, var =
+    (sigma_pitch z)^2 + sigma_x^2. g^T beta_lin = 0, so the rows carry no information along the
+    scale of beta_lin, whatever the noise; the innovation g^T beta_lin - y = x is the paper's x_com
+    error. model='phi': the paper's regression, row phi, y = 0, same variance (biased by the noisy
+    pitch). model='eiv': 'phi' plus the first-order errors-in-variables correction, a second row
+    psi with y = 0 and NEGATIVE variance -r/sigma^2 (removes the expected sigma^2 psi psi^T / r;
+    corrected least squares); unbiased to first order only (second-order bias grows with the number
+    of poses). sigma_pitch: per-pose standard errors of the pitch (rad; NaN = none), added in
+    quadrature to the noise model's (NoiseModel.pitch_std)."""
     noise = noise or NoiseModel()
     q_meas = np.atleast_1d(np.asarray(q_meas, dtype=float))
     joints = np.atleast_2d(joints)
@@ -90,7 +103,7 @@ def balanced_pose_rows(robot, q_meas, joints, beta_lin, noise=None, model='angle
     beta_lin = np.asarray(beta_lin, dtype=float)
     x = P @ beta_lin
     z = Psi @ beta_lin
-    r = (noise.pitch_std(sigma_pitch, len(z)) * z) ** 2 + noise.sigma_x_m ** 2
+    r = (noise.pitch_std(sigma_pitch, len(z)) * z) ** 2 + noise.sigma_x_m**2
     if model == 'angle':
         return P - (x / z)[:, None] * Psi, -x, r
     if model == 'phi' or (model == 'eiv' and noise.sigma_pitch == 0):
@@ -109,9 +122,9 @@ def balanced_pose_rows(robot, q_meas, joints, beta_lin, noise=None, model='angle
 class NoiseModel:
     """Noise of one balanced-pose measurement y = phi(q_meas)^T beta = 0.
 
-    sigma_imu_rad: IMU pitch noise (0.1 deg by default); sigma_hand_rad: repeatability of finding the
-    balance by hand (hardware: the cancelled attempts of the real-data kit scatter by ~9 mrad median);
-    sigma_x_m: a floor for everything else (model error), in metres of x_com.
+    sigma_imu_rad: IMU pitch noise (0.1 deg by default); sigma_hand_rad: repeatability of finding
+    the balance by hand (hardware: the cancelled attempts of the real-data kit scatter by ~9 mrad
+    median); sigma_x_m: a floor for everything else (model error), in metres of x_com.
     """
 
     sigma_imu_rad: float = math.radians(0.1)
@@ -132,40 +145,43 @@ class NoiseModel:
         return np.hypot(self.sigma_pitch, np.where(np.isfinite(s), s, 0.0))
 
     def variance(self, robot, q_base, joints, beta_ref):
-        """(N,) variance of y for each pose (z_com from the reference beta, e.g. the prior mean)."""
+        """(N,) variance of y for each pose (z_com from the reference beta, e.g. the prior
+        mean)."""
         dz = pitch_sensitivity(robot, q_base, joints, beta_ref)
-        return (self.sigma_pitch * dz) ** 2 + self.sigma_x_m ** 2
+        return (self.sigma_pitch * dz) ** 2 + self.sigma_x_m**2
 
 
 # ---------------------------------------------------------------- priors and physical constraints
 def physical_prior_std(robot, beta0=None, mass_frac=0.1, com_std=0.03, mass_floor=1e-3):
-    """Prior std per beta entry from physical plausibility: each mass known to `mass_frac` (relative,
-    at least `mass_floor` kg), each CoM coordinate to `com_std` metres. For the moment m*c with m and c
-    independent: var(m c) = (m s_c)^2 + (c s_m)^2 + (s_m s_c)^2."""
+    """Prior std per beta entry from physical plausibility: each mass known to `mass_frac`
+    (relative, at least `mass_floor` kg), each CoM coordinate to `com_std` metres. For the moment
+    m*c with m and c independent: var(m c) = (m s_c)^2 + (c s_m)^2 + (s_m s_c)^2."""
     beta0 = robot.nominal_beta if beta0 is None else np.asarray(beta0, dtype=float)
     std = np.empty_like(beta0)
     for i in range(robot.n_bodies):
         m = beta0[4 * i]
-        c = beta0[4 * i + 1:4 * i + 4] / m if m != 0 else np.zeros(3)
+        c = beta0[4 * i + 1 : 4 * i + 4] / m if m != 0 else np.zeros(3)
         s_m = max(mass_frac * abs(m), mass_floor)
         std[4 * i] = s_m
-        std[4 * i + 1:4 * i + 4] = np.sqrt((m * com_std) ** 2 + (c * s_m) ** 2 + (s_m * com_std) ** 2)
+        std[4 * i + 1 : 4 * i + 4] = np.sqrt(
+            (m * com_std) ** 2 + (c * s_m) ** 2 + (s_m * com_std) ** 2
+        )
     return std
 
 
 def recipe_prior_std(beta0, max_deviation=0.5, max_offset=0.5, mass_std=1e-6):
-    """Prior std matching the authors' erroneous-beta recipe (masses exact; v + U(-d,d) v + U(-o,o)):
-    var = (d^2 v^2 + o^2) / 3 per moment entry, with v taken as the start value."""
+    """Prior std matching the authors' erroneous-beta recipe (masses exact; v + U(-d,d) v +
+    U(-o,o)): var = (d^2 v^2 + o^2) / 3 per moment entry, with v taken as the start value."""
     beta0 = np.asarray(beta0, dtype=float)
-    std = np.sqrt((max_deviation ** 2 * beta0 ** 2 + max_offset ** 2) / 3.0)
+    std = np.sqrt((max_deviation**2 * beta0**2 + max_offset**2) / 3.0)
     std[0::4] = mass_std
     return std
 
 
 def equality_constraints(robot, total_mass=None, wheels_on_axle=True):
     """(A, b) of the hard linear constraints A beta = b: sum of masses = total_mass (if given) and
-    each wheel's m*y = m*z = 0 (its CoM on its own axis, which is the axle; the wheel frame's x axis
-    is the axle)."""
+    each wheel's m*y = m*z = 0 (its CoM on its own axis, which is the axle; the wheel frame's x
+    axis is the axle)."""
     rows, rhs = [], []
     if total_mass is not None:
         a = np.zeros(robot.n_beta)
@@ -185,8 +201,8 @@ def equality_constraints(robot, total_mass=None, wheels_on_axle=True):
 
 
 def com_bounds(robot, inflate=0.05):
-    """Plausible CoM region of every body, in its own frame: the axis-aligned bounding box of its URDF
-    collision shape grown by `inflate` metres on every side, and always containing the CAD CoM
+    """Plausible CoM region of every body, in its own frame: the axis-aligned bounding box of its
+    URDF collision shape grown by `inflate` metres on every side, and always containing the CAD CoM
     (grown likewise). Bodies without collision geometry (the gripper plates) get the box of
     `inflate` around the CAD CoM. Returns (lo, hi) arrays (n_bodies, 3)."""
     root = ET.parse(robot.urdf_path).getroot()
@@ -194,7 +210,7 @@ def com_bounds(robot, inflate=0.05):
     hi = np.empty((robot.n_bodies, 3))
     beta0 = robot.nominal_beta
     for i, name in enumerate(robot.body_names):
-        cad = beta0[4 * i + 1:4 * i + 4] / beta0[4 * i]
+        cad = beta0[4 * i + 1 : 4 * i + 4] / beta0[4 * i]
         box_lo, box_hi = cad.copy(), cad.copy()
         for col in root.findall(f"link[@name='{name}']/collision"):
             corners = _shape_corners(col)
@@ -207,8 +223,16 @@ def com_bounds(robot, inflate=0.05):
 
 def _shape_corners(col):
     origin = col.find('origin')
-    xyz = np.zeros(3) if origin is None else np.array([float(v) for v in origin.get('xyz', '0 0 0').split()])
-    rpy = np.zeros(3) if origin is None else np.array([float(v) for v in origin.get('rpy', '0 0 0').split()])
+    xyz = (
+        np.zeros(3)
+        if origin is None
+        else np.array([float(v) for v in origin.get('xyz', '0 0 0').split()])
+    )
+    rpy = (
+        np.zeros(3)
+        if origin is None
+        else np.array([float(v) for v in origin.get('rpy', '0 0 0').split()])
+    )
     geom = col.find('geometry')
     if geom.find('box') is not None:
         half = np.array([float(v) for v in geom.find('box').get('size').split()]) / 2
@@ -219,13 +243,22 @@ def _shape_corners(col):
         half = np.full(3, float(geom.find('sphere').get('radius')))
     else:
         return None
-    signs = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], dtype=float)
+    signs = np.array(
+        [[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], dtype=float
+    )
     return xyz + (signs * half) @ _rpy(rpy).T
 
 
 def _rpy(rpy):
     r, p, y = rpy
-    cx, sx, cy, sy, cz, sz = math.cos(r), math.sin(r), math.cos(p), math.sin(p), math.cos(y), math.sin(y)
+    cx, sx, cy, sy, cz, sz = (
+        math.cos(r),
+        math.sin(r),
+        math.cos(p),
+        math.sin(p),
+        math.cos(y),
+        math.sin(y),
+    )
     rx = np.array([[1, 0, 0], [0, cx, -sx], [0, sx, cx]])
     ry = np.array([[cy, 0, sy], [0, 1, 0], [-sy, 0, cy]])
     rz = np.array([[cz, -sz, 0], [sz, cz, 0], [0, 0, 1]])
@@ -266,23 +299,34 @@ def physical_consistency(robot, beta, total_mass=None, bounds=None, tol=1e-6):
     cad = robot.nominal_beta
     for i, name in enumerate(robot.body_names):
         m = beta[4 * i]
-        com = beta[4 * i + 1:4 * i + 4] / m if m != 0 else np.full(3, np.nan)
-        com_cad = cad[4 * i + 1:4 * i + 4] / cad[4 * i]
+        com = beta[4 * i + 1 : 4 * i + 4] / m if m != 0 else np.full(3, np.nan)
+        com_cad = cad[4 * i + 1 : 4 * i + 4] / cad[4 * i]
         moved = float(np.linalg.norm(com - com_cad))
-        bodies.append({'name': name, 'mass': float(m), 'com': com.tolist(), 'com_moved_m': moved,
-                       'mass_change_kg': float(m - cad[4 * i])})
+        bodies.append(
+            {
+                'name': name,
+                'mass': float(m),
+                'com': com.tolist(),
+                'com_moved_m': moved,
+                'mass_change_kg': float(m - cad[4 * i]),
+            }
+        )
         if not m > 0:
             violations.append(f'{name}: mass {m:.4g} kg is not positive')
             continue
         out = (com < lo[i] - tol) | (com > hi[i] + tol)
         if out.any():
-            violations.append(f'{name}: CoM {np.round(com, 4).tolist()} m outside its plausible box '
-                              f'[{np.round(lo[i], 3).tolist()}, {np.round(hi[i], 3).tolist()}]')
+            violations.append(
+                f'{name}: CoM {np.round(com, 4).tolist()} m outside its plausible box '
+                f'[{np.round(lo[i], 3).tolist()}, {np.round(hi[i], 3).tolist()}]'
+            )
     for w in robot.wheel_body_ids:
-        off = np.abs(beta[4 * w + 2:4 * w + 4])
+        off = np.abs(beta[4 * w + 2 : 4 * w + 4])
         if off.max() > tol:
-            violations.append(f'{robot.body_names[w]}: CoM off the axle (m*y, m*z = '
-                              f'{beta[4 * w + 2]:.3g}, {beta[4 * w + 3]:.3g} kg m)')
+            violations.append(
+                f'{robot.body_names[w]}: CoM off the axle (m*y, m*z = '
+                f'{beta[4 * w + 2]:.3g}, {beta[4 * w + 3]:.3g} kg m)'
+            )
     mass = float(beta[0::4].sum())
     if abs(mass - total_mass) > 1e-6 * total_mass:
         violations.append(f'total mass {mass:.3f} kg instead of {total_mass:.3f} kg')
@@ -297,13 +341,16 @@ def com_shift_std(robot, beta, covariance, reference=None):
     ref = robot.nominal_beta if reference is None else np.asarray(reference, dtype=float)
     out = np.empty(robot.n_bodies)
     for i in range(robot.n_bodies):
-        m, mc = beta[4 * i], beta[4 * i + 1:4 * i + 4]
-        J = np.column_stack([-mc / m ** 2, np.eye(3) / m])
-        cov = J @ covariance[4 * i:4 * i + 4, 4 * i:4 * i + 4] @ J.T
-        d = mc / m - ref[4 * i + 1:4 * i + 4] / ref[4 * i]
+        m, mc = beta[4 * i], beta[4 * i + 1 : 4 * i + 4]
+        J = np.column_stack([-mc / m**2, np.eye(3) / m])
+        cov = J @ covariance[4 * i : 4 * i + 4, 4 * i : 4 * i + 4] @ J.T
+        d = mc / m - ref[4 * i + 1 : 4 * i + 4] / ref[4 * i]
         norm = np.linalg.norm(d)
-        out[i] = math.sqrt(max(d @ cov @ d / norm ** 2, 0.0)) if norm > 1e-9 else \
-            math.sqrt(max(np.trace(cov), 0.0))
+        out[i] = (
+            math.sqrt(max(d @ cov @ d / norm**2, 0.0))
+            if norm > 1e-9
+            else math.sqrt(max(np.trace(cov), 0.0))
+        )
     return out
 
 
@@ -328,7 +375,8 @@ def null_space(A, n):
 
 def map_batch(beta0, prior_std, phi_rows, y=None, noise_var=1e-6, A=None, b=None, covariance=True):
     """The MAP estimate and posterior covariance in one solve (information / null-space form):
-        minimise (beta-beta0)^T P0^-1 (beta-beta0) + sum_i (y_i - phi_i^T beta)^2 / r_i  s.t. A beta = b.
+        minimise (beta-beta0)^T P0^-1 (beta-beta0) + sum_i (y_i - phi_i^T beta)^2 / r_i  s.t. A
+        beta = b.
     With beta = beta_p + Z z (A beta_p = b, A Z = 0): H_z = Z^T (P0^-1 + Phi^T R^-1 Phi) Z,
     z = H_z^-1 Z^T (P0^-1 (beta0 - beta_p) + Phi^T R^-1 (y - Phi beta_p)), Sigma = Z H_z^-1 Z^T.
     covariance=False skips Sigma (returns None)."""
@@ -349,8 +397,10 @@ def map_batch(beta0, prior_std, phi_rows, y=None, noise_var=1e-6, A=None, b=None
     try:
         L = np.linalg.cholesky(Hz)
     except np.linalg.LinAlgError:
-        raise np.linalg.LinAlgError('map_batch: the posterior information is not positive definite (negative-'
-                                    'variance rows removed more information than the prior and data hold)') from None
+        raise np.linalg.LinAlgError(
+            'map_batch: the posterior information is not positive definite (negative-'
+            'variance rows removed more information than the prior and data hold)'
+        ) from None
     z = _chol_solve(L, g)
     beta = beta_p + Z @ z
     if not covariance:
@@ -377,7 +427,8 @@ _BASIS_CACHE = {}
 
 
 def _constraint_basis(A, b, n):
-    """(beta_p, Z): a particular solution of A beta = b and an orthonormal basis of the null space of A."""
+    """(beta_p, Z): a particular solution of A beta = b and an orthonormal basis of the null space
+    of A."""
     key = (A.tobytes(), b.tobytes(), n)
     hit = _BASIS_CACHE.get(key)
     if hit is None:
@@ -395,7 +446,7 @@ def angle_rows(P, Psi, beta_lin, noise=None, sigma_pitch=None):
     x = P @ beta_lin
     z = Psi @ beta_lin
     s = noise.pitch_std(sigma_pitch, len(z))
-    return P - (x / z)[:, None] * Psi, -x, (s * z) ** 2 + noise.sigma_x_m ** 2
+    return P - (x / z)[:, None] * Psi, -x, (s * z) ** 2 + noise.sigma_x_m**2
 
 
 def offset_rows(P, Psi, beta_lin, noise=None, sigma_pitch=None):
@@ -406,23 +457,61 @@ def offset_rows(P, Psi, beta_lin, noise=None, sigma_pitch=None):
     return np.column_stack([rows, -(Psi @ beta_lin)]), y, var
 
 
-def map_gauss_newton(robot, q_meas, joints, beta0, prior_std, noise=None, A=None, b=None, iterations=20,
-                     tol=1e-10, beta_start=None, sigma_pitch=None, pitch_offset_std=None):
-    """Batch MAP of the CoM-angle model by Gauss-Newton: linearise every pose at the current iterate
-    (start: beta_start or the prior mean), solve the linear MAP, repeat until the step is below tol
-    (relative to |beta0|). Returns (beta, covariance, beta_lin), beta_lin being the linearisation
-    point of the last solve (= beta at convergence). sigma_pitch: per-pose pitch std (rad).
-    pitch_offset_std: also estimate an IMU pitch offset b with prior N(0, pitch_offset_std^2)
-    (offset_rows); beta, covariance and beta_lin then have one more entry, b, last."""
+def map_gauss_newton(
+    robot,
+    q_meas,
+    joints,
+    beta0,
+    prior_std,
+    noise=None,
+    A=None,
+    b=None,
+    iterations=20,
+    tol=1e-10,
+    beta_start=None,
+    sigma_pitch=None,
+    pitch_offset_std=None,
+):
+    """Batch MAP of the CoM-angle model by Gauss-Newton: linearise every pose at the current
+    iterate (start: beta_start or the prior mean), solve the linear MAP, repeat until the step is
+    below tol (relative to |beta0|). Returns (beta, covariance, beta_lin), beta_lin being the
+    linearisation point of the last solve (= beta at convergence). sigma_pitch: per-pose pitch std
+    (rad). pitch_offset_std: also estimate an IMU pitch offset b with prior N(0,
+    pitch_offset_std^2) (offset_rows); beta, covariance and beta_lin then have one more entry, b,
+    last."""
     q_meas = np.atleast_1d(np.asarray(q_meas, dtype=float))
     joints = np.atleast_2d(joints)
-    return map_gauss_newton_rows(phi_fn(robot, q_meas, joints), pitch_rows(robot, q_meas, joints), beta0,
-                                 prior_std, noise, A, b, iterations, tol, beta_start,
-                                 sigma_pitch=sigma_pitch, pitch_offset_std=pitch_offset_std)
+    return map_gauss_newton_rows(
+        phi_fn(robot, q_meas, joints),
+        pitch_rows(robot, q_meas, joints),
+        beta0,
+        prior_std,
+        noise,
+        A,
+        b,
+        iterations,
+        tol,
+        beta_start,
+        sigma_pitch=sigma_pitch,
+        pitch_offset_std=pitch_offset_std,
+    )
 
 
-def map_gauss_newton_rows(P, Psi, beta0, prior_std, noise=None, A=None, b=None, iterations=20, tol=1e-10,
-                          beta_start=None, covariance=True, sigma_pitch=None, pitch_offset_std=None):
+def map_gauss_newton_rows(
+    P,
+    Psi,
+    beta0,
+    prior_std,
+    noise=None,
+    A=None,
+    b=None,
+    iterations=20,
+    tol=1e-10,
+    beta_start=None,
+    covariance=True,
+    sigma_pitch=None,
+    pitch_offset_std=None,
+):
     """map_gauss_newton from precomputed phi and psi rows of the poses (measured pitch)."""
     beta0, prior_std, A, b, rows_fn = _with_offset(beta0, prior_std, A, b, pitch_offset_std)
     n = P.shape[1]
@@ -447,12 +536,27 @@ def _with_offset(beta0, prior_std, A, b, pitch_offset_std):
         return beta0, prior_std, A, b, angle_rows
     n = len(beta0)
     A = np.zeros((0, n)) if A is None else np.atleast_2d(A)
-    return (np.append(beta0, 0.0), np.append(prior_std, float(pitch_offset_std)),
-            np.column_stack([A, np.zeros(len(A))]), b, offset_rows)
+    return (
+        np.append(beta0, 0.0),
+        np.append(prior_std, float(pitch_offset_std)),
+        np.column_stack([A, np.zeros(len(A))]),
+        b,
+        offset_rows,
+    )
 
 
-def log_evidence(P, Psi, beta_lin, beta0, prior_std, noise=None, A=None, b=None, sigma_pitch=None,
-                 pitch_offset_std=None):
+def log_evidence(
+    P,
+    Psi,
+    beta_lin,
+    beta0,
+    prior_std,
+    noise=None,
+    A=None,
+    b=None,
+    sigma_pitch=None,
+    pitch_offset_std=None,
+):
     """log p(data | noise, prior) of the angle model linearised at beta_lin (its MAP, for the
     Laplace-style evidence used by calibrate_scales): y ~ N(G mu0, G S0 G^T + R), mu0, S0 the
     prior conditioned on A beta = b."""
@@ -460,7 +564,7 @@ def log_evidence(P, Psi, beta_lin, beta0, prior_std, noise=None, A=None, b=None,
     mu, S = np.asarray(beta0, float), np.diag(np.asarray(prior_std, float) ** 2)
     if A is not None and len(A):
         mu, S = condition_on_constraints(mu, S, A, b)
-    G, y, var = rows_fn(P, Psi, np.asarray(beta_lin, float)[:P.shape[1]], noise, sigma_pitch)
+    G, y, var = rows_fn(P, Psi, np.asarray(beta_lin, float)[: P.shape[1]], noise, sigma_pitch)
     C = G @ S @ G.T + np.diag(var)
     L = np.linalg.cholesky(0.5 * (C + C.T))
     d = np.linalg.solve(L, y - G @ mu)
@@ -468,17 +572,31 @@ def log_evidence(P, Psi, beta_lin, beta0, prior_std, noise=None, A=None, b=None,
 
 
 #: plausibility bounds of calibrate_scales: pitch noise (rad), relative mass std, CoM std (m)
-CALIBRATION_BOUNDS = {'sigma_pitch_rad': (1e-4, 0.05), 'mass_frac': (0.01, 0.5),
-                      'com_std_m': (0.002, 0.1)}
+CALIBRATION_BOUNDS = {
+    'sigma_pitch_rad': (1e-4, 0.05),
+    'mass_frac': (0.01, 0.5),
+    'com_std_m': (0.002, 0.1),
+}
 
 
-def calibrate_scales(robot, q_meas, joints, beta0, A=None, b=None, start=None, sigma_pitch=None,
-                     pitch_offset_std=None, rounds=3):
+def calibrate_scales(
+    robot,
+    q_meas,
+    joints,
+    beta0,
+    A=None,
+    b=None,
+    start=None,
+    sigma_pitch=None,
+    pitch_offset_std=None,
+    rounds=3,
+):
     """Noise and prior scales from the data by evidence maximisation (type-II maximum
     likelihood): the pitch noise sigma_pitch and the prior's mass_frac and com_std
     (physical_prior_std) that maximise log_evidence, alternating with the Gauss-Newton MAP they
     give (the linearisation point), within CALIBRATION_BOUNDS. Per-pose sigma_pitch values, if
-    given, are added in quadrature (NoiseModel.pitch_std). Returns a dict (sigma_pitch_rad, mass_frac, com_std_m, log_evidence)."""
+    given, are added in quadrature (NoiseModel.pitch_std). Returns a dict (sigma_pitch_rad,
+    mass_frac, com_std_m, log_evidence)."""
     q_meas = np.atleast_1d(np.asarray(q_meas, dtype=float))
     joints = np.atleast_2d(joints)
     P, Psi = phi_fn(robot, q_meas, joints), pitch_rows(robot, q_meas, joints)
@@ -494,8 +612,18 @@ def calibrate_scales(robot, q_meas, joints, beta0, A=None, b=None, start=None, s
 
     def fit(t):
         noise, sp, std = unpack(t)
-        return map_gauss_newton_rows(P, Psi, beta0, std, noise, A, b, sigma_pitch=sp,
-                                     pitch_offset_std=pitch_offset_std, covariance=False)[0]
+        return map_gauss_newton_rows(
+            P,
+            Psi,
+            beta0,
+            std,
+            noise,
+            A,
+            b,
+            sigma_pitch=sp,
+            pitch_offset_std=pitch_offset_std,
+            covariance=False,
+        )[0]
 
     def cost(t, lin):
         noise, sp, std = unpack(t)
@@ -515,8 +643,18 @@ def calibrate_scales(robot, q_meas, joints, beta0, A=None, b=None, start=None, s
     return out
 
 
-def map_constrained(beta0, prior_std, phi_rows, y=None, noise_var=1e-6, A=None, b=None, G=None, h=None,
-                    beta_start=None):
+def map_constrained(
+    beta0,
+    prior_std,
+    phi_rows,
+    y=None,
+    noise_var=1e-6,
+    A=None,
+    b=None,
+    G=None,
+    h=None,
+    beta_start=None,
+):
     """MAP with the equality constraints A beta = b AND the inequalities G beta >= h (a convex QP;
     solved on the null space of A by scipy's SLSQP with exact gradients). Returns beta."""
     beta0 = np.asarray(beta0, dtype=float)
@@ -526,7 +664,9 @@ def map_constrained(beta0, prior_std, phi_rows, y=None, noise_var=1e-6, A=None, 
     r = np.broadcast_to(np.asarray(noise_var, dtype=float), (len(Phi),))
     A = np.zeros((0, n)) if A is None else np.atleast_2d(A)
     b = np.zeros(0) if b is None else np.atleast_1d(b)
-    start, _ = map_batch(beta0, prior_std, Phi, y, r, A, b) if beta_start is None else (beta_start, None)
+    start, _ = (
+        map_batch(beta0, prior_std, Phi, y, r, A, b) if beta_start is None else (beta_start, None)
+    )
     if G is None or np.all(G @ start >= h - 1e-12):
         return start
     Z = null_space(A, n)
@@ -538,9 +678,14 @@ def map_constrained(beta0, prior_std, phi_rows, y=None, noise_var=1e-6, A=None, 
     scale = max(float(np.abs(np.diag(H)).max()), 1.0)
     Hs, gs = H / scale, g / scale
     GZ, hz = G @ Z, h - G @ start
-    res = minimize(lambda z: 0.5 * z @ Hs @ z - gs @ z, np.zeros(Z.shape[1]), jac=lambda z: Hs @ z - gs,
-                   constraints=[{'type': 'ineq', 'fun': lambda z: GZ @ z - hz, 'jac': lambda z: GZ}],
-                   method='SLSQP', options={'maxiter': 500, 'ftol': 1e-14})
+    res = minimize(
+        lambda z: 0.5 * z @ Hs @ z - gs @ z,
+        np.zeros(Z.shape[1]),
+        jac=lambda z: Hs @ z - gs,
+        constraints=[{'type': 'ineq', 'fun': lambda z: GZ @ z - hz, 'jac': lambda z: GZ}],
+        method='SLSQP',
+        options={'maxiter': 500, 'ftol': 1e-14},
+    )
     beta = start + Z @ res.x
     return beta
 
@@ -557,13 +702,16 @@ def register_estimator(name):
     the com_estimator node's `method` parameter, `krang learn/relearn --method`, the closed loop
     and the experiments. Register your own the same way, in a module imported before the CLI is
     built or named in the `krang_com.estimators` entry-point group of your package."""
+
     def add(cls):
         if ESTIMATORS.get(name, cls) is not cls:
-            raise ValueError(f'estimator {name!r} is already registered '
-                             f'({ESTIMATORS[name].__name__})')
+            raise ValueError(
+                f'estimator {name!r} is already registered ({ESTIMATORS[name].__name__})'
+            )
         cls.name = name
         ESTIMATORS[name] = cls
         return cls
+
     return add
 
 
@@ -666,28 +814,43 @@ class RowUpdates:
         """Sequential updates over rows (the online order)."""
         phi_rows = np.atleast_2d(phi_rows)
         y = np.zeros(len(phi_rows)) if y is None else np.broadcast_to(y, (len(phi_rows),))
-        nv = [None] * len(phi_rows) if noise_var is None else np.broadcast_to(noise_var, (len(phi_rows),))
+        nv = (
+            [None] * len(phi_rows)
+            if noise_var is None
+            else np.broadcast_to(noise_var, (len(phi_rows),))
+        )
         return np.array([self.update_row(p, yy, v) for p, yy, v in zip(phi_rows, y, nv)])
 
 
 @register_estimator('paper-gd')
 class PaperGD(RowUpdates, Estimator):
-    """beta <- beta - eta (phi^T beta - y) phi, the paper's eq. (update), eta = 300 (18c train_beta.cpp).
+    """beta <- beta - eta (phi^T beta - y) phi, the paper's eq. (update), eta = 300 (18c
+    train_beta.cpp).
 
     mass_regularization u: the authors' optional penalty (u = 0 in all their runs), which adds
     u (sum m - M) to the error and u * [mass indicator] to the direction. `robot` may be None for
     row updates only.
     """
 
-    def __init__(self, robot, beta0, eta=300.0, x_tol=2e-3, window=10, mass_regularization=0.0,
-                 total_mass=None):
+    def __init__(
+        self,
+        robot,
+        beta0,
+        eta=300.0,
+        x_tol=2e-3,
+        window=10,
+        mass_regularization=0.0,
+        total_mass=None,
+    ):
         self.eta = float(eta)
         self.x_tol = float(x_tol)
         self.window = int(window)
         self.u = float(mass_regularization)
         self.mass_indicator = np.zeros(len(beta0))
         self.mass_indicator[0::4] = 1.0
-        self.total_mass = float(np.sum(np.asarray(beta0)[0::4]) if total_mass is None else total_mass)
+        self.total_mass = float(
+            np.sum(np.asarray(beta0)[0::4]) if total_mass is None else total_mass
+        )
         super().__init__(robot, beta0)
 
     def update(self, q_base, joints, sigma=None):
@@ -706,7 +869,10 @@ class PaperGD(RowUpdates, Estimator):
     @property
     def converged(self):
         """The paper's stop rule: |phi^T beta| < x_tol for the last `window` poses."""
-        return len(self.errors) >= self.window and max(abs(e) for e in self.errors[-self.window:]) < self.x_tol
+        return (
+            len(self.errors) >= self.window
+            and max(abs(e) for e in self.errors[-self.window :]) < self.x_tol
+        )
 
     def fit_info(self):
         return {'converged_paper_rule': bool(self.converged)}
@@ -714,15 +880,16 @@ class PaperGD(RowUpdates, Estimator):
 
 @register_estimator('paper-gd-mass')
 class PaperGDMass(PaperGD):
-    """Paper GD with the total-mass constraint sum(m) = M_known, by a Lagrange multiplier: each step is
-    followed by the projection min (beta'-b)^T W^-1 (beta'-b) s.t. a^T beta' = M, i.e.
-    beta' = b + W a (M - a^T b) / (a^T W a). W weights which masses absorb the correction; by default
-    proportional to the CAD masses (W = diag(m0) on mass entries), so the Base takes most of it.
-    `weights='euclidean'` spreads it evenly (the plain Euclidean projection). M_known: total_mass,
-    else the robot's nominal mass, else beta0's."""
+    """Paper GD with the total-mass constraint sum(m) = M_known, by a Lagrange multiplier: each
+    step is followed by the projection min (beta'-b)^T W^-1 (beta'-b) s.t. a^T beta' = M, i.e.
+    beta' = b + W a (M - a^T b) / (a^T W a). W weights which masses absorb the correction; by
+    default proportional to the CAD masses (W = diag(m0) on mass entries), so the Base takes most
+    of it. `weights='euclidean'` spreads it evenly (the plain Euclidean projection). M_known:
+    total_mass, else the robot's nominal mass, else beta0's."""
 
-    def __init__(self, robot, beta0, eta=300.0, x_tol=2e-3, window=10, total_mass=None,
-                 weights='mass'):
+    def __init__(
+        self, robot, beta0, eta=300.0, x_tol=2e-3, window=10, total_mass=None, weights='mass'
+    ):
         beta0 = np.asarray(beta0, dtype=float)
         a = np.zeros(len(beta0))
         a[0::4] = 1.0
@@ -732,7 +899,9 @@ class PaperGDMass(PaperGD):
             elif weights == 'euclidean':
                 w = a.copy()
             else:
-                raise ValueError(f'weights must be "mass", "euclidean" or an array, not {weights!r}')
+                raise ValueError(
+                    f'weights must be "mass", "euclidean" or an array, not {weights!r}'
+                )
         else:
             w = np.asarray(weights, dtype=float) * a
         self._wa = w
@@ -758,7 +927,8 @@ class MAPEstimator(RowUpdates):
     Prior beta ~ N(beta0, diag(prior_std^2)), conditioned on the equality constraints A beta = b
     (exact: the posterior covariance has A Sigma = 0, so every later update keeps them). Each row
     adds y = phi^T beta + e, e ~ N(0, noise_var):
-        k = Sigma phi / (phi^T Sigma phi + r),  beta += k (y - phi^T beta),  Sigma -= k phi^T Sigma.
+        k = Sigma phi / (phi^T Sigma phi + r),  beta += k (y - phi^T beta),  Sigma -= k phi^T
+        Sigma.
     A negative noise_var removes information (the errors-in-variables correction of
     balanced_pose_rows); it must leave Sigma positive definite (phi^T Sigma phi + r < 0).
     """
@@ -766,7 +936,9 @@ class MAPEstimator(RowUpdates):
     def __init__(self, beta0, prior_std, noise_var=1e-6, A=None, b=None):
         self.prior_std = np.asarray(prior_std, dtype=float)
         if np.any(self.prior_std <= 0):
-            raise ValueError('prior_std must be positive (fix entries with equality constraints instead)')
+            raise ValueError(
+                'prior_std must be positive (fix entries with equality constraints instead)'
+            )
         self.default_noise_var = float(noise_var)
         self.beta0 = np.array(beta0, dtype=float)
         n = len(self.beta0)
@@ -776,9 +948,11 @@ class MAPEstimator(RowUpdates):
 
     def reset(self):
         self._beta = self.beta0.copy()
-        self._sigma = np.diag(self.prior_std ** 2)
+        self._sigma = np.diag(self.prior_std**2)
         if len(self.A):
-            self._beta, self._sigma = condition_on_constraints(self._beta, self._sigma, self.A, self.b)
+            self._beta, self._sigma = condition_on_constraints(
+                self._beta, self._sigma, self.A, self.b
+            )
         self.prior_mean = self._beta.copy()
         self.n_updates = 0
         self.errors = []
@@ -806,18 +980,30 @@ class MAPEstimator(RowUpdates):
 
 @register_estimator('map-online')
 class MAPOnline(Estimator):
-    """MAP on the CoM-angle model, online: one rank-one update per pose (rows linearised at the current
-    linearisation point beta_lin), and a re-linearisation (a Gauss-Newton pass over every pose so far,
-    from the prior) whenever the linear model is off by more than `relinearize_tol` radians of CoM
-    angle at any stored pose. relinearize_tol=None never re-linearises (then it equals map_batch on
-    the rows at the prior mean). finalize() iterates to the batch MAP (= map_gauss_newton).
+    """MAP on the CoM-angle model, online: one rank-one update per pose (rows linearised at the
+    current linearisation point beta_lin), and a re-linearisation (a Gauss-Newton pass over every
+    pose so far, from the prior) whenever the linear model is off by more than `relinearize_tol`
+    radians of CoM angle at any stored pose. relinearize_tol=None never re-linearises (then it
+    equals map_batch on the rows at the prior mean). finalize() iterates to the batch MAP (=
+    map_gauss_newton).
 
     Defaults from the robot: prior_std = physical_prior_std(robot, beta0, mass_frac, com_std);
     (A, b) = equality_constraints(robot, total_mass or the nominal mass): the known total mass and
     the wheel CoMs on the axle (pass A of shape (0, n) for none)."""
 
-    def __init__(self, robot, beta0, prior_std=None, noise=None, A=None, b=None,
-                 relinearize_tol=1e-4, mass_frac=0.1, com_std=0.03, total_mass=None):
+    def __init__(
+        self,
+        robot,
+        beta0,
+        prior_std=None,
+        noise=None,
+        A=None,
+        b=None,
+        relinearize_tol=1e-4,
+        mass_frac=0.1,
+        com_std=0.03,
+        total_mass=None,
+    ):
         self.noise = noise or NoiseModel()
         if prior_std is None:
             prior_std = physical_prior_std(robot, beta0, mass_frac=mass_frac, com_std=com_std)
@@ -850,8 +1036,14 @@ class MAPOnline(Estimator):
         self.q.append(float(q_base))
         self.joints.append(joints.copy())
         self.sigmas.append(math.nan if sigma is None else float(sigma))
-        rows, y, var = balanced_pose_rows(self.robot, [q_base], joints[None], self.beta_lin,
-                                          self.noise, sigma_pitch=self.sigmas[-1:])
+        rows, y, var = balanced_pose_rows(
+            self.robot,
+            [q_base],
+            joints[None],
+            self.beta_lin,
+            self.noise,
+            sigma_pitch=self.sigmas[-1:],
+        )
         self._map.update_row(rows[0], float(y[0]), float(var[0]))
         self._beta = self._map.beta
         if self.relinearize_tol is not None and self._linearisation_error() > self.relinearize_tol:
@@ -861,7 +1053,8 @@ class MAPOnline(Estimator):
         return x_err
 
     def _linearisation_error(self):
-        """max over stored poses of |h(beta) - h_lin(beta)| (rad of CoM angle) at the current estimate."""
+        """max over stored poses of |h(beta) - h_lin(beta)| (rad of CoM angle) at the current
+        estimate."""
         q, j = np.array(self.q), np.array(self.joints)
         P, Psi = phi_fn(self.robot, q, j), pitch_rows(self.robot, q, j)
         x_l, z_l = P @ self.beta_lin, Psi @ self.beta_lin
@@ -870,9 +1063,19 @@ class MAPOnline(Estimator):
         return float(np.abs(h - h_lin).max())
 
     def _relinearize(self, iterations=1):
-        beta, cov, lin = map_gauss_newton(self.robot, np.array(self.q), np.array(self.joints), self.beta0,
-                                          self.prior_std, self.noise, self.A, self.b, iterations=iterations,
-                                          beta_start=self._beta, sigma_pitch=np.array(self.sigmas))
+        beta, cov, lin = map_gauss_newton(
+            self.robot,
+            np.array(self.q),
+            np.array(self.joints),
+            self.beta0,
+            self.prior_std,
+            self.noise,
+            self.A,
+            self.b,
+            iterations=iterations,
+            beta_start=self._beta,
+            sigma_pitch=np.array(self.sigmas),
+        )
         self._set_posterior(beta, cov, lin)
         self.relinearizations += 1
 
@@ -891,8 +1094,10 @@ class MAPOnline(Estimator):
         return self.beta
 
     def fit_info(self):
-        return {'covariance_trace': float(np.trace(self.covariance)),
-                'relinearizations': self.relinearizations}
+        return {
+            'covariance_trace': float(np.trace(self.covariance)),
+            'relinearizations': self.relinearizations,
+        }
 
 
 @register_estimator('map')
@@ -906,40 +1111,71 @@ class MAP(MAPOnline):
     (rad): also estimate an IMU pitch offset with that prior std (offset_rows); the estimate and
     its posterior std are `pitch_offset` and `pitch_offset_std_post` (in fit's info too)."""
 
-    def __init__(self, robot, beta0, prior_std=None, noise=None, A=None, b=None,
-                 relinearize_tol=1e-4, mass_frac=0.1, com_std=0.03, total_mass=None,
-                 physical=True, calibrate=False, pitch_offset_std=None):
+    def __init__(
+        self,
+        robot,
+        beta0,
+        prior_std=None,
+        noise=None,
+        A=None,
+        b=None,
+        relinearize_tol=1e-4,
+        mass_frac=0.1,
+        com_std=0.03,
+        total_mass=None,
+        physical=True,
+        calibrate=False,
+        pitch_offset_std=None,
+    ):
         self.physical = physical
         self.calibrate = calibrate
         self.pitch_offset_std = pitch_offset_std
         self.calibration = None
         self.pitch_offset = self.pitch_offset_std_post = None
-        super().__init__(robot, beta0, prior_std, noise, A, b, relinearize_tol, mass_frac, com_std,
-                         total_mass)
+        super().__init__(
+            robot, beta0, prior_std, noise, A, b, relinearize_tol, mass_frac, com_std, total_mass
+        )
 
     def fit(self, q_base, joints):
         q_base = np.atleast_1d(np.asarray(q_base, dtype=float))
         joints = np.atleast_2d(joints)
         info = {'method': self.name, 'poses': int(len(q_base))}
         if self.calibrate:
-            self.calibration = calibrate_scales(self.robot, q_base, joints, self.beta0, self.A,
-                                                self.b, pitch_offset_std=self.pitch_offset_std)
+            self.calibration = calibrate_scales(
+                self.robot,
+                q_base,
+                joints,
+                self.beta0,
+                self.A,
+                self.b,
+                pitch_offset_std=self.pitch_offset_std,
+            )
             c = self.calibration
             self.noise = NoiseModel(sigma_imu_rad=c['sigma_pitch_rad'])
-            self.prior_std = physical_prior_std(self.robot, self.beta0, mass_frac=c['mass_frac'],
-                                                com_std=c['com_std_m'])
+            self.prior_std = physical_prior_std(
+                self.robot, self.beta0, mass_frac=c['mass_frac'], com_std=c['com_std_m']
+            )
             info['calibration'] = dict(c)
         self.reset()
         n = self.robot.n_beta
-        beta, cov, lin = map_gauss_newton(self.robot, q_base, joints, self.beta0, self.prior_std,
-                                          self.noise, self.A, self.b,
-                                          pitch_offset_std=self.pitch_offset_std)
+        beta, cov, lin = map_gauss_newton(
+            self.robot,
+            q_base,
+            joints,
+            self.beta0,
+            self.prior_std,
+            self.noise,
+            self.A,
+            self.b,
+            pitch_offset_std=self.pitch_offset_std,
+        )
         if self.pitch_offset_std is not None:
             self.pitch_offset = float(beta[n])
             self.pitch_offset_std_post = float(math.sqrt(cov[n, n]))
-            info.update(pitch_offset_rad=self.pitch_offset,
-                        pitch_offset_std_rad=self.pitch_offset_std_post)
-            q_base = q_base - self.pitch_offset         # the poses as the model now sees them
+            info.update(
+                pitch_offset_rad=self.pitch_offset, pitch_offset_std_rad=self.pitch_offset_std_post
+            )
+            q_base = q_base - self.pitch_offset  # the poses as the model now sees them
             beta, cov, lin = beta[:n], cov[:n, :n], lin[:n]
         info['covariance_trace'] = float(np.trace(cov))
         if self.physical:
@@ -947,8 +1183,9 @@ class MAP(MAPOnline):
             info['inequality_qp'] = bool(np.any(G @ beta < h - 1e-12))
             if info['inequality_qp']:
                 rows, y, var = balanced_pose_rows(self.robot, q_base, joints, lin, self.noise)
-                beta = map_constrained(self.beta0, self.prior_std, rows, y, var, self.A, self.b,
-                                       G, h, beta_start=beta)
+                beta = map_constrained(
+                    self.beta0, self.prior_std, rows, y, var, self.A, self.b, G, h, beta_start=beta
+                )
         self.q = [float(v) for v in q_base]
         self.joints = [j.copy() for j in np.asarray(joints, dtype=float)]
         self.sigmas = [math.nan] * len(self.q)
@@ -978,8 +1215,10 @@ def cross_validate(method, robot, q_base, joints, beta0, folds=10, seed=0, **kw)
         offset = getattr(estimator, 'pitch_offset', None)
         Pf, Psif = P[f], Psi[f]
         if offset:
-            Pf, Psif = (phi_fn(robot, q_base[f] - offset, joints[f]),
-                        pitch_rows(robot, q_base[f] - offset, joints[f]))
+            Pf, Psif = (
+                phi_fn(robot, q_base[f] - offset, joints[f]),
+                pitch_rows(robot, q_base[f] - offset, joints[f]),
+            )
         pred[f] = Pf @ beta
         pitch[f] = np.arctan2(pred[f], Psif @ beta)
     return pred, pitch

@@ -14,10 +14,11 @@ Three regressors are compared:
   phi(q)^T beta_real = 0 for every row, so beta_real itself is in the null space: one direction
   fewer, the overall scale of the mass moments;
 - the same balanced rows plus the known total mass (a row of ones on the mass entries): it does NOT
-  restore the scale, because the Base and wheel masses never appear in phi (their origins are on the
-  axle), so they can absorb any change of total mass; and knowing all masses does not either, because
-  every other mass acts like moments of the links it hangs on.
+  restore the scale, because the Base and wheel masses never appear in phi (their origins are on
+  the axle), so they can absorb any change of total mass; and knowing all masses does not either,
+  because every other mass acts like moments of the links it hangs on.
 """
+
 import numpy as np
 from scipy.linalg import qr
 
@@ -47,8 +48,11 @@ def sample_regressor(robot=None, n=2000, seed=0, mode='balanced', beta_real=None
         q_base = np.asarray(q_base)[:n]
     else:
         from krang_pose_server.pool import pool_config
+
         cfg = pool_config()
-        joints = rng.uniform(cfg['sampling_lower'], cfg['sampling_upper'], size=(n, len(robot.pose_joints)))
+        joints = rng.uniform(
+            cfg['sampling_lower'], cfg['sampling_upper'], size=(n, len(robot.pose_joints))
+        )
         q_base = None
     beta_real = robot.nominal_beta if beta_real is None else np.asarray(beta_real, dtype=float)
     if mode == 'balanced':
@@ -62,12 +66,13 @@ def sample_regressor(robot=None, n=2000, seed=0, mode='balanced', beta_real=None
 
 def base_parameters(Phi, rtol=1e-9, order=None):
     """Base parameters of Phi. Returns dict: rank, independent (column indices), dependent,
-    coefficients (r x d: beta_base = beta_indep + coef @ beta_dep, i.e. Phi[:, dep] = Phi[:, indep] @ coef),
-    zero (columns that are 0), diag (|R_kk| of the pivoted QR).
+    coefficients (r x d: beta_base = beta_indep + coef @ beta_dep, i.e. Phi[:, dep] = Phi[:, indep]
+    @ coef), zero (columns that are 0), diag (|R_kk| of the pivoted QR).
 
     The rank is that of the QR with column pivoting. Which columns count as independent is chosen
-    greedily in `order` (a preference, e.g. proximal bodies and moments first, so that a distal mass
-    is explained by the moments of the link it hangs on); without `order` the QR pivots are used."""
+    greedily in `order` (a preference, e.g. proximal bodies and moments first, so that a distal
+    mass is explained by the moments of the link it hangs on); without `order` the QR pivots are
+    used."""
     Phi = np.asarray(Phi, dtype=float)
     n = Phi.shape[1]
     col_norm = np.linalg.norm(Phi, axis=0)
@@ -90,11 +95,22 @@ def base_parameters(Phi, rtol=1e-9, order=None):
                 indep.append(int(j))
                 basis = np.column_stack([basis, res / np.linalg.norm(res)])
         if len(indep) != rank:
-            raise RuntimeError(f'preferred-order selection found {len(indep)} columns, QR rank {rank}')
+            raise RuntimeError(
+                f'preferred-order selection found {len(indep)} columns, QR rank {rank}'
+            )
     dep = [j for j in range(n) if j not in indep]
-    coef = (np.linalg.lstsq(Phi[:, indep], Phi[:, dep], rcond=None)[0] if dep else np.zeros((rank, 0)))
-    return {'rank': rank, 'n_params': n, 'independent': indep, 'dependent': dep, 'coefficients': coef,
-            'zero': zero, 'diag': d}
+    coef = (
+        np.linalg.lstsq(Phi[:, indep], Phi[:, dep], rcond=None)[0] if dep else np.zeros((rank, 0))
+    )
+    return {
+        'rank': rank,
+        'n_params': n,
+        'independent': indep,
+        'dependent': dep,
+        'coefficients': coef,
+        'zero': zero,
+        'diag': d,
+    }
 
 
 def preferred_order(robot):
@@ -126,20 +142,28 @@ def analyse(robot=None, n=2000, seed=0, beta_real=None, pool=None, coef_tol=1e-6
     base_m = robot.body_names.index('Base') * 4
     v = beta_real.copy()
     v[base_m] -= beta_real[0::4].sum()
-    scale_residual = float(np.linalg.norm(phi_bal @ v) / (np.linalg.norm(phi_bal) * np.linalg.norm(v)))
-    scale_seen_arbitrary = float(np.linalg.norm(phi_arb @ v) / (np.linalg.norm(phi_arb) * np.linalg.norm(v)))
+    scale_residual = float(
+        np.linalg.norm(phi_bal @ v) / (np.linalg.norm(phi_bal) * np.linalg.norm(v))
+    )
+    scale_seen_arbitrary = float(
+        np.linalg.norm(phi_arb @ v) / (np.linalg.norm(phi_arb) * np.linalg.norm(v))
+    )
 
-    name = lambda j: describe_entry(robot, j)     # noqa: E731
-    lines = [f'Regressor of x_com over {n} random configurations, {robot.n_beta} parameters '
-             f'({robot.n_bodies} bodies x [m, m*x, m*y, m*z]):',
-             f'  arbitrary configurations (random base pitch): rank {arb["rank"]}',
-             f'  balanced poses (phi^T beta = 0):              rank {bal["rank"]}',
-             f'  balanced + known total mass:                  rank {bal_mass["rank"]}',
-             f'  masses known, moments only ({len(moments)}): rank {bal_known_m["rank"]} balanced, '
-             f'{arb_known_m["rank"]} arbitrary',
-             f'So at most {arb["rank"]} combinations of the {robot.n_beta} numbers can ever be learned from x_com; '
-             f'the other {robot.n_beta - arb["rank"]} directions stay where the prior puts them.', '',
-             'Not identifiable at all:']
+    name = lambda j: describe_entry(robot, j)  # noqa: E731
+    lines = [
+        f'Regressor of x_com over {n} random configurations, {robot.n_beta} parameters '
+        f'({robot.n_bodies} bodies x [m, m*x, m*y, m*z]):',
+        f'  arbitrary configurations (random base pitch): rank {arb["rank"]}',
+        f'  balanced poses (phi^T beta = 0):              rank {bal["rank"]}',
+        f'  balanced + known total mass:                  rank {bal_mass["rank"]}',
+        f'  masses known, moments only ({len(moments)}): rank {bal_known_m["rank"]} balanced, '
+        f'{arb_known_m["rank"]} arbitrary',
+        f'So at most {arb["rank"]} combinations of the {robot.n_beta} numbers can ever be learned '
+        f'from x_com; '
+        f'the other {robot.n_beta - arb["rank"]} directions stay where the prior puts them.',
+        '',
+        'Not identifiable at all:',
+    ]
     for j in arb['zero']:
         lines.append(f'  {name(j)}{_why_zero(robot, j)}: not identifiable — phi is always 0')
     # dependency groups: connected components of (dependent parameter, its partners)
@@ -150,35 +174,63 @@ def analyse(robot=None, n=2000, seed=0, beta_real=None, pool=None, coef_tol=1e-6
         if j in arb['zero']:
             continue
         colmax = max(np.abs(coef[:, c]).max(), 1e-300)
-        partners = [(arb['independent'][k], float(coef[k, c])) for k in range(arb['rank'])
-                    if abs(coef[k, c]) > coef_tol * max(1.0, colmax)]
+        partners = [
+            (arb['independent'][k], float(coef[k, c]))
+            for k in range(arb['rank'])
+            if abs(coef[k, c]) > coef_tol * max(1.0, colmax)
+        ]
         partners.sort(key=lambda t: -abs(t[1]))
         combos.append({'parameter': name(j), 'acts_like': [(name(k), v) for k, v in partners]})
         links[j] = [k for k, _ in partners]
     groups = _components(links)
-    lines += ['', 'Identifiable only in combination (d in the first parameter acts on every x_com exactly like '
-              'the listed changes of the others, so the data cannot tell them apart):']
+    lines += [
+        '',
+        'Identifiable only in combination (d in the first parameter acts on every x_com exactly '
+        'like '
+        'the listed changes of the others, so the data cannot tell them apart):',
+    ]
     for combo in combos:
-        text = ' '.join(f'{"+" if v >= 0 else "-"} {abs(v):.3g} {k}' for k, v in combo['acts_like'][:6])
-        more = '' if len(combo['acts_like']) <= 6 else f' (+{len(combo["acts_like"]) - 6} more terms)'
+        text = ' '.join(
+            f'{"+" if v >= 0 else "-"} {abs(v):.3g} {k}' for k, v in combo['acts_like'][:6]
+        )
+        more = (
+            '' if len(combo['acts_like']) <= 6 else f' (+{len(combo["acts_like"]) - 6} more terms)'
+        )
         lines.append(f'  {combo["parameter"]}: acts like {text}{more}')
-    lines += ['', 'Groups (parameters tied together; only "identifiable" combinations of each group are learned):']
+    lines += [
+        '',
+        'Groups (parameters tied together; only "identifiable" combinations of each group are '
+        'learned):',
+    ]
     group_out = []
     for g in groups:
         n_dep = sum(1 for j in g if j in links)
-        group_out.append({'parameters': [name(j) for j in sorted(g)], 'identifiable_combinations': len(g) - n_dep})
+        group_out.append(
+            {
+                'parameters': [name(j) for j in sorted(g)],
+                'identifiable_combinations': len(g) - n_dep,
+            }
+        )
         lines.append(f'  {len(g) - n_dep} of {len(g)}: ' + ', '.join(name(j) for j in sorted(g)))
-    lines += ['', f'Balanced poses lose {arb["rank"] - bal["rank"]} more direction: the data only say '
-              'phi^T beta = 0, so beta and c*beta fit equally well (the real beta is in their null space).',
-              'The known total mass does not remove it: beta_real with the Base mass lowered by the total '
-              f'mass is still invisible to balanced poses (relative residual {scale_residual:.1e}, against '
-              f'{scale_seen_arbitrary:.1e} at arbitrary pitch), because the Base and wheel masses never '
-              'appear in phi. Knowing every mass does not remove it either (moments only: rank '
-              f'{bal_known_m["rank"]} balanced against {arb_known_m["rank"]} arbitrary): each mass acts '
-              'like moments of the links it hangs on (list above), so the effective moments can still be '
-              'scaled. The scale of the mass moments (how far the CoM is from the axle, i.e. the CoM '
-              'height at balance) is therefore set by the prior; the CoM direction (what balancing needs) '
-              'is what the data determine.']
+    lines += [
+        '',
+        f'Balanced poses lose {arb["rank"] - bal["rank"]} more direction: the data only say '
+        'phi^T beta = 0, so beta and c*beta fit equally well (the real beta is in their null '
+        'space).',
+        'The known total mass does not remove it: beta_real with the Base mass lowered by the '
+        'total '
+        f'mass is still invisible to balanced poses (relative residual {scale_residual:.1e}, '
+        f'against '
+        f'{scale_seen_arbitrary:.1e} at arbitrary pitch), because the Base and wheel masses never '
+        'appear in phi. Knowing every mass does not remove it either (moments only: rank '
+        f'{bal_known_m["rank"]} balanced against {arb_known_m["rank"]} arbitrary): each mass acts '
+        'like moments of the links it hangs on (list above), so the effective moments can still '
+        'be '
+        'scaled. The scale of the mass moments (how far the CoM is from the axle, i.e. the CoM '
+        'height at balance) is therefore set by the prior; the CoM direction (what balancing '
+        'needs) '
+        'is what the data determine.',
+    ]
     return {
         'n_configurations': n,
         'n_params': robot.n_beta,
@@ -221,7 +273,7 @@ def _components(links):
 
 
 def _why_zero(robot, j):
-    body, k = robot.body_names[j // 4], j % 4
+    k = j % 4
     if k == 1:
         return ' (axle direction)'
     if k == 0:

@@ -3,34 +3,36 @@ with a physical meaning and a unit.
 
 The nominal model is ``krang_model.wip`` (locked pose reduced to one body on the axle, the drive
 train of ``krang_model.drivetrain``) with the mass model of ``config/sim_true_beta.yaml``. An
-effect changes one term of that model (``ModelTerms``: a field of its ``Drivetrain``, or the body, the
-sensors, the command timing); ``krang_discrepancy.replay.Replay`` then predicts the measured
+effect changes one term of that model (``ModelTerms``: a field of its ``Drivetrain``, or the body,
+the sensors, the command timing); ``krang_discrepancy.replay.Replay`` then predicts the measured
 signals with the changed terms through ``krang_model.wip.WipDynamics``. Every effect also says how
 its value maps onto ``krang_sim.physics.SimEffects`` so that the extended model can be simulated.
 
 Built-in effects (``name``: value unit, meaning):
 
-=========================  =========  =====================================================================
-imu_pitch_bias             rad        the IMU reads q_base + bias (a pitch misalignment of the sensor)
-floor_slope                rad        the floor rises along the heading (uphill forward is positive)
-wheel_radius               m          effective rolling radius (the nominal one is the URDF's)
-payload                    kg         an unmodelled point mass rigidly on a named link, at a point of it
-wheel_viscous_friction     N m s      extra wheel-to-body viscous friction (both wheels together)
-wheel_coulomb_friction     N m        extra Coulomb friction per wheel (as ``krang_model.wip`` models it)
-torque_constant            N m/A      true motor torque constant (the fit estimates true/nominal scale)
-actuation_delay            s          transport delay between the commanded and the applied wheel torque
-encoder_offset             rad        a body-joint encoder reads q + offset (default joint JWaist)
-=========================  =========  =====================================================================
+=========================  =========
+===================================================================== imu_pitch_bias
+rad        the IMU reads q_base + bias (a pitch misalignment of the sensor) floor_slope
+rad        the floor rises along the heading (uphill forward is positive) wheel_radius
+m          effective rolling radius (the nominal one is the URDF's) payload                    kg
+an unmodelled point mass rigidly on a named link, at a point of it wheel_viscous_friction     N m s
+extra wheel-to-body viscous friction (both wheels together) wheel_coulomb_friction     N m
+extra Coulomb friction per wheel (as ``krang_model.wip`` models it) torque_constant            N
+m/A      true motor torque constant (the fit estimates true/nominal scale) actuation_delay
+s          transport delay between the commanded and the applied wheel torque encoder_offset
+rad        a body-joint encoder reads q + offset (default joint JWaist) =========================
+=========  =====================================================================
 
-Optional effects (``register_optional_effects()``, ``krang discrepancy --extra-effects``): body_inertia
-(kg m^2 about the axle), drive_current_limit (A), rolling_resistance (N m s), com_height (m). The
-simulator cannot produce the first three (only rolling_resistance maps onto ``SimEffects``), so
-they are not in the default library; they serve the hardware data.
+Optional effects (``register_optional_effects()``, ``krang discrepancy --extra-effects``):
+body_inertia (kg m^2 about the axle), drive_current_limit (A), rolling_resistance (N m s),
+com_height (m). The simulator cannot produce the first three (only rolling_resistance maps onto
+``SimEffects``), so they are not in the default library; they serve the hardware data.
 
 Adding your own effect
 ----------------------
 Subclass ``Effect`` (or instantiate it) and register it; ``krang discrepancy --effects-module
-my_effects`` (a module path or a .py file) imports your module before the run, so the decorator runs::
+my_effects`` (a module path or a .py file) imports your module before the run, so the decorator
+runs::
 
     from krang_discrepancy.effects import Effect, register_effect
 
@@ -71,6 +73,7 @@ of the effect; without it the extended-model YAML lists the effect but the simul
 Several variants of one physical effect (e.g. a payload on different links) share ``name`` and
 differ in ``key``; the report and the JSON give the name plus the variant's ``detail``.
 """
+
 from __future__ import annotations
 
 import copy
@@ -97,13 +100,13 @@ class ModelTerms:
     ``ModelTerms.nominal(drive)`` is the nominal model."""
 
     drive: Drivetrain
-    actuation_delay: float = 0.0            # s
-    imu_pitch_bias: float = 0.0             # rad, measured = true + bias
-    inertia_add: float = 0.0                # kg m^2 added to the body's inertia about the axle
-    com_shift: float = 0.0                  # m added to the body CoM distance from the axle
-    payloads: tuple = ()                    # ((link, (x, y, z) m in the link frame, kg), ...)
-    joint_offsets: dict = field(default_factory=dict)   # joint name -> encoder offset (rad)
-    extra_forces: list = field(default_factory=list)    # callables s -> (f_phi, f_qbase), N m
+    actuation_delay: float = 0.0  # s
+    imu_pitch_bias: float = 0.0  # rad, measured = true + bias
+    inertia_add: float = 0.0  # kg m^2 added to the body's inertia about the axle
+    com_shift: float = 0.0  # m added to the body CoM distance from the axle
+    payloads: tuple = ()  # ((link, (x, y, z) m in the link frame, kg), ...)
+    joint_offsets: dict = field(default_factory=dict)  # joint name -> encoder offset (rad)
+    extra_forces: list = field(default_factory=list)  # callables s -> (f_phi, f_qbase), N m
 
     @classmethod
     def nominal(cls, drive) -> 'ModelTerms':
@@ -123,8 +126,10 @@ class ModelTerms:
 
     def body_key(self):
         """Hashable description of what changes the reduced body (payloads, joint offsets)."""
-        return (tuple((link, tuple(p), float(m)) for link, p, m in self.payloads),
-                tuple(sorted((j, float(v)) for j, v in self.joint_offsets.items() if v)))
+        return (
+            tuple((link, tuple(p), float(m)) for link, p, m in self.payloads),
+            tuple(sorted((j, float(v)) for j, v in self.joint_offsets.items() if v)),
+        )
 
 
 # ----------------------------------------------------------------------------- effects
@@ -138,7 +143,7 @@ class Effect:
     unit: str = ''
     bounds: tuple = (-math.inf, math.inf)
     scale: float = 1.0
-    nominal_value: float = 0.0          # the value at which the effect is absent
+    nominal_value: float = 0.0  # the value at which the effect is absent
     description: str = ''
 
     def __init__(self, **attrs):
@@ -188,7 +193,9 @@ class ImuPitchBias(Effect):
     unit = 'rad'
     bounds = (-0.3, 0.3)
     scale = 0.01
-    description = 'the IMU reads q_base + bias: a pitch misalignment of the sensor (mimics a CoM error)'
+    description = (
+        'the IMU reads q_base + bias: a pitch misalignment of the sensor (mimics a CoM error)'
+    )
 
     def apply(self, terms, value):
         terms.imu_pitch_bias += value
@@ -253,7 +260,11 @@ class Payload(Effect):
         terms.payloads = tuple(terms.payloads) + ((self.link, self.point, float(value)),)
 
     def sim_effects(self, value):
-        return {'payload_kg': float(value), 'payload_body': self.link, 'payload_com_m': list(self.point)}
+        return {
+            'payload_kg': float(value),
+            'payload_body': self.link,
+            'payload_com_m': list(self.point),
+        }
 
 
 class WheelViscousFriction(Effect):
@@ -261,7 +272,9 @@ class WheelViscousFriction(Effect):
     unit = 'N m s'
     bounds = (-0.1, 30.0)
     scale = 0.5
-    description = 'extra viscous friction between wheels and body (both wheels), on the relative speed'
+    description = (
+        'extra viscous friction between wheels and body (both wheels), on the relative speed'
+    )
 
     def apply(self, terms, value):
         terms.add_to_drive(viscous_friction=value)
@@ -275,8 +288,10 @@ class WheelCoulombFriction(Effect):
     unit = 'N m'
     bounds = (0.0, 15.0)
     scale = 0.5
-    description = ('extra Coulomb friction per wheel, a smooth sign (tanh, 0.01 rad/s) of the '
-                   'wheel-to-body speed, on the wheel equation as krang_model.wip models it')
+    description = (
+        'extra Coulomb friction per wheel, a smooth sign (tanh, 0.01 rad/s) of the '
+        'wheel-to-body speed, on the wheel equation as krang_model.wip models it'
+    )
 
     def apply(self, terms, value):
         terms.add_to_drive(coulomb_friction=value)
@@ -291,8 +306,10 @@ class TorqueConstant(Effect):
     bounds = (0.1, 3.0)
     scale = 0.05
     nominal_value = 1.0
-    description = ('motor torque constant: the fit estimates the scale true/nominal of the applied '
-                   'torque; reported as the true Kt at the motor')
+    description = (
+        'motor torque constant: the fit estimates the scale true/nominal of the applied '
+        'torque; reported as the true Kt at the motor'
+    )
 
     def __init__(self, nominal_kt: float | None = None, **attrs):
         super().__init__(**attrs)
@@ -368,8 +385,10 @@ class BodyInertia(Effect):
     unit = 'kg m^2'
     bounds = (-5.0, 60.0)
     scale = 1.0
-    description = ('inertia about the axle missing from the model (the URDF rotational inertias of '
-                   'Base, Spine and Bracket are placeholders)')
+    description = (
+        'inertia about the axle missing from the model (the URDF rotational inertias of '
+        'Base, Spine and Bracket are placeholders)'
+    )
 
     def apply(self, terms, value):
         terms.inertia_add += value
@@ -380,7 +399,9 @@ class DriveCurrentLimit(Effect):
     unit = 'A'
     bounds = (3.0, 60.0)
     scale = 1.0
-    description = 'the motor current where the drives really saturate (commanded currents are clamped there)'
+    description = (
+        'the motor current where the drives really saturate (commanded currents are clamped there)'
+    )
 
     def __init__(self, **attrs):
         super().__init__(**attrs)
@@ -395,8 +416,10 @@ class ComHeight(Effect):
     unit = 'm'
     bounds = (-0.12, 0.5)
     scale = 0.01
-    description = ('the body CoM is this much farther from the axle than the mass model says (same '
-                   'direction, point mass): balanced poses fix the CoM angle but not its distance')
+    description = (
+        'the body CoM is this much farther from the axle than the mass model says (same '
+        'direction, point mass): balanced poses fix the CoM angle but not its distance'
+    )
 
     def apply(self, terms, value):
         terms.com_shift += value
@@ -407,7 +430,9 @@ class RollingResistance(Effect):
     unit = 'N m s'
     bounds = (0.0, 60.0)
     scale = 0.5
-    description = 'tyre rolling resistance, viscous in the ground speed (wheel-to-ground, not wheel-to-body)'
+    description = (
+        'tyre rolling resistance, viscous in the ground speed (wheel-to-ground, not wheel-to-body)'
+    )
 
     def apply(self, terms, value):
         terms.add_to_drive(ground_viscous=value)
@@ -430,8 +455,17 @@ def register_optional_effects():
 EFFECTS: dict[str, Effect] = {}
 
 #: the names the DESIGN.md JSON contract knows (user-added names are allowed too)
-BUILTIN_NAMES = ('imu_pitch_bias', 'floor_slope', 'wheel_radius', 'payload', 'wheel_viscous_friction',
-                 'wheel_coulomb_friction', 'torque_constant', 'actuation_delay', 'encoder_offset')
+BUILTIN_NAMES = (
+    'imu_pitch_bias',
+    'floor_slope',
+    'wheel_radius',
+    'payload',
+    'wheel_viscous_friction',
+    'wheel_coulomb_friction',
+    'torque_constant',
+    'actuation_delay',
+    'encoder_offset',
+)
 
 
 def register_effect(effect):
@@ -446,7 +480,9 @@ def register_effect(effect):
     if not isinstance(obj, Effect):
         raise TypeError(f'register_effect needs an Effect, got {obj!r}')
     if not (obj.bounds[0] <= obj.nominal_value <= obj.bounds[1]):
-        raise ValueError(f'{obj.key}: nominal value {obj.nominal_value} outside bounds {obj.bounds}')
+        raise ValueError(
+            f'{obj.key}: nominal value {obj.nominal_value} outside bounds {obj.bounds}'
+        )
     EFFECTS[obj.key] = obj
     return effect
 
@@ -480,6 +516,7 @@ def load_effects_module(spec: str) -> None:
     import importlib
     import importlib.util
     from pathlib import Path
+
     path = Path(spec)
     if spec.endswith('.py') or path.exists():
         mod_spec = importlib.util.spec_from_file_location(path.stem, path)
@@ -500,9 +537,18 @@ def apply_effects(terms: ModelTerms, effects, values) -> ModelTerms:
 
 
 def _register_builtins():
-    for eff in (ImuPitchBias(), FloorSlope(), WheelRadius(), Payload('lGripper', (0.0, 0.0, 0.10)),
-                Payload('rGripper', (0.0, 0.0, 0.10)), WheelViscousFriction(), WheelCoulombFriction(),
-                TorqueConstant(), ActuationDelay(), EncoderOffset('JWaist')):
+    for eff in (
+        ImuPitchBias(),
+        FloorSlope(),
+        WheelRadius(),
+        Payload('lGripper', (0.0, 0.0, 0.10)),
+        Payload('rGripper', (0.0, 0.0, 0.10)),
+        WheelViscousFriction(),
+        WheelCoulombFriction(),
+        TorqueConstant(),
+        ActuationDelay(),
+        EncoderOffset('JWaist'),
+    ):
         register_effect(eff)
 
 

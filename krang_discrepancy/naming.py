@@ -17,8 +17,8 @@ Procedure (``name_effects``):
    full-data optimum; each fold fit predicts the fold's held-out windows.
 4. Evidence: improvement = 1 - (held-out loss with the effect) / (held-out nominal loss);
    t = paired t over blocks of log(loss_nominal_b / loss_candidate_b), a test over blocks that does
-   not pretend overlapping windows are independent (and, on log ratios, is not dominated by the most
-   excited blocks).
+   not pretend overlapping windows are independent (and, on log ratios, is not dominated by the
+   most excited blocks).
 5. Selection: an effect (alone, or added to the accepted set) is accepted if it removes at
    least ``min_improvement`` of the (remaining) held-out loss AND either t >= ``min_t`` or the
    evidence-weighted t (blocks weighted by how much the effect changes the predictions there, see
@@ -32,6 +32,7 @@ Procedure (``name_effects``):
 7. Consistency: ``per_record_values`` / ``per_third_values`` refit the selection per record and
    per third of the records (``split_values``).
 """
+
 from __future__ import annotations
 
 import math
@@ -48,29 +49,30 @@ from .effects import Effect, ModelTerms, apply_effects, library
 class NamingConfig:
     folds: int = 2
     block_s: float = 2.0
-    min_improvement: float = 0.10       # minimum share of the held-out loss an effect must remove
-    min_t: float = 3.0                  # minimum paired t over held-out blocks
+    min_improvement: float = 0.10  # minimum share of the held-out loss an effect must remove
+    min_t: float = 3.0  # minimum paired t over held-out blocks
     max_effects: int = 3
-    combo_candidates: int = 4           # partners tried for a combination (best singles first)
-    cluster_s: float = 2.0              # = the block: errors stay correlated over ~1-2 s
-    min_weighted_blocks: float = 4.0    # effective blocks the evidence-weighted t needs
-    max_nfev: int = 25                  # Levenberg-Marquardt iterations per fit
+    combo_candidates: int = 4  # partners tried for a combination (best singles first)
+    cluster_s: float = 2.0  # = the block: errors stay correlated over ~1-2 s
+    min_weighted_blocks: float = 4.0  # effective blocks the evidence-weighted t needs
+    max_nfev: int = 25  # Levenberg-Marquardt iterations per fit
 
 
 @dataclass
 class Fit:
     """One fitted candidate set (a single effect or a combination)."""
+
     effects: list
     values: np.ndarray
     uncertainty: np.ndarray
-    train_loss: float                   # mean whitened loss on all fitting windows at the fit
-    heldout_loss: np.ndarray            # per active window (NaN elsewhere)
-    fold_values: np.ndarray             # (K, p)
-    improvement: float = math.nan       # vs the reference (nominal, or the smaller set)
+    train_loss: float  # mean whitened loss on all fitting windows at the fit
+    heldout_loss: np.ndarray  # per active window (NaN elsewhere)
+    fold_values: np.ndarray  # (K, p)
+    improvement: float = math.nan  # vs the reference (nominal, or the smaller set)
     t: float = math.nan
-    blocks_better: float = math.nan     # share of held-out blocks where it is better
-    t_weighted: float = math.nan        # paired t with blocks weighted by the effect's visibility
-    weighted_blocks: float = math.nan   # effective number of blocks of that test
+    blocks_better: float = math.nan  # share of held-out blocks where it is better
+    t_weighted: float = math.nan  # paired t with blocks weighted by the effect's visibility
+    weighted_blocks: float = math.nan  # effective number of blocks of that test
     at_bound: bool = False
     nfev: int = 0
     seconds: float = 0.0
@@ -81,17 +83,32 @@ class Fit:
         return '+'.join(e.key for e in self.effects)
 
     def summary(self, base=None) -> dict:
-        out = {'candidate': self.key, 'improvement': self.improvement, 't': self.t,
-               't_weighted': self.t_weighted, 'weighted_blocks': self.weighted_blocks,
-               'blocks_better': self.blocks_better, 'at_bound': self.at_bound, 'reference': self.reference,
-               'train_loss': self.train_loss, 'heldout_loss': float(np.nanmean(self.heldout_loss)),
-               'effects': []}
+        out = {
+            'candidate': self.key,
+            'improvement': self.improvement,
+            't': self.t,
+            't_weighted': self.t_weighted,
+            'weighted_blocks': self.weighted_blocks,
+            'blocks_better': self.blocks_better,
+            'at_bound': self.at_bound,
+            'reference': self.reference,
+            'train_loss': self.train_loss,
+            'heldout_loss': float(np.nanmean(self.heldout_loss)),
+            'effects': [],
+        }
         for e, v, u in zip(self.effects, self.values, self.uncertainty):
             dv, unit = e.display(float(v), base)
-            out['effects'].append({'effect': e.name, 'key': e.key, 'value': dv, 'unit': unit,
-                                   'uncertainty': float(u) * e.display_scale(base),
-                                   'parameter': float(v),
-                                   **({'detail': e.detail} if e.detail else {})})
+            out['effects'].append(
+                {
+                    'effect': e.name,
+                    'key': e.key,
+                    'value': dv,
+                    'unit': unit,
+                    'uncertainty': float(u) * e.display_scale(base),
+                    'parameter': float(v),
+                    **({'detail': e.detail} if e.detail else {}),
+                }
+            )
         return out
 
 
@@ -119,6 +136,7 @@ def _soft_l1(z2):
 @dataclass
 class _Job:
     """One bounded robust least-squares problem: `effects` fitted on the windows `wset`."""
+
     effects: list
     wset: int
     x: np.ndarray
@@ -159,8 +177,11 @@ def _evaluate(replay, base, jobs, wsets, need_jac=True):
         w = wsets[ws]
         terms, owner = [], []
         for j in js:
-            pts = [j.trial] + ([j.trial + np.eye(len(j.trial))[k] * j.h[k] for k in range(len(j.trial))]
-                               if need_jac else [])
+            pts = [j.trial] + (
+                [j.trial + np.eye(len(j.trial))[k] * j.h[k] for k in range(len(j.trial))]
+                if need_jac
+                else []
+            )
             for x in pts:
                 terms.append(apply_effects(base, j.effects, x))
             owner.append(len(pts))
@@ -169,18 +190,18 @@ def _evaluate(replay, base, jobs, wsets, need_jac=True):
         k = 0
         for j, n in zip(js, owner):
             j.trial_res = z[k]
-            j.trial_jac = ((z[k + 1:k + n] - z[k]) / j.h[:, None]).T if need_jac else None
+            j.trial_jac = ((z[k + 1 : k + n] - z[k]) / j.h[:, None]).T if need_jac else None
             j.nfev += n
             k += n
 
 
 def _cost_grad_hess(res, jac):
-    z2 = res ** 2
+    z2 = res**2
     cost = float(np.sum(_soft_l1(z2)))
     if jac is None:
         return cost, None, None
-    w1 = 1.0 / np.sqrt(1.0 + z2)            # rho'(z^2): gradient weights
-    w2 = w1 ** 3                             # Gauss-Newton curvature weights
+    w1 = 1.0 / np.sqrt(1.0 + z2)  # rho'(z^2): gradient weights
+    w2 = w1**3  # Gauss-Newton curvature weights
     grad = jac.T @ (w1 * res)
     hess = (jac * w2[:, None]).T @ jac
     return cost, grad, hess
@@ -235,13 +256,13 @@ def _cluster_cov(jac, res, win_cluster, n_per_window):
     """Cluster-robust sandwich covariance of the soft-L1 M-estimate (whitened residuals `res`,
     Jacobian `jac`): A = sum w_i J_i J_i', w = (1 + z^2)^-1.5 (the Gauss-Newton Hessian of the
     loss), scores g_i = z_i (1 + z_i^2)^-0.5 J_i summed per cluster, cov = A^-1 B A^-1."""
-    w = (1.0 + res ** 2) ** -1.5
+    w = (1.0 + res**2) ** -1.5
     a = (jac * w[:, None]).T @ jac
     try:
         ainv = np.linalg.inv(a)
     except np.linalg.LinAlgError:
         return np.full((jac.shape[1], jac.shape[1]), np.nan)
-    g = jac * (res / np.sqrt(1.0 + res ** 2))[:, None]
+    g = jac * (res / np.sqrt(1.0 + res**2))[:, None]
     cl = np.repeat(win_cluster, n_per_window)
     uniq, inv = np.unique(cl, return_inverse=True)
     gsum = np.zeros((uniq.size, jac.shape[1]))
@@ -270,7 +291,8 @@ def _scan(replay, base, effects, windows, n=9, with_loss=False):
     """Best point of a coarse grid over each effect's bounds, all effects in one batched
     prediction: the start of each single-effect fit, so that no fit begins far from its optimum
     (the actuation-delay loss, for one, is not convex over its whole range). `base` may already
-    carry accepted effects (a conditional scan). With with_loss, also the best mean loss of each."""
+    carry accepted effects (a conditional scan). With with_loss, also the best mean loss of each.
+    """
     w = np.flatnonzero(windows)
     terms = []
     grids = []
@@ -284,12 +306,14 @@ def _scan(replay, base, effects, windows, n=9, with_loss=False):
     pred = replay.predict(terms, w)
     flat = replay.window_loss(replay.measured[w][None] - pred).mean(axis=1)
     loss = np.split(flat, np.cumsum([g.size for g in grids])[:-1])
-    best = [float(g[int(np.argmin(l))]) for g, l in zip(grids, loss)]
-    return (best, [float(l.min()) for l in loss]) if with_loss else best
+    best = [float(g[int(np.argmin(v))]) for g, v in zip(grids, loss)]
+    return (best, [float(v.min()) for v in loss]) if with_loss else best
 
 
 def _blocks(replay: Replay, block_s: float, folds: int):
-    offs = np.concatenate([[0], np.cumsum([int(math.ceil(r.duration / block_s)) + 1 for r in replay.records])])
+    offs = np.concatenate(
+        [[0], np.cumsum([int(math.ceil(r.duration / block_s)) + 1 for r in replay.records])]
+    )
     rec_t0 = np.array([r.t[0] for r in replay.records])
     local = replay.win_t - rec_t0[replay.win_record]
     blocks = np.floor(local / block_s).astype(int) + offs[replay.win_record]
@@ -332,7 +356,7 @@ def _t_stat(d, w):
     sw = w.sum()
     if sw <= 0 or d.size < 2:
         return (math.inf if d.sum() > 0 else 0.0), 0.0
-    n_eff = sw ** 2 / float(np.sum(w ** 2))
+    n_eff = sw**2 / float(np.sum(w**2))
     m = float(np.sum(w * d) / sw)
     var = float(np.sum(w * (d - m) ** 2) / sw) * n_eff / max(n_eff - 1.0, 1e-9)
     if var <= 0:
@@ -340,15 +364,26 @@ def _t_stat(d, w):
     return m / math.sqrt(var / n_eff), n_eff
 
 
-def fit_candidates(replay: Replay, base: ModelTerms, candidate_sets, cfg: NamingConfig, folds, blocks,
-                   x0s, ref_losses, ref_terms: ModelTerms | None = None) -> list:
+def fit_candidates(
+    replay: Replay,
+    base: ModelTerms,
+    candidate_sets,
+    cfg: NamingConfig,
+    folds,
+    blocks,
+    x0s,
+    ref_losses,
+    ref_terms: ModelTerms | None = None,
+) -> list:
     """Full-data fit (value, uncertainty) and K-fold held-out losses of several candidate sets,
     all fitted together (batched Levenberg-Marquardt). `ref_terms` is the model the reference
     losses belong to (default `base`): the evidence weights are the candidates' changes to its
     predictions."""
     t0 = time.perf_counter()
     active = replay.active
-    wsets = [np.flatnonzero(active)] + [np.flatnonzero(active & (folds != f)) for f in range(cfg.folds)]
+    wsets = [np.flatnonzero(active)] + [
+        np.flatnonzero(active & (folds != f)) for f in range(cfg.folds)
+    ]
     # stage 1: the full-data fit of every candidate; stage 2: the fold fits, each started from its
     # candidate's full-data optimum (started from the common guess, a fold of a multi-effect fit
     # can settle in another basin of a trade-off such as torque constant vs friction)
@@ -364,7 +399,11 @@ def fit_candidates(replay: Replay, base: ModelTerms, candidate_sets, cfg: Naming
         jobs.append(fj)
         x = _interior(fj.x, fj.lo, fj.hi, margin=1e-4)
         for ws in range(1, cfg.folds + 1):
-            jobs.append(_Job(fj.effects, ws, x.copy(), fj.lo, fj.hi, _fd_steps(fj.effects, x, fj.lo, fj.hi)))
+            jobs.append(
+                _Job(
+                    fj.effects, ws, x.copy(), fj.lo, fj.hi, _fd_steps(fj.effects, x, fj.lo, fj.hi)
+                )
+            )
     _batched_fit(replay, base, [j for j in jobs if j.wset > 0], wsets, max_iter=cfg.max_nfev)
     n = cfg.folds + 1
     # held-out: each window predicted by the fit of the fold that did not see it
@@ -375,15 +414,24 @@ def fit_candidates(replay: Replay, base: ModelTerms, candidate_sets, cfg: Naming
             j = jobs[c * n + 1 + f]
             terms.append(apply_effects(base, j.effects, j.x))
     pred = replay.predict(terms, idx)
-    loss = replay.window_loss(replay.measured[idx][None] - pred).reshape(len(candidate_sets), cfg.folds, -1)
+    loss = replay.window_loss(replay.measured[idx][None] - pred).reshape(
+        len(candidate_sets), cfg.folds, -1
+    )
     # evidence weights: how much each full-data fit changes the reference's predictions
     ref = base if ref_terms is None else ref_terms
-    pw = replay.predict([ref] + [apply_effects(base, jobs[c * n].effects, jobs[c * n].x)
-                                 for c in range(len(candidate_sets))], idx)
+    pw = replay.predict(
+        [ref]
+        + [
+            apply_effects(base, jobs[c * n].effects, jobs[c * n].x)
+            for c in range(len(candidate_sets))
+        ],
+        idx,
+    )
     change = np.sum(((pw[1:] - pw[:1]) / replay.scales) ** 2, axis=(2, 3))
     e_per = replay.measured.shape[1] * replay.measured.shape[2]
-    clusters = (np.floor(replay.win_t[idx] / cfg.cluster_s).astype(int)
-                + 100000 * replay.win_record[idx])
+    clusters = (
+        np.floor(replay.win_t[idx] / cfg.cluster_s).astype(int) + 100000 * replay.win_record[idx]
+    )
     fits = []
     for c, effs in enumerate(candidate_sets):
         full = jobs[c * n]
@@ -396,14 +444,21 @@ def fit_candidates(replay: Replay, base: ModelTerms, candidate_sets, cfg: Naming
         start = np.array([start_value(e, base) for e in effs])
         near_lo = (full.x - full.lo < 1e-3 * span) & (np.abs(full.lo - start) > 1e-12)
         near_hi = (full.hi - full.x < 1e-3 * span) & (np.abs(full.hi - start) > 1e-12)
-        fit = Fit(list(effs), full.x.copy(), unc, full.cost / max(full.res.size, 1), held,
-                  np.array([jobs[c * n + 1 + f].x for f in range(cfg.folds)]),
-                  at_bound=bool(np.any(near_lo | near_hi)),
-                  nfev=sum(jobs[c * n + k].nfev for k in range(n)))
+        fit = Fit(
+            list(effs),
+            full.x.copy(),
+            unc,
+            full.cost / max(full.res.size, 1),
+            held,
+            np.array([jobs[c * n + 1 + f].x for f in range(cfg.folds)]),
+            at_bound=bool(np.any(near_lo | near_hi)),
+            nfev=sum(jobs[c * n + k].nfev for k in range(n)),
+        )
         weight = np.zeros(len(replay))
         weight[idx] = change[c]
-        (fit.improvement, fit.t, fit.blocks_better, fit.t_weighted,
-         fit.weighted_blocks) = _compare(ref_losses[c], held, blocks, active, weight)
+        (fit.improvement, fit.t, fit.blocks_better, fit.t_weighted, fit.weighted_blocks) = (
+            _compare(ref_losses[c], held, blocks, active, weight)
+        )
         fits.append(fit)
     dt = time.perf_counter() - t0
     for f in fits:
@@ -430,12 +485,19 @@ def _accept(fit: Fit, cfg: NamingConfig) -> bool:
     effective blocks; see ``_compare``)."""
     if fit.improvement < cfg.min_improvement:
         return False
-    return fit.t >= cfg.min_t or (fit.t_weighted >= cfg.min_t
-                                  and fit.weighted_blocks >= cfg.min_weighted_blocks)
+    return fit.t >= cfg.min_t or (
+        fit.t_weighted >= cfg.min_t and fit.weighted_blocks >= cfg.min_weighted_blocks
+    )
 
 
-def name_effects(replay: Replay, base: ModelTerms | None = None, candidates=None,
-                 config: NamingConfig | None = None, progress=None, scales=None) -> NamingResult:
+def name_effects(
+    replay: Replay,
+    base: ModelTerms | None = None,
+    candidates=None,
+    config: NamingConfig | None = None,
+    progress=None,
+    scales=None,
+) -> NamingResult:
     """Run steps 1-6 of the module docstring on the replay's active windows. `scales` (E, 4):
     whiten with these (a baseline's own error scales) instead of the base model's errors here."""
     cfg = config or NamingConfig()
@@ -444,8 +506,10 @@ def name_effects(replay: Replay, base: ModelTerms | None = None, candidates=None
     timing = {}
     t0 = time.perf_counter()
     if not np.any(replay.active):
-        raise ValueError('no windows to fit: the data have no standing/balancing phase '
-                         f'(phases found: {sorted(set(replay.win_phase))})')
+        raise ValueError(
+            'no windows to fit: the data have no standing/balancing phase '
+            f'(phases found: {sorted(set(replay.win_phase))})'
+        )
     r0 = replay.residuals([base])[0]
     if scales is None:
         replay.set_scales(r0)
@@ -461,8 +525,16 @@ def name_effects(replay: Replay, base: ModelTerms | None = None, candidates=None
     x0 = _scan(replay, base, cands, replay.active)
     timing['scan_s'] = time.perf_counter() - t1
     t1 = time.perf_counter()
-    singles = fit_candidates(replay, base, [[e] for e in cands], cfg, folds, blocks, [[v] for v in x0],
-                             [nominal] * len(cands))
+    singles = fit_candidates(
+        replay,
+        base,
+        [[e] for e in cands],
+        cfg,
+        folds,
+        blocks,
+        [[v] for v in x0],
+        [nominal] * len(cands),
+    )
     if progress:
         for f in singles:
             progress(f)
@@ -483,17 +555,30 @@ def name_effects(replay: Replay, base: ModelTerms | None = None, candidates=None
             # (ranking by their single improvement would try the near-duplicates of the accepted
             # effect first: slope, IMU bias, payload and encoder offset all shift the balance)
             cond = extended_terms(base, selected)
-            starts, losses = _scan(replay, cond, [f.effects[0] for f in rest], replay.active, with_loss=True)
-            order = np.argsort(losses)[:cfg.combo_candidates]
+            starts, losses = _scan(
+                replay, cond, [f.effects[0] for f in rest], replay.active, with_loss=True
+            )
+            order = np.argsort(losses)[: cfg.combo_candidates]
             partners = [rest[i] for i in order]
             sets = [selected.effects + p.effects for p in partners]
             x0s = [list(selected.values) + [starts[i]] for i in order]
-            fits = fit_candidates(replay, base, sets, cfg, folds, blocks, x0s,
-                                  [selected.heldout_loss] * len(sets), ref_terms=cond)
+            fits = fit_candidates(
+                replay,
+                base,
+                sets,
+                cfg,
+                folds,
+                blocks,
+                x0s,
+                [selected.heldout_loss] * len(sets),
+                ref_terms=cond,
+            )
             best = None
             for fit in fits:
                 fit.reference = selected.key
-                fit.improvement_vs_nominal = _compare(nominal, fit.heldout_loss, blocks, replay.active)[0]
+                fit.improvement_vs_nominal = _compare(
+                    nominal, fit.heldout_loss, blocks, replay.active
+                )[0]
                 combos.append(fit)
                 if progress:
                     progress(fit)
@@ -503,13 +588,15 @@ def name_effects(replay: Replay, base: ModelTerms | None = None, candidates=None
                 break
             selected = best
             reduced = _drop_redundant(replay, base, selected, cfg, folds, blocks, nominal)
-            if reduced is not None:                 # the newcomer made an earlier effect moot
+            if reduced is not None:  # the newcomer made an earlier effect moot
                 combos.append(reduced)
                 selected = reduced
                 break
     timing['combos_s'] = time.perf_counter() - t2
     timing['total_s'] = time.perf_counter() - t0
-    return NamingResult(selected, singles, combos, nominal, replay.scales, cfg, folds, blocks, timing)
+    return NamingResult(
+        selected, singles, combos, nominal, replay.scales, cfg, folds, blocks, timing
+    )
 
 
 def _drop_redundant(replay, base, selected: Fit, cfg, folds, blocks, nominal):
@@ -524,14 +611,23 @@ def _drop_redundant(replay, base, selected: Fit, cfg, folds, blocks, nominal):
         keep = [k for k in range(len(selected.effects)) if k != i]
         subsets.append([selected.effects[k] for k in keep])
         x0s.append([selected.values[k] for k in keep])
-    fits = fit_candidates(replay, base, subsets, cfg, folds, blocks, x0s,
-                          [nominal] * len(subsets))
+    fits = fit_candidates(replay, base, subsets, cfg, folds, blocks, x0s, [nominal] * len(subsets))
     best = min(fits, key=lambda f: float(np.nansum(f.heldout_loss)))
-    imp, t, frac, tw, n_eff = _compare(best.heldout_loss, selected.heldout_loss, blocks,
-                                       replay.active, np.ones(len(replay)))
-    probe = Fit(selected.effects, selected.values, selected.uncertainty, 0.0,
-                selected.heldout_loss, selected.fold_values, improvement=imp, t=t,
-                t_weighted=tw, weighted_blocks=n_eff)
+    imp, t, frac, tw, n_eff = _compare(
+        best.heldout_loss, selected.heldout_loss, blocks, replay.active, np.ones(len(replay))
+    )
+    probe = Fit(
+        selected.effects,
+        selected.values,
+        selected.uncertainty,
+        0.0,
+        selected.heldout_loss,
+        selected.fold_values,
+        improvement=imp,
+        t=t,
+        t_weighted=tw,
+        weighted_blocks=n_eff,
+    )
     if _accept(probe, cfg):
         return None
     best.improvement_vs_nominal = best.improvement
@@ -556,13 +652,17 @@ def gaps(replay: Replay, base: ModelTerms, result: NamingResult) -> dict:
         r1 = replay.residuals([extended_terms(base, result.selected)])[0]
         after = gap_metrics(replay, r1)
         held_after = float(np.nanmean(result.selected.heldout_loss))
-    return {'before': before, 'after': after,
-            'heldout_loss_before': float(np.nanmean(result.nominal_heldout)),
-            'heldout_loss_after': held_after}
+    return {
+        'before': before,
+        'after': after,
+        'heldout_loss_before': float(np.nanmean(result.nominal_heldout)),
+        'heldout_loss_after': held_after,
+    }
 
 
-def split_values(replay: Replay, base: ModelTerms, fit: Fit, cfg: NamingConfig, groups,
-                 names) -> dict:
+def split_values(
+    replay: Replay, base: ModelTerms, fit: Fit, cfg: NamingConfig, groups, names
+) -> dict:
     """The selected effects fitted to each group of windows alone (``groups``: a label per
     window, -1 = unused; ``names``: one per label), with cluster-robust uncertainties, and per
     effect the consistency of the groups' values: chi^2 of the values about their weighted mean
@@ -570,8 +670,9 @@ def split_values(replay: Replay, base: ModelTerms, fit: Fit, cfg: NamingConfig, 
     effect has one value; groups that disagree far beyond their uncertainty (chi2/dof > 4) by a
     spread of more than 10 % of the effect are the sign of an effect absorbing something else
     (between records) or of an effect that changes in time (between the thirds of a record)."""
-    labels = [g for g in range(len(names))
-              if np.count_nonzero(replay.active & (groups == g)) >= 20]
+    labels = [
+        g for g in range(len(names)) if np.count_nonzero(replay.active & (groups == g)) >= 20
+    ]
     if len(labels) < 2 or fit is None:
         return {}
     wsets = [np.flatnonzero(replay.active & (groups == g)) for g in labels]
@@ -601,15 +702,19 @@ def split_values(replay: Replay, base: ModelTerms, fit: Fit, cfg: NamingConfig, 
         out['effects'][e.key] = {
             'values': [float(e.display(float(v), base)[0]) for v in vals[:, i]],
             'uncertainties': [float(sd * scale) for sd in sds[:, i]],
-            'unit': e.unit, 'chi2_per_dof': chi2, 'relative_spread': rel,
-            'inconsistent': bool(chi2 > 4.0 and rel > 0.10)}
+            'unit': e.unit,
+            'chi2_per_dof': chi2,
+            'relative_spread': rel,
+            'inconsistent': bool(chi2 > 4.0 and rel > 0.10),
+        }
     return out
 
 
 def per_record_values(replay: Replay, base: ModelTerms, fit: Fit, cfg: NamingConfig) -> dict:
     """``split_values`` over the records."""
-    return split_values(replay, base, fit, cfg, replay.win_record,
-                        [r.name for r in replay.records])
+    return split_values(
+        replay, base, fit, cfg, replay.win_record, [r.name for r in replay.records]
+    )
 
 
 def per_third_values(replay: Replay, base: ModelTerms, fit: Fit, cfg: NamingConfig) -> dict:
@@ -617,7 +722,9 @@ def per_third_values(replay: Replay, base: ModelTerms, fit: Fit, cfg: NamingConf
     third = np.zeros(len(replay), int)
     for ri, rec in enumerate(replay.records):
         m = replay.win_record == ri
-        third[m] = np.minimum((3 * (replay.win_t[m] - rec.t[0]) / max(rec.duration, 1e-9))
-                              .astype(int), 2)
-    return split_values(replay, base, fit, cfg, third, ['first third', 'middle third',
-                                                         'last third'])
+        third[m] = np.minimum(
+            (3 * (replay.win_t[m] - rec.t[0]) / max(rec.duration, 1e-9)).astype(int), 2
+        )
+    return split_values(
+        replay, base, fit, cfg, third, ['first third', 'middle third', 'last third']
+    )

@@ -39,9 +39,9 @@ DEFAULT_POSE_PROGRAMME = (
 class Unmodelled:
     """Effects outside the library, applied around the simulated plant (all zero = none)."""
 
-    drive_deadband_a: float = 0.0       # the drives deliver nothing below this current, i - d beyond
-    gyro_scale: float = 0.0             # the gyro reads (1 + s) x the pitch rate (scale factor)
-    payload_growth_kg_s: float = 0.0    # a mass on lGripper (0, 0, 0.10) m growing from the start
+    drive_deadband_a: float = 0.0  # the drives deliver nothing below this current, i - d beyond
+    gyro_scale: float = 0.0  # the gyro reads (1 + s) x the pitch rate (scale factor)
+    payload_growth_kg_s: float = 0.0  # a mass on lGripper (0, 0, 0.10) m growing from the start
 
     def current(self, i: float) -> float:
         d = self.drive_deadband_a
@@ -107,7 +107,7 @@ def simulate_record(
     um = unmodelled or Unmodelled()
     grow_next = 0.0
     for k in range(steps):
-        if um.payload_growth_kg_s and sim.t >= grow_next:   # re-reduce the heavier body
+        if um.payload_growth_kg_s and sim.t >= grow_next:  # re-reduce the heavier body
             grow = SimEffects(payload_kg=um.payload_growth_kg_s * sim.t)
             sim.true_beta = payload_beta(robot, truth, grow)
             sim.dynamics = WipDynamics(reduce_pose(robot, sim.joints, sim.true_beta), sim.drive)
@@ -207,30 +207,99 @@ VALIDATION_SUITE = (
     ('none seed 13, noise x2', {}, {}, 13, 2.0, {}, ()),
     ('none seed 14, noise x0.5', {}, {}, 14, 0.5, {}, ()),
     ('small floor_slope', {'floor_slope_rad': 0.003}, {}, 21, 1.0, {'floor_slope': 0.003}, ()),
-    ('small imu_pitch_bias', {'imu_pitch_bias_rad': 0.004}, {}, 22, 1.0,
-     {'imu_pitch_bias': 0.004}, ()),
+    (
+        'small imu_pitch_bias',
+        {'imu_pitch_bias_rad': 0.004},
+        {},
+        22,
+        1.0,
+        {'imu_pitch_bias': 0.004},
+        (),
+    ),
     ('small payload', {'payload_kg': 1.0}, {}, 23, 1.0, {'payload': 1.0}, ()),
-    ('small torque_constant', {'torque_constant_scale': 0.95}, {}, 24, 1.0,
-     {'torque_constant': 0.95 * _KT}, ()),
-    ('small actuation_delay', {'actuation_delay_s': 0.008}, {}, 25, 1.0,
-     {'actuation_delay': 0.008}, ()),
-    ('small wheel_coulomb_friction', {'wheel_coulomb_Nm': 0.8}, {}, 26, 1.0,
-     {'wheel_coulomb_friction': 0.8}, ()),
+    (
+        'small torque_constant',
+        {'torque_constant_scale': 0.95},
+        {},
+        24,
+        1.0,
+        {'torque_constant': 0.95 * _KT},
+        (),
+    ),
+    (
+        'small actuation_delay',
+        {'actuation_delay_s': 0.008},
+        {},
+        25,
+        1.0,
+        {'actuation_delay': 0.008},
+        (),
+    ),
+    (
+        'small wheel_coulomb_friction',
+        {'wheel_coulomb_Nm': 0.8},
+        {},
+        26,
+        1.0,
+        {'wheel_coulomb_friction': 0.8},
+        (),
+    ),
     ('small wheel_radius', {'wheel_radius_m': 0.258}, {}, 27, 1.0, {'wheel_radius': 0.258}, ()),
-    ('small encoder_offset', {'encoder_offset_rad': 0.012}, {}, 28, 1.0,
-     {'encoder_offset': 0.012}, ()),
-    ('pair torque_constant + wheel_radius', {'torque_constant_scale': 0.85, 'wheel_radius_m': 0.25},
-     {}, 31, 1.0, {'torque_constant': 0.85 * _KT, 'wheel_radius': 0.25}, ()),
-    ('pair floor_slope + actuation_delay', {'floor_slope_rad': 0.015, 'actuation_delay_s': 0.02},
-     {}, 32, 1.0, {'floor_slope': 0.015, 'actuation_delay': 0.02}, ()),
-    ('pair payload + wheel_coulomb_friction', {'payload_kg': 5.0, 'wheel_coulomb_Nm': 2.0}, {}, 33,
-     1.0, {'payload': 5.0, 'wheel_coulomb_friction': 2.0}, ()),
-    ('pair viscous + imu_pitch_bias', {'wheel_viscous_Nm_s': 2.0, 'imu_pitch_bias_rad': 0.02}, {},
-     34, 1.0, {'wheel_viscous_friction': 2.0, 'imu_pitch_bias': 0.02}, ()),
+    (
+        'small encoder_offset',
+        {'encoder_offset_rad': 0.012},
+        {},
+        28,
+        1.0,
+        {'encoder_offset': 0.012},
+        (),
+    ),
+    (
+        'pair torque_constant + wheel_radius',
+        {'torque_constant_scale': 0.85, 'wheel_radius_m': 0.25},
+        {},
+        31,
+        1.0,
+        {'torque_constant': 0.85 * _KT, 'wheel_radius': 0.25},
+        (),
+    ),
+    (
+        'pair floor_slope + actuation_delay',
+        {'floor_slope_rad': 0.015, 'actuation_delay_s': 0.02},
+        {},
+        32,
+        1.0,
+        {'floor_slope': 0.015, 'actuation_delay': 0.02},
+        (),
+    ),
+    (
+        'pair payload + wheel_coulomb_friction',
+        {'payload_kg': 5.0, 'wheel_coulomb_Nm': 2.0},
+        {},
+        33,
+        1.0,
+        {'payload': 5.0, 'wheel_coulomb_friction': 2.0},
+        (),
+    ),
+    (
+        'pair viscous + imu_pitch_bias',
+        {'wheel_viscous_Nm_s': 2.0, 'imu_pitch_bias_rad': 0.02},
+        {},
+        34,
+        1.0,
+        {'wheel_viscous_friction': 2.0, 'imu_pitch_bias': 0.02},
+        (),
+    ),
     ('out: drive deadband 2 A', {}, {'drive_deadband_a': 2.0}, 41, 1.0, {}, ()),
     ('out: gyro scale factor +10 %', {}, {'gyro_scale': 0.1}, 42, 1.0, {}, ()),
-    ('out: LJ2 (arm) encoder offset 0.1 rad',
-     {'encoder_offset_rad': 0.1, 'encoder_offset_joint': 'LJ2'}, {}, 43, 1.0, {}, ('payload',)),
-    ('out: payload growing 0.3 kg/s', {}, {'payload_growth_kg_s': 0.3}, 44, 1.0, {},
-     ('payload',)),
+    (
+        'out: LJ2 (arm) encoder offset 0.1 rad',
+        {'encoder_offset_rad': 0.1, 'encoder_offset_joint': 'LJ2'},
+        {},
+        43,
+        1.0,
+        {},
+        ('payload',),
+    ),
+    ('out: payload growing 0.3 kg/s', {}, {'payload_growth_kg_s': 0.3}, 44, 1.0, {}, ('payload',)),
 )

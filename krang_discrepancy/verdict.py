@@ -18,6 +18,7 @@ missing dynamic effect can.
 predictable part, which phases, which features predict it, and the lag structure (decorrelation
 time, dominant frequency) of the residual sequence.
 """
+
 from __future__ import annotations
 
 import math
@@ -34,7 +35,7 @@ MIN_STRUCTURE = 0.10
 #: a comparison model (a baseline) whose gap after the named effects is still above this many
 #: times its own typical error is far off: its residual is reported as unexplained
 MAX_GAP = 2.0
-TORQUE_SIGN_SCALE = 5.0             # N m: the width of the smooth sign of the commanded torque
+TORQUE_SIGN_SCALE = 5.0  # N m: the width of the smooth sign of the commanded torque
 
 
 @dataclass
@@ -44,19 +45,25 @@ class Structure:
     improvement: float
     t: float
     significant: bool
-    signals: dict = field(default_factory=dict)        # channel -> share explained (held out)
-    phases: dict = field(default_factory=dict)         # phase -> {windows, loss, share explained}
-    features: list = field(default_factory=list)       # [(feature, share of the fitted variance)]
+    signals: dict = field(default_factory=dict)  # channel -> share explained (held out)
+    phases: dict = field(default_factory=dict)  # phase -> {windows, loss, share explained}
+    features: list = field(default_factory=list)  # [(feature, share of the fitted variance)]
     decorrelation_s: dict = field(default_factory=dict)  # channel -> s
-    dominant_hz: dict = field(default_factory=dict)      # channel -> Hz of the largest peak
-    low_share: dict = field(default_factory=dict)        # channel -> power share below 0.5 Hz
+    dominant_hz: dict = field(default_factory=dict)  # channel -> Hz of the largest peak
+    low_share: dict = field(default_factory=dict)  # channel -> power share below 0.5 Hz
 
     def as_dict(self) -> dict:
-        return {'improvement': self.improvement, 't': self.t, 'significant': self.significant,
-                'signals': self.signals, 'phases': self.phases,
-                'features': [{'feature': f, 'share': s} for f, s in self.features],
-                'decorrelation_s': self.decorrelation_s, 'dominant_hz': self.dominant_hz,
-                'power_below_0_5_hz': self.low_share}
+        return {
+            'improvement': self.improvement,
+            't': self.t,
+            'significant': self.significant,
+            'signals': self.signals,
+            'phases': self.phases,
+            'features': [{'feature': f, 'share': s} for f, s in self.features],
+            'decorrelation_s': self.decorrelation_s,
+            'dominant_hz': self.dominant_hz,
+            'power_below_0_5_hz': self.low_share,
+        }
 
     def sentence(self) -> str:
         """The signature in words."""
@@ -64,11 +71,15 @@ class Structure:
         ph = sorted(((p, v['loss']) for p, v in self.phases.items()), key=lambda kv: -kv[1])
         feats = ', '.join(f'{f} ({s:.0%})' for f, s in self.features[:3])
         lags = ', '.join(f'{c} {self.decorrelation_s.get(c, math.nan):.2f} s' for c, _ in sig[:2])
-        return (f'the residual is {"" if self.significant else "not "}predictable from the '
-                f'measured state and commands (held-out improvement {self.improvement:.2f}, '
-                f't {self.t:.1f}); signals: ' + ', '.join(f'{c} {v:.0%}' for c, v in sig)
-                + '; worst phases: ' + ', '.join(f'{p} (loss {v:.2g})' for p, v in ph[:2])
-                + f'; predicted by: {feats}; decorrelation time {lags}')
+        return (
+            f'the residual is {"" if self.significant else "not "}predictable from the '
+            f'measured state and commands (held-out improvement {self.improvement:.2f}, '
+            f't {self.t:.1f}); signals: '
+            + ', '.join(f'{c} {v:.0%}' for c, v in sig)
+            + '; worst phases: '
+            + ', '.join(f'{p} (loss {v:.2g})' for p, v in ph[:2])
+            + f'; predicted by: {feats}; decorrelation time {lags}'
+        )
 
 
 #: generic generalised-force shapes g(s) (each O(1)); each acts on the wheel equation and, as a
@@ -86,7 +97,7 @@ FORCE_SHAPES = (
     ('time', lambda s: s.t / 30.0),
     ('CoM angle of the pose', lambda s: (s.theta - s.q_base) / 0.1),
 )
-FORCE_STEP = 0.5                    # N m per unit shape: the finite-difference amplitude
+FORCE_STEP = 0.5  # N m per unit shape: the finite-difference amplitude
 
 
 def _force(shape, equation, amount):
@@ -130,7 +141,7 @@ def force_sensitivities(replay: Replay, terms, windows) -> tuple[np.ndarray, lis
     return np.array(out) / replay.scales, names
 
 
-FORCE_PRIOR = 2.0                   # N m per unit force shape: the ridge's prior scale
+FORCE_PRIOR = 2.0  # N m per unit force shape: the ridge's prior scale
 
 
 def _robust_ridge(x, y, iters=4):
@@ -141,22 +152,24 @@ def _robust_ridge(x, y, iters=4):
     c = np.zeros(k)
     for _ in range(iters):
         xw = x * w[:, None]
-        c = np.linalg.solve(xw.T @ x + np.eye(k) / FORCE_PRIOR ** 2, xw.T @ y)
+        c = np.linalg.solve(xw.T @ x + np.eye(k) / FORCE_PRIOR**2, xw.T @ y)
         w = 1.0 / np.sqrt(1.0 + (y - x @ c) ** 2)
     return c
 
 
-def residual_structure(replay: Replay, terms, folds, blocks, *, min_improvement=MIN_STRUCTURE,
-                       min_t=3.0) -> Structure:
+def residual_structure(
+    replay: Replay, terms, folds, blocks, *, min_improvement=MIN_STRUCTURE, min_t=3.0
+) -> Structure:
     """The residual-structure test (module docstring) of the model `terms` on the replay's active
     windows, with the naming step's folds and blocks."""
     from .locate import _acf
     from .naming import _compare
+
     act = np.flatnonzero(replay.active)
     r = replay.residuals([terms], act)[0]
     z = (r / replay.scales).reshape(-1)
     sens, names = force_sensitivities(replay, terms, act)
-    x = sens.reshape(len(names), -1).T                  # (S*E*4, K)
+    x = sens.reshape(len(names), -1).T  # (S*E*4, K)
     per = r[0].size
     win_fold = folds[act]
     pred = np.zeros_like(z)
@@ -183,9 +196,13 @@ def residual_structure(replay: Replay, terms, folds, blocks, *, min_improvement=
     for ph in PHASES:
         m = replay.win_phase[act] == ph
         if m.any():
-            st.phases[ph] = {'windows': int(m.sum()), 'loss': float(np.mean(loss_ref[act][m])),
-                             'explained': float(1.0 - loss_new[act][m].sum()
-                                                / max(loss_ref[act][m].sum(), 1e-300))}
+            st.phases[ph] = {
+                'windows': int(m.sum()),
+                'loss': float(np.mean(loss_ref[act][m])),
+                'explained': float(
+                    1.0 - loss_new[act][m].sum() / max(loss_ref[act][m].sum(), 1e-300)
+                ),
+            }
     # which forces carry the prediction (full-data fit, share of the fitted variance)
     c = _robust_ridge(x, z.reshape(-1))
     contrib = np.array([np.var(x[:, i] * c[i]) for i in range(len(names))])

@@ -10,6 +10,7 @@ balanced points) learns online from the nominal model with the same estimator:
 The forward CoM error after each pose is measured as `krang demo` measures it (krang_model.com.
 com_error over the 2000 held-out configurations of krang_bag.session_report).
 """
+
 import json
 import time
 from dataclasses import asdict, dataclass, field
@@ -55,21 +56,36 @@ def session(robot, true_beta, selection, params, pool=None, held_out=None):
     learner = make_estimator(params.method, robot, robot.nominal_beta)
     if selection == 'fixed':
         _, poses, _ = load_poses(config_path('excitatory_poses.csv'), KRANG_POSE_COLUMNS)
-        chooser = poses[:params.n_poses]
+        chooser = poses[: params.n_poses]
     elif selection == 'adaptive':
-        pool = generate_pool(params.pool_size, seed=params.pool_seed, robot=robot) \
-            if pool is None else pool
+        pool = (
+            generate_pool(params.pool_size, seed=params.pool_seed, robot=robot)
+            if pool is None
+            else pool
+        )
         chooser = AdaptiveSelector(robot, pool.joints, criterion=params.criterion)
     else:
         raise ValueError(f'selection must be one of {SELECTIONS}, not {selection!r}')
-    res = run_online_session(robot, true_beta, robot.nominal_beta, chooser, learner,
-                             seed=params.sim_seed, progress=params.progress,
-                             n_poses=params.n_poses)
+    res = run_online_session(
+        robot,
+        true_beta,
+        robot.nominal_beta,
+        chooser,
+        learner,
+        seed=params.sim_seed,
+        progress=params.progress,
+        n_poses=params.n_poses,
+    )
     curve = [com_error(robot, b, true_beta, held_out) for b in res.betas]
-    return {'curve_m': curve, 'learned': len(res.points), 'failures': [list(f) for f in
-                                                                       res.failures],
-            'timings': res.timings, 'sim_s': res.sim_s, 'wall_s': res.wall_s,
-            'pitch_error_rad': [p.q_base - t for p, t in zip(res.points, res.true_pitch)]}
+    return {
+        'curve_m': curve,
+        'learned': len(res.points),
+        'failures': [list(f) for f in res.failures],
+        'timings': res.timings,
+        'sim_s': res.sim_s,
+        'wall_s': res.wall_s,
+        'pitch_error_rad': [p.q_base - t for p, t in zip(res.points, res.true_pitch)],
+    }
 
 
 def run(params=None):
@@ -82,13 +98,16 @@ def run(params=None):
     truths, runs = [], {s: [] for s in params.selections}
     for seed in params.truth_seeds:
         truth = generate_truth(robot, seed, recipe)
-        truths.append({'seed': seed, 'draw': truth.draw,
-                       'forward_error_m': truth.forward_error_m})
+        truths.append({'seed': seed, 'draw': truth.draw, 'forward_error_m': truth.forward_error_m})
         for sel in params.selections:
             runs[sel].append(session(robot, truth.beta, sel, params, pool, held_out))
-    return {'params': params, 'truths': truths, 'runs': runs,
-            'summary': summarise(runs, params.n_poses),
-            'wall_s': time.perf_counter() - wall}
+    return {
+        'params': params,
+        'truths': truths,
+        'runs': runs,
+        'summary': summarise(runs, params.n_poses),
+        'wall_s': time.perf_counter() - wall,
+    }
 
 
 def summarise(runs, n_poses):
@@ -97,11 +116,12 @@ def summarise(runs, n_poses):
     out = {}
     for sel, rs in runs.items():
         final = np.array([r['curve_m'][-1] for r in rs])
-        out[sel] = {'sessions': len(rs),
-                    'complete': int(sum(r['learned'] == n_poses and not r['failures']
-                                        for r in rs)),
-                    'median_final_m': float(np.median(final)),
-                    'worst_final_m': float(final.max())}
+        out[sel] = {
+            'sessions': len(rs),
+            'complete': int(sum(r['learned'] == n_poses and not r['failures'] for r in rs)),
+            'median_final_m': float(np.median(final)),
+            'worst_final_m': float(final.max()),
+        }
     return out
 
 
@@ -119,22 +139,37 @@ def report(result, out_dir):
         full = [r['curve_m'] for r in rs if len(r['curve_m']) == params.n_poses + 1]
         if full:
             med = 1000 * np.median(np.array(full), axis=0)
-            ax.plot(np.arange(len(med)), med, 'o-', color=colours.get(sel, 'k'), lw=2,
-                    label=f'{sel}: median of the {len(full)} complete sessions')
+            ax.plot(
+                np.arange(len(med)),
+                med,
+                'o-',
+                color=colours.get(sel, 'k'),
+                lw=2,
+                label=f'{sel}: median of the {len(full)} complete sessions',
+            )
     ax.axhline(1.0, color='grey', lw=0.8, ls='--', label='1 mm')
     ax.set_yscale('log')
     ax.set_xlabel('balanced poses learned (online, map-online estimator)')
     ax.set_ylabel('forward CoM error (mm): mean |x_com| over 2000 held-out configurations')
-    ax.set_title(f'{len(result["truths"])} hidden truths (thin lines: one session each); '
-                 'fixed meta-learned list vs adaptive selection')
+    ax.set_title(
+        f'{len(result["truths"])} hidden truths (thin lines: one session each); '
+        'fixed meta-learned list vs adaptive selection'
+    )
     ax.legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(out / 'many_truths.png', dpi=110)
-    doc = {'params': asdict(params), 'truths': result['truths'], 'summary': result['summary'],
-           'wall_s': result['wall_s'],
-           'runs': {s: [{k: v for k, v in r.items()} for r in rs] for s, rs in runs.items()}}
+    doc = {
+        'params': asdict(params),
+        'truths': result['truths'],
+        'summary': result['summary'],
+        'wall_s': result['wall_s'],
+        'runs': {s: [{k: v for k, v in r.items()} for r in rs] for s, rs in runs.items()},
+    }
     (out / 'many_truths.json').write_text(json.dumps(doc, indent=1, default=float))
-    lines = [f'{s}: {v["complete"]}/{v["sessions"]} complete, median '
-             f'{1000 * v["median_final_m"]:.2f} mm, worst {1000 * v["worst_final_m"]:.2f} mm '
-             f'after {params.n_poses} poses' for s, v in result['summary'].items()]
+    lines = [
+        f'{s}: {v["complete"]}/{v["sessions"]} complete, median '
+        f'{1000 * v["median_final_m"]:.2f} mm, worst {1000 * v["worst_final_m"]:.2f} mm '
+        f'after {params.n_poses} poses'
+        for s, v in result['summary'].items()
+    ]
     return '\n'.join(lines)

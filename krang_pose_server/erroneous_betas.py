@@ -10,6 +10,7 @@ Two recipes, both vectorised (a whole batch is drawn at once, the rejects are re
   v := v (1 + U(-f, f)) with f = 0.2 for those entries (m*z untouched), optionally with the same
   minimum-error rejection.
 """
+
 import numpy as np
 
 from krang_model.config import load_config
@@ -30,12 +31,15 @@ def _rejection_sample(draw, n, first_phi, min_xcom, rng, max_rounds=1000):
         got += len(out[-1])
         if got == n:
             return np.concatenate(out)
-    raise RuntimeError(f'erroneous betas: only {got} of {n} drawn with |x_com| > {min_xcom} m; '
-                       'is the first pose degenerate?')
+    raise RuntimeError(
+        f'erroneous betas: only {got} of {n} drawn with |x_com| > {min_xcom} m; '
+        'is the first pose degenerate?'
+    )
 
 
-def authors_betas(beta, n, rng, first_phi=None, min_xcom=None, max_deviation=None,
-                  max_offset=None):
+def authors_betas(
+    beta, n, rng, first_phi=None, min_xcom=None, max_deviation=None, max_offset=None
+):
     """(n, len(beta)) erroneous betas by the authors' recipe around `beta` (the "real" one).
 
     first_phi: phi of the first pool pose (normalised by the nominal mass); min_xcom in m.
@@ -52,8 +56,9 @@ def authors_betas(beta, n, rng, first_phi=None, min_xcom=None, max_deviation=Non
     def draw(k):
         b = np.repeat(beta[None, :], k, axis=0)
         v = beta[moment]
-        b[:, moment] = (v + rng.uniform(-dev, dev, (k, v.size)) * v
-                        + rng.uniform(-off, off, (k, v.size)))
+        b[:, moment] = (
+            v + rng.uniform(-dev, dev, (k, v.size)) * v + rng.uniform(-off, off, (k, v.size))
+        )
         return b
 
     return _rejection_sample(draw, n, first_phi, min_xcom, rng)

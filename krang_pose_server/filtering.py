@@ -45,6 +45,7 @@ Sigma = A^-1 as D-optimal), so the stop rule measures the learner the poses are 
 `filter_straightforward` recomputes everything each iteration, literally as written in Algorithm 1;
 it exists for the tests and the benchmark only.
 """
+
 import time
 from dataclasses import dataclass
 
@@ -62,23 +63,24 @@ def filter_config():
 
 @dataclass
 class FilterResult:
-    selected: np.ndarray     # pool indices, in the order chosen
-    max_error: np.ndarray    # per step: max_k |phi*^T beta_k| before the update (m)
-    mean_error: np.ndarray   # per step: mean_k |phi*^T beta_k| before the update (m)
-    converged: bool          # the stop rule fired (else the pool or max_poses ran out)
+    selected: np.ndarray  # pool indices, in the order chosen
+    max_error: np.ndarray  # per step: max_k |phi*^T beta_k| before the update (m)
+    mean_error: np.ndarray  # per step: mean_k |phi*^T beta_k| before the update (m)
+    converged: bool  # the stop rule fired (else the pool or max_poses ran out)
     seconds: float
     criterion: str
     learner: str
-    betas: np.ndarray        # (n_betas, n_beta) after the last update
-    evaluations: int = 0     # exact row evaluations (fast paper-l1 / squared)
+    betas: np.ndarray  # (n_betas, n_beta) after the last update
+    evaluations: int = 0  # exact row evaluations (fast paper-l1 / squared)
 
 
 class _Setup:
     """Argument checking and defaults shared by the fast and the straightforward
     implementations."""
 
-    def __init__(self, phi, betas, criterion, eta, x_tol, window, max_poses, learner, prior_cov,
-                 noise_var):
+    def __init__(
+        self, phi, betas, criterion, eta, x_tol, window, max_poses, learner, prior_cov, noise_var
+    ):
         cfg = filter_config()
         self.criterion = criterion or cfg['criterion']
         if self.criterion not in CRITERIA:
@@ -92,7 +94,7 @@ class _Setup:
         betas = np.atleast_2d(np.asarray(betas, dtype=float))
         if betas.shape[1] != self.phi.shape[1]:
             raise ValueError(f'betas have {betas.shape[1]} entries, phi has {self.phi.shape[1]}')
-        self.B = np.ascontiguousarray(betas.T)                      # (n_beta, n_betas)
+        self.B = np.ascontiguousarray(betas.T)  # (n_beta, n_betas)
         self.eta = float(cfg['eta'] if eta is None else eta)
         self.x_tol = float(cfg['x_tol_m'] if x_tol is None else x_tol)
         self.window = int(cfg['window'] if window is None else window)
@@ -135,8 +137,19 @@ def _pick_last(scores, idx):
     return int(idx[scores == best].max()), best
 
 
-def filter_poses(phi, betas, criterion=None, eta=None, x_tol=None, window=None, max_poses=None,
-                 learner=None, prior_cov=None, noise_var=None, progress=None):
+def filter_poses(
+    phi,
+    betas,
+    criterion=None,
+    eta=None,
+    x_tol=None,
+    window=None,
+    max_poses=None,
+    learner=None,
+    prior_cov=None,
+    noise_var=None,
+    progress=None,
+):
     """Select poses from the pool rows of `phi` (n_poses, n_beta) for the hypotheses `betas`
     (n_betas, n_beta). Returns a FilterResult; `progress()` is called once per selected pose."""
     t0 = time.perf_counter()
@@ -155,7 +168,7 @@ def filter_poses(phi, betas, criterion=None, eta=None, x_tol=None, window=None, 
         q = np.einsum('ij,ij->i', E, E)
         del E
         C = B @ B.T
-        tri = np.zeros(n)          # L1 triangle slack since the last exact evaluation
+        tri = np.zeros(n)  # L1 triangle slack since the last exact evaluation
         q_scale = float(q.max()) if n else 1.0
     else:
         v = np.einsum('ij,jk,ik->i', P, s.sigma, P)
@@ -200,9 +213,17 @@ def filter_poses(phi, betas, criterion=None, eta=None, x_tol=None, window=None, 
         if _stop(max_err, s.x_tol, s.window):
             converged = True
             break
-    return FilterResult(np.array(selected, dtype=int), np.array(max_err), np.array(mean_err),
-                        converged,
-                        time.perf_counter() - t0, s.criterion, s.learner, B.T.copy(), evaluations)
+    return FilterResult(
+        np.array(selected, dtype=int),
+        np.array(max_err),
+        np.array(mean_err),
+        converged,
+        time.perf_counter() - t0,
+        s.criterion,
+        s.learner,
+        B.T.copy(),
+        evaluations,
+    )
 
 
 def _lazy_argmax(P, B, ub, score, q, tri, criterion, first=16):
@@ -239,9 +260,19 @@ def _lazy_argmax(P, B, ub, score, q, tri, criterion, first=16):
     return best_i, evals
 
 
-def filter_straightforward(phi, betas, criterion=None, eta=None, x_tol=None, window=None,
-                           max_poses=None,
-                           learner=None, prior_cov=None, noise_var=None, progress=None):
+def filter_straightforward(
+    phi,
+    betas,
+    criterion=None,
+    eta=None,
+    x_tol=None,
+    window=None,
+    max_poses=None,
+    learner=None,
+    prior_cov=None,
+    noise_var=None,
+    progress=None,
+):
     """Reference implementation (tests and benchmark only): Algorithm 1 as written, recomputing
     Phi^T beta_k for all remaining poses and removing the chosen pose from Phi every iteration."""
     t0 = time.perf_counter()
@@ -260,7 +291,7 @@ def filter_straightforward(phi, betas, criterion=None, eta=None, x_tol=None, win
             scores = (E * E).sum(1)
         else:
             scores = np.einsum('ij,jk,ik->i', Phi, s.sigma, Phi) / r
-        j = int(np.flatnonzero(scores == scores.max()).max())      # ties -> last, as `>=`
+        j = int(np.flatnonzero(scores == scores.max()).max())  # ties -> last, as `>=`
         i = int(index[j])
         phi_star = Phi[j]
         e = phi_star @ B
@@ -278,6 +309,13 @@ def filter_straightforward(phi, betas, criterion=None, eta=None, x_tol=None, win
         if _stop(max_err, s.x_tol, s.window):
             converged = True
             break
-    return FilterResult(np.array(selected, dtype=int), np.array(max_err), np.array(mean_err),
-                        converged,
-                        time.perf_counter() - t0, s.criterion, s.learner, B.T.copy())
+    return FilterResult(
+        np.array(selected, dtype=int),
+        np.array(max_err),
+        np.array(mean_err),
+        converged,
+        time.perf_counter() - t0,
+        s.criterion,
+        s.learner,
+        B.T.copy(),
+    )

@@ -14,6 +14,7 @@ Sampling is vectorised: joints are drawn in batches, the balance pitch and the f
 evaluated for the whole batch with numpy, and only the surviving candidates go through pinocchio's
 collision check (coal), one configuration at a time.
 """
+
 import time
 from dataclasses import dataclass, field
 
@@ -33,11 +34,11 @@ def pool_config():
 
 @dataclass
 class PoolResult:
-    q_base: np.ndarray       # (N,)
-    joints: np.ndarray       # (N, 16) pose order
-    tries: int               # joint samples drawn
+    q_base: np.ndarray  # (N,)
+    joints: np.ndarray  # (N, 16) pose order
+    tries: int  # joint samples drawn
     seconds: float
-    rejected: dict = field(default_factory=dict)   # reason -> count
+    rejected: dict = field(default_factory=dict)  # reason -> count
 
 
 class CollisionChecker:
@@ -58,8 +59,11 @@ class CollisionChecker:
             for g in gm.geometryObjects:
                 g.geometry = _inflate(g.geometry, margin)
         self.robot_geoms = [g.name for g in gm.geometryObjects]
-        self.wheel_geoms = {i for i, g in enumerate(gm.geometryObjects)
-                            if model.frames[g.parentFrame].name in self.robot.wheels}
+        self.wheel_geoms = {
+            i
+            for i, g in enumerate(gm.geometryObjects)
+            if model.frames[g.parentFrame].name in self.robot.wheels
+        }
         gm.addAllCollisionPairs()
         # Pairs that always touch: joint-adjacent links, and anything touching at the neutral pose.
         q0 = pin.neutral(model)
@@ -69,9 +73,11 @@ class CollisionChecker:
         for k in reversed(range(len(gm.collisionPairs))):
             cp = gm.collisionPairs[k]
             a, b = gm.geometryObjects[cp.first], gm.geometryObjects[cp.second]
-            adjacent = (model.parents[a.parentJoint] == b.parentJoint
-                        or model.parents[b.parentJoint] == a.parentJoint
-                        or a.parentJoint == b.parentJoint)
+            adjacent = (
+                model.parents[a.parentJoint] == b.parentJoint
+                or model.parents[b.parentJoint] == a.parentJoint
+                or a.parentJoint == b.parentJoint
+            )
             if adjacent or gd.collisionResults[k].isCollision():
                 self.excluded_pairs.append((a.name, b.name))
                 gm.removeCollisionPair(cp)
@@ -82,8 +88,9 @@ class CollisionChecker:
             # Halfspace {x : n.x <= d}: the solid below the plane z = -r (frame 0), margin grows it
             # upwards.
             floor = coal.Halfspace(np.array([0.0, 0.0, 1.0]), -self.robot.wheel_radius + margin)
-            self.floor_id = gm.addGeometryObject(pin.GeometryObject('floor', 0, 0,
-                                                                    pin.SE3.Identity(), floor))
+            self.floor_id = gm.addGeometryObject(
+                pin.GeometryObject('floor', 0, 0, pin.SE3.Identity(), floor)
+            )
             for i in range(len(self.robot_geoms)):
                 if i not in self.wheel_geoms:
                     gm.addCollisionPair(pin.CollisionPair(i, self.floor_id))
@@ -102,20 +109,25 @@ class CollisionChecker:
         """True when the pose (base pitch, 16 joints) collides with neither itself nor the
         floor."""
         self._set(q_base, joints)
-        return not pin.computeCollisions(self.robot.model, self.data, self.geom_model,
-                                         self.geom_data,
-                                         self._q, True)
+        return not pin.computeCollisions(
+            self.robot.model, self.data, self.geom_model, self.geom_data, self._q, True
+        )
 
     def colliding_pairs(self, q_base, joints):
         """Names of every colliding pair (for diagnostics and tests)."""
         self._set(q_base, joints)
-        pin.computeCollisions(self.robot.model, self.data, self.geom_model, self.geom_data,
-                              self._q, False)
+        pin.computeCollisions(
+            self.robot.model, self.data, self.geom_model, self.geom_data, self._q, False
+        )
         out = []
         for k, cp in enumerate(self.geom_model.collisionPairs):
             if self.geom_data.collisionResults[k].isCollision():
-                out.append((self.geom_model.geometryObjects[cp.first].name,
-                            self.geom_model.geometryObjects[cp.second].name))
+                out.append(
+                    (
+                        self.geom_model.geometryObjects[cp.first].name,
+                        self.geom_model.geometryObjects[cp.second].name,
+                    )
+                )
         return out
 
 
@@ -137,8 +149,10 @@ class PosePool:
         cfg.update(config or {})
         self.config = cfg
         if list(cfg['joint_columns']) != list(KRANG_POSE_COLUMNS):
-            raise ValueError('config/poses.yaml: pool.joint_columns must be the pose order '
-                             f'{KRANG_POSE_COLUMNS}')
+            raise ValueError(
+                'config/poses.yaml: pool.joint_columns must be the pose order '
+                f'{KRANG_POSE_COLUMNS}'
+            )
         self.lower = np.asarray(cfg['sampling_lower'], dtype=float)
         self.upper = np.asarray(cfg['sampling_upper'], dtype=float)
         if np.any(self.lower < self.robot.lower - 1e-12) or np.any(
@@ -146,11 +160,14 @@ class PosePool:
         ):
             raise ValueError('config/poses.yaml: the sampling box leaves the URDF joint limits')
         self.q_base_limits = tuple(float(v) for v in cfg['q_base_limits'])
-        self.real_beta = self.robot.nominal_beta if real_beta is None else np.asarray(real_beta,
-                                                                                      float)
-        self.checker = CollisionChecker(self.robot, margin=float(cfg.get('collision_margin_m',
-                                                                         0.0)),
-                                        check_floor=bool(cfg.get('check_floor', True)))
+        self.real_beta = (
+            self.robot.nominal_beta if real_beta is None else np.asarray(real_beta, float)
+        )
+        self.checker = CollisionChecker(
+            self.robot,
+            margin=float(cfg.get('collision_margin_m', 0.0)),
+            check_floor=bool(cfg.get('check_floor', True)),
+        )
         self.batch_size = int(cfg.get('batch_size', 4096))
 
     def balanced_candidates(self, joints):

@@ -16,6 +16,7 @@ once) plus the settle time of a balanced point, and the chosen pose is the one w
 per second: argmax gain_c / (settle_s + move_s_c). The reference poses are the pool itself (safe,
 balanced poses stand for the poses the robot will use).
 """
+
 from dataclasses import dataclass
 
 import numpy as np
@@ -30,25 +31,36 @@ CRITERIA = ('forward', 'd-optimal')
 
 @dataclass
 class Choice:
-    index: int                  # into the pool
+    index: int  # into the pool
     joints: np.ndarray
     move_s: float
-    gain: float                 # expected reduction (m^2 for 'forward', nats for 'd-optimal')
-    rms_before_m: float         # predicted RMS forward error over the reference poses
-    rms_after_m: float          # ... after learning from this pose ('forward' gain only)
+    gain: float  # expected reduction (m^2 for 'forward', nats for 'd-optimal')
+    rms_before_m: float  # predicted RMS forward error over the reference poses
+    rms_after_m: float  # ... after learning from this pose ('forward' gain only)
 
 
 class AdaptiveSelector:
     """Chooses from a pool of safe, balanced poses (rows of joints, pose order)."""
 
-    def __init__(self, robot, pool_joints, sigma_pitch_rad=np.radians(0.1), criterion='forward',
-                 settle_s=12.0, speed_fraction=0.8, reference_joints=None):
+    def __init__(
+        self,
+        robot,
+        pool_joints,
+        sigma_pitch_rad=np.radians(0.1),
+        criterion='forward',
+        settle_s=12.0,
+        speed_fraction=0.8,
+        reference_joints=None,
+    ):
         if criterion not in CRITERIA:
             raise ValueError(f'criterion must be one of {CRITERIA}, not {criterion!r}')
         self.robot = robot
         self.pool = np.atleast_2d(np.asarray(pool_joints, dtype=float))
-        self.reference = (self.pool if reference_joints is None
-                          else np.atleast_2d(np.asarray(reference_joints, dtype=float)))
+        self.reference = (
+            self.pool
+            if reference_joints is None
+            else np.atleast_2d(np.asarray(reference_joints, dtype=float))
+        )
         self.sigma_pitch = float(sigma_pitch_rad)
         self.criterion = criterion
         self.settle_s = float(settle_s)
@@ -67,8 +79,8 @@ class AdaptiveSelector:
         G = phi_fn(self.robot, q, self.pool)
         z = pitch_sensitivity(self.robot, q, self.pool, beta)
         r = (sigma * z) ** 2
-        SG = cov @ G.T                                      # (n_beta, N)
-        s = np.einsum('ij,ji->i', G, SG)                    # g^T Sigma g
+        SG = cov @ G.T  # (n_beta, N)
+        s = np.einsum('ij,ji->i', G, SG)  # g^T Sigma g
         if self.reference is self.pool:
             R = G
         else:
@@ -78,23 +90,28 @@ class AdaptiveSelector:
             gain = np.mean((R @ SG) ** 2, axis=0) / (s + r)
         else:
             gain = np.log1p(s / r)
-        move = move_times(current_joints, self.pool, self.robot.velocity_limit,
-                          self.speed_fraction)
+        move = move_times(
+            current_joints, self.pool, self.robot.velocity_limit, self.speed_fraction
+        )
         score = gain / (self.settle_s + move)
         if self.used:
             score[list(self.used)] = -np.inf
-        after = np.sqrt(np.maximum(before - gain, 0.0)) if self.criterion == 'forward' else \
-            np.full(len(gain), np.nan)
+        after = (
+            np.sqrt(np.maximum(before - gain, 0.0))
+            if self.criterion == 'forward'
+            else np.full(len(gain), np.nan)
+        )
         return score, gain, move, np.sqrt(before), after
 
     def choose(self, beta, covariance, current_joints, sigma_pitch_rad=None):
         """The next pose (a Choice), marked as used; None when the pool is used up."""
         if len(self.used) >= len(self.pool):
             return None
-        score, gain, move, before, after = self.scores(beta, covariance, current_joints,
-                                                       sigma_pitch_rad)
+        score, gain, move, before, after = self.scores(
+            beta, covariance, current_joints, sigma_pitch_rad
+        )
         i = int(np.argmax(score))
         self.used.add(i)
-        return Choice(i, self.pool[i].copy(), float(move[i]), float(gain[i]), float(before),
-                      float(after[i]))
-
+        return Choice(
+            i, self.pool[i].copy(), float(move[i]), float(gain[i]), float(before), float(after[i])
+        )

@@ -1,4 +1,5 @@
 """The list of excitatory poses the online session walks through, one `next_pose` at a time."""
+
 from dataclasses import dataclass
 
 import numpy as np
@@ -8,9 +9,9 @@ from krang_model.poses import load_poses
 
 @dataclass(frozen=True)
 class PoseTarget:
-    index: int              # 0-based position in the list
+    index: int  # 0-based position in the list
     total: int
-    joints: np.ndarray      # pose order, rad
+    joints: np.ndarray  # pose order, rad
 
     @property
     def remaining(self):
@@ -26,8 +27,9 @@ class PoseSequence:
     def __init__(self, joints, robot):
         joints = np.atleast_2d(np.asarray(joints, dtype=float))
         if joints.shape[1] != len(robot.pose_joints):
-            raise ValueError(f'poses have {joints.shape[1]} joints, {robot.name} has '
-                             f'{len(robot.pose_joints)}')
+            raise ValueError(
+                f'poses have {joints.shape[1]} joints, {robot.name} has {len(robot.pose_joints)}'
+            )
         if not np.all(np.isfinite(joints)):
             raise ValueError('poses contain NaN or inf')
         outside = np.flatnonzero(np.any((joints < robot.lower) | (joints > robot.upper), axis=1))

@@ -8,8 +8,6 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from sensor_msgs.msg import Imu, JointState
 from std_msgs.msg import Float64MultiArray, MultiArrayDimension
 
-# Re-exported only for krang_adrc_controller/node.py, which still spells it messages.BASE_PITCH.
-from .names import BASE_PITCH  # noqa: F401
 
 LEVEL = {
     'ok': DiagnosticStatus.OK,

@@ -9,20 +9,7 @@ from rclpy.qos import (
     qos_profile_sensor_data,
 )
 
-# Re-exported only for krang_adrc_controller/node.py, which still spells names as topics.X.
-from .names import (
-    BALANCED_POSE,
-    BETA,
-    CLOCK,
-    COM,
-    DIAGNOSTICS,
-    GROUND_TRUTH,  # noqa: F401
-    IMU,
-    JOINT_POSITION_CMD,
-    JOINT_STATES,
-    POSE_TARGET,
-    WHEEL_EFFORT_CMD,
-)
+from . import names
 
 DEFAULT = QoSProfile(depth=10)
 SENSOR = qos_profile_sensor_data
@@ -35,15 +22,15 @@ LATCHED = QoSProfile(
 )
 
 QOS = {
-    JOINT_STATES: DEFAULT,
-    IMU: SENSOR,
-    WHEEL_EFFORT_CMD: COMMAND,
-    JOINT_POSITION_CMD: DEFAULT,
-    BALANCED_POSE: KEEP_ALL,
-    BETA: LATCHED,
-    COM: DEFAULT,
-    POSE_TARGET: LATCHED,
-    DIAGNOSTICS: DEFAULT,
-    CLOCK: DEFAULT,
-    GROUND_TRUTH: DEFAULT,
+    names.JOINT_STATES: DEFAULT,
+    names.IMU: SENSOR,
+    names.WHEEL_EFFORT_CMD: COMMAND,
+    names.JOINT_POSITION_CMD: DEFAULT,
+    names.BALANCED_POSE: KEEP_ALL,
+    names.BETA: LATCHED,
+    names.COM: DEFAULT,
+    names.POSE_TARGET: LATCHED,
+    names.DIAGNOSTICS: DEFAULT,
+    names.CLOCK: DEFAULT,
+    names.GROUND_TRUTH: DEFAULT,
 }

@@ -15,13 +15,15 @@ controller at its own rate (500 Hz) and the physics at 1 kHz.
   default the paper's GD, ``paper-gd``): ``update(q_base, joints)``, then ``beta``.
 
 Speed. ``FastKrangSim`` is a ``KrangSim`` whose hot path (joints still, no actuation delay) calls
-``WipDynamics.step`` directly and draws the sensor noise in blocks, and ``control_sample()`` builds the
-controller's sample straight from the state with the noise model of ``KrangSim.sensors`` (pitch,
-gyro-rate quantisation, encoder counts, joint noise; the gyro vector and accelerometer, which the
-controller does not read, are skipped). With zero noise it equals ``sample_from_sensors(sensors())``
-exactly, and stepping equals ``KrangSim.step`` exactly (test_closed_loop.py). While joints move, it
-falls back to ``KrangSim.step`` (which re-reduces the pose every 20 ms).
+``WipDynamics.step`` directly and draws the sensor noise in blocks, and ``control_sample()`` builds
+the controller's sample straight from the state with the noise model of ``KrangSim.sensors``
+(pitch, gyro-rate quantisation, encoder counts, joint noise; the gyro vector and accelerometer,
+which the controller does not read, are skipped). With zero noise it equals
+``sample_from_sensors(sensors())`` exactly, and stepping equals ``KrangSim.step`` exactly
+(test_closed_loop.py). While joints move, it falls back to ``KrangSim.step`` (which re-reduces the
+pose every 20 ms).
 """
+
 from __future__ import annotations
 
 import gc
@@ -31,8 +33,12 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from krang_adrc_controller.controller import (BalanceController, ControlSample, ControllerConfig,
-                                              load_controller_config)
+from krang_adrc_controller.controller import (
+    BalanceController,
+    ControlSample,
+    ControllerConfig,
+    load_controller_config,
+)
 from krang_adrc_controller.metrics import BalancingRun
 from krang_com_estimator.estimators import make_estimator
 from krang_model.com import balance_pitch
@@ -41,13 +47,31 @@ from krang_pose_server.sequence import StraightLineMove
 from .physics import KrangSim, SimConfig
 
 #: The upper-body pose of the paper's Table II runs (first row of balancing_runs/table2/*.csv).
-TABLE2_POSE = np.array([2.75467, 0.0749392, 1.00799, -1.113, -0.000251086, -1.59399, 0.0370958, 1.02202,
-                        -0.0209895, -0.854931, 1.113, 0.000271173, 1.561, -0.0280979, -1.052, 0.0210068])
+TABLE2_POSE = np.array(
+    [
+        2.75467,
+        0.0749392,
+        1.00799,
+        -1.113,
+        -0.000251086,
+        -1.59399,
+        0.0370958,
+        1.02202,
+        -0.0209895,
+        -0.854931,
+        1.113,
+        0.000271173,
+        1.561,
+        -0.0280979,
+        -1.052,
+        0.0210068,
+    ]
+)
 
 MODE_CODES = {'safe_stop': -1, 'sit': 0, 'stand_up': 1, 'balance': 2, 'sit_down': 3}
 
 
-# ----------------------------------------------------------------------------- fast simulated robot
+# ----------------------------------------------------------------------------- fast simulated rob
 
 
 class FastKrangSim(KrangSim):
@@ -65,8 +89,13 @@ class FastKrangSim(KrangSim):
         self._half = 0.5 * self.drive.track_width / self.drive.wheel_radius
         self._kt = self.drive.torque_constant * self.drive.gear_ratio  # the true Kt (SimEffects)
         self._jbase = self.joints + self._enc_offset
-        self._noise = (n.imu_pitch_std_rad, n.gyro_std_rad_s, n.gyro_lsb_rad_s, n.encoder_counts_per_rad,
-                       n.joint_std_rad)
+        self._noise = (
+            n.imu_pitch_std_rad,
+            n.gyro_std_rad_s,
+            n.gyro_lsb_rad_s,
+            n.encoder_counts_per_rad,
+            n.joint_std_rad,
+        )
 
     def command_joints(self, targets):
         super().command_joints(targets)
@@ -79,7 +108,8 @@ class FastKrangSim(KrangSim):
         self._nrow = 0
 
     def step(self, n=1):
-        """Same as KrangSim.step; fast when the joints are still and there is no actuation delay."""
+        """Same as KrangSim.step; fast when the joints are still and there is no actuation
+        delay."""
         if self._moving or self.config.effects.actuation_delay_s > 0.0 or self._delay:
             for _ in range(n):
                 super().step(1)
@@ -104,7 +134,11 @@ class FastKrangSim(KrangSim):
             state = dyn.step(prev, tl, tr, dt)
             self.t += dt
         self.state = state
-        self._accel = ((state[2] - prev[2]) / dt, (state[3] - prev[3]) / dt, (state[5] - prev[5]) / dt)
+        self._accel = (
+            (state[2] - prev[2]) / dt,
+            (state[3] - prev[3]) / dt,
+            (state[5] - prev[5]) / dt,
+        )
 
     def control_sample(self) -> ControlSample:
         """The controller's sample now, with the sensor noise model of KrangSim.sensors()."""
@@ -127,7 +161,8 @@ class FastKrangSim(KrangSim):
             dph - dqb - half * dpsi,
             dph - dqb + half * dpsi,
             self._jbase + self._jnoise[k],
-            self._moving)
+            self._moving,
+        )
 
 
 # ----------------------------------------------------------------------------- wrong betas
@@ -155,6 +190,7 @@ class Disturbance:
     """An event at time t (s): 'kick' adds `value` rad/s to the body's pitch rate (a push);
     'current' adds `value` A to both wheel currents for `duration` s; 'joints' commands the pose
     `value`; 'dropout' freezes the sensor samples from t on (stale data)."""
+
     t: float
     kind: str
     value: object = 0.0
@@ -162,16 +198,29 @@ class Disturbance:
 
 
 class ClosedLoop:
-    """One simulated Krang (hidden `true_beta`) under a BalanceController (estimated `beta_est`)."""
+    """One simulated Krang (hidden `true_beta`) under a BalanceController (estimated
+    `beta_est`)."""
 
-    def __init__(self, robot, true_beta, beta_est, joints, *, q_base=None,
-                 controller_config: ControllerConfig | None = None, sim_config: SimConfig | None = None,
-                 seed: int = 0, log_rate_hz: float = 30.0):
+    def __init__(
+        self,
+        robot,
+        true_beta,
+        beta_est,
+        joints,
+        *,
+        q_base=None,
+        controller_config: ControllerConfig | None = None,
+        sim_config: SimConfig | None = None,
+        seed: int = 0,
+        log_rate_hz: float = 30.0,
+    ):
         sim_config = sim_config or SimConfig()
         sim_config = replace(sim_config, seed=seed)
         self.robot = robot
         self.sim = FastKrangSim(robot, true_beta, joints, q_base=q_base, config=sim_config)
-        self.controller = BalanceController(robot, beta_est, controller_config or load_controller_config())
+        self.controller = BalanceController(
+            robot, beta_est, controller_config or load_controller_config()
+        )
         self.h = self.controller.h
         ratio = self.h / sim_config.dt
         self.n_sub = int(round(ratio))
@@ -179,15 +228,32 @@ class ClosedLoop:
             raise ValueError('the controller period must be a multiple of the physics step')
         self.log_period = 1.0 / log_rate_hz if log_rate_hz else 0.0
         self._next_log = 0.0
-        self.log = {k: [] for k in ('t', 'i_left', 'i_right', 'x_wheel_rad', 'dx_wheel_rad_s', 'theta_rad',
-                                    'dtheta_rad_s', 'psi_wheel_rad', 'dpsi_wheel_rad_s', 'q_base_rad',
-                                    'q_base_true', 'x_true_m', 'balance_pitch_true', 'mode', 'f_hat_x',
-                                    'f_hat_theta')}
+        self.log = {
+            k: []
+            for k in (
+                't',
+                'i_left',
+                'i_right',
+                'x_wheel_rad',
+                'dx_wheel_rad_s',
+                'theta_rad',
+                'dtheta_rad_s',
+                'psi_wheel_rad',
+                'dpsi_wheel_rad_s',
+                'q_base_rad',
+                'q_base_true',
+                'x_true_m',
+                'balance_pitch_true',
+                'mode',
+                'f_hat_x',
+                'f_hat_theta',
+            )
+        }
         self.events: list[tuple[float, str]] = []
         self.points = []
         self.disturbances: list[Disturbance] = []
         self._frozen = None
-        self._extra_current = (0.0, 0.0, -1.0)    # (left, right, until)
+        self._extra_current = (0.0, 0.0, -1.0)  # (left, right, until)
         self.last_output = None
         self.control_steps = 0
 
@@ -213,7 +279,8 @@ class ClosedLoop:
 
     def run(self, seconds: float, until=None) -> bool:
         """Advance `seconds`; stop early (returning True) when `until(output)` is true. The cyclic
-        garbage collector is paused meanwhile (the loop makes no reference cycles; ~20 % faster)."""
+        garbage collector is paused meanwhile (the loop makes no reference cycles; ~20 % faster).
+        """
         enabled = gc.isenabled()
         gc.disable()
         try:
@@ -257,7 +324,9 @@ class ClosedLoop:
                 log['theta_rad'].append(out.theta)
                 log['dtheta_rad_s'].append(out.dtheta)
                 log['psi_wheel_rad'].append(out.psi)
-                log['dpsi_wheel_rad_s'].append(0.5 * (sample.wheel_right_rate - sample.wheel_left_rate))
+                log['dpsi_wheel_rad_s'].append(
+                    0.5 * (sample.wheel_right_rate - sample.wheel_left_rate)
+                )
                 log['q_base_rad'].append(sample.q_base)
                 log['q_base_true'].append(st[1])
                 log['x_true_m'].append(sim.drive.wheel_radius * st[0])
@@ -273,15 +342,34 @@ class ClosedLoop:
 
     def balancing_run(self, name='', source='sim') -> BalancingRun:
         lg = {k: np.asarray(v, float) for k, v in self.log.items()}
-        extra = {k: lg[k] for k in ('q_base_true', 'x_true_m', 'balance_pitch_true', 'mode', 'f_hat_x',
-                                    'f_hat_theta')}
+        extra = {
+            k: lg[k]
+            for k in (
+                'q_base_true',
+                'x_true_m',
+                'balance_pitch_true',
+                'mode',
+                'f_hat_x',
+                'f_hat_theta',
+            )
+        }
         extra['events'] = list(self.events)
         extra['points'] = list(self.points)
-        return BalancingRun(t=lg['t'], i_left=lg['i_left'], i_right=lg['i_right'],
-                            x_wheel_rad=lg['x_wheel_rad'], dx_wheel_rad_s=lg['dx_wheel_rad_s'],
-                            theta_rad=lg['theta_rad'], dtheta_rad_s=lg['dtheta_rad_s'],
-                            psi_wheel_rad=lg['psi_wheel_rad'], dpsi_wheel_rad_s=lg['dpsi_wheel_rad_s'],
-                            q_base_rad=lg['q_base_rad'], name=name, source=source, extra=extra)
+        return BalancingRun(
+            t=lg['t'],
+            i_left=lg['i_left'],
+            i_right=lg['i_right'],
+            x_wheel_rad=lg['x_wheel_rad'],
+            dx_wheel_rad_s=lg['dx_wheel_rad_s'],
+            theta_rad=lg['theta_rad'],
+            dtheta_rad_s=lg['dtheta_rad_s'],
+            psi_wheel_rad=lg['psi_wheel_rad'],
+            dpsi_wheel_rad_s=lg['dpsi_wheel_rad_s'],
+            q_base_rad=lg['q_base_rad'],
+            name=name,
+            source=source,
+            extra=extra,
+        )
 
 
 def _mode_times(events):
@@ -294,18 +382,37 @@ def _mode_times(events):
     return out
 
 
-def run_balance(robot, true_beta, beta_est, *, joints=TABLE2_POSE, seconds: float = 60.0,
-                enable_at_s: float = 1.0, seed: int = 0,
-                controller_config: ControllerConfig | None = None, sim_config: SimConfig | None = None,
-                disturbances=(), log_rate_hz: float = 30.0, name: str = '') -> BalancingRun:
-    """Sit on the caster, enable at `enable_at_s` (the controller then stands up when its stand guard
-    allows) and balance until `seconds`. Returns a BalancingRun logged at `log_rate_hz`; ``extra``
-    holds the truth (q_base_true, x_true_m, balance_pitch_true), modes, observer outputs, events,
-    detector points, 'stood_up' (off the caster and upright for the last 2 s), 'reached_balance_mode',
-    'mode_times', 'true_balance_pitch', 'theta_error_rad', 'expected_rest_offset_m',
-    'theta_on_caster_model_rad', 'first_stand_current_a' and timings."""
-    loop = ClosedLoop(robot, true_beta, beta_est, joints, controller_config=controller_config,
-                      sim_config=sim_config, seed=seed, log_rate_hz=log_rate_hz)
+def run_balance(
+    robot,
+    true_beta,
+    beta_est,
+    *,
+    joints=TABLE2_POSE,
+    seconds: float = 60.0,
+    enable_at_s: float = 1.0,
+    seed: int = 0,
+    controller_config: ControllerConfig | None = None,
+    sim_config: SimConfig | None = None,
+    disturbances=(),
+    log_rate_hz: float = 30.0,
+    name: str = '',
+) -> BalancingRun:
+    """Sit on the caster, enable at `enable_at_s` (the controller then stands up when its stand
+    guard allows) and balance until `seconds`. Returns a BalancingRun logged at `log_rate_hz`;
+    ``extra`` holds the truth (q_base_true, x_true_m, balance_pitch_true), modes, observer outputs,
+    events, detector points, 'stood_up' (off the caster and upright for the last 2 s),
+    'reached_balance_mode', 'mode_times', 'true_balance_pitch', 'theta_error_rad',
+    'expected_rest_offset_m', 'theta_on_caster_model_rad', 'first_stand_current_a' and timings."""
+    loop = ClosedLoop(
+        robot,
+        true_beta,
+        beta_est,
+        joints,
+        controller_config=controller_config,
+        sim_config=sim_config,
+        seed=seed,
+        log_rate_hz=log_rate_hz,
+    )
     loop.schedule(*disturbances)
     wall = time.perf_counter()
     loop.run(enable_at_s)
@@ -315,50 +422,76 @@ def run_balance(robot, true_beta, beta_est, *, joints=TABLE2_POSE, seconds: floa
     run = loop.balancing_run(name=name)
     times = _mode_times(loop.events)
     ctl = loop.controller
-    # stood up = off the caster and upright (within 0.1 rad of the true balance pitch) over the last 2 s,
-    # under STAND_UP or BALANCE control (a controller may balance in its stand-up mode, as in 2018)
+    # stood up = off the caster and upright (within 0.1 rad of the true balance pitch) over the
+    # last 2 s, under STAND_UP or BALANCE control (a controller may balance in its stand-up mode,
+    # as in 2018)
     last = run.t >= run.t[-1] - 2.0
-    upright = bool(np.all(np.abs(run.extra['q_base_true'][last] - run.extra['balance_pitch_true'][last]) < 0.1))
+    upright = bool(
+        np.all(
+            np.abs(run.extra['q_base_true'][last] - run.extra['balance_pitch_true'][last]) < 0.1
+        )
+    )
     stood = upright and ctl.mode.value in ('stand_up', 'balance') and 'stand_up' in times
-    i_first = next((float(i) for i, m in zip(run.i_left, run.extra['mode']) if m == MODE_CODES['stand_up']), math.nan)
-    run.extra.update(stood_up=stood, reached_balance_mode='balance' in times, mode_times=times,
-                     final_mode=ctl.mode.value, first_stand_current_a=i_first,
-                     theta_on_caster_model_rad=loop.sim.drive.caster_pitch + ctl.com_offset,
-                     true_balance_pitch=loop.sim.balance_pitch(),
-                     theta_error_rad=ctl.com_offset + loop.sim.balance_pitch(),
-                     expected_rest_offset_m=(ctl.expected_rest_offset() * (ctl.com_offset + loop.sim.balance_pitch())
-                                             if ctl.design else math.nan),
-                     wall_s=wall, sim_s=seconds, control_steps=loop.control_steps, seed=seed)
+    i_first = next(
+        (float(i) for i, m in zip(run.i_left, run.extra['mode']) if m == MODE_CODES['stand_up']),
+        math.nan,
+    )
+    run.extra.update(
+        stood_up=stood,
+        reached_balance_mode='balance' in times,
+        mode_times=times,
+        final_mode=ctl.mode.value,
+        first_stand_current_a=i_first,
+        theta_on_caster_model_rad=loop.sim.drive.caster_pitch + ctl.com_offset,
+        true_balance_pitch=loop.sim.balance_pitch(),
+        theta_error_rad=ctl.com_offset + loop.sim.balance_pitch(),
+        expected_rest_offset_m=(
+            ctl.expected_rest_offset() * (ctl.com_offset + loop.sim.balance_pitch())
+            if ctl.design
+            else math.nan
+        ),
+        wall_s=wall,
+        sim_s=seconds,
+        control_steps=loop.control_steps,
+        seed=seed,
+    )
     run.extra['loop'] = loop
     return run
 
 
 @dataclass
 class SessionResult:
-    betas: np.ndarray                   # (k + 1, n_beta): beta_0 and after each update
-    points: list                        # BalancedPoint per learned pose
-    pose_indices: list                  # index into `poses` of each point
-    timings: list                       # per pose: dict(move_s, settle_s, total_s, ok)
-    true_pitch: list                    # true balance pitch of each learned pose
+    betas: np.ndarray  # (k + 1, n_beta): beta_0 and after each update
+    points: list  # BalancedPoint per learned pose
+    pose_indices: list  # index into `poses` of each point
+    timings: list  # per pose: dict(move_s, settle_s, total_s, ok)
+    true_pitch: list  # true balance pitch of each learned pose
     stood_up_s: float
     sim_s: float
     wall_s: float
     failures: list = field(default_factory=list)
     loop: object = None
-    poses: np.ndarray = None            # the commanded poses (the chooser's picks, if adaptive)
+    poses: np.ndarray = None  # the commanded poses (the chooser's picks, if adaptive)
 
     @property
     def beta(self):
         return self.betas[-1]
 
 
-def stand_pose(robot, beta_est, base=TABLE2_POSE, target_theta_rad=-6.0 * math.pi / 180.0,
-               caster_pitch=None, waist_range=(1.5, 2.88)):
+def stand_pose(
+    robot,
+    beta_est,
+    base=TABLE2_POSE,
+    target_theta_rad=-6.0 * math.pi / 180.0,
+    caster_pitch=None,
+    waist_range=(1.5, 2.88),
+):
     """`base` with the waist set so that, sitting on the caster, the CoM angle the ESTIMATED beta
-    predicts is `target_theta_rad` (the middle of the stand window): a pose the controller agrees to
-    stand up in. Uses only the estimate (as an operator would). Bisection; theta on the caster
+    predicts is `target_theta_rad` (the middle of the stand window): a pose the controller agrees
+    to stand up in. Uses only the estimate (as an operator would). Bisection; theta on the caster
     decreases as the waist opens."""
     from krang_model.drivetrain import drivetrain
+
     caster = drivetrain(robot).caster_pitch if caster_pitch is None else caster_pitch
     base = np.array(base, dtype=float)
 
@@ -382,39 +515,57 @@ def stand_pose(robot, beta_est, base=TABLE2_POSE, target_theta_rad=-6.0 * math.p
 
 
 def _stream_move(loop, goal, speed_fraction, rate_hz):
-    """Schedule the pose server's move to `goal` (krang_pose_server.sequence.StraightLineMove: every
-    joint arrives at once, at `speed_fraction` of the joint speed limits), streamed as joint targets
-    at `rate_hz` as the node streams /joint_position_cmd. rate_hz=0: the goal at once (each joint
-    then dashes at its own top speed)."""
+    """Schedule the pose server's move to `goal` (krang_pose_server.sequence.StraightLineMove:
+    every joint arrives at once, at `speed_fraction` of the joint speed limits), streamed as joint
+    targets at `rate_hz` as the node streams /joint_position_cmd. rate_hz=0: the goal at once (each
+    joint then dashes at its own top speed)."""
     sim = loop.sim
     if not rate_hz:
         sim.command_joints(goal)
         return 0.0
-    move = StraightLineMove.plan(sim.joint_targets, goal, loop.robot.velocity_limit,
-                                 speed_fraction)
+    move = StraightLineMove.plan(
+        sim.joint_targets, goal, loop.robot.velocity_limit, speed_fraction
+    )
     ts = np.arange(0.0, move.duration, 1.0 / rate_hz)
-    loop.schedule(*(Disturbance(sim.t + t, 'joints', move.at(t)) for t in ts),
-                  Disturbance(sim.t + move.duration, 'joints', move.goal))
+    loop.schedule(
+        *(Disturbance(sim.t + t, 'joints', move.at(t)) for t in ts),
+        Disturbance(sim.t + move.duration, 'joints', move.goal),
+    )
     return move.duration
 
 
-def run_online_session(robot, true_beta, beta0, poses, learner=None, *, start_pose=None,
-                       seed: int = 0, controller_config: ControllerConfig | None = None,
-                       sim_config: SimConfig | None = None, pose_timeout_s: float = 90.0,
-                       stand_timeout_s: float = 30.0, progress: bool = True,
-                       log_rate_hz: float = 0.0, speed_fraction: float = 0.8,
-                       stream_rate_hz: float = 20.0, n_poses: int | None = None) -> SessionResult:
-    """Stand up in `start_pose` (default: ``stand_pose(robot, beta0)``, the Table II pose with the waist
-    set so that beta0 agrees to stand up), then for each pose (rows of joints, pose order): command it, balance
-    while the joints move, wait for the detector's point, ``learner.update(q_base, joints)``,
-    ``controller.set_beta(learner.beta)``. `learner`: an estimator of the registry, by default
-    ``make_estimator('paper-gd', robot, beta0)``. A pose without a point within `pose_timeout_s`
-    is skipped (listed in failures); if the robot leaves BALANCE the session ends there.
+def run_online_session(
+    robot,
+    true_beta,
+    beta0,
+    poses,
+    learner=None,
+    *,
+    start_pose=None,
+    seed: int = 0,
+    controller_config: ControllerConfig | None = None,
+    sim_config: SimConfig | None = None,
+    pose_timeout_s: float = 90.0,
+    stand_timeout_s: float = 30.0,
+    progress: bool = True,
+    log_rate_hz: float = 0.0,
+    speed_fraction: float = 0.8,
+    stream_rate_hz: float = 20.0,
+    n_poses: int | None = None,
+) -> SessionResult:
+    """Stand up in `start_pose` (default: ``stand_pose(robot, beta0)``, the Table II pose with the
+    waist set so that beta0 agrees to stand up), then for each pose (rows of joints, pose order):
+    command it, balance while the joints move, wait for the detector's point,
+    ``learner.update(q_base, joints)``, ``controller.set_beta(learner.beta)``. `learner`: an
+    estimator of the registry, by default ``make_estimator('paper-gd', robot, beta0)``. A pose
+    without a point within `pose_timeout_s` is skipped (listed in failures); if the robot leaves
+    BALANCE the session ends there.
 
-    `poses` is a fixed list, or a chooser with ``choose(beta, covariance, current_joints)`` returning
-    an object with ``joints`` (krang_pose_server.selection.AdaptiveSelector), asked before each of
-    `n_poses` moves with the learner's current posterior. Each move is the pose server's streamed
-    straight line (`speed_fraction` of the joint speed limits, targets at `stream_rate_hz`)."""
+    `poses` is a fixed list, or a chooser with ``choose(beta, covariance, current_joints)``
+    returning an object with ``joints`` (krang_pose_server.selection.AdaptiveSelector), asked
+    before each of `n_poses` moves with the learner's current posterior. Each move is the pose
+    server's streamed straight line (`speed_fraction` of the joint speed limits, targets at
+    `stream_rate_hz`)."""
     adaptive = not isinstance(poses, (np.ndarray, list, tuple))
     if adaptive:
         chooser, poses = poses, [None] * int(n_poses)
@@ -423,8 +574,16 @@ def run_online_session(robot, true_beta, beta0, poses, learner=None, *, start_po
     learner = learner if learner is not None else make_estimator('paper-gd', robot, beta0)
     if start_pose is None:
         start_pose = stand_pose(robot, learner.beta)
-    loop = ClosedLoop(robot, true_beta, beta0, start_pose, controller_config=controller_config,
-                      sim_config=sim_config, seed=seed, log_rate_hz=log_rate_hz)
+    loop = ClosedLoop(
+        robot,
+        true_beta,
+        beta0,
+        start_pose,
+        controller_config=controller_config,
+        sim_config=sim_config,
+        seed=seed,
+        log_rate_hz=log_rate_hz,
+    )
     ctl = loop.controller
     if np.any(np.asarray(learner.beta) != np.asarray(beta0)):
         ctl.set_beta(learner.beta)
@@ -433,14 +592,17 @@ def run_online_session(robot, true_beta, beta0, poses, learner=None, *, start_po
     ctl.set_enabled(True)
     ok = loop.run(stand_timeout_s, until=lambda o: o.mode == 'balance')
     if not ok:
-        raise RuntimeError(f'online session: the robot did not stand up within {stand_timeout_s} s '
-                           f'(mode {ctl.mode.value}; events {loop.events[-3:]})')
+        raise RuntimeError(
+            f'online session: the robot did not stand up within {stand_timeout_s} s '
+            f'(mode {ctl.mode.value}; events {loop.events[-3:]})'
+        )
     stood = loop.sim.t
     betas = [np.array(learner.beta, float)]
     points, idx, timings, true_pitch, failures, chosen = [], [], [], [], [], []
     bar = None
     if progress:
         from tqdm import tqdm
+
         bar = tqdm(total=len(poses), desc='online session', unit='pose', leave=False)
     try:
         for i, pose in enumerate(poses):
@@ -471,7 +633,7 @@ def run_online_session(robot, true_beta, beta0, poses, learner=None, *, start_po
                 continue
             p = out.balanced_point
             true_pitch.append(loop.sim.balance_pitch())
-            if p.q_base_se > 0:      # the detector's standard error, as /balanced_pose carries it
+            if p.q_base_se > 0:  # the detector's standard error, as /balanced_pose carries it
                 learner.update(p.q_base, p.joints, sigma=p.q_base_se)
             else:
                 learner.update(p.q_base, p.joints)
@@ -482,12 +644,25 @@ def run_online_session(robot, true_beta, beta0, poses, learner=None, *, start_po
             idx.append(i)
             t1 = loop.sim.t
             mv = (moved[0] if moved[0] is not None else t1) - t0
-            timings.append({'move_s': mv, 'settle_s': t1 - t0 - mv, 'total_s': t1 - t0, 'ok': True})
+            timings.append(
+                {'move_s': mv, 'settle_s': t1 - t0 - mv, 'total_s': t1 - t0, 'ok': True}
+            )
             if bar is not None:
                 bar.update(1)
     finally:
         if bar is not None:
             bar.close()
     wall = time.perf_counter() - wall
-    return SessionResult(np.array(betas), points, idx, timings, true_pitch, stood, loop.sim.t, wall,
-                         failures, loop, np.array(chosen) if adaptive else poses)
+    return SessionResult(
+        np.array(betas),
+        points,
+        idx,
+        timings,
+        true_pitch,
+        stood,
+        loop.sim.t,
+        wall,
+        failures,
+        loop,
+        np.array(chosen) if adaptive else poses,
+    )

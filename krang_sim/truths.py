@@ -8,6 +8,7 @@ nominal model's forward CoM error against it (krang_model.com.com_error over the
 configurations) lies in error_range_m; the seed then walks on (rejection sampling), so one seed
 gives one truth.
 """
+
 from dataclasses import asdict, dataclass
 
 import numpy as np
@@ -25,28 +26,34 @@ class TruthRecipe:
     mass_fraction: float = 0.08
     com_shift_m: float = 0.03
     error_range_m: tuple = (0.012, 0.025)
-    n_configs: int = 2000       # held-out configurations of the error (the demo's 2000)
+    n_configs: int = 2000  # held-out configurations of the error (the demo's 2000)
     max_draws: int = 10000
 
 
 @dataclass(frozen=True)
 class Truth:
     beta: np.ndarray
-    seed: int                   # the caller's seed
-    draw: int                   # draws rejected before this one
-    forward_error_m: float      # of the start model (beta0) against this truth
+    seed: int  # the caller's seed
+    draw: int  # draws rejected before this one
+    forward_error_m: float  # of the start model (beta0) against this truth
     recipe: TruthRecipe
 
     def describe(self):
-        return (f'generated truth (seed {self.seed}, draw {self.draw}; masses within '
-                f'{100 * self.recipe.mass_fraction:.0f} %, CoMs moved up to '
-                f'{100 * self.recipe.com_shift_m:.1f} cm; forward error '
-                f'{1000 * self.forward_error_m:.1f} mm)')
+        return (
+            f'generated truth (seed {self.seed}, draw {self.draw}; masses within '
+            f'{100 * self.recipe.mass_fraction:.0f} %, CoMs moved up to '
+            f'{100 * self.recipe.com_shift_m:.1f} cm; forward error '
+            f'{1000 * self.forward_error_m:.1f} mm)'
+        )
 
     def meta(self):
         """For the beta file's header (krang_model.beta.save_beta)."""
-        return {'source': self.describe(), 'recipe': asdict(self.recipe), 'seed': self.seed,
-                'forward_error_m': self.forward_error_m}
+        return {
+            'source': self.describe(),
+            'recipe': asdict(self.recipe),
+            'seed': self.seed,
+            'forward_error_m': self.forward_error_m,
+        }
 
 
 def generate_truth(robot, seed, recipe=None, beta0=None):
@@ -58,10 +65,13 @@ def generate_truth(robot, seed, recipe=None, beta0=None):
     lo, hi = recipe.error_range_m
     seeds = np.random.SeedSequence(seed).spawn(recipe.max_draws)
     for draw, s in enumerate(seeds):
-        beta = perturbed_beta(robot, np.random.default_rng(s), recipe.mass_fraction,
-                              recipe.com_shift_m)
+        beta = perturbed_beta(
+            robot, np.random.default_rng(s), recipe.mass_fraction, recipe.com_shift_m
+        )
         err = com_error(robot, beta0, beta, joints)
         if lo <= err <= hi:
             return Truth(beta, int(seed), draw, err, recipe)
-    raise RuntimeError(f'no truth with a forward error in [{lo}, {hi}] m within '
-                       f'{recipe.max_draws} draws of {recipe}')
+    raise RuntimeError(
+        f'no truth with a forward error in [{lo}, {hi}] m within '
+        f'{recipe.max_draws} draws of {recipe}'
+    )

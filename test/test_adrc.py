@@ -1,5 +1,6 @@
 """ADRC law: hand-computed outputs, limits, the LQR switch, and closed loops on an analytic WIP
 with a wrong CoM (measured theta = true theta + delta)."""
+
 import numpy as np
 import pytest
 from scipy.linalg import expm
@@ -19,10 +20,12 @@ AUTHORS_ESO = EsoConfig(omega_o=0.0)
 
 
 def make(current_limit=100.0, **kw):
-    drive = drivetrain(load_krang(), torque_constant=0.1, gear_ratio=10.0,
-                       current_limit=current_limit)
-    return AdrcController(FX, FTH, BX, BTH, drive, sample_period_s=0.01,
-                          config=AdrcConfig(eso=AUTHORS_ESO, **kw))
+    drive = drivetrain(
+        load_krang(), torque_constant=0.1, gear_ratio=10.0, current_limit=current_limit
+    )
+    return AdrcController(
+        FX, FTH, BX, BTH, drive, sample_period_s=0.01, config=AdrcConfig(eso=AUTHORS_ESO, **kw)
+    )
 
 
 def test_first_step_by_hand():
@@ -70,10 +73,12 @@ def test_compensation_identity_and_lqr_switch():
         u_th = -(FTH[0] * th + FTH[1] * dth)
         assert (cmd.u_x, cmd.u_theta) == (pytest.approx(u_x), pytest.approx(u_th))
         if k < 25:
-            assert cmd.tau_total == pytest.approx(u_x + u_th - cmd.fhat_x / BX - cmd.fhat_theta / BTH)
+            assert cmd.tau_total == pytest.approx(
+                u_x + u_th - cmd.fhat_x / BX - cmd.fhat_theta / BTH
+            )
         else:
-            assert cmd.tau_total == pytest.approx(u_x + u_th)      # plain LQR
-            assert abs(cmd.fhat_x) + abs(cmd.fhat_theta) > 0        # observers still run
+            assert cmd.tau_total == pytest.approx(u_x + u_th)  # plain LQR
+            assert abs(cmd.fhat_x) + abs(cmd.fhat_theta) > 0  # observers still run
         if k == 24:
             c.set_disturbance_rejection(False)
 
@@ -81,7 +86,7 @@ def test_compensation_identity_and_lqr_switch():
 # ---------------------------------------------------------------- closed loops with a wrong CoM
 
 PLANT = dict(M=152.8, l=0.45, Ic=10.0, mw=9.32, Iw=0.27, r=0.25, b=0.2)
-DELTA = 0.05          # CoM-angle error of the model (rad): theta_measured = theta_true + DELTA
+DELTA = 0.05  # CoM-angle error of the model (rad): theta_measured = theta_true + DELTA
 
 
 def closed_loop(h, duration, *, adrc=True, eso_input='nominal', rates=True, **kw):
@@ -90,18 +95,29 @@ def closed_loop(h, duration, *, adrc=True, eso_input='nominal', rates=True, **kw
     f_x, f_th = split_gains(K)
     b_x, b_th = channel_input_gains(B)
     drive = drivetrain(load_krang(), current_limit=1e6)
-    c = AdrcController(f_x, f_th, b_x, b_th, drive, sample_period_s=h,
-                       config=AdrcConfig(use_disturbance_rejection=adrc, eso_input=eso_input,
-                                         eso=AUTHORS_ESO, **kw))
+    c = AdrcController(
+        f_x,
+        f_th,
+        b_x,
+        b_th,
+        drive,
+        sample_period_s=h,
+        config=AdrcConfig(
+            use_disturbance_rejection=adrc, eso_input=eso_input, eso=AUTHORS_ESO, **kw
+        ),
+    )
     m = expm(np.block([[A, B[:, None]], [np.zeros((1, 5))]]) * h)
     ad, bd = m[:4, :4], m[:4, 4]
-    X = np.array([0.0, 0.0, 0.1, 0.0])        # start 0.1 rad off balance
+    X = np.array([0.0, 0.0, 0.1, 0.0])  # start 0.1 rad off balance
     log = []
     for k in range(int(round(duration / h))):
-        cmd = c.update(X[2] + DELTA, X[0], dtheta=X[3] if rates else None,
-                       dx=X[1] if rates else None)
+        cmd = c.update(
+            X[2] + DELTA, X[0], dtheta=X[3] if rates else None, dx=X[1] if rates else None
+        )
         X = ad @ X + bd * cmd.tau_total
-        log.append([(k + 1) * h, *X, cmd.tau_total, cmd.fhat_x, cmd.fhat_theta, cmd.u_x, cmd.u_theta])
+        log.append(
+            [(k + 1) * h, *X, cmd.tau_total, cmd.fhat_x, cmd.fhat_theta, cmd.u_x, cmd.u_theta]
+        )
     return np.array(log), f_x, f_th, b_x, b_th
 
 
@@ -116,7 +132,7 @@ def test_wrong_com_settles_at_the_lqr_equilibrium(h, adrc, rates):
     x, dx, th, dth, tau = log[-1, 1:6]
     assert abs(th) < 1e-6 and abs(dx) < 1e-6 and abs(dth) < 1e-6 and abs(tau) < 1e-4
     assert x == pytest.approx(-f_th[0] * DELTA / f_x[0], rel=1e-4)
-    assert np.max(np.abs(log[:, 3])) < 0.2                      # never near falling
+    assert np.max(np.abs(log[:, 3])) < 0.2  # never near falling
     # each ESO sits where its model predicts no acceleration: f_hat = -b * u_nominal
     fhat_x, fhat_th, u_x, u_th = log[-1, 6:10]
     assert fhat_x == pytest.approx(-b_x * u_x, rel=1e-3)
@@ -129,8 +145,8 @@ def test_applied_input_variant_winds_up():
     log, _, _, b_x, b_th = closed_loop(1 / 30, 60.0, eso_input='applied')
     nominal, *_ = closed_loop(1 / 30, 60.0)
     i30 = int(round(30 * 30)) - 1
-    assert abs(log[-1, 6]) > 1.8 * abs(log[i30, 6])            # ~linear growth
+    assert abs(log[-1, 6]) > 1.8 * abs(log[i30, 6])  # ~linear growth
     assert abs(log[-1, 6]) > 100 * abs(nominal[-1, 6])
     comp_x, comp_th = log[-1, 6] / b_x, log[-1, 7] / b_th
-    assert abs(comp_x + comp_th) < 1e-2 * abs(comp_x)           # they cancel each other
+    assert abs(comp_x + comp_th) < 1e-2 * abs(comp_x)  # they cancel each other
     assert abs(log[-1, 5]) < 1e-3

@@ -1,4 +1,6 @@
-"""The balance-point observer against a linear plant whose balance point it does not know (analytic truth)."""
+"""The balance-point observer against a linear plant whose balance point it does not know (analytic
+truth)."""
+
 import math
 
 import numpy as np
@@ -11,7 +13,8 @@ H = 0.002
 
 
 def plant_step(a, b, delta):
-    """Exact ZOH step of theta'' = a (theta - delta) + b tau over H, as a function of (state, tau)."""
+    """Exact ZOH step of theta'' = a (theta - delta) + b tau over H, as a function of (state,
+    tau)."""
     aug = np.zeros((4, 4))
     aug[0, 1] = 1.0
     aug[1, 0] = a
@@ -21,6 +24,7 @@ def plant_step(a, b, delta):
 
     def step(state, tau):
         return e[:2] @ np.array([state[0], state[1], tau, 1.0])
+
     return step
 
 
@@ -33,10 +37,10 @@ def model(a, b):
 
 @pytest.mark.parametrize('a, delta', [(-9.0, 0.1), (-9.0, -0.2), (25.0, 0.05)])
 def test_estimates_the_balance_point_whatever_the_input(a, delta):
-    """f = -a delta is the whole model error, so delta_hat -> delta under any input: here an open-loop
-    sine on a stable plant (a < 0), and a stabilising PD on the unstable one (a > 0). While theta moves,
-    the known part a theta is held over each period: f_hat is off by about a theta' H / 2, delta_hat by
-    theta' H / 2 (bounded here by max |theta'| H)."""
+    """f = -a delta is the whole model error, so delta_hat -> delta under any input: here an
+    open-loop sine on a stable plant (a < 0), and a stabilising PD on the unstable one (a > 0).
+    While theta moves, the known part a theta is held over each period: f_hat is off by about a
+    theta' H / 2, delta_hat by theta' H / 2 (bounded here by max |theta'| H)."""
     b = 2.0
     step = plant_step(a, b, delta)
     obs = BalancePointObserver(H, 20.0, ObserverConfig(time_constant_s=0.5))
@@ -54,7 +58,8 @@ def test_estimates_the_balance_point_whatever_the_input(a, delta):
 
 
 def test_regulating_about_the_estimate_ends_at_the_true_balance_point():
-    """A PD about theta - delta_hat (what BalanceController does) rests at theta = delta, with zero input."""
+    """A PD about theta - delta_hat (what BalanceController does) rests at theta = delta, with zero
+    input."""
     a, b, delta = 20.0, 1.5, 0.12
     step = plant_step(a, b, delta)
     obs = BalancePointObserver(H, 20.0, ObserverConfig(time_constant_s=1.0))
@@ -76,9 +81,9 @@ def test_shift_hold_and_limit():
     obs.set_model(*model(a, b))
     obs.reset(0.0, 0.0)
     obs.delta = 0.1
-    obs.shift(0.03, same_pose=True)           # new beta, same pose: the true balance pitch stays
+    obs.shift(0.03, same_pose=True)  # new beta, same pose: the true balance pitch stays
     assert obs.delta == pytest.approx(0.13)
-    obs.shift(0.03, same_pose=False)          # new pose: the CoM-angle error is kept
+    obs.shift(0.03, same_pose=False)  # new pose: the CoM-angle error is kept
     assert obs.delta == pytest.approx(0.13)
     # a plant 1 rad off the model: held, the estimate stays; free, it stops at the limit
     step, state = plant_step(-a, b, 1.0), np.array([0.0, 0.0])

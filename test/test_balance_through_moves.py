@@ -8,6 +8,7 @@ travel of at most MOVE_TRAVEL_M during the move, and either a balanced point or,
 true balance pitch passes the caster, a caster catch (BALANCE -> SIT, the robot sits where it is).
 And the convergence flag the pose server reads: false while the joints move, true again once the
 balance-point estimate has settled."""
+
 import numpy as np
 import pytest
 
@@ -15,8 +16,14 @@ from krang_model.beta import load_beta
 from krang_model.config import config_path
 from krang_model.robot import KRANG_POSE_COLUMNS, load_krang
 from krang_pose_server.sequence import PoseSequence
-from krang_sim.closed_loop import (TABLE2_POSE, ClosedLoop, Disturbance, run_online_session,
-                                   shifted_beta, stand_pose)
+from krang_sim.closed_loop import (
+    TABLE2_POSE,
+    ClosedLoop,
+    Disturbance,
+    run_online_session,
+    shifted_beta,
+    stand_pose,
+)
 from krang_sim.truths import generate_truth
 
 #: wheel travel bound during one move, m: measured 0.39-0.67 m on the generated truths
@@ -32,10 +39,12 @@ def robot():
 
 
 def first_move(robot, truth, beta0):
-    poses = PoseSequence.from_csv(config_path('excitatory_poses.csv'), robot,
-                                  KRANG_POSE_COLUMNS).joints
-    res = run_online_session(robot, truth, beta0, poses[:1], seed=1, progress=False,
-                             log_rate_hz=50)
+    poses = PoseSequence.from_csv(
+        config_path('excitatory_poses.csv'), robot, KRANG_POSE_COLUMNS
+    ).joints
+    res = run_online_session(
+        robot, truth, beta0, poses[:1], seed=1, progress=False, log_rate_hz=50
+    )
     log = res.loop.log
     t, x = np.array(log['t']), np.array(log['x_true_m'])
     moving = t >= res.stood_up_s
@@ -59,8 +68,10 @@ def test_first_move_on_generated_truths_is_bounded(robot):
         assert 0.012 <= truth.forward_error_m <= 0.025
         res, travel = first_move(robot, truth.beta, robot.nominal_beta)
         outcomes.append(outcome(res))
-        print(f'seed {seed} ({1000 * truth.forward_error_m:.1f} mm): {outcomes[-1]}, '
-              f'travel {travel:.2f} m')
+        print(
+            f'seed {seed} ({1000 * truth.forward_error_m:.1f} mm): {outcomes[-1]}, '
+            f'travel {travel:.2f} m'
+        )
         assert travel <= MOVE_TRAVEL_M
     assert outcomes.count('balanced') >= 4
 
@@ -82,10 +93,10 @@ def test_convergence_flag_drops_during_a_move_and_returns(robot):
     loop.run(0.5)
     ctl.set_enabled(True)
     assert loop.run(15.0, until=lambda o: o.mode == 'balance')
-    assert not loop.last_output.balance_converged          # just entered: not yet settled
+    assert not loop.last_output.balance_converged  # just entered: not yet settled
     assert loop.run(20.0, until=lambda o: o.balance_converged)
     goal = TABLE2_POSE.copy()
-    goal[2] += 0.3                                          # an arm joint
+    goal[2] += 0.3  # an arm joint
     loop.schedule(Disturbance(loop.sim.t, 'joints', goal))
     loop.run(0.2)
     assert loop.sim.joints_moving and not loop.last_output.balance_converged
@@ -97,6 +108,7 @@ def test_standard_error_of_a_swaying_window_is_not_the_white_noise_one():
     """The balanced pose's base_pitch uncertainty (its effort field on /balanced_pose): white
     noise gives about std/sqrt(n); a slow sway, whose samples are correlated, gives more."""
     from krang_adrc_controller.detector import standard_error
+
     rng = np.random.default_rng(0)
     n = 100
     white = rng.normal(0.0, 1e-3, (n, 1))

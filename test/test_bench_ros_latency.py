@@ -1,5 +1,6 @@
 """bench/bench_ros_latency.py: the matching of wheel commands to sensor samples (fast, synthetic
 frame times) and a short --robot run (ros, slow) that must print its figures as JSON."""
+
 import importlib.util
 import json
 import os
@@ -11,7 +12,7 @@ import numpy as np
 import pytest
 
 pytest.importorskip('rclpy')
-pytest.importorskip('msgpack')                      # python-can's udp_multicast needs it
+pytest.importorskip('msgpack')  # python-can's udp_multicast needs it
 
 BENCH = Path(__file__).resolve().parents[1] / 'bench' / 'bench_ros_latency.py'
 PERIOD = 0.002
@@ -37,7 +38,7 @@ def played(n=2000, latency=0.003, probe_every=5, response=900.0, noise=10.0, see
     kick = sign * np.where(phase0, response, -response / (probe_every - 1))
     kick[k < 0] = 0.0
     probe = np.where(phase0 & (k >= 0), sign, 0).astype(np.int8)
-    value = -200.0 + kick + rng.normal(0.0, noise, n)     # no two alike
+    value = -200.0 + kick + rng.normal(0.0, noise, n)  # no two alike
     cmd_t = np.concatenate([t + latency, t + latency + 0.0005])
     cmd_v = np.concatenate([value, value])
     return t, probe, cmd_t, cmd_v
@@ -55,14 +56,14 @@ def test_timing_reads_short_when_the_answer_comes_after_the_next_sample(bench):
     assert np.allclose(lat, 0.0013) and answered == len(t)
     t, probe, cmd_t, cmd_v = played(latency=0.0031)
     lat, _ = bench.timing_match(t, bench.new_commands(cmd_t, cmd_v)[0])
-    assert np.allclose(lat, 0.0011)          # 3.1 ms read as 3.1 - 2 ms
+    assert np.allclose(lat, 0.0011)  # 3.1 ms read as 3.1 - 2 ms
 
 
 def test_probes_carry_the_sample_identity(bench):
     t, probe, cmd_t, cmd_v = played(latency=0.0031)
     ct, cv = bench.new_commands(cmd_t, cmd_v)
     lat, response = bench.probe_match(t, probe, ct, cv)
-    assert response == pytest.approx(0.75 * 900.0, abs=50.0)   # from the last compensation
+    assert response == pytest.approx(0.75 * 900.0, abs=50.0)  # from the last compensation
     assert len(lat) == np.count_nonzero(probe) and np.allclose(lat, 0.0031)
     assert bench.noise_level(ct, cv, t[probe != 0][0]) == pytest.approx(10.0, rel=0.3)
 
@@ -70,7 +71,7 @@ def test_probes_carry_the_sample_identity(bench):
 def test_dropped_probe_samples_are_not_answered(bench):
     t, probe, cmd_t, cmd_v = played(latency=0.0025)
     keep = np.ones(len(cmd_t), bool)
-    lost = np.flatnonzero(probe > 0)                      # the positive probes never answered
+    lost = np.flatnonzero(probe > 0)  # the positive probes never answered
     keep[lost] = keep[lost + len(t)] = False
     ct, cv = bench.new_commands(cmd_t[keep], cmd_v[keep])
     lat, _ = bench.probe_match(t, probe, ct, cv)
@@ -86,10 +87,16 @@ def test_reference_pairs_frames_by_counter(bench):
 
 def test_analyse_gives_the_json_keys_first(bench):
     t, probe, cmd_t, cmd_v = played(latency=0.0031)
-    record = {'sample_t': t, 'sample_probe': probe, 'cmd_t': cmd_t,
-              'cmd_id': np.full(len(cmd_t), 0x220), 'cmd_value': cmd_v, 'left_id': 0x220,
-              'ref_req': np.column_stack([t, np.arange(len(t))]),
-              'ref_ans': np.column_stack([t + 0.001, np.arange(len(t))])}
+    record = {
+        'sample_t': t,
+        'sample_probe': probe,
+        'cmd_t': cmd_t,
+        'cmd_id': np.full(len(cmd_t), 0x220),
+        'cmd_value': cmd_v,
+        'left_id': 0x220,
+        'ref_req': np.column_stack([t, np.arange(len(t))]),
+        'ref_ans': np.column_stack([t + 0.001, np.arange(len(t))]),
+    }
     fig = bench.analyse(record, (t[600], t[-20]), 500.0)
     assert tuple(fig)[:6] == bench.JSON_KEYS
     assert fig['match'] == 'probe' and fig['p50_ms'] == pytest.approx(3.1, abs=1e-6)
@@ -100,15 +107,29 @@ def test_analyse_gives_the_json_keys_first(bench):
 @pytest.mark.ros
 @pytest.mark.slow
 def test_robot_run_prints_the_figures_as_json():
-    env = dict(os.environ, ROS_DOMAIN_ID=str(100 + os.getpid() % 80),
-               ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST')
-    run = subprocess.run([sys.executable, str(BENCH), '--robot', '--seconds', '3', '--json'],
-                         capture_output=True, text=True, timeout=280, env=env,
-                         cwd=BENCH.parents[1])
+    env = dict(
+        os.environ,
+        ROS_DOMAIN_ID=str(100 + os.getpid() % 80),
+        ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST',
+    )
+    run = subprocess.run(
+        [sys.executable, str(BENCH), '--robot', '--seconds', '3', '--json'],
+        capture_output=True,
+        text=True,
+        timeout=280,
+        env=env,
+        cwd=BENCH.parents[1],
+    )
     assert run.returncode == 0, run.stderr[-3000:]
     fig = json.loads(run.stdout.strip().splitlines()[-1])
-    assert list(fig)[:6] == ['p50_ms', 'p99_ms', 'rate_hz', 'configured_rate_hz', 'ref_p50_ms',
-                             'ref_p99_ms']
+    assert list(fig)[:6] == [
+        'p50_ms',
+        'p99_ms',
+        'rate_hz',
+        'configured_rate_hz',
+        'ref_p50_ms',
+        'ref_p99_ms',
+    ]
     assert fig['configured_rate_hz'] == 500.0
     assert fig['ref_p50_ms'] > 0.0 and fig['ref_p99_ms'] >= fig['ref_p50_ms']
     assert fig['p50_ms'] > 0.0 and fig['rate_hz'] > 0.0

@@ -52,6 +52,7 @@ def wheel_command(efforts):
     """A /wheel_effort_cmd as the controller sends it (unstamped here)."""
     return messages.wheel_effort(Time(), names.WHEEL_JOINTS, efforts)
 
+
 PEER = Path(__file__).with_name('ds402_peer_drive.py')
 KILL_DEADLINE_S = 0.3
 EFFORT_NM = 8.0

@@ -2,6 +2,7 @@
 enable sits powered without standing, stand_up balances, sit_down puts the robot back on its caster
 without a fall, halt zeroes the current, recover is refused while the bridge reports a drive fault;
 and the controller's names move with its namespace (README, "Running on the robot")."""
+
 import subprocess
 import sys
 
@@ -11,7 +12,7 @@ import pytest
 pytestmark = pytest.mark.ros
 
 rclpy = pytest.importorskip('rclpy')
-pytest.importorskip('msgpack')                      # python-can's udp_multicast needs it
+pytest.importorskip('msgpack')  # python-can's udp_multicast needs it
 
 from rcl_interfaces.srv import SetParameters  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
@@ -32,8 +33,8 @@ NODES = ('sim_krang', 'can_bridge', 'adrc_controller')
 #: this pose: 0.37 rad/s with modes.sit_rate_rad_s 0.2; the hardware's step 0.80, a torque-free
 #: fall (halt) 0.74.
 SIT_RATE_MAX = 0.5
-CASTER_TOL_RAD = 0.03           # sitting: the true pitch this close to the caster's contact pitch
-SITTING_CURRENT_A = 1.0         # sitting still under the ground PD: |current| below this
+CASTER_TOL_RAD = 0.03  # sitting: the true pitch this close to the caster's contact pitch
+SITTING_CURRENT_A = 1.0  # sitting still under the ground PD: |current| below this
 
 
 class Watch:
@@ -45,7 +46,6 @@ class Watch:
 
     def on_truth(self, msg):
         self.truth.append(dict(zip(GROUND_TRUTH_FIELDS, msg.data)))
-
 
 
 def wait_mode(client, mode, timeout):
@@ -65,7 +65,7 @@ def test_operator_services_over_ros(tmp_path):
         watch = Watch(client)
         fault_pub = client.create_publisher(String, names.DRIVE_FAULT, topics.LATCHED)
         enable = client.enable
-        for _ in range(60):             # refused until the sensor data flow
+        for _ in range(60):  # refused until the sensor data flow
             if client.call(enable, SetBool.Request(data=True)).success:
                 break
             client.pause(1.0)
@@ -91,16 +91,19 @@ def test_operator_services_over_ros(tmp_path):
         assert rates.max() < SIT_RATE_MAX, (rates.max(), [round(r['q_base'], 4) for r in sat])
         last = watch.truth[-5:]
         assert all(abs(r['q_base'] - caster) < CASTER_TOL_RAD for r in last), (caster, last)
-        assert all(abs(r['current_left_a']) < SITTING_CURRENT_A
-                   and abs(r['current_right_a']) < SITTING_CURRENT_A for r in last), [
-            (round(r['current_left_a'], 2), round(r['x_m'], 3)) for r in watch.truth[n_truth:]]
+        assert all(
+            abs(r['current_left_a']) < SITTING_CURRENT_A
+            and abs(r['current_right_a']) < SITTING_CURRENT_A
+            for r in last
+        ), [(round(r['current_left_a'], 2), round(r['x_m'], 3)) for r in watch.truth[n_truth:]]
 
         reply = client.operate(names.HALT)
         assert reply.success, reply.message
         wait_mode(client, 'safe_stop', 5.0)
         client.pause(1.0)
-        assert all(r['current_left_a'] == 0.0 and r['current_right_a'] == 0.0
-                   for r in watch.truth[-3:])
+        assert all(
+            r['current_left_a'] == 0.0 and r['current_right_a'] == 0.0 for r in watch.truth[-3:]
+        )
 
         fault_pub.publish(String(data='JRWheel: FAULT (test)'))
         client.pause(1.0)
@@ -127,26 +130,51 @@ def test_names_move_with_the_namespace_and_read_only_parameters_refuse(tmp_path)
     for f in params_files(sim=True):
         cmd += ['--params-file', f]
     cmd += ['-p', 'use_sim_time:=false', '-r', '__ns:=/robot1']
-    proc = subprocess.Popen(cmd, cwd=tmp_path, stdout=subprocess.PIPE,
-                            stderr=subprocess.STDOUT, text=True)
+    proc = subprocess.Popen(
+        cmd, cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True
+    )
     client, context = open_session_client()
     try:
-        expected_services = {'/robot1' + n for n in (names.ENABLE, names.STAND_UP, names.SIT_DOWN,
-                                                     names.HALT, names.CONTROLLER_RECOVER)}
-        expected_topics = {'/robot1' + n for n in (
-            names.WHEEL_EFFORT_CMD, names.BALANCED_POSE, names.DIAGNOSTICS, names.MODE,
-            names.BALANCE_CONVERGED, names.IMU, names.JOINT_STATES, names.BETA,
-            names.POSE_TARGET, names.DRIVE_FAULT)}
+        expected_services = {
+            '/robot1' + n
+            for n in (
+                names.ENABLE,
+                names.STAND_UP,
+                names.SIT_DOWN,
+                names.HALT,
+                names.CONTROLLER_RECOVER,
+            )
+        }
+        expected_topics = {
+            '/robot1' + n
+            for n in (
+                names.WHEEL_EFFORT_CMD,
+                names.BALANCED_POSE,
+                names.DIAGNOSTICS,
+                names.MODE,
+                names.BALANCE_CONVERGED,
+                names.IMU,
+                names.JOINT_STATES,
+                names.BETA,
+                names.POSE_TARGET,
+                names.DRIVE_FAULT,
+            )
+        }
 
         def graph():
-            return ({n for n, _ in client.get_service_names_and_types()},
-                    {n for n, _ in client.get_topic_names_and_types()})
+            return (
+                {n for n, _ in client.get_service_names_and_types()},
+                {n for n, _ in client.get_topic_names_and_types()},
+            )
 
-        client.spin_until(lambda: expected_services <= graph()[0]
-                          and expected_topics <= graph()[1], 60.0,
-                          'the namespaced controller in the graph')
-        set_parameters = client.create_client(SetParameters,
-                                              '/robot1/adrc_controller/set_parameters')
+        client.spin_until(
+            lambda: expected_services <= graph()[0] and expected_topics <= graph()[1],
+            60.0,
+            'the namespaced controller in the graph',
+        )
+        set_parameters = client.create_client(
+            SetParameters, '/robot1/adrc_controller/set_parameters'
+        )
         for name, value in (('adrc.eso.omega_o', 5.0), ('step_on_imu', True)):
             param = Parameter(name, value=value).to_parameter_msg()
             result = client.call(set_parameters, SetParameters.Request(parameters=[param]))

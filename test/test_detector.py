@@ -1,5 +1,6 @@
 """Balanced-pose detector on synthetic streams: one point per pose, none while moving, q_base
 accurate under noise, re-arming."""
+
 from dataclasses import replace
 
 import numpy as np
@@ -47,13 +48,15 @@ class Stream:
     def _sample(self, moving, wobble, rate=0.0, q=None):
         self.t += H
         rng = self.rng
-        return dict(t=self.t,
-                    q_base=(self.q if q is None else q) + rng.normal(0, 0.002),
-                    dtheta=rate + wobble * 0.2 * np.sin(3 * self.t) + rng.normal(0, 0.005),
-                    wheel_speed=5 * rate + wobble * 0.5 + rng.normal(0, 0.01),
-                    fhat=self.f + rng.normal(0, 0.004),
-                    joints=self.joints + rng.normal(0, 2e-4, self.joints.size),
-                    joints_moving=moving)
+        return dict(
+            t=self.t,
+            q_base=(self.q if q is None else q) + rng.normal(0, 0.002),
+            dtheta=rate + wobble * 0.2 * np.sin(3 * self.t) + rng.normal(0, 0.005),
+            wheel_speed=5 * rate + wobble * 0.5 + rng.normal(0, 0.01),
+            fhat=self.f + rng.normal(0, 0.004),
+            joints=self.joints + rng.normal(0, 2e-4, self.joints.size),
+            joints_moving=moving,
+        )
 
 
 def feed(det, samples):
@@ -71,7 +74,7 @@ def test_one_point_per_pose_and_none_while_moving():
     points = feed(det, s.settle(-1.20, 0.8, 12.0))
     assert len(points) == 1
     p = points[0]
-    assert p.q_base == pytest.approx(-1.20, abs=1.5e-3)          # 2 mrad noise, ~60-sample mean
+    assert p.q_base == pytest.approx(-1.20, abs=1.5e-3)  # 2 mrad noise, ~60-sample mean
     assert p.joints == pytest.approx(POSE_A, abs=1e-3)
     assert abs(p.window_s - 2.0) < 2 * H
     # hand: the wheel-speed test (5 x rate < 0.05) holds from 0.6 ln(50) = 2.35 s after the move
@@ -101,7 +104,7 @@ def test_wheels_rolling_blocks_the_point():
     feed(det, s.move(POSE_A, 1.0))
     samples = list(s.settle(-1.1, 0.2, 8.0))
     for k, smp in enumerate(samples):
-        if k % 45 == 0:                       # a wheel correction every 1.5 s (< window)
+        if k % 45 == 0:  # a wheel correction every 1.5 s (< window)
             smp['wheel_speed'] = 0.2
     assert feed(det, samples) == []
 
@@ -111,7 +114,7 @@ def test_rearms_on_joint_change_without_flag():
     s = Stream(seed=5)
     feed(det, s.move(POSE_A, 1.0))
     assert len(feed(det, s.settle(-1.0, 0.1, 6.0))) == 1
-    s.joints = POSE_A + 0.05                  # pose changed, but the flag was never raised
+    s.joints = POSE_A + 0.05  # pose changed, but the flag was never raised
     points = feed(det, s.settle(-1.05, 0.1, 6.0))
     assert len(points) == 1 and points[0].joints == pytest.approx(POSE_A + 0.05, abs=1e-3)
 
@@ -122,7 +125,7 @@ def test_gap_in_samples_restarts_window():
     feed(det, s.move(POSE_A, 1.0))
     samples = list(s.settle(-1.0, 0.0, 1.5, tau_s=0.01, f_tau=0.01))
     assert feed(det, samples) == []
-    s.t += 1.0                                 # sensor dropout of 1 s
+    s.t += 1.0  # sensor dropout of 1 s
     # only 1.5 s of fresh data after the gap: still no point
     assert feed(det, s.settle(-1.0, 0.0, 1.5, tau_s=0.01, f_tau=0.01)) == []
     assert len(feed(det, s.settle(-1.0, 0.0, 1.0, tau_s=0.01, f_tau=0.01))) == 1

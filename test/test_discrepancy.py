@@ -1,9 +1,10 @@
 """krang discrepancy: replay, locate, name, extend.
 
-Each naming test hides ONE effect in the simulated plant (krang_sim.physics.SimEffects) and runs the
-workflow on the record with the whole effect library; the workflow is not told which effect, nor its
-value. The data generator (synthetic.simulate_record) is KrangSim under the ADRC BalanceController
-with the NOMINAL model: sit, stand up, balance through three pose changes with a +-3 A current excitation.
+Each naming test hides ONE effect in the simulated plant (krang_sim.physics.SimEffects) and runs
+the workflow on the record with the whole effect library; the workflow is not told which effect,
+nor its value. The data generator (synthetic.simulate_record) is KrangSim under the ADRC
+BalanceController with the NOMINAL model: sit, stand up, balance through three pose changes with a
++-3 A current excitation.
 
 The replay is configured once for all simulated records with the simulator's own data-acquisition
 property, never the hidden effect: KrangSim re-reduces a moving pose every 20 ms, so its body lags
@@ -15,6 +16,7 @@ Stated tolerances: the named value within 5 % of the truth; the gap (whitened 4-
 at least 2.5x and the held-out loss at least 4x (improvement >= 0.75); for the no-effect record,
 nothing is named.
 """
+
 import json
 import math
 
@@ -39,19 +41,35 @@ from krang_sim.physics import SensorNoise, SimEffects
 
 SIM_REPLAY = dict(pose_delay_s=0.01, stride_s=0.1)
 RECORD = dict(seconds=22.0, hold_s=2.0, sit_down=False)
-NO_NOISE = SensorNoise(imu_pitch_std_rad=0.0, gyro_std_rad_s=0.0, gyro_lsb_rad_s=1e-12, accel_lsb_m_s2=1e-12,
-                       accel_std_m_s2=0.0, encoder_counts_per_rad=1e12, joint_std_rad=0.0)
+NO_NOISE = SensorNoise(
+    imu_pitch_std_rad=0.0,
+    gyro_std_rad_s=0.0,
+    gyro_lsb_rad_s=1e-12,
+    accel_lsb_m_s2=1e-12,
+    accel_std_m_s2=0.0,
+    encoder_counts_per_rad=1e12,
+    joint_std_rad=0.0,
+)
 
 # name, hidden SimEffects, true value in the reported unit, detail the report must give
 CASES = [
     ('imu_pitch_bias', SimEffects(imu_pitch_bias_rad=0.02), 0.02, {}),
     ('floor_slope', SimEffects(floor_slope_rad=0.02), 0.02, {}),
-    ('wheel_radius', SimEffects(wheel_radius_m=0.25), 0.25, {}),       # the real question: 0.25 vs 0.2667 m
+    (
+        'wheel_radius',
+        SimEffects(wheel_radius_m=0.25),
+        0.25,
+        {},
+    ),  # the real question: 0.25 vs 0.2667 m
     ('payload', SimEffects(payload_kg=5.0), 5.0, {'link': 'lGripper'}),
     ('wheel_viscous_friction', SimEffects(wheel_viscous_Nm_s=2.0), 2.0, {}),
     ('wheel_coulomb_friction', SimEffects(wheel_coulomb_Nm=2.0), 2.0, {}),
-    ('torque_constant', SimEffects(torque_constant_scale=0.8),
-     0.8 * drivetrain(load_krang()).torque_constant, {}),
+    (
+        'torque_constant',
+        SimEffects(torque_constant_scale=0.8),
+        0.8 * drivetrain(load_krang()).torque_constant,
+        {},
+    ),
     ('actuation_delay', SimEffects(actuation_delay_s=0.02), 0.02, {}),
     ('encoder_offset', SimEffects(encoder_offset_rad=0.05), 0.05, {'joint': 'JWaist'}),
 ]
@@ -77,9 +95,11 @@ def _name(record, model, **naming):
 @pytest.mark.parametrize('name, hidden, truth, detail', CASES, ids=[c[0] for c in CASES])
 def test_hidden_effect_is_named_with_value_and_the_gap_shrinks(name, hidden, truth, detail, model):
     rec = simulate_record(hidden, seed=3, **RECORD)
-    assert 'effect' not in str(rec.meta).lower()        # the record does not carry the answer
+    assert 'effect' not in str(rec.meta).lower()  # the record does not carry the answer
     rp, res = _name(rec, model)
-    assert res.name == name, [(f.key, round(f.improvement, 3), round(f.t, 1)) for f in res.singles[:4]]
+    assert res.name == name, [
+        (f.key, round(f.improvement, 3), round(f.t, 1)) for f in res.singles[:4]
+    ]
     sel = res.selected
     eff = sel.effects[0]
     value, unit = eff.display(float(sel.values[0]))
@@ -90,13 +110,15 @@ def test_hidden_effect_is_named_with_value_and_the_gap_shrinks(name, hidden, tru
     g = gaps(rp, model.terms(), res)
     assert g['before']['gap'] / g['after']['gap'] >= MIN_GAP_SHRINK, g
     assert sel.improvement >= MIN_HELDOUT_IMPROVEMENT
-    assert len(sel.effects) == 1                        # no spurious second effect
+    assert len(sel.effects) == 1  # no spurious second effect
 
 
 def test_no_hidden_effect_names_none(model):
     rec = simulate_record(SimEffects(), seed=3, **RECORD)
     rp, res = _name(rec, model)
-    assert res.name == 'none', [(f.key, round(f.improvement, 3), round(f.t, 1)) for f in res.singles[:3]]
+    assert res.name == 'none', [
+        (f.key, round(f.improvement, 3), round(f.t, 1)) for f in res.singles[:3]
+    ]
     assert res.selected is None
     best = res.singles[0]
     assert best.improvement < NamingConfig().min_improvement or best.t < NamingConfig().min_t
@@ -129,13 +151,27 @@ def _wip_record(model, seconds=3.0, seed=0):
         w.append(state[0] - state[1])
         dw.append(state[2] - state[3])
         state = dyn.step(state, u[0], u[1], dt)
-    return Record(t=t, q_base=q, pitch_rate=dq, wheel=w, wheel_rate=dw, joints=np.tile(TABLE2_POSE, (n, 1)),
-                  cmd_t=cmd_t, cmd_torque=cmd, name='wip')
+    return Record(
+        t=t,
+        q_base=q,
+        pitch_rate=dq,
+        wheel=w,
+        wheel_rate=dw,
+        joints=np.tile(TABLE2_POSE, (n, 1)),
+        cmd_t=cmd_t,
+        cmd_torque=cmd,
+        name='wip',
+    )
 
 
 def test_replay_reproduces_wipdynamics_exactly(model):
     rec = _wip_record(model)
-    rp = Replay([rec], model, ReplayConfig(horizon_s=0.2, stride_s=0.1, substep_s=1e-3, smooth_s=0.0), phases=PHASES)
+    rp = Replay(
+        [rec],
+        model,
+        ReplayConfig(horizon_s=0.2, stride_s=0.1, substep_s=1e-3, smooth_s=0.0),
+        phases=PHASES,
+    )
     res = rp.residuals([model.terms()])[0]
     assert len(rp) > 10
     assert np.abs(res).max() < 1e-9
@@ -145,15 +181,35 @@ def test_every_library_effect_reproduces_the_simulator(model):
     """All nine effects at once in the plant, no sensor noise: the replay with the true values
     predicts the simulator to ~1e-4 rad (integration and pose-update differences only) while the
     nominal model is off by centimetres of wheel travel."""
-    hidden = SimEffects(imu_pitch_bias_rad=0.01, floor_slope_rad=0.01, wheel_radius_m=0.26, payload_kg=3.0,
-                        wheel_viscous_Nm_s=0.5, wheel_coulomb_Nm=0.5, torque_constant_scale=0.9,
-                        actuation_delay_s=0.004, encoder_offset_rad=0.02)
+    hidden = SimEffects(
+        imu_pitch_bias_rad=0.01,
+        floor_slope_rad=0.01,
+        wheel_radius_m=0.26,
+        payload_kg=3.0,
+        wheel_viscous_Nm_s=0.5,
+        wheel_coulomb_Nm=0.5,
+        torque_constant_scale=0.9,
+        actuation_delay_s=0.004,
+        encoder_offset_rad=0.02,
+    )
     rec = simulate_record(hidden, seconds=14.0, seed=1, noise=NO_NOISE, hold_s=1.5, sit_down=False)
     rp = Replay([rec], model, ReplayConfig(**SIM_REPLAY))
-    keys = ['imu_pitch_bias', 'floor_slope', 'wheel_radius', 'payload@lGripper', 'wheel_viscous_friction',
-            'wheel_coulomb_friction', 'torque_constant', 'actuation_delay', 'encoder_offset@JWaist']
-    truth = fx.apply_effects(model.terms(), [fx.get_effect(k) for k in keys],
-                             [0.01, 0.01, 0.26, 3.0, 0.5, 0.5, 0.9, 0.004, 0.02])
+    keys = [
+        'imu_pitch_bias',
+        'floor_slope',
+        'wheel_radius',
+        'payload@lGripper',
+        'wheel_viscous_friction',
+        'wheel_coulomb_friction',
+        'torque_constant',
+        'actuation_delay',
+        'encoder_offset@JWaist',
+    ]
+    truth = fx.apply_effects(
+        model.terms(),
+        [fx.get_effect(k) for k in keys],
+        [0.01, 0.01, 0.26, 3.0, 0.5, 0.5, 0.9, 0.004, 0.02],
+    )
     r0, r1 = rp.residuals([model.terms(), truth])
     w = rp.win_phase == 'balancing'
     assert np.sqrt(np.mean(r1[w][:, -1, 0] ** 2)) < 2e-4
@@ -167,14 +223,16 @@ def test_phases_follow_the_controller_modes(model):
     rec = simulate_record(SimEffects(), seconds=24.0, seed=2, hold_s=2.0, sit_down=True)
     lab = label_phases(rec)
     mode = rec.meta['mode']
-    assert np.mean(lab[mode <= 0] == 'sitting') > 0.7          # safe stop / sit before standing and after sitting
+    assert (
+        np.mean(lab[mode <= 0] == 'sitting') > 0.7
+    )  # safe stop / sit before standing and after sitting
     assert 'standing_up' in set(lab) and 'moving_joints' in set(lab) and 'sitting_down' in set(lab)
     assert np.mean(lab[mode == 2] != 'sitting') > 0.95
     rp = Replay([rec], model, ReplayConfig(**SIM_REPLAY))
     loc = locate(rp)
     assert set(loc.phase_stats) >= {'sitting', 'standing_up', 'balancing', 'moving_joints'}
     for ph in loc.phase_stats.values():
-        assert ph['q_base']['rms'] < 5e-3                       # no effect: noise-level errors
+        assert ph['q_base']['rms'] < 5e-3  # no effect: noise-level errors
 
 
 def test_locate_points_at_the_biased_signals(model):
@@ -183,11 +241,11 @@ def test_locate_points_at_the_biased_signals(model):
     loc = locate(rp)
     st = loc.phase_stats['balancing']
     assert abs(st['wheel_rate']['bias_z']) > 5 and abs(st['q_base']['bias_z']) > 5
-    assert loc.decorrelation_s['wheel_rate'] > rp.horizon      # structure, not noise
+    assert loc.decorrelation_s['wheel_rate'] > rp.horizon  # structure, not noise
     assert any('systematic' in s for s in loc.summary)
 
 
-# ----------------------------------------------------------------------------- library, YAML, loaders
+# ----------------------------------------------------------------------------- library, YAML, loa
 
 
 def test_user_effect_registers_and_changes_the_model(model):
@@ -200,30 +258,52 @@ def test_user_effect_registers_and_changes_the_model(model):
 
         def apply(self, terms, value):
             terms.extra_forces.append(lambda s, k=value: (0.0 * s.q_base, -k * (s.q_base + 1.55)))
+
     try:
         assert 'test_pitch_spring' in fx.EFFECTS
         eff = fx.get_effect('test_pitch_spring')
         rec = _wip_record(model, seconds=1.5)
         rp = Replay([rec], model, ReplayConfig(horizon_s=0.2, stride_s=0.1), phases=PHASES)
-        a, b, c = rp.predict([model.terms(), fx.apply_effects(model.terms(), [eff], [0.0]),
-                              fx.apply_effects(model.terms(), [eff], [50.0])])
+        a, b, c = rp.predict(
+            [
+                model.terms(),
+                fx.apply_effects(model.terms(), [eff], [0.0]),
+                fx.apply_effects(model.terms(), [eff], [50.0]),
+            ]
+        )
         assert np.array_equal(a, b) and np.abs(a - c).max() > 1e-4
     finally:
         fx.unregister_effect('test_pitch_spring')
 
 
 def test_extended_model_yaml_maps_onto_simeffects(tmp_path, model):
-    effs = [fx.get_effect('floor_slope'), fx.get_effect('payload@rGripper'), fx.get_effect('torque_constant')]
-    fit = Fit(effs, np.array([0.01, 2.0, 0.9]), np.array([1e-4, 0.1, 0.01]), 0.0, np.zeros(1), np.zeros((2, 3)))
+    effs = [
+        fx.get_effect('floor_slope'),
+        fx.get_effect('payload@rGripper'),
+        fx.get_effect('torque_constant'),
+    ]
+    fit = Fit(
+        effs,
+        np.array([0.01, 2.0, 0.9]),
+        np.array([1e-4, 0.1, 0.01]),
+        0.0,
+        np.zeros(1),
+        np.zeros((2, 3)),
+    )
     path = tmp_path / 'ext.yaml'
     write_extended_model(path, fit, model)
     sim, terms = load_extended_model(path)
-    assert (sim.floor_slope_rad, sim.payload_kg, sim.payload_body, sim.torque_constant_scale) == \
-        (0.01, 2.0, 'rGripper', 0.9)
+    assert (sim.floor_slope_rad, sim.payload_kg, sim.payload_body, sim.torque_constant_scale) == (
+        0.01,
+        2.0,
+        'rGripper',
+        0.9,
+    )
     assert tuple(sim.payload_com_m) == (0.0, 0.0, 0.1)
     assert terms.drive.floor_slope == 0.01 and terms.payloads[0][2] == 2.0
-    assert terms.drive.torque_constant == pytest.approx(0.9 * model.drive.torque_constant,
-                                                        rel=1e-15)
+    assert terms.drive.torque_constant == pytest.approx(
+        0.9 * model.drive.torque_constant, rel=1e-15
+    )
 
 
 def test_bag_round_trip(tmp_path):
@@ -237,7 +317,9 @@ def test_bag_round_trip(tmp_path):
     # the IMU times are read as integer ns here; krang_bag.reader gives the joint states as float
     # seconds since 1970 (0.24 us resolution), which costs the fast-moving wheel signals ~1e-5
     for k, tol in (('q_base', 1e-9), ('pitch_rate', 1e-9), ('wheel', 1e-4), ('wheel_rate', 1e-4)):
-        np.testing.assert_allclose(getattr(back, k), np.interp(t, rec.t, getattr(rec, k)), atol=tol)
+        np.testing.assert_allclose(
+            getattr(back, k), np.interp(t, rec.t, getattr(rec, k)), atol=tol
+        )
     np.testing.assert_allclose(back.cmd_t, rec.cmd_t - rec.t[0], atol=1e-6)
 
 
@@ -250,8 +332,11 @@ def test_hardware_csv_loader(krang_data):
     assert rec.cmd_t.size == raw.shape[0]
     # wheel + q_base is the logged x_wheel (ground-referenced)
     t_raw = np.cumsum(raw[:, 0]) - raw[0, 0]
-    np.testing.assert_allclose(np.interp(rec.t[10:-10], t_raw, raw[:, 5]), rec.wheel[10:-10] + rec.q_base[10:-10],
-                               atol=1e-9)
+    np.testing.assert_allclose(
+        np.interp(rec.t[10:-10], t_raw, raw[:, 5]),
+        rec.wheel[10:-10] + rec.q_base[10:-10],
+        atol=1e-9,
+    )
     lab = label_phases(rec)
     assert lab[0] == 'sitting' and 'standing_up' in set(lab) and 'balancing' in set(lab)
 
@@ -261,11 +346,24 @@ def test_hardware_csv_loader(krang_data):
 
 def test_cli_end_to_end_on_a_bag(tmp_path, capsys):
     from krang_cli.main import main
+
     rec = simulate_record(SimEffects(floor_slope_rad=0.015), seed=6, **RECORD)
     bag = save_bag(rec, tmp_path / 'session.mcap', rate_hz=200.0)
     out = tmp_path / 'disc'
-    code = main(['discrepancy', '--measured', str(bag), '--out', str(out), '--json', '--pose-delay', '0.01',
-                 '--stride', '0.1'])
+    code = main(
+        [
+            'discrepancy',
+            '--measured',
+            str(bag),
+            '--out',
+            str(out),
+            '--json',
+            '--pose-delay',
+            '0.01',
+            '--stride',
+            '0.1',
+        ]
+    )
     assert code == 0
     js = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     for key in ('effect', 'value', 'unit', 'uncertainty', 'gap_before', 'gap_after'):
@@ -273,8 +371,14 @@ def test_cli_end_to_end_on_a_bag(tmp_path, capsys):
     assert js['effect'] == 'floor_slope' and js['unit'] == 'rad'
     assert js['value'] == pytest.approx(0.015, rel=VALUE_REL_TOL)
     assert js['gap_after'] < js['gap_before'] / MIN_GAP_SHRINK
-    for f in ('report.md', 'extended_model.yaml', 'locate_timeseries.png', 'naming_evidence.png',
-              'gap_timeseries.png', 'gap_phases.png'):
+    for f in (
+        'report.md',
+        'extended_model.yaml',
+        'locate_timeseries.png',
+        'naming_evidence.png',
+        'gap_timeseries.png',
+        'gap_phases.png',
+    ):
         assert (out / f).exists(), f
     sim, _ = load_extended_model(out / 'extended_model.yaml')
     assert sim.floor_slope_rad == pytest.approx(js['value'])
@@ -284,23 +388,42 @@ def test_cli_end_to_end_on_a_bag(tmp_path, capsys):
 def test_cli_help_explains():
     import subprocess
     import sys
-    out = subprocess.run([sys.executable, '-m', 'krang_cli.main', 'discrepancy', '--help'], capture_output=True,
-                         text=True, check=True).stdout
-    for word in ('--measured', '--out', '--json', 'held-out', 'imu_pitch_bias', 'extended_model.yaml'):
+
+    out = subprocess.run(
+        [sys.executable, '-m', 'krang_cli.main', 'discrepancy', '--help'],
+        capture_output=True,
+        text=True,
+        check=True,
+    ).stdout
+    for word in (
+        '--measured',
+        '--out',
+        '--json',
+        'held-out',
+        'imu_pitch_bias',
+        'extended_model.yaml',
+    ):
         assert word in out
 
 
-# ----------------------------------------------------------------------------- combinations; slow: seeds, real data
+# ----------------------------------------------------------------------------- combinations; slow
 
 
 def test_two_hidden_effects_are_named_as_a_pair(model):
     """Slope and delay hidden together: the slope is accepted first, its near-duplicates (IMU bias,
     payload, encoder offset) add nothing, and the delay enters as the second effect."""
-    rec = simulate_record(SimEffects(floor_slope_rad=0.015, actuation_delay_s=0.02), seconds=30.0, seed=8,
-                          hold_s=2.5, sit_down=False)
+    rec = simulate_record(
+        SimEffects(floor_slope_rad=0.015, actuation_delay_s=0.02),
+        seconds=30.0,
+        seed=8,
+        hold_s=2.5,
+        sit_down=False,
+    )
     rp, res = _name(rec, model)
     assert sorted(e.name for e in res.selected.effects) == ['actuation_delay', 'floor_slope']
-    vals = {e.name: e.display(float(v))[0] for e, v in zip(res.selected.effects, res.selected.values)}
+    vals = {
+        e.name: e.display(float(v))[0] for e, v in zip(res.selected.effects, res.selected.values)
+    }
     assert vals['floor_slope'] == pytest.approx(0.015, rel=VALUE_REL_TOL)
     assert vals['actuation_delay'] == pytest.approx(0.02, rel=VALUE_REL_TOL)
 
@@ -317,7 +440,9 @@ def test_no_effect_stays_none_over_seeds_at_the_default_stride(seed, model):
 def test_real_hardware_run_report(krang_data, tmp_path):
     """The workflow runs end to end on one Table II run; what it finds is documented in
     docs/discrepancy.md, not asserted here (there is no ground truth)."""
-    out = run_discrepancy([krang_data / 'balancing_runs' / 'table2' / 'beta190_trial0.csv'], tmp_path, plots=False)
+    out = run_discrepancy(
+        [krang_data / 'balancing_runs' / 'table2' / 'beta190_trial0.csv'], tmp_path, plots=False
+    )
     js = out['json']
     assert ('effect' in js) or ('effects' in js)
     assert math.isfinite(js['gap_before'])

@@ -4,6 +4,7 @@ selection rule (issue 15).
 The hidden effects are put in the simulated plant (krang_discrepancy.synthetic.simulate_record);
 effects outside the library are made around it (``Unmodelled``). The workflow is told neither.
 """
+
 import math
 
 import numpy as np
@@ -56,7 +57,7 @@ def test_weighted_t_admits_concentrated_evidence_and_rarely_noise():
     mask = np.ones(blocks.size, bool)
     ref = np.ones(blocks.size)
     new = ref * np.exp(-rng.normal(0, 0.05, blocks.size))
-    new[blocks < 3] *= 0.3                            # the effect shows in 3 blocks only
+    new[blocks < 3] *= 0.3  # the effect shows in 3 blocks only
     weight = np.where(blocks < 3, 1.0, 0.02)
     imp, t, _, tw, n_eff = _compare(ref, new, blocks, mask, weight)
     assert t < 3 <= tw
@@ -109,13 +110,13 @@ def test_far_off_a_baseline_is_unexplained_not_none():
     from types import SimpleNamespace
     from krang_discrepancy.report import _verdict
     from krang_discrepancy.verdict import MAX_GAP, Structure
+
     quiet = Structure(0.0, 0.0, False)
     nothing = SimpleNamespace(selected=None)
     far = {'after': {'gap': 4.0 * MAX_GAP}}
     assert _verdict(nothing, quiet, far, True)[0] == 'unexplained'
     assert _verdict(nothing, quiet, far, False)[0] == 'none'
     assert _verdict(nothing, quiet, {'after': {'gap': 0.5 * MAX_GAP}}, True)[0] == 'none'
-
 
 
 def test_baseline_chain_of_two_names_what_changed_in_physical_units(tmp_path):
@@ -133,7 +134,7 @@ def test_baseline_chain_of_two_names_what_changed_in_physical_units(tmp_path):
     assert set(_named(b)) == {'torque_constant'}, b
     assert b['unit'] == 'N m/A'
     assert b['value'] == pytest.approx(0.8 * KT, rel=0.05)
-    assert b['gap_before'] > 2.0 * b['gap_after']       # in A's own units: B's model is far off
+    assert b['gap_before'] > 2.0 * b['gap_after']  # in A's own units: B's model is far off
     yb = tmp_path / 'b' / 'extended_model.yaml'
     doc_b = yaml.safe_load(yb.read_text())
     assert [e['effect'] for e in doc_b['effects']] == ['floor_slope', 'torque_constant']
@@ -151,8 +152,10 @@ def test_baseline_chain_of_two_names_what_changed_in_physical_units(tmp_path):
 def test_records_that_disagree_raise_the_misattribution_warning(tmp_path):
     """Two records of 'one robot' whose torque constants differ (0.8 x and 0.6 x): pooled, the
     per-record refits disagree far beyond their uncertainty and the report says so."""
-    recs = [simulate_record(SimEffects(torque_constant_scale=k), seed=s, name=f'run{s}', **RECORD)
-            for k, s in ((0.8, 3), (0.6, 4))]
+    recs = [
+        simulate_record(SimEffects(torque_constant_scale=k), seed=s, name=f'run{s}', **RECORD)
+        for k, s in ((0.8, 3), (0.6, 4))
+    ]
     out = run_discrepancy(recs, tmp_path, plots=False, replay_config=SIM_REPLAY)
     js = out['json']
     per = js['per_record']['effects']['torque_constant']
@@ -172,6 +175,7 @@ def test_validation_suite(case, tmp_path):
     10 % and 4 sigma; outside the library -> unexplained or the stated equivalent."""
     import importlib.util
     from pathlib import Path
+
     path = Path(__file__).resolve().parents[1] / 'bench' / 'bench_discrepancy.py'
     spec = importlib.util.spec_from_file_location('bench_discrepancy', path)
     bench = importlib.util.module_from_spec(spec)

@@ -1,13 +1,14 @@
-"""The product end to end: `krang demo` with a few poses over real rclpy nodes (DDS) and real CAN frames
-on udp_multicast buses. The learned beta must reduce the CoM error against the simulator's hidden truth,
-and the bag must be readable by rosbags and mcap_ros2 with the counts the session saw published."""
+"""The product end to end: `krang demo` with a few poses over real rclpy nodes (DDS) and real CAN
+frames on udp_multicast buses. The learned beta must reduce the CoM error against the simulator's
+hidden truth, and the bag must be readable by rosbags and mcap_ros2 with the counts the session saw
+published."""
+
 import json
 import os
 import subprocess
 import sys
 from collections import Counter
 
-import numpy as np
 import pytest
 
 from conftest import REPO
@@ -20,10 +21,24 @@ pytestmark = pytest.mark.ros
 @pytest.fixture(scope='module')
 def demo(tmp_path_factory):
     out = tmp_path_factory.mktemp('demo')
-    env = dict(os.environ, ROS_DOMAIN_ID=str(150 + os.getpid() % 80), ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST')
-    result = subprocess.run([sys.executable, '-m', 'krang_cli.main', 'demo', '--poses', '3', '--out', str(out)],
-                            cwd=REPO, env=env, capture_output=True, text=True, timeout=420)
-    logs = ''.join(p.read_text()[-1500:] for p in (out / 'logs').glob('*.log')) if (out / 'logs').exists() else ''
+    env = dict(
+        os.environ,
+        ROS_DOMAIN_ID=str(150 + os.getpid() % 80),
+        ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST',
+    )
+    result = subprocess.run(
+        [sys.executable, '-m', 'krang_cli.main', 'demo', '--poses', '3', '--out', str(out)],
+        cwd=REPO,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=420,
+    )
+    logs = (
+        ''.join(p.read_text()[-1500:] for p in (out / 'logs').glob('*.log'))
+        if (out / 'logs').exists()
+        else ''
+    )
     assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:] + logs
     return out, json.loads(result.stdout.strip().splitlines()[-1])
 
@@ -31,14 +46,18 @@ def demo(tmp_path_factory):
 def test_online_session_learns_and_reduces_the_com_error(demo):
     out, summary = demo
     assert summary['poses'] == 3
-    # the forward CoM error (what balancing observes): with exact pitches these poses take it from 13.1 to
-    # 1.3 mm (an offline replay with the true balance pitches); the detector's 1-3 mrad leave it well below half
+    # the forward CoM error (what balancing observes): with exact pitches these poses take it from
+    # 13.1 to 1.3 mm (an offline replay with the true balance pitches); the detector's 1-3 mrad
+    # leave it well below half
     assert summary['com_error_after_m'] < 0.5 * summary['com_error_before_m']
     from krang_model.beta import load_beta
     from krang_model.robot import load_krang
+
     robot = load_krang()
     learned = load_beta(out / 'beta.yaml', robot)
-    assert learned[0::4].sum() == pytest.approx(robot.nominal_mass, abs=1e-6)  # known total mass kept
+    assert learned[0::4].sum() == pytest.approx(
+        robot.nominal_mass, abs=1e-6
+    )  # known total mass kept
     assert (out / 'report.md').exists() and (out / 'learning_curve.png').exists()
 
 
@@ -48,6 +67,7 @@ def test_bag_is_read_identically_by_rosbags_and_mcap_ros2(demo):
     from mcap.reader import make_reader
     from mcap_ros2.decoder import DecoderFactory
     from rosbags.highlevel import AnyReader
+
     with open(bag, 'rb') as f:
         reader = make_reader(f, decoder_factories=[DecoderFactory()])
         assert reader.get_header().profile == 'ros2'
@@ -55,10 +75,17 @@ def test_bag_is_read_identically_by_rosbags_and_mcap_ros2(demo):
     with AnyReader([bag]) as reader:
         rosbags_counts = Counter(conn.topic for conn, _, _ in reader.messages())
     assert mcap_counts == rosbags_counts
-    # what the session saw published: the initial beta plus one per learned pose, one balanced pose each
+    # what the session saw published: the initial beta plus one per learned pose, one balanced pose
+    # each
     assert mcap_counts['/com_estimator/beta'] == 1 + summary['poses']
     assert mcap_counts['/balanced_pose'] == summary['poses']
-    for topic in ('/joint_states', '/imu/data', '/wheel_effort_cmd', '/diagnostics', '/pose_server/target'):
+    for topic in (
+        '/joint_states',
+        '/imu/data',
+        '/wheel_effort_cmd',
+        '/diagnostics',
+        '/pose_server/target',
+    ):
         assert mcap_counts[topic] > 0, topic
 
 
@@ -67,10 +94,13 @@ def test_wheel_commands_name_the_wheels_and_the_sample_they_answer(demo):
     answers (the controller steps on each one): the link from a command to its sample."""
     out, _ = demo
     from krang_bag.reader import bag_info, iter_messages
+
     bag = out / 'session.mcap'
     assert bag_info(bag).topics['/wheel_effort_cmd'].type_name == 'sensor_msgs/msg/JointState'
-    imu = {(m.header.stamp.sec, m.header.stamp.nanosec)
-           for _, _, m in iter_messages(bag, ['/imu/data'])}
+    imu = {
+        (m.header.stamp.sec, m.header.stamp.nanosec)
+        for _, _, m in iter_messages(bag, ['/imu/data'])
+    }
     commands = [m for _, _, m in iter_messages(bag, ['/wheel_effort_cmd'])]
     assert all(list(m.name) == ['JLWheel', 'JRWheel'] and len(m.effort) == 2 for m in commands)
     answered = sum((m.header.stamp.sec, m.header.stamp.nanosec) in imu for m in commands)
@@ -81,9 +111,14 @@ def test_wheel_commands_name_the_wheels_and_the_sample_they_answer(demo):
 def test_relearn_reproduces_the_online_beta(demo, tmp_path):
     out, _ = demo
     from krang_cli.main import main
-    assert main(['relearn', str(out / 'session.mcap'), '--out', str(tmp_path / 'relearned.yaml')]) == 0
+
+    assert (
+        main(['relearn', str(out / 'session.mcap'), '--out', str(tmp_path / 'relearned.yaml')])
+        == 0
+    )
     from krang_bag.relearn import relearn
     from krang_model.robot import load_krang
+
     result = relearn(out / 'session.mcap', load_krang())
     assert len(result.recorded) == len(result.betas)
     assert result.relative_deviation < REPRODUCTION_TOLERANCE

@@ -1,5 +1,7 @@
-"""Estimators of beta: the paper's GD (against the authors' own trajectory), the mass constraint, and MAP
-(batch = online, against a second implementation, recovery of a hidden beta from noisy balanced poses)."""
+"""Estimators of beta: the paper's GD (against the authors' own trajectory), the mass constraint,
+and MAP (batch = online, against a second implementation, recovery of a hidden beta from noisy
+balanced poses)."""
+
 import math
 
 import numpy as np
@@ -26,6 +28,7 @@ def hardware(krang_data):
 
 def random_poses(robot, n, seed):
     from krang_pose_server.pool import PosePool
+
     res = PosePool(robot).generate(n, seed=seed)
     return res.q_base, res.joints
 
@@ -38,20 +41,20 @@ def test_paper_gd_replays_the_authors_trajectory(robot, hardware):
         gd.update(qb, jt)
         rows.append(gd.beta)
     err = np.abs(np.array(rows) - traj).max()
-    # The kit's figure "to 2e-4" is 2.02e-4 measured (6-digit printing of the authors' file plus the
-    # 5e-4 median relative residual of the recovered kinematics; docs/learning.md, "Tests").
+    # The kit's figure "to 2e-4" is 2.02e-4 measured (6-digit printing of the authors' file plus
+    # the 5e-4 median relative residual of the recovered kinematics; docs/learning.md, "Tests").
     assert err <= 2.05e-4, err
     assert len(rows) == 190
 
 
 def test_paper_gd_stop_rule():
     beta = np.array([1e-4, 0, 0, 0])
-    gd = est.PaperGD(None, beta, eta=0.0, x_tol=1e-3, window=3)    # rows only: no robot
+    gd = est.PaperGD(None, beta, eta=0.0, x_tol=1e-3, window=3)  # rows only: no robot
     big, small = np.array([100.0, 0, 0, 0]), np.array([1.0, 0, 0, 0])
-    gd.update_row(big)           # error 1e-2
+    gd.update_row(big)  # error 1e-2
     gd.update_row(small)
     gd.update_row(small)
-    assert not gd.converged   # the big one is still in the window
+    assert not gd.converged  # the big one is still in the window
     gd.update_row(small)
     assert gd.converged
 
@@ -60,7 +63,7 @@ def test_total_mass_constraint_holds_exactly(robot):
     q, j = random_poses(robot, 200, seed=3)
     P = phi(robot, q, j)
     beta0 = robot.nominal_beta.copy()
-    beta0[0::4] *= 1.02            # start off the constraint: the projection puts it back
+    beta0[0::4] *= 1.02  # start off the constraint: the projection puts it back
     for weights in ('mass', 'euclidean'):
         gd = est.PaperGDMass(robot, beta0, total_mass=robot.nominal_mass, weights=weights)
         assert gd.beta[0::4].sum() == pytest.approx(robot.nominal_mass, abs=1e-9)
@@ -85,14 +88,25 @@ def _problem(robot, n=80, seed=1, model='angle'):
     rows, y, var = est.balanced_pose_rows(robot, q, j, robot.nominal_beta, noise, model)
     prior = est.physical_prior_std(robot)
     A, b = est.equality_constraints(robot, robot.nominal_mass)
-    beta0 = robot.nominal_beta + 0.02 * np.random.default_rng(seed).standard_normal(robot.n_beta) * prior
-    return rows, y + 1e-3 * np.random.default_rng(seed + 1).standard_normal(len(y)), var, prior, A, b, beta0
+    beta0 = (
+        robot.nominal_beta
+        + 0.02 * np.random.default_rng(seed).standard_normal(robot.n_beta) * prior
+    )
+    return (
+        rows,
+        y + 1e-3 * np.random.default_rng(seed + 1).standard_normal(len(y)),
+        var,
+        prior,
+        A,
+        b,
+        beta0,
+    )
 
 
 @pytest.mark.parametrize('model', ['angle', 'eiv', 'phi'])
 def test_map_batch_equals_online(robot, model):
     rows, y, var, prior, A, b, beta0 = _problem(robot, model=model)
-    assert np.any(var < 0) == (model == 'eiv')    # the errors-in-variables rows remove information
+    assert np.any(var < 0) == (model == 'eiv')  # the errors-in-variables rows remove information
     online = est.MAPEstimator(beta0, prior, A=A, b=b)
     online.update_rows(rows, y, var)
     beta_b, cov_b = est.map_batch(beta0, prior, rows, y, var, A, b)
@@ -129,13 +143,14 @@ def test_map_online_pose_updates_equal_the_batch(robot):
 
 
 def test_map_posterior_matches_augmented_least_squares(robot):
-    """Second implementation: whitened augmented system [P0^-1/2 (beta - beta0); R^-1/2 (y - Phi beta)] in the
-    null-space coordinates of the constraints, solved by scipy lstsq; covariance Z (J^T J)^-1 Z^T."""
+    """Second implementation: whitened augmented system [P0^-1/2 (beta - beta0); R^-1/2 (y - Phi
+    beta)] in the null-space coordinates of the constraints, solved by scipy lstsq; covariance Z
+    (J^T J)^-1 Z^T."""
     rows, y, var, prior, A, b, beta0 = _problem(robot, seed=7)
     beta_b, cov_b = est.map_batch(beta0, prior, rows, y, var, A, b)
     bp = lstsq(A, b)[0]
     _, s, vt = np.linalg.svd(A)
-    Z = vt[len(s):].T
+    Z = vt[len(s) :].T
     J = np.vstack([Z / prior[:, None], (rows @ Z) / np.sqrt(var)[:, None]])
     rhs = np.concatenate([(beta0 - bp) / prior, (y - rows @ bp) / np.sqrt(var)])
     z = lstsq(J, rhs)[0]
@@ -147,9 +162,9 @@ def test_map_posterior_matches_augmented_least_squares(robot):
 
 
 def test_map_recovers_a_hidden_com_from_noisy_balanced_poses(robot):
-    """Hidden physical beta (CoMs +-5 cm, masses +-15 %), start at the URDF beta; 60 balanced poses with
-    0.1 deg IMU noise. The horizontal CoM error at held-out poses (at their true balance pitch) must fall
-    below 1 mm from a >= 2 cm start."""
+    """Hidden physical beta (CoMs +-5 cm, masses +-15 %), start at the URDF beta; 60 balanced poses
+    with 0.1 deg IMU noise. The horizontal CoM error at held-out poses (at their true balance
+    pitch) must fall below 1 mm from a >= 2 cm start."""
     from krang_experiments.learning import HeldOut, physical_truths
     from krang_pose_server.pool import PosePool
 
@@ -164,8 +179,12 @@ def test_map_recovers_a_hidden_com_from_noisy_balanced_poses(robot):
     rng = np.random.default_rng(3)
     start, end = [], []
     for truth in truths:
-        q_meas = balance_pitch(robot, train.joints, truth) + noise.sigma_imu_rad * rng.standard_normal(60)
-        beta, _, _ = est.map_gauss_newton(robot, q_meas, train.joints, robot.nominal_beta, prior, noise, A, b)
+        q_meas = balance_pitch(
+            robot, train.joints, truth
+        ) + noise.sigma_imu_rad * rng.standard_normal(60)
+        beta, _, _ = est.map_gauss_newton(
+            robot, q_meas, train.joints, robot.nominal_beta, prior, noise, A, b
+        )
         start.append(heldout.errors(robot.nominal_beta[None], truth[None])[0][0])
         end.append(heldout.errors(beta[None], truth[None])[0][0])
     assert min(start) >= 0.02
@@ -173,9 +192,9 @@ def test_map_recovers_a_hidden_com_from_noisy_balanced_poses(robot):
 
 
 def test_noisy_pitch_shrinks_the_paper_regression_but_not_the_angle_model(robot):
-    """Errors in variables: with phi evaluated at a noisy pitch, least squares on the paper's rows pulls the
-    CoM down (balanced poses cannot see the scale, so only the prior resists); the CoM-angle rows are
-    scale-free and keep the height."""
+    """Errors in variables: with phi evaluated at a noisy pitch, least squares on the paper's rows
+    pulls the CoM down (balanced poses cannot see the scale, so only the prior resists); the
+    CoM-angle rows are scale-free and keep the height."""
     from krang_pose_server.pool import PosePool
 
     pool = PosePool(robot)
@@ -184,10 +203,11 @@ def test_noisy_pitch_shrinks_the_paper_regression_but_not_the_angle_model(robot)
     prior = est.physical_prior_std(robot)
     A, b = est.equality_constraints(robot, robot.nominal_mass)
     noise = est.NoiseModel(sigma_imu_rad=math.radians(0.1))
-    q_meas = balance_pitch(robot, train.joints, truth) + noise.sigma_imu_rad * \
-        np.random.default_rng(0).standard_normal(200)
+    q_meas = balance_pitch(
+        robot, train.joints, truth
+    ) + noise.sigma_imu_rad * np.random.default_rng(0).standard_normal(200)
     qt = balance_pitch(robot, test.joints, truth)
-    height = lambda beta: com_frame0(robot, qt, test.joints, beta)[:, 2].mean()   # noqa: E731
+    height = lambda beta: com_frame0(robot, qt, test.joints, beta)[:, 2].mean()  # noqa: E731
     rows, y, var = est.balanced_pose_rows(robot, q_meas, train.joints, truth, noise, 'phi')
     plain, _ = est.map_batch(truth, prior, rows, y, var, A, b)
     angle, _, _ = est.map_gauss_newton(robot, q_meas, train.joints, truth, prior, noise, A, b)
@@ -208,17 +228,20 @@ def test_physical_consistency_flags_the_authors_learned_beta(robot, hardware):
 
 
 def test_map_constrained_enforces_the_bounds(robot):
-    """A prior so loose that the Gaussian MAP leaves the bounds; the QP brings every CoM back inside."""
+    """A prior so loose that the Gaussian MAP leaves the bounds; the QP brings every CoM back
+    inside."""
     q, j = random_poses(robot, 40, seed=21)
     noise = est.NoiseModel(sigma_imu_rad=math.radians(0.1))
     rows, y, var = est.balanced_pose_rows(robot, q, j, robot.nominal_beta, noise)
     y = y.copy()
-    y[0::2] += 0.02                                # data that want a 2 cm offset everywhere
+    y[0::2] += 0.02  # data that want a 2 cm offset everywhere
     prior = est.physical_prior_std(robot, mass_frac=0.5, com_std=1.0)
     A, b = est.equality_constraints(robot, robot.nominal_mass)
     G, h = est.inequality_constraints(robot)
     free, _ = est.map_batch(robot.nominal_beta, prior, rows, y, var, A, b)
     assert not est.physical_consistency(robot, free)['ok']
-    bounded = est.map_constrained(robot.nominal_beta, prior, rows, y, var, A, b, G, h, beta_start=free)
+    bounded = est.map_constrained(
+        robot.nominal_beta, prior, rows, y, var, A, b, G, h, beta_start=free
+    )
     assert np.all(G @ bounded >= h - 1e-7)
     assert np.abs(A @ bounded - b).max() < 1e-8

@@ -115,11 +115,20 @@ def test_bad_input_is_a_clear_error(krang_data, tmp_path):
 
 
 def test_calibrated_map_with_a_pitch_offset_reports_its_scales(tmp_path, krang_data):
-    s = _learn(krang_data, tmp_path / 'cal.yaml', '--method', 'map', '--calibrate',
-               '--pitch-offset-std', '0.035', '--folds', '0')
+    s = _learn(
+        krang_data,
+        tmp_path / 'cal.yaml',
+        '--method',
+        'map',
+        '--calibrate',
+        '--pitch-offset-std',
+        '0.035',
+        '--folds',
+        '0',
+    )
     c = s['calibration']
     assert set(c) >= {'sigma_pitch_rad', 'mass_frac', 'com_std_m', 'log_evidence'}
-    assert 0 < s['pitch_offset_std_rad'] < 0.035          # the data narrowed the 2-degree prior
+    assert 0 < s['pitch_offset_std_rad'] < 0.035  # the data narrowed the 2-degree prior
     assert set(s['com_moved_std_m']) == set(s['com_moved_m'])
     assert max(s['com_moved_m'].values()) < 0.073
     assert s['physically_consistent']

@@ -1,5 +1,6 @@
 """Lint: ruff over the package with ruff.toml (ROS's 99 columns, ament_flake8's E, F and W
 checks), in the default run like ament_flake8 in a colcon test."""
+
 import subprocess
 import sys
 from pathlib import Path
@@ -11,10 +12,23 @@ pytest.importorskip('ruff', reason='ruff is in the test extras: pip install -e .
 REPO = Path(__file__).resolve().parents[1]
 
 
-@pytest.mark.xfail(strict=False, reason='repo-wide format pass pending')
 def test_ruff_finds_no_violations():
     result = subprocess.run(
-        [sys.executable, '-m', 'ruff', 'check', '--config', str(REPO / 'ruff.toml'),
-         '--output-format', 'concise', '--no-cache', str(REPO)],
-        capture_output=True, text=True, cwd=REPO, timeout=120)
+        [
+            sys.executable,
+            '-m',
+            'ruff',
+            'check',
+            '--config',
+            str(REPO / 'ruff.toml'),
+            '--output-format',
+            'concise',
+            '--no-cache',
+            str(REPO),
+        ],
+        capture_output=True,
+        text=True,
+        cwd=REPO,
+        timeout=120,
+    )
     assert result.returncode == 0, f'ruff found violations:\n{result.stdout}{result.stderr}'

@@ -6,6 +6,7 @@ the development used 1000-1010, 5000-5009 and the demo's truth).
 Must show: 12 poses complete on every one of 10 truths, no safe stop, median forward error under
 1.0 mm after 12 poses and the worst under 1.5 mm (slow). The fast variant runs 2 truths for 3
 poses: every pose completes without a safe stop and the error falls under 3 mm."""
+
 import numpy as np
 import pytest
 
@@ -18,12 +19,16 @@ from krang_sim.truths import TruthRecipe, generate_truth
 def _check_sessions(result, n_poses):
     for truth, r in zip(result['truths'], result['runs']['adaptive']):
         curve = ', '.join(f'{1000 * c:.2f}' for c in r['curve_m'])
-        print(f"truth seed {truth['seed']} ({1000 * truth['forward_error_m']:.1f} mm): "
-              f"{r['learned']} poses, failures {r['failures']}, curve [{curve}] mm")
+        print(
+            f'truth seed {truth["seed"]} ({1000 * truth["forward_error_m"]:.1f} mm): '
+            f'{r["learned"]} poses, failures {r["failures"]}, curve [{curve}] mm'
+        )
     complete = [r['learned'] == n_poses and not r['failures'] for r in result['runs']['adaptive']]
     final = np.array([r['curve_m'][-1] for r in result['runs']['adaptive']])
-    print(f'complete {sum(complete)}/{len(complete)}; median {1000 * np.median(final):.2f} mm, '
-          f'worst {1000 * final.max():.2f} mm')
+    print(
+        f'complete {sum(complete)}/{len(complete)}; median {1000 * np.median(final):.2f} mm, '
+        f'worst {1000 * final.max():.2f} mm'
+    )
     return complete, final
 
 
@@ -34,10 +39,10 @@ def test_generated_truths_follow_the_recipe():
         t = generate_truth(robot, seed, recipe)
         assert 0.012 <= t.forward_error_m <= 0.025
         b, b0 = t.beta.reshape(-1, 4), robot.nominal_beta.reshape(-1, 4)
-        assert b[:, 0].sum() == pytest.approx(b0[:, 0].sum(), rel=1e-12)     # total mass kept
-        ratio = b[:, 0] / b0[:, 0]                  # within 8 %, then one common rescale
+        assert b[:, 0].sum() == pytest.approx(b0[:, 0].sum(), rel=1e-12)  # total mass kept
+        ratio = b[:, 0] / b0[:, 0]  # within 8 %, then one common rescale
         assert ratio.max() / ratio.min() <= 1.08 / 0.92
-        assert np.all(b[robot.wheel_body_ids, 1:] == 0)                        # wheels centred
+        assert np.all(b[robot.wheel_body_ids, 1:] == 0)  # wheels centred
         np.testing.assert_array_equal(generate_truth(robot, seed, recipe).beta, t.beta)
 
 
@@ -46,9 +51,10 @@ def test_adaptive_choice_prefers_the_pose_that_removes_the_uncertainty():
     after it is what the rank-one update gives, and the same pose's gain drops as it should."""
     robot = load_krang()
     from krang_pose_server.pool import generate_pool
+
     pool = generate_pool(50, seed=3, robot=robot).joints
     beta = robot.nominal_beta
-    sel = AdaptiveSelector(robot, pool, settle_s=1e6)       # cost negligible: pure information
+    sel = AdaptiveSelector(robot, pool, settle_s=1e6)  # cost negligible: pure information
     cov = np.diag(np.full(robot.n_beta, 1e-4))
     score, gain, move, before, after = sel.scores(beta, cov, pool[0])
     assert np.all(gain > 0) and np.all(after <= before + 1e-15)
@@ -56,6 +62,7 @@ def test_adaptive_choice_prefers_the_pose_that_removes_the_uncertainty():
     assert choice.index == int(np.argmax(gain))
     from krang_com_estimator.estimators import pitch_sensitivity
     from krang_model.com import balance_pitch, phi
+
     q = balance_pitch(robot, pool[choice.index][None], beta)
     g = phi(robot, q, pool[choice.index][None])[0]
     r = (sel.sigma_pitch * pitch_sensitivity(robot, q, pool[choice.index][None], beta)[0]) ** 2
@@ -63,14 +70,15 @@ def test_adaptive_choice_prefers_the_pose_that_removes_the_uncertainty():
     cov2 = cov - np.outer(k, g @ cov)
     _, gain2, _, before2, _ = sel.scores(beta, cov2, pool[0])
     assert before2 == pytest.approx(after[choice.index], rel=1e-9)
-    s = g @ cov @ g                  # the same row again is worth r / (2 s + r) of its first time
+    s = g @ cov @ g  # the same row again is worth r / (2 s + r) of its first time
     assert gain2[choice.index] == pytest.approx(gain[choice.index] * r / (2 * s + r), rel=1e-6)
-    assert sel.choose(beta, cov2, pool[0]).index != choice.index           # never twice
+    assert sel.choose(beta, cov2, pool[0]).index != choice.index  # never twice
 
 
 def test_move_cost_steers_the_choice_to_near_poses():
     robot = load_krang()
     from krang_pose_server.pool import generate_pool
+
     pool = generate_pool(200, seed=4, robot=robot).joints
     cov = np.diag(np.full(robot.n_beta, 1e-4))
     free = AdaptiveSelector(robot, pool, settle_s=1e6).scores(robot.nominal_beta, cov, pool[0])
@@ -89,8 +97,9 @@ def test_few_truths_few_poses_fast():
 @pytest.mark.slow
 @pytest.mark.timeout(5400)
 def test_ten_truths_twelve_poses_under_a_millimetre():
-    result = run(Params(truth_seeds=tuple(range(7100, 7110)), n_poses=12,
-                        selections=('adaptive',)))
+    result = run(
+        Params(truth_seeds=tuple(range(7100, 7110)), n_poses=12, selections=('adaptive',))
+    )
     complete, final = _check_sessions(result, 12)
     assert all(complete)
     assert np.median(final) < 1.0e-3
@@ -100,13 +109,25 @@ def test_ten_truths_twelve_poses_under_a_millimetre():
 def test_report_draws_both_selections_and_writes_the_json(tmp_path):
     from krang_experiments.many_truths import report, summarise
     import json
+
     params = Params(truth_seeds=(1, 2), n_poses=2)
-    runs = {'fixed': [{'curve_m': [0.015, 0.004, 0.002], 'learned': 2, 'failures': []},
-                      {'curve_m': [0.013], 'learned': 0, 'failures': [[0, 'left balance']]}],
-            'adaptive': [{'curve_m': [0.015, 0.003, 0.001], 'learned': 2, 'failures': []},
-                         {'curve_m': [0.013, 0.002, 0.0009], 'learned': 2, 'failures': []}]}
-    result = {'params': params, 'truths': [{'seed': 1}, {'seed': 2}], 'runs': runs,
-              'summary': summarise(runs, 2), 'wall_s': 1.0}
+    runs = {
+        'fixed': [
+            {'curve_m': [0.015, 0.004, 0.002], 'learned': 2, 'failures': []},
+            {'curve_m': [0.013], 'learned': 0, 'failures': [[0, 'left balance']]},
+        ],
+        'adaptive': [
+            {'curve_m': [0.015, 0.003, 0.001], 'learned': 2, 'failures': []},
+            {'curve_m': [0.013, 0.002, 0.0009], 'learned': 2, 'failures': []},
+        ],
+    }
+    result = {
+        'params': params,
+        'truths': [{'seed': 1}, {'seed': 2}],
+        'runs': runs,
+        'summary': summarise(runs, 2),
+        'wall_s': 1.0,
+    }
     text = report(result, tmp_path)
     assert 'fixed: 1/2 complete' in text and 'adaptive: 2/2 complete' in text
     assert (tmp_path / 'many_truths.png').stat().st_size > 0

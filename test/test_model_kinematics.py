@@ -101,7 +101,8 @@ def test_static_regressor_of_pinocchio(krang):
 
 def test_phi_matches_the_authors_finite_differences(krang):
     """The authors' phi: central differences of M*x_com on m_i and the local CoM c_i, chain-ruled
-    to (m, m c) and divided by the nominal mass (FACTS §8) — computed here through pinocchio."""
+    to (m, m c) and divided by the nominal mass (krang_model/README.md), computed here through
+    pinocchio."""
     q_base, joints = random_poses(krang, 3, seed=4)
     model = krang.model.copy()
     data = model.createData()

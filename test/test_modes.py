@@ -1,20 +1,33 @@
 """Mode machine, transition by transition, with the 2018 hardware's guards (docs/control.md)."""
+
 import math
 from dataclasses import replace
 
 import pytest
 
-from krang_adrc_controller.modes import (GROUND_LO_GAINS, SIT_GAINS, STAND_GAINS, Mode,
-                                         ModeInputs, ModeMachine, ModesConfig, SafetyConfig,
-                                         pd_currents)
+from krang_adrc_controller.modes import (
+    GROUND_LO_GAINS,
+    SIT_GAINS,
+    STAND_GAINS,
+    Mode,
+    ModeInputs,
+    ModeMachine,
+    ModesConfig,
+    SafetyConfig,
+    pd_currents,
+)
 from krang_model.drivetrain import drivetrain
 from krang_model.robot import load_krang
 
 DEG = math.pi / 180
 H = 0.0333
 #: the 2018 hardware's guards, where the shipped configuration differs (its docs say why)
-HARDWARE = ModesConfig(stand_error_min_rad=-10.0 * DEG, balance_imu_min_rad=-101.0 * DEG,
-                       sit_waist_min_rad=150.0 * DEG, sit_imu_limit_rad=-103.0 * DEG)
+HARDWARE = ModesConfig(
+    stand_error_min_rad=-10.0 * DEG,
+    balance_imu_min_rad=-101.0 * DEG,
+    sit_waist_min_rad=150.0 * DEG,
+    sit_imu_limit_rad=-103.0 * DEG,
+)
 
 
 def machine(safety=SafetyConfig(), **kw):
@@ -22,8 +35,9 @@ def machine(safety=SafetyConfig(), **kw):
 
 
 def inp(t, **kw):
-    base = dict(imu_pitch=-101.5 * DEG, theta_com=-5 * DEG, dtheta=0.0, waist=160 * DEG,
-                last_sensor_t=t)
+    base = dict(
+        imu_pitch=-101.5 * DEG, theta_com=-5 * DEG, dtheta=0.0, waist=160 * DEG, last_sensor_t=t
+    )
     base.update(kw)
     return ModeInputs(t=t, **base)
 
@@ -40,8 +54,10 @@ def test_starts_sitting_with_ground_gains():
     assert out.gains == GROUND_LO_GAINS and not out.zero_torque and not out.entered
 
 
-@pytest.mark.parametrize('theta_deg,ok', [(-12, False), (-10.01, False), (-10, True), (-5, True),
-                                          (0, True), (0.5, False)])
+@pytest.mark.parametrize(
+    'theta_deg,ok',
+    [(-12, False), (-10.01, False), (-10, True), (-5, True), (0, True), (0.5, False)],
+)
 def test_stand_guard_com_angle_error_in_minus10_to_0_deg(theta_deg, ok):
     m = machine()
     out = m.step(inp(0.0, theta_com=theta_deg * DEG, stand_request=True))
@@ -83,7 +99,7 @@ def test_settle_timer_restarts_when_interrupted():
     standing(m)
     m.step(inp(0.1, imu_pitch=-95 * DEG))
     m.step(inp(0.9, imu_pitch=-95 * DEG))
-    m.step(inp(1.0, imu_pitch=-95 * DEG, dtheta=0.04))          # breaks the run
+    m.step(inp(1.0, imu_pitch=-95 * DEG, dtheta=0.04))  # breaks the run
     assert m.step(inp(1.5, imu_pitch=-95 * DEG)).mode is Mode.STAND_UP
     assert m.step(inp(2.4, imu_pitch=-95 * DEG)).mode is Mode.STAND_UP
     assert m.step(inp(2.5, imu_pitch=-95 * DEG)).mode is Mode.BALANCE
@@ -147,7 +163,7 @@ def test_stale_sensors_stop_and_block_reset():
     m = machine(SafetyConfig(stale_timeout_s=0.1), stand_settle_s=0.0)
     balancing(m)
     assert m.step(inp(1.00, last_sensor_t=0.95, imu_pitch=-90 * DEG)).mode is Mode.BALANCE
-    out = m.step(inp(1.06, last_sensor_t=0.95, imu_pitch=-90 * DEG))     # 0.11 s old
+    out = m.step(inp(1.06, last_sensor_t=0.95, imu_pitch=-90 * DEG))  # 0.11 s old
     assert out.mode is Mode.SAFE_STOP and out.zero_torque
     out = m.step(inp(1.2, last_sensor_t=0.95, reset_request=True))
     assert out.mode is Mode.SAFE_STOP and any('reset_refused' in e for e in out.events)
@@ -166,8 +182,10 @@ def test_optional_fall_guard():
 
 
 def test_pd_currents_by_hand():
-    lim = dict(spin_limit_a=ModesConfig().spin_limit_a,
-               current_limit_a=drivetrain(load_krang()).current_limit)
+    lim = dict(
+        spin_limit_a=ModesConfig().spin_limit_a,
+        current_limit_a=drivetrain(load_krang()).current_limit,
+    )
     assert lim == {'spin_limit_a': 30.0, 'current_limit_a': 49.0}
     e = (0.02, -0.1, 0.5, 0.2, 0.0, 0.0)
     u = 277.4 * 0.02 + 61.889 * -0.1 + 7.4484 * 0.5 + 18.235 * 0.2

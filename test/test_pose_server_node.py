@@ -1,6 +1,7 @@
 """pose_server over ROS, as a process under a namespace: next_pose is refused unless the
 controller balances and while a move is under way, and a move stops when the controller leaves
 balance; every name moves with __ns."""
+
 import subprocess
 import sys
 import time
@@ -22,10 +23,23 @@ NS = '/robot7'
 
 @pytest.fixture
 def pose_server(tmp_path):
-    proc = subprocess.Popen([sys.executable, '-m', 'krang_ros.entry', 'pose_server', '--ros-args',
-                             '-r', f'__ns:={NS}', '-p', 'selection:=fixed'],
-                            cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                            text=True)
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            '-m',
+            'krang_ros.entry',
+            'pose_server',
+            '--ros-args',
+            '-r',
+            f'__ns:={NS}',
+            '-p',
+            'selection:=fixed',
+        ],
+        cwd=tmp_path,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
     context = rclpy.Context()
     rclpy.init(context=context)
     node = Node('pose_server_probe', namespace=NS, context=context)
@@ -59,12 +73,13 @@ def call(node, context, client):
 def test_next_pose_waits_for_the_controller(pose_server):
     proc, node, context = pose_server
     commands = []
-    node.create_subscription(JointState, names.relative(names.JOINT_POSITION_CMD),
-                             commands.append, 10)
+    node.create_subscription(
+        JointState, names.relative(names.JOINT_POSITION_CMD), commands.append, 10
+    )
     mode = node.create_publisher(String, names.relative(names.MODE), topics.LATCHED)
-    client = node.create_client(Trigger, f'{NS}/pose_server/next_pose')   # moved with __ns
+    client = node.create_client(Trigger, f'{NS}/pose_server/next_pose')  # moved with __ns
 
-    reply = call(node, context, client)          # no controller yet
+    reply = call(node, context, client)  # no controller yet
     assert not reply.success and 'not balancing' in reply.message
     mode.publish(String(data='sit'))
     spin(node, context, 0.5)
@@ -72,8 +87,9 @@ def test_next_pose_waits_for_the_controller(pose_server):
     assert not reply.success and 'mode: sit' in reply.message
 
     joint_states = node.create_publisher(JointState, names.relative(names.JOINT_STATES), 10)
-    joint_states.publish(messages.joint_state(node.get_clock().now().to_msg(),
-                                              load_krang().pose_joints, [0.0] * 16))
+    joint_states.publish(
+        messages.joint_state(node.get_clock().now().to_msg(), load_krang().pose_joints, [0.0] * 16)
+    )
     mode.publish(String(data='balance'))
     spin(node, context, 0.5)
     reply = call(node, context, client)

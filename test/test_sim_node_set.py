@@ -1,12 +1,15 @@
-"""The balancing node set as processes: sim_krang, can_bridge and adrc_controller on udp_multicast buses.
+"""The balancing node set as processes: sim_krang, can_bridge and adrc_controller on udp_multicast
+buses.
 
-Unpaced (real_time_factor 0), the simulator runs in lockstep as fast as the control loop answers, and
-the robot must keep balancing, however loaded the machine. Faults: the robot stands up and balances; then sim_krang's fault injection silences a device (it stops transmitting,
-as a broken TX line would). The bridge must cut the wheel current within the device's silence timeout
-(the drives, which still listen, apply zero), and the controller must go to safe stop within the silence
-timeout plus its own stale timeout.
-Times are the simulator's: the moment the fault took effect (sim_krang's `silent_since_s`), the ground truth
-of the applied currents, the controller's diagnostics stamp."""
+Unpaced (real_time_factor 0), the simulator runs in lockstep as fast as the control loop answers,
+and the robot must keep balancing, however loaded the machine. Faults: the robot stands up and
+balances; then sim_krang's fault injection silences a device (it stops transmitting, as a broken TX
+line would). The bridge must cut the wheel current within the device's silence timeout (the drives,
+which still listen, apply zero), and the controller must go to safe stop within the silence timeout
+plus its own stale timeout. Times are the simulator's: the moment the fault took effect
+(sim_krang's `silent_since_s`), the ground truth of the applied currents, the controller's
+diagnostics stamp."""
+
 import contextlib
 
 import pytest
@@ -14,7 +17,7 @@ import pytest
 pytestmark = pytest.mark.ros
 
 rclpy = pytest.importorskip('rclpy')
-pytest.importorskip('msgpack')                      # python-can's udp_multicast needs it
+pytest.importorskip('msgpack')  # python-can's udp_multicast needs it
 
 from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
 from rcl_interfaces.srv import SetParameters  # noqa: E402
@@ -26,19 +29,22 @@ from krang_can_bridge.config import load_devices  # noqa: E402
 from krang_cli.node_set import params_files  # noqa: E402
 from krang_cli.processes import NodeSet  # noqa: E402
 from krang_model.config import load_config  # noqa: E402
-from krang_ros import topics  # noqa: E402
+from krang_ros import names, topics  # noqa: E402
 from krang_ros.session_client import open_session_client  # noqa: E402
 from krang_ros.names import GROUND_TRUTH  # noqa: E402
 from krang_sim.node import GROUND_TRUTH_FIELDS  # noqa: E402
 from krang_sim.session_config import session_devices_file  # noqa: E402
 
 NODES = ('sim_krang', 'can_bridge', 'adrc_controller')
-TRUTH_PERIOD_S = 0.1            # sim_krang publishes the ground truth at 10 Hz: a zero current is seen this late
-DELIVERY_SLACK_S = 0.05         # a frame or message in flight when the deadline passes
+TRUTH_PERIOD_S = (
+    0.1  # sim_krang publishes the ground truth at 10 Hz: a zero current is seen this late
+)
+DELIVERY_SLACK_S = 0.05  # a frame or message in flight when the deadline passes
 
 
 def stale_timeout_s():
-    """The controller's stale timeout as the sim node set runs it (sim_params.yaml over controller.yaml)."""
+    """The controller's stale timeout as the sim node set runs it (sim_params.yaml over
+    controller.yaml)."""
     value = ControllerConfig().safety.stale_timeout_s
     for path in params_files(sim=True, extra=()):
         section = load_config(path).get('adrc_controller', {}).get('ros__parameters', {})
@@ -50,14 +56,18 @@ class Observer:
     """What the tests need to see, on the session client's node."""
 
     def __init__(self, client):
-        self.truth = []                         # (t, current_left, current_right)
-        self.truth_rows = []                    # every ground-truth field by name
+        self.truth = []  # (t, current_left, current_right)
+        self.truth_rows = []  # every ground-truth field by name
         self.fault_at = None
         self.safe_stop_at = None
-        self.sim = {}                           # sim_krang's latest diagnostics values
+        self.sim = {}  # sim_krang's latest diagnostics values
         client.create_subscription(Float64MultiArray, GROUND_TRUTH, self.on_truth, 50)
-        client.create_subscription(DiagnosticArray, topics.DIAGNOSTICS, self.on_diagnostics,
-                                   topics.QOS[topics.DIAGNOSTICS])
+        client.create_subscription(
+            DiagnosticArray,
+            names.DIAGNOSTICS,
+            self.on_diagnostics,
+            topics.QOS[names.DIAGNOSTICS],
+        )
 
     def on_truth(self, msg):
         row = dict(zip(GROUND_TRUTH_FIELDS, msg.data))
@@ -71,7 +81,11 @@ class Observer:
                 self.sim = values
             if status.name == 'sim_krang' and 'silent_since_s' in values and self.fault_at is None:
                 self.fault_at = float(values['silent_since_s'])
-            if status.name == 'adrc_controller' and values.get('mode') == 'safe_stop' and self.safe_stop_at is None:
+            if (
+                status.name == 'adrc_controller'
+                and values.get('mode') == 'safe_stop'
+                and self.safe_stop_at is None
+            ):
                 self.safe_stop_at = msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
 
 
@@ -104,11 +118,12 @@ def balancing_robot(tmp_path):
 
 @pytest.mark.timeout(240)
 def test_unpaced_simulation_keeps_balancing(tmp_path):
-    """real_time_factor 0: no pacing, only the lockstep. The robot balances on: it stays in BALANCE and
-    its true pitch stays within 0.05 rad of the true balance pitch (bench_sim_speed.py gives the speed)."""
+    """real_time_factor 0: no pacing, only the lockstep. The robot balances on: it stays in BALANCE
+    and its true pitch stays within 0.05 rad of the true balance pitch (bench_sim_speed.py gives
+    the speed)."""
     with balancing_node_set(tmp_path, real_time_factor=0.0) as (client, observer, _):
         start = len(observer.truth_rows)
-        observer.safe_stop_at = None            # the one before the enable does not count
+        observer.safe_stop_at = None  # the one before the enable does not count
         misses = int(observer.sim['lockstep_misses'])
         client.pause(8.0)
         truth = observer.truth_rows[start:]
@@ -133,17 +148,32 @@ def silence(client, device):
 def test_silent_device_stops_the_wheels_and_the_controller(balancing_robot, device):
     client, observer, devices = balancing_robot
     assert client.mode == 'balance'
-    assert any(abs(left) > 0 for _, left, _ in observer.truth[-10:]), 'the balancing robot draws current'
-    observer.safe_stop_at = None                # the one before the enable does not count
+    assert any(abs(left) > 0 for _, left, _ in observer.truth[-10:]), (
+        'the balancing robot draws current'
+    )
+    observer.safe_stop_at = None  # the one before the enable does not count
     silence(client, device)
-    client.spin_until(lambda: observer.fault_at is not None and observer.safe_stop_at is not None, 10.0,
-                      'the fault and the safe stop')
+    client.spin_until(
+        lambda: observer.fault_at is not None and observer.safe_stop_at is not None,
+        10.0,
+        'the fault and the safe stop',
+    )
     client.pause(1.0)
     t0 = observer.fault_at
-    silence_timeout = devices.imu.silence_timeout_s if device == 'imu' else devices.wheels.silence_timeout_s
+    silence_timeout = (
+        devices.imu.silence_timeout_s if device == 'imu' else devices.wheels.silence_timeout_s
+    )
     after = [(t, left, right) for t, left, right in observer.truth if t > t0]
     zero_from = next(t for t, left, right in after if left == 0.0 and right == 0.0)
-    assert zero_from - t0 <= silence_timeout + TRUTH_PERIOD_S + DELIVERY_SLACK_S, (zero_from - t0, after[:5])
-    assert all(left == 0.0 and right == 0.0 for t, left, right in after if t >= zero_from), 'current came back'
-    # the bridge passes the device's last reading on until it knows it silent, then the controller's input ages
-    assert 0.0 < observer.safe_stop_at - t0 <= silence_timeout + stale_timeout_s() + DELIVERY_SLACK_S
+    assert zero_from - t0 <= silence_timeout + TRUTH_PERIOD_S + DELIVERY_SLACK_S, (
+        zero_from - t0,
+        after[:5],
+    )
+    assert all(left == 0.0 and right == 0.0 for t, left, right in after if t >= zero_from), (
+        'current came back'
+    )
+    # the bridge passes the device's last reading on until it knows it silent, then the
+    # controller's input ages
+    assert (
+        0.0 < observer.safe_stop_at - t0 <= silence_timeout + stale_timeout_s() + DELIVERY_SLACK_S
+    )
