@@ -58,6 +58,7 @@ import can
 import canopen
 from diagnostic_msgs.msg import DiagnosticArray
 import rclpy
+from rclpy._rclpy_pybind11 import RCLError
 from rclpy.node import Node
 from sensor_msgs.msg import Imu, JointState
 from std_msgs.msg import String
@@ -336,7 +337,12 @@ class CanBridgeNode(Node):
             )
         self.send(stop)
         if out is not None:
-            out[0].publish(out[1])
+            try:
+                out[0].publish(out[1])
+            except RCLError:
+                if self.context.ok():
+                    raise
+                return  # shut down by a signal under this thread; close() follows
             self.published[out[2]] += 1
         if bus == self.config.wheels.bus and not msg.is_error_frame:
             # SDO responses for the start-up

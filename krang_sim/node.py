@@ -40,6 +40,7 @@ import can
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
+from rclpy._rclpy_pybind11 import RCLError
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rosgraph_msgs.msg import Clock
@@ -372,7 +373,13 @@ class SimKrangNode(Node):
                 clock = Clock()
                 clock.clock.sec, nanosec = divmod(int(round(self.sim.t * 1e9)), 1_000_000_000)
                 clock.clock.nanosec = nanosec
-                self.clock_pub.publish(clock)
+                try:
+                    self.clock_pub.publish(clock)
+                except RCLError:
+                    if self.context.ok():
+                        raise
+                    break  # shut down by a signal under this thread: close() ends the rest
+
             k += 1
             factor = self.factor
             if factor <= 0 and self.lockstep and not self.armed():
