@@ -10,6 +10,7 @@ from krang_bag.reader import message_counts
 from krang_bag.session_report import session_figures
 from krang_model.beta import load_beta, save_beta
 from krang_model.robot import load_krang
+from krang_model.files import write_text
 from krang_sim.session_config import session_devices_file, sim_truth_file
 from krang_sim.truths import generate_truth
 
@@ -189,4 +190,4 @@ def write_report(out, result, curve, lateral, figures, counts, wall, args, failu
     lines += ['', '| topic | messages |', '|---|---|']
     lines += [f'| `{t}` | {n} |' for t, n in sorted(counts.items())]
     lines += [''] + [f'![{p.stem}]({p.name})' for p in figures]
-    (out / 'report.md').write_text('\n'.join(lines) + '\n')
+    write_text(out / 'report.md', '\n'.join(lines) + '\n')

@@ -120,7 +120,7 @@ def register(subparsers):
 def run(args):
     robot = load_krang()
     beta0 = load_beta(args.beta0, robot, row=args.row)
-    q_base, joints, _ = load_poses(args.poses, KRANG_POSE_COLUMNS)
+    q_base, joints, _ = load_poses(args.poses, KRANG_POSE_COLUMNS, (robot.lower, robot.upper))
     if len(q_base) == 0:
         raise ValueError(f'{args.poses}: no poses')
     noise = est.NoiseModel(

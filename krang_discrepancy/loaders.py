@@ -9,6 +9,7 @@ train of krang_model.drivetrain.
 from __future__ import annotations
 
 import csv
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -46,7 +47,9 @@ def load_csv_record(path, rate_hz=None) -> Record:
     resampled to uniform (the logs jitter between 1 and 42 ms)."""
     path = Path(path)
     with open(path, newline='') as f:
-        header = next(csv.reader(f))
+        header = next(csv.reader(f), None)
+    if not header:
+        raise ValueError(f'{path}: empty file, not a balancing log')
     need = (
         'dt_s',
         'i_cmd_left_A',
@@ -59,8 +62,21 @@ def load_csv_record(path, rate_hz=None) -> Record:
     missing = [c for c in need if c not in header]
     if missing:
         raise ValueError(f'{path}: not a balancing log, missing columns {missing}')
-    data = np.loadtxt(path, delimiter=',', skiprows=1, ndmin=2)
+    try:
+        with warnings.catch_warnings():  # a header-only file is reported below, in one line
+            warnings.simplefilter('ignore', UserWarning)
+            data = np.loadtxt(path, delimiter=',', skiprows=1, ndmin=2)
+    except ValueError as err:
+        raise ValueError(f'{path}: unreadable row ({err})') from None
+    if data.shape[0] < 3 or data.shape[1] != len(header):
+        raise ValueError(f'{path}: {data.shape[0]} data rows of {len(header)} columns; a record '
+                         'needs at least three')
     col = {c: data[:, header.index(c)] for c in need}
+    for c in need:
+        bad = np.flatnonzero(~np.isfinite(col[c]))
+        if bad.size:
+            raise ValueError(f'{path}: {c} is NaN or infinite in {bad.size} rows (first: data '
+                             f'row {bad[0] + 1})')
     t = np.cumsum(col['dt_s'])
     keep = np.concatenate([[True], np.diff(t) > 0])
     t = t[keep]

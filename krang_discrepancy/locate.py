@@ -25,6 +25,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from krang_model.wip import reduce_pose
+from krang_model.files import save_figure
 
 from .phases import PHASES
 from .record import CHANNEL_UNITS, CHANNELS
@@ -330,7 +331,7 @@ def plot_location(loc: Location, replay: Replay, out_dir, record_index=None) -> 
         ncol=5,
     )
     fig.tight_layout(rect=(0, 0.04, 1, 1))
-    fig.savefig(out_dir / 'locate_timeseries.png', dpi=90)
+    save_figure(fig, out_dir / 'locate_timeseries.png', dpi=90)
     plt.close(fig)
     files.append('locate_timeseries.png')
     # per-phase bars
@@ -355,7 +356,7 @@ def plot_location(loc: Location, replay: Replay, out_dir, record_index=None) -> 
         ax.axhline(0, color='k', lw=0.5)
     axes[0].legend(fontsize=8)
     fig.tight_layout()
-    fig.savefig(out_dir / 'locate_phases.png', dpi=90)
+    save_figure(fig, out_dir / 'locate_phases.png', dpi=90)
     plt.close(fig)
     files.append('locate_phases.png')
     fig, ax = plt.subplots(figsize=(6, 3.5))
@@ -369,7 +370,7 @@ def plot_location(loc: Location, replay: Replay, out_dir, record_index=None) -> 
     ax.set_title('prediction-error autocorrelation (dashed: horizon)')
     ax.legend(fontsize=8)
     fig.tight_layout()
-    fig.savefig(out_dir / 'locate_acf.png', dpi=90)
+    save_figure(fig, out_dir / 'locate_acf.png', dpi=90)
     plt.close(fig)
     files.append('locate_acf.png')
     return files

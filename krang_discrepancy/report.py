@@ -36,6 +36,7 @@ from .effects import ModelTerms, apply_effects, get_effect, library
 from .locate import PHASE_COLOURS, locate, plot_location, shade_phases
 from .naming import NamingConfig, extended_terms, name_effects, per_record_values, per_third_values
 from .verdict import MAX_GAP, residual_structure
+from krang_model.files import atomic_open, save_figure, write_text
 
 FORMAT = 'krang_discrepancy/extended_model/1'
 
@@ -128,7 +129,7 @@ def write_extended_model(
         doc.update(extra)
     if gaps:
         doc['gap'] = gaps
-    with open(path, 'w') as f:
+    with atomic_open(path, 'w') as f:
         f.write(
             '# Extended Krang model found by `krang discrepancy`. `sim_effects` are keyword '
             'arguments\n'
@@ -206,7 +207,7 @@ def _plot_evidence(result, out_dir):
     ax.set_xlabel('held-out improvement (share of the robust prediction loss removed)')
     ax.set_title('candidate effects (green: selected; dotted: minimum effect size)', fontsize=10)
     fig.tight_layout()
-    fig.savefig(out_dir / 'naming_evidence.png', dpi=90)
+    save_figure(fig, out_dir / 'naming_evidence.png', dpi=90)
     plt.close(fig)
     return 'naming_evidence.png'
 
@@ -275,7 +276,7 @@ def _plot_gap(replay: Replay, base, ext, out_dir, record_index, t_span=8.0):
         ax.legend(handles=ax.get_legend_handles_labels()[0] + bands, fontsize=8, loc='upper right')
         ax.set_xlim(t0 - 0.2, t0 + t_span + 0.5)
     fig.tight_layout()
-    fig.savefig(out_dir / 'gap_timeseries.png', dpi=90)
+    save_figure(fig, out_dir / 'gap_timeseries.png', dpi=90)
     plt.close(fig)
     return 'gap_timeseries.png'
 
@@ -309,7 +310,7 @@ def _plot_gap_bars(per_phase, out_dir):
         ax.set_title(f'RMS {key[4:]} prediction error at the horizon ({unit})')
         ax.legend(fontsize=8)
     fig.tight_layout()
-    fig.savefig(out_dir / 'gap_phases.png', dpi=90)
+    save_figure(fig, out_dir / 'gap_phases.png', dpi=90)
     plt.close(fig)
     return 'gap_phases.png'
 
@@ -408,7 +409,6 @@ def run_discrepancy(
     timing = {}
     t = time.perf_counter()
     out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
     records = (
         [r for r in measured if not isinstance(r, (str, Path))]
         if isinstance(measured, (list, tuple))
@@ -421,6 +421,7 @@ def run_discrepancy(
     )
     if paths:
         records += load_measured(paths, rate_hz)
+    out_dir.mkdir(parents=True, exist_ok=True)  # only once the input is known to be readable
     if rate_hz is None and len({round(r.period, 6) for r in records}) > 1:
         # one clock for all: the slowest record's rate
         period = max(r.period for r in records)
@@ -575,7 +576,7 @@ def run_discrepancy(
         timing,
     )
     timing['report_s'] = time.perf_counter() - t
-    with open(out_dir / 'result.json', 'w') as f:
+    with atomic_open(out_dir / 'result.json', 'w') as f:
         json.dump(_plain(js), f, indent=1)
     return {
         'json': js,
@@ -933,7 +934,7 @@ def _write_report(
     L.append('## JSON\n')
     L.append('```json\n' + json.dumps(_plain(js)) + '\n```\n')
     L.append('Stage timings (s): ' + ', '.join(f'{k} {v:.2f}' for k, v in timing.items()) + '\n')
-    Path(path).write_text('\n'.join(L))
+    write_text(path, '\n'.join(L))
 
 
 def ambiguity(result) -> str:

@@ -13,6 +13,7 @@ from krang_adrc_controller.controller import load_controller_config
 from krang_sim.closed_loop import TABLE2_POSE, ClosedLoop, Disturbance, shifted_beta
 
 from .common import setup, subplots
+from krang_model.files import save_figure, write_text
 
 
 @dataclass
@@ -180,7 +181,7 @@ def report(result, out_dir):
         f'balance-point observer) vs plain LQR'
     )
     fig.tight_layout()
-    fig.savefig(out / 'adrc_vs_lqr.png', dpi=110)
+    save_figure(fig, out / 'adrc_vs_lqr.png', dpi=110)
     lines = [
         f'# ADRC vs plain LQR with a wrong CoM ({100 * params.shift:.1f} cm)',
         '',
@@ -218,6 +219,6 @@ def report(result, out_dir):
                 f'{ph["rest_current_std_a"]:.2f} | {ph["theta_error_rad"]:.4f} | '
                 f'{ph["balance_trim_rad"]:.4f} |'
             )
-    (out / 'report.md').write_text('\n'.join(lines) + '\n')
-    (out / 'summary.json').write_text(json.dumps(result['summary'], indent=1))
+    write_text(out / 'report.md', '\n'.join(lines) + '\n')
+    write_text(out / 'summary.json', json.dumps(result['summary'], indent=1))
     return '\n'.join(lines)

@@ -42,6 +42,7 @@ from krang_com_estimator import estimators as est
 from krang_model.com import balance_pitch, base_regressor, phi as phi_fn
 from krang_model.poses import load_poses
 from krang_model.robot import KRANG_POSE_COLUMNS, load_krang
+from krang_model.files import save_figure, write_text
 from krang_pose_server.erroneous_betas import authors_betas
 from krang_pose_server.filtering import filter_poses
 from krang_pose_server.pool import PosePool
@@ -712,7 +713,7 @@ def plot_curves(curves, path):
         'Learning curves, 0.1 deg IMU noise on q_base, mean over runs and 1000 held-out poses'
     )
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    save_figure(fig, path, dpi=110)
 
 
 def plot_real(curve, path):
@@ -728,7 +729,7 @@ def plot_real(curve, path):
     ax.legend(fontsize=8)
     ax.set_title('Real Krang data: 10-fold CV on the 189 hand-balanced records')
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    save_figure(fig, path, dpi=110)
 
 
 @dataclass
@@ -777,8 +778,9 @@ def report(result, out_dir):
         plot_curves(result['curves'], out_dir / 'learning_curves.png')
     if result['real_curve'] is not None:
         plot_real(result['real_curve'], out_dir / 'real_data.png')
-    (out_dir / 'learning_results.json').write_text(
-        json.dumps(result['results'], indent=1, default=_jsonable)
+    write_text(
+        out_dir / 'learning_results.json',
+        json.dumps(result['results'], indent=1, default=_jsonable),
     )
 
 

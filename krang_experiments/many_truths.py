@@ -24,6 +24,7 @@ from krang_model.com import com_error
 from krang_model.config import config_path
 from krang_model.poses import load_poses
 from krang_model.robot import KRANG_POSE_COLUMNS, load_krang
+from krang_model.files import save_figure, write_text
 from krang_pose_server.pool import generate_pool
 from krang_pose_server.selection import AdaptiveSelector
 from krang_sim.closed_loop import run_online_session
@@ -157,7 +158,7 @@ def report(result, out_dir):
     )
     ax.legend(fontsize=8)
     fig.tight_layout()
-    fig.savefig(out / 'many_truths.png', dpi=110)
+    save_figure(fig, out / 'many_truths.png', dpi=110)
     doc = {
         'params': asdict(params),
         'truths': result['truths'],
@@ -165,7 +166,7 @@ def report(result, out_dir):
         'wall_s': result['wall_s'],
         'runs': {s: [{k: v for k, v in r.items()} for r in rs] for s, rs in runs.items()},
     }
-    (out / 'many_truths.json').write_text(json.dumps(doc, indent=1, default=float))
+    write_text(out / 'many_truths.json', json.dumps(doc, indent=1, default=float))
     lines = [
         f'{s}: {v["complete"]}/{v["sessions"]} complete, median '
         f'{1000 * v["median_final_m"]:.2f} mm, worst {1000 * v["worst_final_m"]:.2f} mm '

@@ -16,6 +16,7 @@ from krang_com_estimator.estimators import make_estimator
 from krang_discrepancy.report import load_extended_model
 from krang_model.beta import save_beta
 from krang_model.com import balance_pitch, com_error
+from krang_model.files import atomic_open, save_figure, write_text
 from krang_pose_server.pool import generate_pool
 from krang_sim.closed_loop import TABLE2_POSE, run_balance, run_online_session, stand_pose
 from krang_sim.physics import SimConfig
@@ -322,11 +323,12 @@ def report(result, out_dir):
     delta_t2, wall, n_held = result['delta_t2'], result['wall_s'], result['n_held']
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    np.savetxt(out / 'learned_betas.txt', betas, fmt='%.12g')
+    with atomic_open(out / 'learned_betas.txt', 'w') as f:
+        np.savetxt(f, betas, fmt='%.12g')
     if params.runs:
         for name, beta in result['rows']:
             save_beta(out / f'{name.replace(" ", "_")}.txt', beta, result['robot'])
-    (out / 'table2.json').write_text(json.dumps(result['summary'], indent=1))
+    write_text(out / 'table2.json', json.dumps(result['summary'], indent=1))
     # --- 4. figures
     shown = [n for n in traces if traces[n]]
     fig, ax = subplots(
@@ -352,7 +354,7 @@ def report(result, out_dir):
         fontsize=10,
     )
     fig.tight_layout()
-    fig.savefig(out / 'power_traces.png', dpi=110)
+    save_figure(fig, out / 'power_traces.png', dpi=110)
     fig, ax = subplots(3, 1, figsize=(10, 8), sharex=True)
     for name, (t, i, x, q) in standup.items():
         m = t <= 12.0
@@ -366,7 +368,7 @@ def report(result, out_dir):
     ax[0].legend(fontsize=8, ncol=4)
     ax[0].set_title('stand-up per beta: ' + ctl_desc, fontsize=9)
     fig.tight_layout()
-    fig.savefig(out / 'standup.png', dpi=110)
+    save_figure(fig, out / 'standup.png', dpi=110)
     fig, ax = subplots(1, 2, figsize=(11, 3.6))
     ax[0].plot(100 * np.asarray(curve))
     ax[0].set_xlabel('GD updates (poses learned online)')
@@ -380,7 +382,7 @@ def report(result, out_dir):
             for a in ax:
                 a.axvline(n - 1, color='grey', lw=0.5)
     fig.tight_layout()
-    fig.savefig(out / 'learning_curve.png', dpi=110)
+    save_figure(fig, out / 'learning_curve.png', dpi=110)
     # --- 5. report
     cmd = (
         f'krang experiment table2 --out {out_dir} --runs {params.runs} --poses {params.poses} '
@@ -471,5 +473,5 @@ def report(result, out_dir):
         '![learning curve](learning_curve.png)',
         '',
     ]
-    (out / 'report.md').write_text('\n'.join(lines) + '\n')
+    write_text(out / 'report.md', '\n'.join(lines) + '\n')
     return '\n'.join(lines)

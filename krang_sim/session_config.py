@@ -8,6 +8,7 @@ import yaml
 
 from krang_can_bridge.config import default_devices_file, load_devices
 from krang_model.config import config_path, load_config
+from krang_model.files import write_text
 
 
 def resolve_config_file(name, default):
@@ -45,7 +46,7 @@ def session_devices_file(directory, port=None):
     }
     path = Path(directory) / 'can_devices_session.yaml'
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(
-        '# generated for one simulated session\n' + yaml.safe_dump(doc, sort_keys=False)
+    write_text(
+        path, '# generated for one simulated session\n' + yaml.safe_dump(doc, sort_keys=False)
     )
     return path
