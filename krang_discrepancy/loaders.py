@@ -69,14 +69,17 @@ def load_csv_record(path, rate_hz=None) -> Record:
     except ValueError as err:
         raise ValueError(f'{path}: unreadable row ({err})') from None
     if data.shape[0] < 3 or data.shape[1] != len(header):
-        raise ValueError(f'{path}: {data.shape[0]} data rows of {len(header)} columns; a record '
-                         'needs at least three')
+        raise ValueError(
+            f'{path}: {data.shape[0]} data rows of {len(header)} columns; a record '
+            'needs at least three'
+        )
     col = {c: data[:, header.index(c)] for c in need}
     for c in need:
         bad = np.flatnonzero(~np.isfinite(col[c]))
         if bad.size:
-            raise ValueError(f'{path}: {c} is NaN or infinite in {bad.size} rows (first: data '
-                             f'row {bad[0] + 1})')
+            raise ValueError(
+                f'{path}: {c} is NaN or infinite in {bad.size} rows (first: data row {bad[0] + 1})'
+            )
     t = np.cumsum(col['dt_s'])
     keep = np.concatenate([[True], np.diff(t) > 0])
     t = t[keep]

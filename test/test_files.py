@@ -139,16 +139,29 @@ def test_cli_bad_input_is_one_line_without_traceback(tmp_path, capsys, robot):
     assert len(err) == 1 and str(cut) in err[0] and 'Traceback' not in err[0]
 
 
-@pytest.mark.parametrize('content, message', [('', 'empty file'), ('header', '0 data rows'),
-                                              ('nan', 'NaN or infinite')])
+@pytest.mark.parametrize(
+    'content, message', [('', 'empty file'), ('header', '0 data rows'), ('nan', 'NaN or infinite')]
+)
 def test_discrepancy_bad_log_is_one_line_and_no_output(tmp_path, capsys, content, message):
     from krang_discrepancy.loaders import CSV_JOINT_COLUMNS
-    header = ['dt_s', 'i_cmd_left_A', 'i_cmd_right_A', 'dtheta_com_rad_s', 'x_wheel_rad',
-              'dx_wheel_rad_s', 'q_base_rad', *CSV_JOINT_COLUMNS]
+
+    header = [
+        'dt_s',
+        'i_cmd_left_A',
+        'i_cmd_right_A',
+        'dtheta_com_rad_s',
+        'x_wheel_rad',
+        'dx_wheel_rad_s',
+        'q_base_rad',
+        *CSV_JOINT_COLUMNS,
+    ]
     rows = [['0.03'] + ['0.1'] * (len(header) - 1) for _ in range(10)]
     rows[4][2] = 'nan'
-    text = {'': '', 'header': ','.join(header) + '\n',
-            'nan': '\n'.join(','.join(r) for r in [header] + rows) + '\n'}[content]
+    text = {
+        '': '',
+        'header': ','.join(header) + '\n',
+        'nan': '\n'.join(','.join(r) for r in [header] + rows) + '\n',
+    }[content]
     path = tmp_path / 'log.csv'
     path.write_text(text)
     out = tmp_path / 'report'
