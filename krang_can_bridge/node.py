@@ -264,24 +264,26 @@ class CanBridgeNode(Node):
 
         qos = topics.QOS
         self.joint_pub = self.create_publisher(
-            JointState, names.JOINT_STATES, qos[names.JOINT_STATES]
+            JointState, names.relative(names.JOINT_STATES), qos[names.JOINT_STATES]
         )
-        self.imu_pub = self.create_publisher(Imu, names.IMU, qos[names.IMU])
+        self.imu_pub = self.create_publisher(Imu, names.relative(names.IMU), qos[names.IMU])
         self.diag_pub = self.create_publisher(
-            DiagnosticArray, names.DIAGNOSTICS, qos[names.DIAGNOSTICS]
+            DiagnosticArray, names.relative(names.DIAGNOSTICS), qos[names.DIAGNOSTICS]
         )
-        self.fault_pub = self.create_publisher(String, names.DRIVE_FAULT, topics.LATCHED)
+        self.fault_pub = self.create_publisher(
+            String, names.private(names.DRIVE_FAULT), topics.LATCHED
+        )
         self.publish_fault()
         self.create_service(Trigger, '~/recover', self.on_recover)
         self.create_subscription(
             JointState,
-            names.WHEEL_EFFORT_CMD,
+            names.relative(names.WHEEL_EFFORT_CMD),
             self.on_wheel_effort,
             qos[names.WHEEL_EFFORT_CMD],
         )
         self.create_subscription(
             JointState,
-            names.JOINT_POSITION_CMD,
+            names.relative(names.JOINT_POSITION_CMD),
             self.on_joint_position,
             qos[names.JOINT_POSITION_CMD],
         )

@@ -58,9 +58,12 @@ class StatePublisherNode(Node):
         description.publish(String(data=self.frames.urdf_text))
         qos = topics.QOS
         self.create_subscription(
-            JointState, names.JOINT_STATES, self.on_joint_states, qos[names.JOINT_STATES]
+            JointState,
+            names.relative(names.JOINT_STATES),
+            self.on_joint_states,
+            qos[names.JOINT_STATES],
         )
-        self.create_subscription(Imu, names.IMU, self.on_imu, qos[names.IMU])
+        self.create_subscription(Imu, names.relative(names.IMU), self.on_imu, qos[names.IMU])
         if TFMessage is None:
             self.tf_pub = None
             self.get_logger().warning(

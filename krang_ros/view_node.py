@@ -29,11 +29,21 @@ class LiveViewNode(Node):
         self.port = self.view.start(port, host)
         qos = topics.QOS
         sub = self.create_subscription
-        sub(JointState, names.JOINT_STATES, self.on_joint_states, qos[names.JOINT_STATES])
-        sub(Imu, names.IMU, self.on_imu, qos[names.IMU])
+        sub(
+            JointState,
+            names.relative(names.JOINT_STATES),
+            self.on_joint_states,
+            qos[names.JOINT_STATES],
+        )
+        sub(Imu, names.relative(names.IMU), self.on_imu, qos[names.IMU])
         sub(Float64MultiArray, names.BETA, self.on_beta, qos[names.BETA])
         sub(PointStamped, names.COM, self.on_com, qos[names.COM])
-        sub(DiagnosticArray, names.DIAGNOSTICS, self.on_diagnostics, qos[names.DIAGNOSTICS])
+        sub(
+            DiagnosticArray,
+            names.relative(names.DIAGNOSTICS),
+            self.on_diagnostics,
+            qos[names.DIAGNOSTICS],
+        )
         sub(String, CONTROLLER_MODE, lambda msg: self.view.on_mode(msg.data), LATCHED)
         self.create_timer(1.0 / rate_hz, self.view.publish)
         self.create_timer(1.0, self.view.publish_scene)

@@ -240,15 +240,15 @@ class SimKrangNode(Node):
         if self.lockstep:
             self.create_subscription(
                 JointState,
-                names.WHEEL_EFFORT_CMD,
+                names.relative(names.WHEEL_EFFORT_CMD),
                 self.on_effort_command,
                 qos[names.WHEEL_EFFORT_CMD],
             )
         self.truth_pub = self.create_publisher(
-            Float64MultiArray, names.GROUND_TRUTH, qos[names.GROUND_TRUTH]
+            Float64MultiArray, names.private(names.GROUND_TRUTH), qos[names.GROUND_TRUTH]
         )
         self.diag_pub = self.create_publisher(
-            DiagnosticArray, names.DIAGNOSTICS, qos[names.DIAGNOSTICS]
+            DiagnosticArray, names.relative(names.DIAGNOSTICS), qos[names.DIAGNOSTICS]
         )
         self.create_timer(0.1, self.publish_truth)
         self.create_timer(1.0, self.publish_diagnostics)
