@@ -122,14 +122,17 @@ HARDWARE_CSV_COLUMNS = {
 }
 
 
-def load_hardware_csv(path) -> BalancingRun:
-    """A kit balancing log (balancing_runs/*/*.csv, 33-beta-testing state dump + header)."""
+def read_log_columns(path, need, optional=(), min_rows=2) -> dict:
+    """{column: values} of a kit balancing log (CSV with a header), checked: every `need` column
+    present, at least `min_rows` rows, every value of the columns read finite. Each problem is a
+    ValueError naming the file (one line on the command line). `krang metrics` and the
+    discrepancy workflow both read the kit's logs through this."""
     path = Path(path)
     with open(path, newline='') as f:
         header = next(csv.reader(f), None)
     if not header:
         raise ValueError(f'{path}: empty file, not a balancing log')
-    missing = [c for c in HARDWARE_CSV_COLUMNS if c not in header and c != 'q_base_rad']
+    missing = [c for c in need if c not in header]
     if missing:
         raise ValueError(f'{path}: not a balancing log, missing columns {missing}')
     try:
@@ -138,23 +141,27 @@ def load_hardware_csv(path) -> BalancingRun:
             data = np.loadtxt(path, delimiter=',', skiprows=1, ndmin=2)
     except ValueError as err:
         raise ValueError(f'{path}: unreadable row ({err})') from None
-    if data.shape[0] < 2 or data.shape[1] != len(header):
+    if data.shape[0] < min_rows or data.shape[1] != len(header):
         raise ValueError(
-            f'{path}: {data.shape[0]} data rows of {len(header)} columns; a run needs at least two'
+            f'{path}: {data.shape[0]} data rows of {len(header)} columns; a run needs at least '
+            f'{min_rows}'
         )
-    cols = {
-        HARDWARE_CSV_COLUMNS[c]: data[:, i]
-        for i, c in enumerate(header)
-        if c in HARDWARE_CSV_COLUMNS
-    }
-    for name, column in zip(header, data.T):
-        bad = np.flatnonzero(~np.isfinite(column))
-        if name in HARDWARE_CSV_COLUMNS and bad.size:
+    cols = {c: data[:, header.index(c)] for c in (*need, *optional) if c in header}
+    for c, values in cols.items():
+        bad = np.flatnonzero(~np.isfinite(values))
+        if bad.size:
             raise ValueError(
-                f'{path}: {name} is NaN or infinite in {bad.size} rows (first: data '
-                f'row {bad[0] + 1})'
+                f'{path}: {c} is NaN or infinite in {bad.size} rows (first: data row {bad[0] + 1})'
             )
-    return BalancingRun(t=np.cumsum(cols['dt']), name=path.stem, source=str(path), **cols)
+    return cols
+
+
+def load_hardware_csv(path) -> BalancingRun:
+    """A kit balancing log (balancing_runs/*/*.csv, 33-beta-testing state dump + header)."""
+    need = [c for c in HARDWARE_CSV_COLUMNS if c != 'q_base_rad']
+    cols = read_log_columns(path, need, optional=('q_base_rad',))
+    run = {HARDWARE_CSV_COLUMNS[c]: v for c, v in cols.items()}
+    return BalancingRun(t=np.cumsum(run['dt']), name=Path(path).stem, source=str(path), **run)
 
 
 def run_from_record(rec, drive: Drivetrain | None = None) -> BalancingRun:

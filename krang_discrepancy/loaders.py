@@ -8,12 +8,11 @@ train of krang_model.drivetrain.
 
 from __future__ import annotations
 
-import csv
-import warnings
 from pathlib import Path
 
 import numpy as np
 
+from krang_adrc_controller.metrics import read_log_columns
 from krang_bag.reader import iter_messages, read_float_arrays, read_joint_states
 from krang_model.drivetrain import drivetrain
 from krang_model.robot import load_krang
@@ -46,10 +45,6 @@ def load_csv_record(path, rate_hz=None) -> Record:
     The command logged in row k was sent in loop k, so it is held from t_k to t_k+1. The clock is
     resampled to uniform (the logs jitter between 1 and 42 ms)."""
     path = Path(path)
-    with open(path, newline='') as f:
-        header = next(csv.reader(f), None)
-    if not header:
-        raise ValueError(f'{path}: empty file, not a balancing log')
     need = (
         'dt_s',
         'i_cmd_left_A',
@@ -59,27 +54,7 @@ def load_csv_record(path, rate_hz=None) -> Record:
         'dx_wheel_rad_s',
         'q_base_rad',
     ) + CSV_JOINT_COLUMNS
-    missing = [c for c in need if c not in header]
-    if missing:
-        raise ValueError(f'{path}: not a balancing log, missing columns {missing}')
-    try:
-        with warnings.catch_warnings():  # a header-only file is reported below, in one line
-            warnings.simplefilter('ignore', UserWarning)
-            data = np.loadtxt(path, delimiter=',', skiprows=1, ndmin=2)
-    except ValueError as err:
-        raise ValueError(f'{path}: unreadable row ({err})') from None
-    if data.shape[0] < 3 or data.shape[1] != len(header):
-        raise ValueError(
-            f'{path}: {data.shape[0]} data rows of {len(header)} columns; a record '
-            'needs at least three'
-        )
-    col = {c: data[:, header.index(c)] for c in need}
-    for c in need:
-        bad = np.flatnonzero(~np.isfinite(col[c]))
-        if bad.size:
-            raise ValueError(
-                f'{path}: {c} is NaN or infinite in {bad.size} rows (first: data row {bad[0] + 1})'
-            )
+    col = read_log_columns(path, need, min_rows=3)
     t = np.cumsum(col['dt_s'])
     keep = np.concatenate([[True], np.diff(t) > 0])
     t = t[keep]
