@@ -82,6 +82,7 @@ class AdrcControllerNode(Node):
         self.imu = None
         self.joint_state = None
         self.target = None
+        self.answered_stamp = None  # header stamp of the last imu/data sample stepped on
         self.mode = None
         self.converged = None
         qos = topics.QOS
@@ -279,10 +280,13 @@ class AdrcControllerNode(Node):
             )
         out = self.controller.step(sample, stale=stale)
         self.last_output = out
-        # stamped with the sample it answers (sim_krang's lockstep, latency measurements)
+        # stamped with the sample it answers (sim_krang's lockstep, latency measurements); a
+        # timer step answers no new sample and repeats the last sample's stamp
+        if stamp is not None:
+            self.answered_stamp = stamp
         self.effort_pub.publish(
             messages.wheel_effort(
-                stamp or self.get_clock().now().to_msg(),
+                self.answered_stamp or self.get_clock().now().to_msg(),
                 WHEELS,
                 (out.torque_left, out.torque_right),
             )

@@ -131,10 +131,6 @@ class SimNodeParams:
             )
 
 
-#: Lockstep waits only for commands answering a sample at most this old (simulated s): a few
-#: sample periods, for the bridge's sample stamps are anchored at the first sample's arrival.
-ANSWER_WINDOW_S = 0.05
-
 #: SimEffects fields that are ROS parameters `effects.<name>` (the hidden physical effects).
 EFFECT_FIELDS = tuple(
     f for f in dataclasses.fields(SimEffects) if isinstance(f.default, (float, str))
@@ -229,8 +225,8 @@ class SimKrangNode(Node):
         )
         self.answered = threading.Condition(self.lock)
         self.rpdo_seen = set()  # drives whose current frame came in since the last sample
-        self.command_at = -math.inf  # wall time of the last /wheel_effort_cmd
-        self.command_stamp = -math.inf  # the sample stamp it answered (simulated time)
+        self.command_at = -math.inf  # wall time of the last command answering a new sample
+        self.command_stamp = -math.inf  # the sample stamp it answered
         self.lockstep_misses = 0
         self.lockstep_wait_s = 0.0
         self.rpdo_ids = {w.codec.ids[amc_proto.RPDO_CURRENT] for w in self.devices.wheels.values()}
@@ -313,19 +309,17 @@ class SimKrangNode(Node):
         self.publish_diagnostics()
 
     def on_effort_command(self, msg):
-        self.command_at = time.monotonic()
-        self.command_stamp = messages.stamp_seconds(msg.header.stamp)
+        stamp = messages.stamp_seconds(msg.header.stamp)
+        if stamp != self.command_stamp:  # answers a new sample (a repeat keeps the old stamp)
+            self.command_at = time.monotonic()
+            self.command_stamp = stamp
 
     def armed(self):
-        """Lockstep holds while wheel commands come (within lockstep_timeout_s of wall time) that
-        answer recent samples: a controller that repeats its last command with an old stamp (its
-        IMU silent) is not answering, and the simulated time must go on for its stale-sensor
-        check to fire."""
-        return (
-            self.lockstep
-            and time.monotonic() - self.command_at <= self.lockstep_timeout
-            and self.sim.t - self.command_stamp <= ANSWER_WINDOW_S
-        )
+        """Lockstep holds while wheel commands answering new samples come (within
+        lockstep_timeout_s of wall time): a controller that repeats its last command under the old
+        stamp (its IMU silent) is not answering, and the simulated time must go on for its
+        stale-sensor check to fire."""
+        return self.lockstep and time.monotonic() - self.command_at <= self.lockstep_timeout
 
     def wait_for_answer(self):
         """Lockstep: hold the physics until every drive's current frame answered the last sample
