@@ -9,28 +9,10 @@ import pytest
 from krang_model.drivetrain import drivetrain, stack
 from krang_model.robot import load_krang
 from krang_model.wip import WipDynamics, linearize, reduce_pose, reduce_poses
+from krang_sim.closed_loop import TABLE2_POSE
 
 # the Table II upper-body pose with the waist at 2.2 rad: balances forward of the caster
-POSE = np.array(
-    [
-        2.2,
-        0.0749392,
-        1.00799,
-        -1.113,
-        -0.000251086,
-        -1.59399,
-        0.0370958,
-        1.02202,
-        -0.0209895,
-        -0.854931,
-        1.113,
-        0.000271173,
-        1.561,
-        -0.0280979,
-        -1.052,
-        0.0210068,
-    ]
-)
+POSE = np.concatenate([[2.2], TABLE2_POSE[1:]])  # the Table II pose, waist at 2.2 rad
 FIELDS = ('mass', 'com_distance', 'com_offset', 'inertia_axle', 'yaw_inertia', 'com_offset_full')
 
 

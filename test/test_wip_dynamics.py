@@ -11,6 +11,7 @@ from krang_model.com import balance_pitch, com_frame0
 from krang_model.robot import load_krang, load_wip7
 from krang_model.drivetrain import drivetrain
 from krang_model.wip import WipDynamics, linearize, reduce_pose
+from krang_sim.closed_loop import TABLE2_POSE
 
 POSE = np.array(
     [
@@ -30,28 +31,6 @@ POSE = np.array(
         -1.19,
         1.43,
         -1.67,
-    ]
-)
-# the upper-body pose of the Table II stand-up runs (waist 2.755 rad; balancing_runs/table2, first
-# row)
-TABLE2_POSE = np.array(
-    [
-        2.75467,
-        0.0749392,
-        1.00799,
-        -1.113,
-        -0.000251086,
-        -1.59399,
-        0.0370958,
-        1.02202,
-        -0.0209895,
-        -0.854931,
-        1.113,
-        0.000271173,
-        1.561,
-        -0.0280979,
-        -1.052,
-        0.0210068,
     ]
 )
 
