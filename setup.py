@@ -41,6 +41,7 @@ setup(
         'test': [
             'pytest',
             'pytest-timeout',
+            'pytest-rerunfailures',
             'rosbags',
             'colcon-common-extensions',
             'ruff',
