@@ -233,7 +233,7 @@ def both_driven(peer, at=None):
 
 
 # The peer-drive rigs start three processes; in one full-suite run of five the bridge's start-up
-# did not enable the peer within 30 s (cause not found; alone it never failed in 10 runs).
+# did not enable the peer within 30 s (cause not found; alone it never failed in 8 runs).
 # One rerun with a fresh rig; the assertions are unchanged (README, Known issues).
 @pytest.mark.flaky(reruns=1)
 @pytest.mark.timeout(120)
