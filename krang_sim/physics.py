@@ -66,7 +66,9 @@ class SensorNoise:
     gyro_lsb_rad_s: float = math.radians(0.008)  # DMU: 0.008 deg/s per LSB
     accel_lsb_m_s2: float = 0.0003 * 9.80665  # DMU: 0.0003 g per LSB
     accel_std_m_s2: float = 0.02
-    encoder_counts_per_rad: float = 4000 * 15 / (2 * math.pi)  # motor encoder through the gearbox
+    # motor encoder through the gearbox; the device map (config/can_devices.yaml, wheels) is the
+    # one source the bridge reads, and test_sim_physics checks this default against it
+    encoder_counts_per_rad: float = 4000 * 15 / (2 * math.pi)
     joint_std_rad: float = 1e-4
 
 

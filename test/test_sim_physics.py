@@ -155,3 +155,12 @@ def test_effects_are_values_of_the_true_drive_train(krang):
         s.state[2] = 1.0  # rolling forward
         s.step(50)
     assert slow.state[2] < free.state[2] - 0.05  # the rolling resistance brakes the wheels
+
+
+def test_simulated_encoder_resolution_is_the_device_maps():
+    """The simulator's default encoder resolution is the one the bridge decodes with."""
+    from krang_can_bridge.config import load_devices
+    from krang_sim.physics import SensorNoise
+
+    wheels = load_devices().wheels
+    assert SensorNoise().encoder_counts_per_rad == pytest.approx(wheels.counts_per_wheel_rad)
