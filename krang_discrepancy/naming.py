@@ -4,7 +4,8 @@ the evidence, or ``none``.
 
 Procedure (``name_effects``):
 
-1. Scales. The nominal model's residuals on the fitting windows give one robust whitening scale per
+1. Scales. The nominal model's residuals on the fitting windows off the caster (the sitting
+   windows are fitted too, but the caster holds the body still) give one robust whitening scale per
    signal and horizon point, sqrt(median(r^2) / 0.455), so pitch, pitch rate, wheel angle and wheel
    rate count alike and a few outlying windows do not set the yardstick.
 2. Folds. Windows are grouped in blocks of ``block_s`` seconds; block b belongs to fold b mod K.
@@ -23,7 +24,9 @@ Procedure (``name_effects``):
    least ``min_improvement`` of the (remaining) held-out loss AND either t >= ``min_t`` or the
    evidence-weighted t (blocks weighted by how much the effect changes the predictions there, see
    ``_compare``) is >= ``min_t`` over at least ``min_weighted_blocks`` effective blocks. Forward up
-   to ``max_effects`` (partners ranked by a conditional scan whose grids hold each effect's zero),
+   to ``max_effects`` (partners ranked by the better of a conditional scan, whose grids hold each
+   effect's zero and its single-fit value, and a joint Gauss-Newton step that lets the accepted
+   values move with the partner, ``_joint_step``),
    with a backward step once a third effect enters (``_drop_redundant``). With a long record an
    information criterion alone admits spurious terms (notes/identification.md §4); the minimum
    effect size on held-out data does not.
@@ -281,13 +284,16 @@ def start_value(effect: Effect, base: ModelTerms) -> float:
     return effect.nominal_value
 
 
-def scan_grid(effect: Effect, base: ModelTerms, n: int = 9) -> np.ndarray:
-    """n points over the effect's bounds plus its zero (the value that leaves `base` unchanged)."""
-    grid = np.linspace(effect.bounds[0], effect.bounds[1], n)
-    return np.unique(np.append(grid, start_value(effect, base)))
+def scan_grid(effect: Effect, base: ModelTerms, n: int = 9, extra=()) -> np.ndarray:
+    """n points over the effect's bounds plus its zero (the value that leaves `base` unchanged)
+    and any `extra` points inside the bounds."""
+    lo, hi = effect.bounds
+    grid = np.linspace(lo, hi, n)
+    more = [float(v) for v in extra if lo <= v <= hi]
+    return np.unique(np.append(grid, [start_value(effect, base), *more]))
 
 
-def _scan(replay, base, effects, windows, n=9, with_loss=False):
+def _scan(replay, base, effects, windows, n=9, with_loss=False, extra=None):
     """Best point of a coarse grid over each effect's bounds, all effects in one batched
     prediction: the start of each single-effect fit, so that no fit begins far from its optimum
     (the actuation-delay loss, for one, is not convex over its whole range). `base` may already
@@ -296,11 +302,11 @@ def _scan(replay, base, effects, windows, n=9, with_loss=False):
     w = np.flatnonzero(windows)
     terms = []
     grids = []
-    for e in effects:
+    for i, e in enumerate(effects):
         # the grid holds the effect's own zero (the value that leaves `base` unchanged): without
         # it an effect whose zero falls between grid points (the wheel radius) starts every
         # conditional scan worse than doing nothing and loses to partners that have theirs
-        grid = scan_grid(e, base, n)
+        grid = scan_grid(e, base, n, () if extra is None else extra[i])
         grids.append(grid)
         terms += [apply_effects(base, [e], [g]) for g in grid]
     pred = replay.predict(terms, w)
@@ -308,6 +314,60 @@ def _scan(replay, base, effects, windows, n=9, with_loss=False):
     loss = np.split(flat, np.cumsum([g.size for g in grids])[:-1])
     best = [float(g[int(np.argmin(v))]) for g, v in zip(grids, loss)]
     return (best, [float(v.min()) for v in loss]) if with_loss else best
+
+
+def _joint_step(replay, base, selected: Fit, partners, windows, lengths=(1.0, 4.0, 16.0, 64.0)):
+    """For each partner (a single-effect Fit), a Gauss-Newton step of the accepted effects plus
+    the partner, from the accepted values and the partner's zero, and the best mean window loss
+    along it: ([values], [loss]). The step's length is searched (``lengths`` x the step): the
+    caster's stiff, unilateral contact makes the local curvature of the sitting windows far larger
+    than the loss's over a physical change (a 0.01 rad IMU bias with the radius it frees: 40x),
+    so the Gauss-Newton step points the right way but falls short. One batched prediction for the
+    shared Jacobian columns, one for the points along the steps."""
+    w = np.flatnonzero(windows)
+    effs, x = list(selected.effects), np.asarray(selected.values, float)
+    lo = np.array([e.bounds[0] for e in effs], float)
+    hi = np.array([e.bounds[1] for e in effs], float)
+    h = _fd_steps(effs, x, lo, hi)
+    terms = [apply_effects(base, effs, x)]
+    terms += [apply_effects(base, effs, x + np.eye(x.size)[k] * h[k]) for k in range(x.size)]
+    starts, hp = [], []
+    for f in partners:
+        e = f.effects[0]
+        x0 = float(start_value(e, base))
+        step = float(_fd_steps([e], np.array([x0]), *np.array([e.bounds]).T)[0])
+        starts.append(x0)
+        hp.append(step)
+        terms.append(apply_effects(base, effs + [e], np.append(x, x0 + step)))
+    z = ((replay.measured[w][None] - replay.predict(terms, w)) / replay.scales).reshape(
+        len(terms), -1
+    )
+    js = ((z[1 : 1 + x.size] - z[0]) / h[:, None]).T
+    points = []
+    for k, f in enumerate(partners):
+        e = f.effects[0]
+        jac = np.column_stack([js, (z[1 + x.size + k] - z[0]) / hp[k]])
+        _, grad, hess = _cost_grad_hess(z[0], jac)
+        hess = hess + 1e-6 * np.diag(np.maximum(np.diag(hess), 1e-12))
+        try:
+            step = -np.linalg.solve(hess, grad)
+        except np.linalg.LinAlgError:
+            step = np.zeros(x.size + 1)
+        lo_k, hi_k = np.append(lo, e.bounds[0]), np.append(hi, e.bounds[1])
+        x_k = np.append(x, starts[k])
+        points.append([np.clip(x_k + a * step, lo_k, hi_k) for a in lengths])
+    terms = [
+        apply_effects(base, effs + [f.effects[0]], p)
+        for f, pts in zip(partners, points)
+        for p in pts
+    ]
+    loss = replay.window_loss(replay.measured[w][None] - replay.predict(terms, w)).mean(axis=1)
+    loss = loss.reshape(len(partners), len(lengths))
+    best = np.argmin(loss, axis=1)
+    return (
+        [points[k][best[k]] for k in range(len(partners))],
+        [float(loss[k, best[k]]) for k in range(len(partners))],
+    )
 
 
 def _blocks(replay: Replay, block_s: float, folds: int):
@@ -555,13 +615,28 @@ def name_effects(
             # (ranking by their single improvement would try the near-duplicates of the accepted
             # effect first: slope, IMU bias, payload and encoder offset all shift the balance)
             cond = extended_terms(base, selected)
+            # each partner's grid also holds its single-fit value: a small effect (an IMU bias of
+            # 0.01 rad between grid points 0.075 apart) otherwise scans as no better than nothing
+            # and is never tried, while a near-duplicate whose grid happens to fit is
             starts, losses = _scan(
-                replay, cond, [f.effects[0] for f in rest], replay.active, with_loss=True
+                replay,
+                cond,
+                [f.effects[0] for f in rest],
+                replay.active,
+                with_loss=True,
+                extra=[f.values for f in rest],
             )
+            x0s = [list(selected.values) + [v] for v in starts]
+            # the scan holds the accepted values fixed; one joint Gauss-Newton step also lets them
+            # move (an IMU bias lets a radius that absorbed the sitting offset return)
+            steps, step_losses = _joint_step(replay, base, selected, rest, replay.active)
+            for i, (xs, ls) in enumerate(zip(steps, step_losses)):
+                if ls < losses[i]:
+                    losses[i], x0s[i] = ls, list(xs)
             order = np.argsort(losses)[: cfg.combo_candidates]
             partners = [rest[i] for i in order]
             sets = [selected.effects + p.effects for p in partners]
-            x0s = [list(selected.values) + [starts[i]] for i in order]
+            x0s = [x0s[i] for i in order]
             fits = fit_candidates(
                 replay,
                 base,

@@ -161,9 +161,11 @@ class Replay:
         return self.win_t.size
 
     def select(self, phases=None):
-        """Restrict ``active`` (the windows fits use) to these phases (None: all but sitting)."""
+        """Restrict ``active`` (the windows fits use) to these phases (None: all of them). The
+        sitting windows are evidence too: the pitch on the caster is fixed by the caster geometry,
+        the wheel radius, the floor slope and the IMU bias, with no model of the body or drives."""
         if phases is None:
-            phases = tuple(p for p in PHASES if p != 'sitting')
+            phases = PHASES
         self.phases = tuple(phases)
         self.active = np.isin(self.win_phase, self.phases)
         return self.active
@@ -420,10 +422,15 @@ class Replay:
 
     # ------------------------------------------------------------------ scales and gaps
     def set_scales(self, residual0, windows=None):
-        """Whitening scales (E, 4) from the nominal residuals on the active windows: a robust RMS,
-        sqrt(median(r^2) / 0.455) (= the standard deviation for Gaussian residuals), so that a few
-        outlying windows do not set the yardstick."""
-        w = self.active if windows is None else windows
+        """Whitening scales (E, 4) from the nominal residuals on the active windows off the caster
+        (all active ones if none is): a robust RMS, sqrt(median(r^2) / 0.455) (= the standard
+        deviation for Gaussian residuals), so that a few outlying windows do not set the
+        yardstick. The caster holds the body still, so sitting windows would shrink the scales
+        to the sensor noise there and make every moving window count as an outlier."""
+        if windows is None:
+            moving = self.active & (self.win_phase != 'sitting')
+            windows = moving if np.any(moving) else self.active
+        w = windows
         r = residual0[w] if residual0.ndim == 3 else residual0[0][w]
         self.scales = np.sqrt(np.median(r**2, axis=0) / 0.4549) + 1e-12
         return self.scales

@@ -88,8 +88,13 @@ def simulate_record(
     )
     # the dataclass defaults, not config/controller.yaml: test data must not change when the
     # deployed controller is retuned. The paper's law, as on the hardware runs (no balance-point
-    # observer).
-    paper_law = ControllerConfig().override({'balance_point.enabled': False})
+    # observer). The stand window reaches 0.1 rad further back than the hardware's: a hidden
+    # floor slope or larger wheels tilt the sitting robot back with the caster geometry, and the
+    # -12 deg window (the Table II pose sits at -11.2 deg) would refuse to stand on a 0.02 rad
+    # slope; the records of the nominal plant are unchanged (they stand at once either way).
+    paper_law = ControllerConfig().override(
+        {'balance_point.enabled': False, 'modes.stand_error_min_rad': -0.30944}
+    )
     ctl = BalanceController(robot, beta, controller_config or paper_law)
     n_sub = int(round(ctl.h / sim.config.dt))
     rng = np.random.default_rng(seed + 7919)

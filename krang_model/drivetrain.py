@@ -7,6 +7,7 @@ body: the named effects of the simulator and of `krang discrepancy` (wheel radiu
 slope, torque constant) are values of these fields. A field may hold a numpy array: ``stack`` makes
 one Drivetrain of P parameter sets that broadcasts in ``WipDynamics``."""
 
+import math
 from dataclasses import dataclass, fields, replace
 
 import numpy as np
@@ -28,15 +29,33 @@ class Drivetrain:
     ground_viscous: float  # N m s, wheel relative to ground
     coulomb_friction: float  # N m per wheel
     yaw_friction: float  # N m s
-    caster_pitch: float  # rad, base pitch where the caster touches
+    caster_pitch: float  # rad, IMU pitch on the caster with caster_pitch_wheel_radius, level floor
     caster_stiffness: float
     caster_damping: float
+    caster_distance: float  # m, wheel axle to the caster wheel's centre
+    caster_radius: float  # m, caster wheel
+    caster_pitch_wheel_radius: float  # m, the wheel radius at which caster_pitch holds
     gravity: float = 9.81
     floor_slope: float = 0.0
 
     @property
     def reflected_rotor_inertia(self):
         return 2.0 * self.gear_ratio**2 * self.rotor_inertia
+
+    @property
+    def caster_contact_pitch(self):
+        """IMU pitch (rad) at which the caster touches the floor. The wheels hold the axle one
+        wheel radius r above the floor, so the caster wheel (radius r_c, centre d from the axle,
+        fixed in the body) touches where d cos(q + slope - gamma) = r_c - r: a larger wheel tilts
+        the body further back onto the caster (dq/dr = -1/sqrt(d^2 - (r - r_c)^2), the caster's
+        horizontal lever arm), a floor rising forward tilts it back with the floor. gamma is fixed
+        by ``caster_pitch`` at ``caster_pitch_wheel_radius`` on a level floor, so the nominal
+        drive train touches at exactly ``caster_pitch`` (krang_model/README.md, Dynamics)."""
+        r, r0 = self.wheel_radius, self.caster_pitch_wheel_radius
+        acos = np.arccos if isinstance(r, np.ndarray) else math.acos
+        rc, dist = self.caster_radius, self.caster_distance
+        shift = acos((rc - r0) / dist) - acos((rc - r) / dist)
+        return self.caster_pitch + shift - self.floor_slope
 
 
 def stack(drives):
@@ -72,6 +91,9 @@ def drivetrain(robot, **overrides):
         caster_pitch=c['contact_pitch_rad'],
         caster_stiffness=c['stiffness_Nm_per_rad'],
         caster_damping=c['damping_Nm_s_per_rad'],
+        caster_distance=c['wheel_centre_distance_m'],
+        caster_radius=c['wheel_radius_m'],
+        caster_pitch_wheel_radius=robot.wheel_radius,
         gravity=cfg['environment']['gravity_m_s2'],
         floor_slope=cfg['environment']['floor_slope_rad'],
     )

@@ -191,12 +191,15 @@ class WipDynamics:
         self._yaw_inertia = body.yaw_inertia + 2.0 * (d.wheel_inertia / 2 + self._j / 2) * half**2
         self._yaw_arm = 0.5 * d.track_width / d.wheel_radius
         self._coulomb = _nonzero(d.coulomb_friction)
+        self._caster_pitch = d.caster_contact_pitch
         self._numpy = _is_array(self._mrl, self.body.com_offset, d.floor_slope, d.coulomb_friction)
 
     def caster_torque(self, q_base, dq_base):
-        """The caster's unilateral penalty torque on the body (zero out of contact)."""
+        """The caster's unilateral penalty torque on the body (zero out of contact), at the pitch
+        the caster geometry, the wheel radius and the floor slope give
+        (``Drivetrain.caster_contact_pitch``)."""
         d = self.drive
-        pen = d.caster_pitch - q_base
+        pen = self._caster_pitch - q_base
         if type(pen) is not _ndarray:
             if pen <= 0.0:
                 return 0.0
