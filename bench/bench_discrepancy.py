@@ -12,12 +12,15 @@ of the workflow. The workflow runs as the CLI would, with the whole library, plo
 test/test_discrepancy.py: 22 s records, seed 3, one hidden effect each, plus no effect).
 --hidden runs krang_discrepancy.synthetic.VALIDATION_SUITE (no-effect seeds and noise levels,
 small effects, pairs, effects outside the library): answer, values, 2-sigma coverage, false names.
+--null N runs N no-effect records (seeds 101.., noise x0.5, x1, x2) and counts false names: the
+selection rule's false-positive rate on records.
 --real DIR runs the baseline on all Table II runs of the kit at DIR (balancing_runs/table2) and
 judges one new-tyre run against it, timed.
 """
 
 import argparse
 import json
+import math
 import sys
 import tempfile
 import time
@@ -38,9 +41,12 @@ def main(argv=None):
     ap.add_argument('--validate', action='store_true')
     ap.add_argument('--hidden', action='store_true')
     ap.add_argument('--real', metavar='KIT', default=None)
+    ap.add_argument('--null', type=int, default=0, metavar='N')
     args = ap.parse_args(argv)
     if args.validate:
         return validate(args.seed if args.seed != 1 else 3)
+    if args.null:
+        return null_records(args.null, args.seed if args.seed != 1 else 101)
     if args.hidden:
         return hidden()
     if args.real:
@@ -257,6 +263,24 @@ def hidden():
         f'{sum(abs(c["z"]) <= 2 for c in checks)}/{len(checks)}; false names: '
         f'{sum(len(r["false_names"]) for r in rows)} '
         f'({", ".join(n for r in rows for n in r["false_names"]) or "-"})'
+    )
+    return 0
+
+
+def null_records(n, first_seed):
+    """The selection rule's false-positive rate on records: n no-effect records (seeds from
+    first_seed, sensor noise x0.5, x1, x2 in turn) through the whole workflow; a false name is any
+    named effect. Prints each answer, the count and the 95 % upper bound of the rate."""
+    false = 0
+    for i in range(n):
+        seed, k = first_seed + i, (0.5, 1.0, 2.0)[i % 3]
+        r = hidden_case((f'none seed {seed}, noise x{k:g}', {}, {}, seed, k, {}, ()))
+        false += not r['right'] and r['answer'] != 'unexplained'
+        print(f'{r["case"]}: {r["answer"]} ({r["seconds"]:.1f} s)', flush=True)
+    upper = 1.0 - 0.05 ** (1.0 / n) if false == 0 else math.nan
+    print(
+        f'false names on {false} of {n} no-effect records'
+        + (f' (95 % upper bound of the rate {upper:.1%})' if false == 0 else '')
     )
     return 0
 

@@ -97,8 +97,8 @@ def register(subparsers):
     p.add_argument(
         '--extra-effects',
         action='store_true',
-        help='also consider the optional effects body_inertia (kg m^2), drive_current_limit (A), '
-        'rolling_resistance (N m s) and com_height (m), which the simulator cannot produce',
+        help='also consider the optional effects body_inertia (kg m^2), drive_current_limit (A) '
+        'and com_height (m), which the simulator cannot produce',
     )
     p.add_argument(
         '--effects-module',
@@ -140,7 +140,8 @@ def register(subparsers):
         '--phases',
         default=None,
         metavar='LIST',
-        help='phases used for naming (default: standing_up,balancing,moving_joints,sitting_down)',
+        help='phases used for naming (default: all, sitting,standing_up,balancing,moving_joints,'
+        'sitting_down)',
     )
     p.add_argument(
         '--min-improvement',

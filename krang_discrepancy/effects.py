@@ -10,23 +10,21 @@ its value maps onto ``krang_sim.physics.SimEffects`` so that the extended model 
 
 Built-in effects (``name``: value unit, meaning):
 
-=========================  =========
-===================================================================== imu_pitch_bias
-rad        the IMU reads q_base + bias (a pitch misalignment of the sensor) floor_slope
-rad        the floor rises along the heading (uphill forward is positive) wheel_radius
-m          effective rolling radius (the nominal one is the URDF's) payload                    kg
-an unmodelled point mass rigidly on a named link, at a point of it wheel_viscous_friction     N m s
-extra wheel-to-body viscous friction (both wheels together) wheel_coulomb_friction     N m
-extra Coulomb friction per wheel (as ``krang_model.wip`` models it) torque_constant            N
-m/A      true motor torque constant (the fit estimates true/nominal scale) actuation_delay
-s          transport delay between the commanded and the applied wheel torque encoder_offset
-rad        a body-joint encoder reads q + offset (default joint JWaist) =========================
-=========  =====================================================================
+- ``imu_pitch_bias`` rad: the IMU reads q_base + bias (a pitch misalignment of the sensor)
+- ``floor_slope`` rad: the floor rises along the heading (uphill forward is positive)
+- ``wheel_radius`` m: effective rolling radius (the nominal one is the URDF's); it also moves the
+  sitting pitch through the caster geometry (``Drivetrain.caster_contact_pitch``)
+- ``payload`` kg: an unmodelled point mass rigidly on a named link, at a point of it
+- ``wheel_viscous_friction`` N m s: extra wheel-to-body viscous friction (both wheels together)
+- ``wheel_coulomb_friction`` N m: extra Coulomb friction per wheel (as ``krang_model.wip`` has it)
+- ``torque_constant`` N m/A: true motor torque constant (the fit estimates true/nominal scale)
+- ``actuation_delay`` s: transport delay between the commanded and the applied wheel torque
+- ``encoder_offset`` rad: a body-joint encoder reads q + offset (default joint JWaist)
+- ``rolling_resistance`` N m s: tyre rolling resistance, viscous in the ground speed
 
 Optional effects (``register_optional_effects()``, ``krang discrepancy --extra-effects``):
-body_inertia (kg m^2 about the axle), drive_current_limit (A), rolling_resistance (N m s),
-com_height (m). The simulator cannot produce the first three (only rolling_resistance maps onto
-``SimEffects``), so they are not in the default library; they serve the hardware data.
+body_inertia (kg m^2 about the axle), drive_current_limit (A), com_height (m). The simulator
+cannot produce them, so the per-effect tests cannot check them; they serve the hardware data.
 
 Adding your own effect
 ----------------------
@@ -35,24 +33,6 @@ my_effects`` (a module path or a .py file) imports your module before the run, s
 runs::
 
     from krang_discrepancy.effects import Effect, register_effect
-
-    @register_effect
-    class GroundRollingResistance(Effect):
-        name = 'ground_viscous_friction'
-        unit = 'N m s'
-        bounds = (0.0, 30.0)        # physical range searched by the fit
-        scale = 1.0                 # typical magnitude (finite-difference step, x_scale)
-        description = 'rolling resistance of the tyres, proportional to the ground speed'
-
-        def apply(self, terms, value):
-            terms.add_to_drive(ground_viscous=value)     # any field of the Drivetrain
-
-        def sim_effects(self, value):
-            return {'drive_extra': {'ground_viscous': value}}
-
-A new physical term goes into ``krang_model.wip.WipDynamics`` (its parameter a new field of
-``krang_model.drivetrain.Drivetrain``); an effect then adds to it as above, and the simulator, the
-replay and the controller's design all see it.
 
     # a term the model has no field for: an additive generalised force (N m) on the
     # wheel equation and on the pitch equation, evaluated on arrays of the predicted state
@@ -66,6 +46,14 @@ replay and the controller's design all see it.
 
         def apply(self, terms, value):
             terms.extra_forces.append(lambda s, k=value: (0.0 * s.q_base, -k * (s.q_base + 1.55)))
+
+An effect on a physical term of the model changes a field of the drive train instead:
+``terms.add_to_drive(ground_viscous=value)`` (``rolling_resistance``), and returns the matching
+``SimEffects`` from ``sim_effects`` (``{'drive_extra': {'ground_viscous': value}}``).
+
+A new physical term goes into ``krang_model.wip.WipDynamics`` (its parameter a new field of
+``krang_model.drivetrain.Drivetrain``); an effect then adds to it as above, and the simulator, the
+replay and the controller's design all see it.
 
 ``s`` carries numpy arrays ``phi, q_base, dphi, dq_base, theta, tau`` (the applied total wheel
 torque) and ``t``. ``sim_effects(value)`` (optional) returns the ``SimEffects`` keyword arguments
@@ -374,6 +362,22 @@ class EncoderOffset(Effect):
         return {'encoder_offset_rad': float(value), 'encoder_offset_joint': self.joint}
 
 
+class RollingResistance(Effect):
+    name = 'rolling_resistance'
+    unit = 'N m s'
+    bounds = (0.0, 60.0)
+    scale = 0.5
+    description = (
+        'tyre rolling resistance, viscous in the ground speed (wheel-to-ground, not wheel-to-body)'
+    )
+
+    def apply(self, terms, value):
+        terms.add_to_drive(ground_viscous=value)
+
+    def sim_effects(self, value):
+        return {'drive_extra': {'ground_viscous': float(value)}}
+
+
 # ----------------------------------------------------------------------------- optional effects
 # Not in the default library (the simulator cannot produce most of them, so the per-effect tests
 # cannot check them); `krang discrepancy --extra-effects` or ``register_optional_effects()`` adds
@@ -425,23 +429,7 @@ class ComHeight(Effect):
         terms.com_shift += value
 
 
-class RollingResistance(Effect):
-    name = 'rolling_resistance'
-    unit = 'N m s'
-    bounds = (0.0, 60.0)
-    scale = 0.5
-    description = (
-        'tyre rolling resistance, viscous in the ground speed (wheel-to-ground, not wheel-to-body)'
-    )
-
-    def apply(self, terms, value):
-        terms.add_to_drive(ground_viscous=value)
-
-    def sim_effects(self, value):
-        return {'drive_extra': {'ground_viscous': float(value)}}
-
-
-OPTIONAL_EFFECTS = (BodyInertia, DriveCurrentLimit, RollingResistance, ComHeight)
+OPTIONAL_EFFECTS = (BodyInertia, DriveCurrentLimit, ComHeight)
 
 
 def register_optional_effects():
@@ -465,6 +453,7 @@ BUILTIN_NAMES = (
     'torque_constant',
     'actuation_delay',
     'encoder_offset',
+    'rolling_resistance',
 )
 
 
@@ -548,6 +537,7 @@ def _register_builtins():
         TorqueConstant(),
         ActuationDelay(),
         EncoderOffset('JWaist'),
+        RollingResistance(),
     ):
         register_effect(eff)
 

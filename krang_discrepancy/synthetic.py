@@ -260,6 +260,15 @@ VALIDATION_SUITE = (
         (),
     ),
     (
+        'small rolling_resistance',
+        {'drive_extra': {'ground_viscous': 1.0}},
+        {},
+        29,
+        1.0,
+        {'rolling_resistance': 1.0},
+        (),
+    ),
+    (
         'pair torque_constant + wheel_radius',
         {'torque_constant_scale': 0.85, 'wheel_radius_m': 0.25},
         {},

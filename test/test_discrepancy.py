@@ -72,6 +72,7 @@ CASES = [
     ),
     ('actuation_delay', SimEffects(actuation_delay_s=0.02), 0.02, {}),
     ('encoder_offset', SimEffects(encoder_offset_rad=0.05), 0.05, {'joint': 'JWaist'}),
+    ('rolling_resistance', SimEffects(drive_extra={'ground_viscous': 4.0}), 4.0, {}),
 ]
 VALUE_REL_TOL = 0.05
 MIN_GAP_SHRINK = 2.5

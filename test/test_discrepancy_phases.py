@@ -145,3 +145,51 @@ def test_imu_bias_and_radius_are_told_apart_with_sitting_and_balancing():
     sit = (rec.t > 0.5) & (rec.t < 1.0)
     model_sit = terms.drive.caster_contact_pitch + terms.imu_pitch_bias
     assert float(np.mean(rec.q_base[sit])) == pytest.approx(model_sit, abs=0.003)
+
+
+# ----------------------------------------------------------------------------- several runs
+
+
+@pytest.fixture(scope='module')
+def runs():
+    """Four 22 s runs on a 0.01 rad slope: three with Kt x0.8, one with Kt x0.65."""
+    rec = {}
+    for key, kt, seed in (('a', 0.8, 61), ('b', 0.8, 62), ('c', 0.8, 63), ('odd', 0.65, 64)):
+        eff = SimEffects(floor_slope_rad=0.01, torque_constant_scale=kt)
+        rec[key] = simulate_record(eff, seconds=22.0, hold_s=2.0, seed=seed, name=f'run_{key}')
+    return rec
+
+
+def _joint(recs):
+    from krang_discrepancy.naming import NamingConfig, Fit, per_record_values
+
+    rp = Replay(recs, NominalModel.default(), SIM_REPLAY)
+    base = rp.model.terms()
+    rp.set_scales(rp.residuals([base])[0])
+    effs = [fx.get_effect('floor_slope'), fx.get_effect('torque_constant')]
+    start = Fit(effs, np.array([0.01, 0.75]), np.zeros(2), 0.0, None, None)
+    return per_record_values(rp, base, start, NamingConfig())
+
+
+@pytest.mark.slow
+def test_joint_fit_flags_the_run_whose_value_differs(runs):
+    """Slope shared, Kt per run, fitted together: the odd run's Kt stands out (flag), each run's
+    value within 3 % of its truth; the shared slope is right; with the slope per run and Kt
+    shared, the slope is consistent (a single slope for all runs explains them)."""
+    out = _joint([runs['a'], runs['b'], runs['odd']])
+    assert out['method'] == 'joint' and out['groups'] == ['run_a', 'run_b', 'run_odd']
+    kt = out['effects']['torque_constant']
+    truth = np.array([0.8, 0.8, 0.65]) * DRIVE.torque_constant
+    assert np.allclose(kt['values'], truth, rtol=0.03)
+    assert kt['inconsistent'] and kt['chi2_per_dof'] > 4
+    assert kt['shared']['floor_slope'] == pytest.approx(0.01, rel=0.05)
+    assert not out['effects']['floor_slope']['inconsistent']
+
+
+@pytest.mark.slow
+def test_joint_fit_does_not_flag_runs_that_share_the_value(runs):
+    out = _joint([runs['a'], runs['b'], runs['c']])
+    for key, v in out['effects'].items():
+        assert not v['inconsistent'], (key, v)
+    kt = out['effects']['torque_constant']
+    assert np.allclose(kt['values'], 0.8 * DRIVE.torque_constant, rtol=0.03)
