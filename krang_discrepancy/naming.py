@@ -31,7 +31,8 @@ Procedure (``name_effects``):
    information criterion alone admits spurious terms (notes/identification.md §4); the minimum
    effect size on held-out data does not.
 6. Uncertainty: the larger of the cluster-robust sandwich (``cluster_s`` clusters) and the
-   delete-a-fold jackknife of the fold fits (``_uncertainty``).
+   delete-a-fold jackknife of the fold fits (``_uncertainty``), combined with the discretisation
+   error of the replay (``refine_step``, run by ``krang_discrepancy.report``).
 7. Consistency: ``per_record_values`` / ``per_third_values`` refit the selection per record and
    per third of the records (``split_values``).
 """
@@ -710,6 +711,33 @@ def _drop_redundant(replay, base, selected: Fit, cfg, folds, blocks, nominal):
     best.improvement_vs_nominal = best.improvement
     best.reference = 'nominal (backward step from ' + selected.key + ')'
     return best
+
+
+def refine_step(fine: Replay, base: ModelTerms, fit: Fit, cfg: NamingConfig) -> dict:
+    """Refit the selected effects on `fine`, the same windows replayed with half the integration
+    sub-step, from the values found at the full step; `fit` then holds the finer values, and each
+    uncertainty the noise-based one and the change combined in quadrature. The replay's
+    semi-implicit Euler is first order, so the change from step h to h/2 estimates the
+    discretisation error left at h/2. The noise-based uncertainty does not see it: at the 2 ms
+    default a 5 % torque-constant change came out 0.2 % low, 6 sigma, on records simulated at
+    1 ms (0.03 % at 1 ms). Returns {key: {value_h, value_h2, substep_s}} (reported units)."""
+    lo = np.array([e.bounds[0] for e in fit.effects], float)
+    hi = np.array([e.bounds[1] for e in fit.effects], float)
+    x = _interior(fit.values, lo, hi, margin=1e-4)
+    job = _Job(list(fit.effects), 0, x, lo, hi, _fd_steps(fit.effects, x, lo, hi))
+    _batched_fit(fine, base, [job], [np.flatnonzero(fine.active)], max_iter=cfg.max_nfev)
+    delta = job.x - fit.values
+    out = {
+        e.key: {
+            'value_h': float(e.display(float(v), base)[0]),
+            'value_h2': float(e.display(float(w), base)[0]),
+            'substep_s': fine.substep,
+        }
+        for e, v, w in zip(fit.effects, fit.values, job.x)
+    }
+    fit.values = job.x.copy()
+    fit.uncertainty = np.sqrt(fit.uncertainty**2 + delta**2)
+    return out
 
 
 def extended_terms(base: ModelTerms, fit: Fit | None) -> ModelTerms:

@@ -22,6 +22,7 @@ from __future__ import annotations
 import json
 import math
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -34,7 +35,14 @@ from .record import CHANNEL_UNITS, CHANNELS, resample
 from .replay import Replay, ReplayConfig, gap_metrics
 from .effects import ModelTerms, apply_effects, get_effect, library
 from .locate import PHASE_COLOURS, locate, plot_location, shade_phases
-from .naming import NamingConfig, extended_terms, name_effects, per_record_values, per_third_values
+from .naming import (
+    NamingConfig,
+    extended_terms,
+    name_effects,
+    per_record_values,
+    per_third_values,
+    refine_step,
+)
 from .verdict import MAX_GAP, residual_structure
 from krang_model.files import atomic_open, save_figure, write_text
 
@@ -458,6 +466,13 @@ def run_discrepancy(
     )
     timing['naming_s'] = time.perf_counter() - t
     say(f'named: {result.name}')
+    discretisation = {}
+    if result.selected is not None:
+        t = time.perf_counter()
+        fine = Replay(records, model, replace(replay.cfg, substep_s=replay.substep / 2), phases)
+        fine.scales = replay.scales
+        discretisation = refine_step(fine, base, result.selected, result.config)
+        timing['refine_s'] = time.perf_counter() - t
     t = time.perf_counter()
     structure = residual_structure(
         replay, extended_terms(base, result.selected), result.folds, result.blocks
@@ -539,6 +554,8 @@ def run_discrepancy(
     js = _with_verdict(js, verdict, reason, structure, result, base)
     if base_doc is not None:
         js['baseline'] = str(baseline)
+    if discretisation:
+        js['discretisation'] = discretisation
     if per_record:
         js['per_record'] = per_record
         if split:
@@ -679,8 +696,6 @@ def _with_verdict(js, verdict, reason, structure, result, base):
 
 
 def _resample_record(rec, period):
-    from dataclasses import replace
-
     if abs(rec.period - period) < 1e-9:
         return rec
     grid = np.arange(rec.t[0], rec.t[-1] + 1e-12, period)
