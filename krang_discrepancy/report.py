@@ -43,7 +43,7 @@ from .naming import (
     per_third_values,
     refine_step,
 )
-from .verdict import MAX_GAP, residual_structure
+from .verdict import MAX_GAP, SITTING_TOL, residual_structure, sitting_offset
 from krang_model.files import atomic_open, save_figure, write_text
 
 FORMAT = 'krang_discrepancy/extended_model/1'
@@ -515,7 +515,10 @@ def run_discrepancy(
         if result.selected
         else float(np.nanmean(result.nominal_heldout)),
     }
-    verdict, reason = _verdict(result, structure, gaps_yaml, ref_scales is not None, drift)
+    sitting = sitting_offset(replay, extended_terms(base, result.selected))
+    verdict, reason = _verdict(
+        result, structure, gaps_yaml, ref_scales is not None, drift, sitting
+    )
     say(f'verdict: {verdict}' + (f' ({reason})' if reason else ''))
     r1a = r1[replay.active]
     own = np.sqrt(np.median(r1a**2, axis=0) / 0.4549) + 1e-12
@@ -525,6 +528,7 @@ def run_discrepancy(
         'signature': structure.as_dict(),
         'per_record': per_record,
         'per_third': drift,
+        'sitting_offset': sitting,
         'reference': {
             'scales': own.tolist(),
             'horizon_s': replay.horizon,
@@ -556,6 +560,8 @@ def run_discrepancy(
         js['baseline'] = str(baseline)
     if discretisation:
         js['discretisation'] = discretisation
+    if sitting:
+        js['sitting_offset'] = sitting
     if per_record:
         js['per_record'] = per_record
         if split:
@@ -636,15 +642,22 @@ def _reference_scales(base_doc, replay, say):
     return sc
 
 
-def _verdict(result, structure, gaps_yaml, referenced: bool, drift=None):
+def _verdict(result, structure, gaps_yaml, referenced: bool, drift=None, sitting=None):
     """('unexplained' | 'named' | 'none', reason). Unexplained when the residual after the
-    selected effects is still predictable by generic forces (verdict.py), when a selected effect's
+    selected effects is still predictable by generic forces (verdict.py), when the model's pitch
+    on the caster misses the measured one (``verdict.sitting_offset``), when a selected effect's
     value changes between the thirds of the records (it is not a constant of the robot), or when,
     judged against a baseline's own yardstick, the model is still more than MAX_GAP times its
     typical error off."""
     if structure.significant:
         return 'unexplained', (
             'the residual after the library effects is still structured: ' + structure.sentence()
+        )
+    if (sitting or {}).get('off'):
+        return 'unexplained', (
+            f'the pitch on the caster is {sitting["pooled"]:+.4f} rad off the model after the '
+            'library effects (model-free: the caster geometry, the wheel radius, the floor slope '
+            f'and the IMU bias set it; tolerance {SITTING_TOL:g} rad)'
         )
     moving = [k for k, v in (drift or {}).get('effects', {}).items() if v['inconsistent']]
     if moving:

@@ -230,3 +230,31 @@ def residual_structure(
             st.dominant_hz[ch] = float(f[np.argmax(p)]) if p.size else math.nan
             st.low_share[ch] = float(p[f < 0.5].sum() / max(p.sum(), 1e-300))
     return st
+
+
+#: the model's sitting pitch may miss the measured one by this much before the rest counts as
+#: unexplained, rad: 3x the run-to-run spread of the hardware's sitting pitch (1.2 mrad over the
+#: 20 Table II runs, docs/discrepancy.md §4d)
+SITTING_TOL = 0.004
+
+
+def sitting_offset(replay: Replay, terms) -> dict:
+    """The measured minus the model's pitch on the caster (rad; median over each record's sitting
+    windows, at the end of the horizon, where the contact has settled): model-free evidence the
+    block test cannot weigh when the robot sits for a single block. {'pooled', 'per_record',
+    'windows', 'off'}; 'off' when the pooled offset exceeds ``SITTING_TOL``."""
+    sit = np.flatnonzero(replay.active & (replay.win_phase == 'sitting'))
+    if sit.size == 0:
+        return {}
+    r = replay.residuals([terms], sit)[0][:, -1, 0]
+    per = {
+        replay.records[i].name: float(np.median(r[replay.win_record[sit] == i]))
+        for i in np.unique(replay.win_record[sit])
+    }
+    pooled = float(np.median(r))
+    return {
+        'pooled': pooled,
+        'per_record': per,
+        'windows': int(sit.size),
+        'off': bool(abs(pooled) > SITTING_TOL),
+    }

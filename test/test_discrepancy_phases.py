@@ -216,3 +216,19 @@ def test_discretisation_error_is_refitted_away_and_counted_in_sigma(tmp_path):
     assert d['value_h2'] == pytest.approx(js['value'])
     assert abs(js['value'] - truth) < 2 * js['uncertainty']
     assert js['uncertainty'] >= abs(d['value_h'] - d['value_h2'])
+
+
+def test_an_unadmitted_sitting_offset_is_unexplained_not_a_wrong_name(tmp_path):
+    """Kt x0.85 and wheels of 0.25 m in 22 s with 1 s of sitting: the pair fits exactly, but the
+    radius's decisive evidence (the sitting pitch, +0.031 rad) lies in one block, so the block
+    rule cannot admit it; Kt alone leaves the caster pitch off by the geometric amount, and the
+    answer is unexplained (it was Kt alone, 6 % off, before the sitting check)."""
+    from krang_discrepancy.report import run_discrepancy
+
+    eff = SimEffects(torque_constant_scale=0.85, wheel_radius_m=0.25)
+    rec = simulate_record(eff, seconds=22.0, hold_s=2.0, sit_down=False, seed=31)
+    js = run_discrepancy([rec], tmp_path, plots=False, replay_config=SIM_REPLAY)['json']
+    assert js['effect'] == 'unexplained'
+    expected = _geometric_sitting_pitch(0.25) - _geometric_sitting_pitch(DRIVE.wheel_radius)
+    assert js['sitting_offset']['off']
+    assert js['sitting_offset']['pooled'] == pytest.approx(expected, rel=0.2)
