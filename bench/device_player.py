@@ -36,6 +36,7 @@ import time
 import can
 import numpy as np
 
+from krang_can_bridge.bus_io import BusReader, receive_only
 from krang_can_bridge.config import load_devices
 from krang_can_bridge.protocols import load_dbc
 from krang_can_bridge.protocols import amc as amc_proto
@@ -46,6 +47,7 @@ from krang_model.robot import load_krang
 from krang_sim.devices import KrangCanDevices
 
 REF_REQUEST_ID, REF_ANSWER_ID = 0x7E0, 0x7E1
+REF = 'ref'  # the reference chain's bus
 SIT_PITCH = -1.7628  # on the caster in the pose below (config/sim_params.yaml)
 GYRO_NOISE_RAD_S = 0.001  # about 7 LSB of the DMU
 ACCEL_NOISE_M_S2 = 0.002
@@ -114,15 +116,17 @@ class Player:
         self.pitch = Pitch(SIT_PITCH, balance_pitch(self.robot, joints), args.ramp_s)
         dbc = load_dbc(config.dbc_path)
         rpdo = amc_proto.RPDO_CURRENT
+        self.drives = config.wheels.drives
         self.rpdo_ids = {
-            amc_proto.AmcDriveCodec(d, config.wheels, dbc).ids[rpdo]: d.joint
-            for d in config.wheels.drives
+            amc_proto.AmcDriveCodec(d, config.wheels, dbc).ids[rpdo]: d.joint for d in self.drives
         }
-        self.streamed = set()  # ids of our own DMU and TPDO frames: their echoes are skipped
         self.buses = {n: can.Bus(**config.buses[n].bus_kwargs()) for n in config.buses_in_use()}
         self.ref_bus = can.Bus(
             interface='udp_multicast', channel=args.ref_channel, port=args.ref_port
         )
+        for name, bus in self.buses.items():
+            receive_only(bus, self.heard_ids(name))
+        receive_only(self.ref_bus, (REF_REQUEST_ID, REF_ANSWER_ID))
         for bus in [*self.buses.values(), self.ref_bus]:
             enlarge_receive_buffer(bus)
         self.lock = threading.Lock()
@@ -135,34 +139,33 @@ class Player:
         self.ref = {REF_REQUEST_ID: [], REF_ANSWER_ID: []}  # (kernel time, counter)
 
     # ---- receive -------------------------------------------------------------------------------
-    def receive(self, name, bus):
-        wheel_bus = name == self.config.wheels.bus
-        while not self.stop.is_set():
-            msg = bus.recv(0.05)
-            if msg is None:
-                continue
-            aid = msg.arbitration_id
-            if wheel_bus and aid == ACCELERATIONS_ID:
-                self.samples.append((msg.timestamp, msg.data[7]))
-                continue
-            if wheel_bus and aid in self.rpdo_ids and len(msg.data) == 4:
-                self.commands.append(
-                    (msg.timestamp, aid, int.from_bytes(msg.data[2:4], 'little', signed=True))
-                )
-            elif wheel_bus and aid in self.streamed:
-                continue
-            with self.lock:
-                replies = self.devices.on_frame(name, msg)
-            for reply in replies:
-                self.buses[reply.bus].send(reply.msg)
+    def heard_ids(self, bus):
+        """What the player reads on `bus` (the kernel drops the rest, above all the echoes of its
+        own TPDOs and replies): the host's frames to the devices, and the echo of the DMU's 0x50
+        (the sample's time on the bus)."""
+        ids = self.devices.host_ids(bus)
+        return ids | {ACCELERATIONS_ID} if bus == self.config.imu.bus else ids
 
-    def receive_ref(self):
-        while not self.stop.is_set():
-            msg = self.ref_bus.recv(0.05)
-            if msg is not None and msg.arbitration_id in self.ref and len(msg.data) == 4:
-                self.ref[msg.arbitration_id].append(
-                    (msg.timestamp, int.from_bytes(msg.data, 'little'))
-                )
+    def receive(self, name, msg):
+        aid = msg.arbitration_id
+        if name == REF:
+            if len(msg.data) == 4:
+                self.ref[aid].append((msg.timestamp, int.from_bytes(msg.data, 'little')))
+            return
+        if aid == ACCELERATIONS_ID:
+            self.samples.append((msg.timestamp, msg.data[7]))
+            return
+        if aid in self.rpdo_ids and len(msg.data) == 4:
+            self.commands.append(
+                (msg.timestamp, aid, int.from_bytes(msg.data[2:4], 'little', signed=True))
+            )
+        with self.lock:
+            replies = self.devices.on_frame(name, msg)
+        for reply in replies:
+            self.buses[reply.bus].send(reply.msg)
+
+    def receive_error(self, name, exc):
+        print(f'device player: receive on {name} failed: {exc}', file=sys.stderr)
 
     def commands_in(self):
         for line in sys.stdin:
@@ -179,7 +182,6 @@ class Player:
 
     # ---- send ----------------------------------------------------------------------------------
     def send(self, frames):
-        self.streamed.update(f.msg.arbitration_id for f in frames)
         for f in frames:
             self.buses[f.bus].send(f.msg)
 
@@ -210,16 +212,8 @@ class Player:
         self.send(frames)
 
     def run(self):
-        threads = [
-            threading.Thread(target=self.receive, args=item, daemon=True)
-            for item in self.buses.items()
-        ]
-        threads += [
-            threading.Thread(target=self.receive_ref, daemon=True),
-            threading.Thread(target=self.commands_in, daemon=True),
-        ]
-        for t in threads:
-            t.start()
+        reader = BusReader(self.buses | {REF: self.ref_bus}, self.receive, self.receive_error)
+        threading.Thread(target=self.commands_in, daemon=True).start()
         print('ready', flush=True)
         a = self.args
         period = 1.0 / a.rate_hz
@@ -255,8 +249,7 @@ class Player:
             behind = time.monotonic() - job[0]
             if behind > job[1]:  # descheduled: skip what is missed, no burst
                 job[0] += math.ceil(behind / job[1]) * job[1]
-        for t in threads[:-1]:
-            t.join(1.0)
+        reader.stop()
         use = resource.getrusage(resource.RUSAGE_SELF)
         print(
             f'device player: {use.ru_utime + use.ru_stime:.1f} s of CPU in '

@@ -6,8 +6,10 @@ Stepping on the sample removes the phase lag between two free-running loops at t
 the timer fired just before the bridge's next sample arrived and so used a sample one period old
 (measured over DDS at 100 Hz: median 10 ms, p90 25 ms of extra sample age). The timer then only
 watches: if no sample has driven the loop for two periods it steps anyway, so stale data still
-end in a safe stop. If either input is older than `stale_timeout_s`, the controller is told the
-data are stale and commands zero torque (safe stop) until recovered.
+end in a safe stop; each sample restarts it, so it costs no executor wake (about 0.2 ms of CPU
+here, a tenth of a 500 Hz period) while samples flow. /joint_states is read by each step, not by
+a callback of its own, for the same reason. If either input is older than `stale_timeout_s`,
+the controller is told the data are stale and commands zero torque (safe stop) until recovered.
 
 The operator's controls are node-private services (README, "Running on the robot"): ~/enable
 (SetBool), ~/stand_up, ~/sit_down, ~/halt, ~/recover (Trigger). Each answers at once, accepted or
@@ -32,7 +34,7 @@ from krang_model.beta import load_beta
 from krang_model.robot import load_krang
 from krang_ros import messages, names, params, topics
 from krang_ros.names import WHEEL_JOINTS as WHEELS
-from krang_ros.spin import run_node
+from krang_ros.spin import Polled, run_node, take_latest
 
 from .controller import BalanceController, ControllerConfig, ControlSample, Reply
 
@@ -100,8 +102,14 @@ class AdrcControllerNode(Node):
         # QoS keeps 5, /joint_states 10) would be worked off one control step each, all late.
         latest = QoSProfile(depth=1, reliability=ReliabilityPolicy.BEST_EFFORT)
         self.create_subscription(Imu, names.relative(names.IMU), self.on_imu, latest)
-        self.create_subscription(
-            JointState, names.relative(names.JOINT_STATES), self.on_joint_states, latest
+        # joint_states is read by each control step (read_joint_states), not by a callback: one
+        # executor wake per sample, not two
+        self.joint_sub = self.create_subscription(
+            JointState,
+            names.relative(names.JOINT_STATES),
+            self.on_joint_states,
+            latest,
+            callback_group=Polled(),
         )
         self.create_subscription(
             Float64MultiArray, names.relative(names.BETA), self.on_beta, qos[names.BETA]
@@ -121,9 +129,10 @@ class AdrcControllerNode(Node):
         ):
             self.create_service(Trigger, names.private(name), call)
         self.period = 1.0 / self.config.rate_hz
-        self.last_step = None
         self.last_sample_t = None
-        self.create_timer(self.period, self.on_timer)
+        self.timer = self.create_timer(
+            self.period * (2.0 if self.step_on_imu else 1.0), self.on_timer
+        )
         self.create_timer(1.0, self.publish_diagnostics)
         self.last_output = None
         self.get_logger().info(
@@ -145,16 +154,16 @@ class AdrcControllerNode(Node):
             stamp,
         )
         if self.step_on_imu:
+            self.timer.reset()
             self.on_tick(sample_t=stamp, stamp=msg.header.stamp)
 
     def on_timer(self):
-        if (
-            self.step_on_imu
-            and self.last_step is not None
-            and self.now() - self.last_step < 2.0 * self.period
-        ):
-            return
-        self.on_tick()
+        self.on_tick()  # with step_on_imu: two periods without a sample (see on_imu)
+
+    def read_joint_states(self):
+        msg = take_latest(self.joint_sub)
+        if msg is not None:
+            self.on_joint_states(msg)
 
     def on_joint_states(self, msg):
         joints = messages.joints_from_state(msg, self.robot.pose_joints)
@@ -191,6 +200,7 @@ class AdrcControllerNode(Node):
         self.controller.set_drive_fault(msg.data)
 
     def sensors_stale(self):
+        self.read_joint_states()
         now = self.now()
         # now == 0: on use_sim_time before the first /clock (its discovery can lag the data topics
         # by seconds under load): every age would read 0, and the first /clock would make them all
@@ -242,7 +252,6 @@ class AdrcControllerNode(Node):
         stamp, the sample's time at the bridge), so the ESO integrates over the samples' own
         spacing; `stamp`: that header stamp, which the wheel command carries back."""
         now = self.now()
-        self.last_step = now
         stale = self.sensors_stale()
         if sample_t is None:
             sample_t = now

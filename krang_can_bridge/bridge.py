@@ -216,6 +216,7 @@ class BridgeCore:
         self._last_stream_toggle: float | None = None
 
         pcfg = config.powercube
+        self._poll_frames: list[BusFrame] | None = None
         self._modules: dict[tuple[str, int], _ModuleState] = {}
         for joint in pcfg.joints:
             for m in joint.modules:
@@ -295,6 +296,19 @@ class BridgeCore:
             c.last_malformed = f'{bus} 0x{aid:03X}: unexpected {type(exc).__name__}: {exc}'
             self._log('malformed', f'malformed frame {c.last_malformed}', logging.ERROR)
         return None
+
+    def received_ids(self, bus: str) -> frozenset[int]:
+        """The ids the core (and the AMC start-up's SDO client) reads on `bus`: the drives'
+        TPDOs, EMCYs, SDO responses and heartbeats, the DMU's samples, the PowerCube replies.
+        Everything else there is a host's frame (ours looped back on udp_multicast) or unknown;
+        the node lets the kernel drop it (bus_io.receive_only), so `counters.unknown` counts only
+        what passes a bus without a kernel filter."""
+        ids = {pc.ACK_BASE + module_id for b, module_id in self._modules if b == bus}
+        if bus == self.config.wheels.bus:
+            ids |= set(self._wheel_by_id) | set(self._emcy_ids) | self._canopen_ids
+        if bus == self.config.imu.bus:
+            ids |= self.dmu.feedback_ids
+        return frozenset(ids)
 
     def _is_echo(self, bus: str | None, aid: int) -> bool:
         """Frames a host sends (ours looped back by udp_multicast, or another host's)."""
@@ -655,12 +669,15 @@ class BridgeCore:
         ]
 
     def poll_frames(self) -> list[BusFrame]:
-        """GET_PARAM ACT_FPOS and ACT_FVEL for every module (modules only speak when asked)."""
-        frames = []
-        for bus, module_id in self._modules:
-            frames.append(BusFrame(bus, pc.get_param(module_id, pc.ACT_FPOS)))
-            frames.append(BusFrame(bus, pc.get_param(module_id, pc.ACT_FVEL)))
-        return frames
+        """GET_PARAM ACT_FPOS and ACT_FVEL for every module (modules only speak when asked); the
+        same frames every time, encoded once."""
+        if self._poll_frames is None:
+            self._poll_frames = [
+                BusFrame(bus, pc.get_param(module_id, param))
+                for bus, module_id in self._modules
+                for param in (pc.ACT_FPOS, pc.ACT_FVEL)
+            ]
+        return list(self._poll_frames)
 
     def startup_frames(self) -> list[BusFrame]:
         """PowerCube start-up: RESET (clears HALT), soft limits MIN/MAX_FPOS in module coordinates

@@ -4,8 +4,10 @@ Buses come from the device map (parameter `devices_file`, default the robot's So
 config/can_devices_robot.yaml; a bare file name is looked up in config/, so the simulated node set
 passes `can_devices.yaml` in config/sim_params.yaml). A bus that cannot be opened ends the node
 with one line naming the interface (and, for SocketCAN, the `ip link` command) and exit code 1.
-Each bus has a python-can Notifier thread that feeds frames to the core (under a lock), so the
-executor never blocks on CAN. The node is event-driven: the Notifier thread publishes each sample
+One receive thread (bus_io.BusReader) feeds the frames of every bus to the core (under a lock),
+so the executor never blocks on CAN; the kernel passes it only the ids the core reads
+(BridgeCore.received_ids, bus_io.receive_only). The node is event-driven: the receive thread
+publishes each sample
 as soon as the core says its frames are in (rclpy publishers may be called from any thread; the
 message is built outside the lock), and the wheel current frames go out from the command
 callback; the AMC start-up and the recovery (blocking SDO transfers through
@@ -36,7 +38,8 @@ turned by the mount angle into x forward, y left, z up (at zero pitch). Roll and
 observed: their orientation variances are set to 1e6.
 
 Wheel currents go out from each command; a watchdog timer at wheels.command_rate_hz sends them
-only while commands stop (BridgeCore.wheel_watchdog_frames). A command older than
+only while commands stop (BridgeCore.wheel_watchdog_frames). Each command restarts that timer, so
+it costs no executor wake (about 0.2 ms of CPU here) while commands flow. A command older than
 wheels.command_timeout_s, a malformed one, a silent device, or an AMC start-up not (yet) done or
 whose drive constants disagree with the config gives zero current (see BridgeCore).
 
@@ -65,6 +68,7 @@ from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
 from krang_can_bridge.bridge import IMU_SAMPLE, WHEEL_SAMPLE, BridgeCore, BusFrame
+from krang_can_bridge.bus_io import BusReader, receive_only
 from krang_can_bridge.config import (
     BusConfig,
     load_devices,
@@ -178,17 +182,6 @@ class _RosLogHandler(logging.Handler):
             self.node_logger.info(text)
 
 
-class _BusListener(can.Listener):
-    def __init__(self, node: 'CanBridgeNode', bus: str):
-        self.node, self.bus = node, bus
-
-    def on_message_received(self, msg: can.Message) -> None:
-        self.node.on_received(self.bus, msg)
-
-    def on_error(self, exc: Exception) -> None:
-        self.node.on_bus_error(self.bus, exc)
-
-
 class CanBridgeNode(Node):
     def __init__(self, **kwargs):
         super().__init__('can_bridge', **kwargs)
@@ -202,7 +195,7 @@ class CanBridgeNode(Node):
         # gaps overstated every pitch change by the slow-down (0.57x real time measured under load:
         # +0.10 rad IMU error within 0.5 s of the stand-up), and the gyro-dominant filter
         # (accelerometer time constant ~80 s) never took it back. /clock reaches this process on
-        # another path (DDS, the executor) than the frames (UDP, the Notifier threads): after a
+        # another path (DDS, the executor) than the frames (UDP, the receive thread): after a
         # stall of the process the executor could take a /clock 50+ ms ahead of frames still queued
         # in the sockets, and the next wheel refresh found every device "silent" and sent zero
         # current (seen as 0 A on both wheels during a pose move, and a fall). So received frames
@@ -249,7 +242,6 @@ class CanBridgeNode(Node):
         logging.getLogger('krang_can_bridge').setLevel(logging.INFO)
 
         self.buses: dict[str, can.BusABC] = {}
-        self.notifiers: list[can.Notifier] = []
         try:
             for name in self.config.buses_in_use():
                 self.buses[name] = open_bus(self.config.buses[name])
@@ -258,9 +250,9 @@ class CanBridgeNode(Node):
                 b.shutdown()
             logging.getLogger('krang_can_bridge').removeHandler(self._log_handler)
             raise
-        self.canopen = canopen.Network(self.buses[self.config.wheels.bus])
         for name, bus in self.buses.items():
-            self.notifiers.append(can.Notifier(bus, [_BusListener(self, name)], timeout=0.1))
+            receive_only(bus, self.core.received_ids(name))
+        self.canopen = canopen.Network(self.buses[self.config.wheels.bus])
 
         qos = topics.QOS
         self.joint_pub = self.create_publisher(
@@ -289,10 +281,14 @@ class CanBridgeNode(Node):
         )
 
         # watchdog only: sends while commands stop (the commands themselves send their frames)
-        self.create_timer(1.0 / self.config.wheels.command_rate_hz, self.wheel_watchdog)
+        self.watchdog_timer = self.create_timer(
+            1.0 / self.config.wheels.command_rate_hz, self.wheel_watchdog
+        )
         self.create_timer(1.0 / self.config.powercube.poll_rate_hz, self.poll_modules)
         self.create_timer(0.5 * self.config.imu.stream_toggle_retry_s, self.check_imu_stream)
         self.create_timer(1.0, self.publish_diagnostics)
+        # frames only once every publisher exists (a sample completed earlier ended the thread)
+        self.reader = BusReader(self.buses, self.on_received, self.on_bus_error)
 
         for drive in self.config.wheels.drives:
             self._startup_status[drive.joint] = 'pending'
@@ -519,6 +515,8 @@ class CanBridgeNode(Node):
             self.core.set_wheel_effort_command(efforts, self._device_time())
             frames = self.core.wheel_command_frames(self._device_time())
         self.send(frames)
+        self.watchdog_timer.reset()  # quiet while commands flow (it would send nothing)
+        self.publish_fault()  # the watchdog's other job
 
     def on_joint_position(self, msg: JointState) -> None:
         if len(msg.position) != len(msg.name):
@@ -624,8 +622,7 @@ class CanBridgeNode(Node):
             self.send(frames)
         except Exception:  # noqa: BLE001 - best effort on the way out
             pass
-        for n in self.notifiers:
-            n.stop()
+        self.reader.stop()
         for b in self.buses.values():
             b.shutdown()
         logging.getLogger('krang_can_bridge').removeHandler(self._log_handler)

@@ -4,6 +4,7 @@ cleanly, with exit code 0 and no traceback however early the signal comes."""
 import sys
 
 import rclpy
+from rclpy.callback_groups import CallbackGroup
 from rclpy.executors import ExternalShutdownException
 
 from .params import ParameterError
@@ -34,3 +35,30 @@ def run_node(node_class, args=None):
             node.destroy_node()
         rclpy.try_shutdown()
     return 0
+
+
+class Polled(CallbackGroup):
+    """A callback group the executor never runs: its subscriptions cost no wake of the executor
+    (about 0.2 ms of CPU each in rclpy's SingleThreadedExecutor here) and are read by
+    `take_latest` when their data is needed, e.g. a topic a control step reads at its own
+    rate."""
+
+    def can_execute(self, entity):
+        return False
+
+    def beginning_execution(self, entity):
+        return False
+
+    def ending_execution(self, entity):
+        pass
+
+
+def take_latest(subscription):
+    """The newest message waiting on a `Polled` subscription (older ones are dropped), or None."""
+    latest = None
+    with subscription.handle:
+        while True:
+            taken = subscription.handle.take_message(subscription.msg_type, subscription.raw)
+            if taken is None:
+                return latest
+            latest = taken[0]

@@ -465,6 +465,13 @@ class PowerCubeEmulator:
         """Advance the module by dt seconds within its velocity and acceleration limits."""
         if dt <= 0.0 or self.halted or self.mode == 'current':
             return
+        if (
+            self.mode == 'ramp'
+            and self.velocity == 0.0
+            and self.position == self.target
+            and self.min_position <= self.position <= self.max_position
+        ):
+            return  # at rest on its target: the step below changes nothing (1 kHz x 17 modules)
         a = self.target_acceleration
         if self.mode == 'ramp':
             # Discrete braking curve: from v = (k + f) a dt, braking by a dt per step covers
@@ -531,6 +538,9 @@ class KrangCanDevices:
         self.module_joint = {
             (m.bus, m.module_id): j for j, mods in self.joint_modules.items() for m, _ in mods
         }
+        self._bus_modules: dict[str, list[tuple[int, PowerCubeEmulator]]] = {}
+        for (b, mid), em in self.modules.items():
+            self._bus_modules.setdefault(b, []).append((mid, em))
         self.silent: frozenset[str] = frozenset()
 
     @property
@@ -554,11 +564,28 @@ class KrangCanDevices:
                 out += self._unless_silent(joint, w.on_frame(msg))
         if bus == self.config.imu.bus:
             out += self._unless_silent('imu', self.imu.on_frame(msg))
-        if pc.is_host_frame(msg.arbitration_id):
-            for (b, mid), em in self.modules.items():
-                if b == bus:
-                    out += self._unless_silent(self.module_joint[(b, mid)], em.on_frame(msg))
+        aid = msg.arbitration_id
+        if pc.is_host_frame(aid):
+            # a module ignores frames addressed to another one: only the addressee (or, for a
+            # broadcast, every module of the bus) sees it
+            target = None if aid == pc.BROADCAST_ID else aid & pc.MODULE_ID_MASK
+            for mid, em in self._bus_modules.get(bus, ()):
+                if target is None or mid == target:
+                    out += self._unless_silent(self.module_joint[(bus, mid)], em.on_frame(msg))
         return [BusFrame(bus, m) for m in out]
+
+    def host_ids(self, bus: str) -> set[int]:
+        """The ids of the host frames the devices on `bus` read: a process playing them needs
+        no other frame (bus_io.receive_only)."""
+        ids = set()
+        if bus == self.config.wheels.bus:
+            for w in self.wheels.values():
+                ids |= {w.codec.ids[amc_proto.RPDO_CURRENT], 0x000, 0x600 + w.drive.node_id}
+        if bus == self.config.imu.bus:
+            ids |= self.imu.codec.command_ids
+        for mid, _ in self._bus_modules.get(bus, ()):
+            ids |= {pc.GET_BASE + mid, pc.PUT_BASE + mid, pc.BROADCAST_ID}
+        return ids
 
     def _unless_silent(self, device: str, frames: list) -> list:
         return [] if device in self.silent else frames

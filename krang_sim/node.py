@@ -47,9 +47,9 @@ from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
 
-from krang_can_bridge.protocols import amc as amc_proto
-
+from krang_can_bridge.bus_io import BusReader, receive_only
 from krang_can_bridge.config import default_devices_file, load_devices
+from krang_can_bridge.protocols import amc as amc_proto
 from krang_model.beta import load_beta
 from krang_model.robot import load_krang
 from krang_ros import messages, names, params, topics
@@ -151,14 +151,6 @@ def describe_parameters():
     return lines
 
 
-class _Inbox(can.Listener):
-    def __init__(self, node, bus_name):
-        self.node, self.bus_name = node, bus_name
-
-    def on_message_received(self, msg):
-        self.node.on_host_frame(self.bus_name, msg)
-
-
 class SimKrangNode(Node):
     def __init__(self):
         super().__init__('sim_krang')
@@ -230,12 +222,14 @@ class SimKrangNode(Node):
         self.lockstep_misses = 0
         self.lockstep_wait_s = 0.0
         self.rpdo_ids = {w.codec.ids[amc_proto.RPDO_CURRENT] for w in self.devices.wheels.values()}
+        # the devices read only the host's frames: the kernel drops the rest (above all the
+        # echoes of our own feedback frames), and one thread reads every bus (bus_io)
         self.buses = {}
-        self.notifiers = []
         for name in self.config.buses_in_use():
             bus = can.Bus(**self.config.buses[name].bus_kwargs())
             self.buses[name] = bus
-            self.notifiers.append(can.Notifier(bus, [_Inbox(self, name)], timeout=0.05))
+            receive_only(bus, self.devices.host_ids(name))
+        self.reader = BusReader(self.buses, self.on_host_frame, self.on_bus_error)
         qos = topics.QOS
         self.clock_pub = self.create_publisher(Clock, names.CLOCK, qos[names.CLOCK])
         if self.lockstep:
@@ -255,9 +249,9 @@ class SimKrangNode(Node):
         self.create_timer(1.0, self.publish_diagnostics)
         self.running = True
         # When behind real time the physics loop does not sleep, and it would keep the GIL for the
-        # interpreter's 5 ms switch interval at a time; the nine bus threads then get it in turn
-        # and a wheel current command waited tens of simulated ms before it reached the drive. 1 ms
-        # slices bound that to about a millisecond per waiting thread.
+        # interpreter's 5 ms switch interval at a time; the bus threads (nine of them then) got it
+        # in turn and a wheel current command waited tens of simulated ms before it reached the
+        # drive. 1 ms slices bound that to about a millisecond per waiting thread.
         sys.setswitchinterval(min(sys.getswitchinterval(), cfg.gil_switch_interval_s))
         self.silent_since = None
         silent = self.declare_parameter(
@@ -286,6 +280,9 @@ class SimKrangNode(Node):
                 if self.rpdo_seen == self.rpdo_ids:
                     self.answered.notify()
         self.send(replies)
+
+    def on_bus_error(self, bus_name, exc):
+        self.get_logger().error(f'CAN receive on {bus_name} stopped: {exc}')
 
     def on_parameters(self, params):
         for param in params:
@@ -447,8 +444,7 @@ class SimKrangNode(Node):
             self.running = False
             self.answered.notify_all()
         self.thread.join(timeout=2.0)
-        for n in self.notifiers:
-            n.stop()
+        self.reader.stop()
         for bus in self.buses.values():
             bus.shutdown()
 
