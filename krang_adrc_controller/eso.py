@@ -31,6 +31,7 @@ optional measured rate, f_hat = 0) to avoid peaking. ``f_limit`` optionally satu
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -273,16 +274,47 @@ class ExtendedStateObserver:
         key = round(self.h if dt is None else dt, 6)
         d = self._floats.get(key)
         if d is None:
-            m = self.discretisation(dt)
-            d = (
-                tuple(float(v) for v in m.phi.ravel()),
-                tuple(float(v) for v in m.gam_u),
-                tuple(float(v) for v in m.gam_y),
-            )
+            if dt is not None and key != round(self.h, 6) and self._closed_form:
+                # samples timed by arrival: nearly every dt is new, and the numpy design costs
+                # ~0.1 ms per observer and step (a fifth of a 500 Hz period for the two)
+                d = self._bandwidth_floats(float(dt))
+            else:
+                m = self.discretisation(dt)
+                d = (
+                    tuple(float(v) for v in m.phi.ravel()),
+                    tuple(float(v) for v in m.gam_u),
+                    tuple(float(v) for v in m.gam_y),
+                )
             if len(self._floats) > 64:
                 self._floats.clear()
             self._floats[key] = d
         return d
+
+    @property
+    def _closed_form(self) -> bool:
+        return self.method == 'current' and self.omega_o is not None
+
+    def _bandwidth_floats(self, h: float) -> tuple:
+        """`_discretise(h)` of the current ESO with bandwidth gains, written out in floats:
+        phi = (I - L C) Ad, gam_u = (I - L C) Bd, gam_y = L (chain_model, bandwidth_gains)."""
+        beta = math.exp(-self.omega_o * h)
+        g0 = 1.0 - beta**3
+        g1 = 1.5 / h * (1.0 - beta) ** 2 * (1.0 + beta)
+        g2 = (1.0 - beta) ** 3 / h**2
+        hh = 0.5 * h * h
+        bu0, bu1 = self.b * hh, self.b * h
+        phi = (
+            (1.0 - g0),
+            (1.0 - g0) * h,
+            (1.0 - g0) * hh,
+            -g1,
+            1.0 - g1 * h,
+            h - g1 * hh,
+            -g2,
+            -g2 * h,
+            1.0 - g2 * hh,
+        )
+        return phi, ((1.0 - g0) * bu0, bu1 - g1 * bu0, -g2 * bu0), (g0, g1, g2)
 
     def update(self, y: float, u_prev: float, dt: float | None = None) -> list:
         """One step: y = measurement now, u_prev = input applied over the last period. Returns

@@ -5,8 +5,9 @@ device family.
 - `dmu_imu`: Silicon Sensing DMU IMU (raw frames 0x40 / 0x50 / 0x90).
 - `powercube`: Schunk PowerCube modules (Amtec protocol).
 
-Fixed-layout frames (IMU, AMC PDOs) are packed and unpacked with cantools from
-config/krang_can.dbc, the file CAN engineers load into their own tools. Every decoder raises a
+Fixed-layout frames (IMU, AMC PDOs) are described by config/krang_can.dbc, the file CAN engineers
+load into their own tools; cantools reads it, and the frames of every sample are packed and
+unpacked by structs compiled from it (`FrameLayout`). Every decoder raises a
 `ProtocolError` subclass on a frame it cannot trust, and every encoder refuses NaN, inf and
 out-of-range values instead of wrapping them.
 """
@@ -15,6 +16,7 @@ from __future__ import annotations
 
 import functools
 import math
+import struct
 from pathlib import Path
 
 import can
@@ -71,6 +73,64 @@ def check_data_frame(msg: can.Message, expected_dlc: int | tuple[int, ...], what
         )
 
 
+_STRUCT_CODES = {
+    (8, False): 'B',
+    (8, True): 'b',
+    (16, False): 'H',
+    (16, True): 'h',
+    (32, False): 'I',
+    (32, True): 'i',
+}
+
+
+class FrameLayout:
+    """One fixed-layout DBC message as a precompiled struct, for the frames of every sample:
+    cantools' generic encode and decode cost 2-30 us a frame here, struct under 1 us. The DBC
+    stays the one description: the layout, names and raw ranges are read from it, and a message
+    struct cannot express (not byte-aligned little-endian integers tiling the frame from bit 0)
+    is refused. Raw values, as cantools' scaling=False; encode is strict like cantools'."""
+
+    def __init__(self, message):
+        self.name, self.length = message.name, message.length
+        fmt, pos, ranges = '<', 0, []
+        for sig in sorted(message.signals, key=lambda x: x.start):
+            code = _STRUCT_CODES.get((sig.length, bool(sig.is_signed)))
+            if sig.byte_order != 'little_endian' or sig.start != pos or code is None:
+                raise UnknownFrame(f'DBC {message.name}: {sig.name} is not a byte-aligned int')
+            lo = -(1 << (sig.length - 1)) if sig.is_signed else 0
+            hi = (1 << (sig.length - 1)) - 1 if sig.is_signed else (1 << sig.length) - 1
+            if sig.minimum is not None:
+                lo = max(lo, math.ceil((sig.minimum - sig.offset) / sig.scale - 1e-9))
+            if sig.maximum is not None:
+                hi = min(hi, math.floor((sig.maximum - sig.offset) / sig.scale + 1e-9))
+            fmt += code
+            ranges.append((sig.name, lo, hi))
+            pos += sig.length
+        if pos != 8 * message.length:
+            raise UnknownFrame(f'DBC {message.name}: signals do not fill its {message.length} B')
+        self._struct = struct.Struct(fmt)
+        self._ranges = tuple(ranges)
+        self.names = tuple(name for name, _, _ in ranges)
+
+    def encode(self, values: dict) -> bytes:
+        """Raw signal values by name -> payload; ValueOutOfRange for a missing or out-of-range
+        value."""
+        raw = []
+        for name, lo, hi in self._ranges:
+            try:
+                v = int(values[name])
+            except (KeyError, TypeError, ValueError) as exc:
+                raise ValueOutOfRange(f'{self.name}: {name}: {exc!r}') from exc
+            if not lo <= v <= hi:
+                raise ValueOutOfRange(f'{self.name}: {name} = {v} outside [{lo}, {hi}]')
+            raw.append(v)
+        return self._struct.pack(*raw)
+
+    def decode(self, data: bytes) -> dict:
+        """Payload of exactly `length` bytes -> raw signal values by name."""
+        return dict(zip(self.names, self._struct.unpack(data)))
+
+
 def frame(arbitration_id: int, data: bytes | bytearray) -> can.Message:
     """A standard-id data frame."""
     return can.Message(arbitration_id=arbitration_id, data=bytes(data), is_extended_id=False)
@@ -85,4 +145,5 @@ __all__ = [
     'require_finite',
     'check_data_frame',
     'frame',
+    'FrameLayout',
 ]

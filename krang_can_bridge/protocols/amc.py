@@ -45,6 +45,7 @@ from canopen import objectdictionary as od
 
 from krang_can_bridge.config import WatchdogConfig, WheelDriveConfig, WheelsConfig
 from krang_can_bridge.protocols import (
+    FrameLayout,
     UnknownFrame,
     ValueOutOfRange,
     check_data_frame,
@@ -194,6 +195,7 @@ class AmcDriveCodec:
             self.ids[TPDO_STATUSWORD]: 'statusword',
         }
         self._messages = {}
+        self._layouts = {}  # the same messages as struct layouts (the per-sample frames)
         expected = {
             RPDO_CURRENT: {'controlword', 'target_current_dc2'},
             TPDO_POSITION: {'statusword', 'position_counts'},
@@ -215,6 +217,7 @@ class AmcDriveCodec:
                     f'{sorted(signals)}'
                 )
             self._messages[offset] = message
+            self._layouts[offset] = FrameLayout(message)
         self._amps_per_dc2 = drive.peak_current_a / DC2_FULL_SCALE
         self._amps_per_dc1 = drive.peak_current_a / DC1_FULL_SCALE
         self._counts_per_rad = wheels.counts_per_wheel_rad
@@ -231,19 +234,12 @@ class AmcDriveCodec:
         return frozenset(self._kind_of_id)
 
     def _pack(self, offset: int, signals: dict) -> can.Message:
-        message = self._messages[offset]
-        try:
-            data = message.encode(signals, scaling=False, strict=True)
-        except Exception as exc:  # cantools EncodeError: value outside the signal range
-            raise ValueOutOfRange(f'{message.name}: {exc}') from exc
-        return frame(message.frame_id, data)
+        return frame(self.ids[offset], self._layouts[offset].encode(signals))
 
     def _unpack(self, offset: int, msg: can.Message) -> dict:
-        message = self._messages[offset]
-        check_data_frame(msg, message.length, message.name)
-        return message.decode(
-            bytes(msg.data), decode_choices=False, scaling=False, allow_excess=False
-        )
+        layout = self._layouts[offset]
+        check_data_frame(msg, layout.length, layout.name)
+        return layout.decode(bytes(msg.data))
 
     # ---- host -> drive --------------------------------------------------------------------------
     def current_to_dc2(self, amps: float) -> int:

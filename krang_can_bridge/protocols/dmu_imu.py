@@ -28,6 +28,7 @@ from typing import NamedTuple, Sequence
 import can
 
 from krang_can_bridge.protocols import (
+    FrameLayout,
     MalformedFrame,
     UnknownFrame,
     ValueOutOfRange,
@@ -75,6 +76,7 @@ class DmuCodec:
         self._rates = dbc.get_message_by_frame_id(RATES_ID)
         self._accel = dbc.get_message_by_frame_id(ACCELERATIONS_ID)
         self._toggle = dbc.get_message_by_frame_id(STREAM_TOGGLE_ID)
+        self._layouts = {m.frame_id: FrameLayout(m) for m in (self._rates, self._accel)}
         self.rate_lsb_rad_s = math.radians(self._scale(self._rates, _RATE_SIGNALS, 'deg/s'))
         self.accel_lsb_m_s2 = self._scale(self._accel, _ACCEL_SIGNALS, 'g') * STANDARD_GRAVITY
 
@@ -107,9 +109,7 @@ class DmuCodec:
         else:
             raise UnknownFrame(f'0x{msg.arbitration_id:03X} is not a DMU data frame')
         check_data_frame(msg, message.length, message.name)
-        s = message.decode(
-            bytes(msg.data), decode_choices=False, scaling=False, allow_excess=False
-        )
+        s = self._layouts[message.frame_id].decode(bytes(msg.data))
         return cls(*(s[n] * lsb for n in names), int(s['status']), int(s['sequence']))
 
     def _to_raw(self, values: Sequence[float], lsb: float, what: str) -> list[int]:
@@ -133,11 +133,7 @@ class DmuCodec:
     ) -> can.Message:
         values = dict(zip(names, (int(r) for r in raw)))
         values.update(status=int(status) & 0xFF, sequence=int(sequence) & 0xFF)
-        try:
-            data = message.encode(values, scaling=False, strict=True)
-        except Exception as exc:
-            raise ValueOutOfRange(f'{message.name}: {exc}') from exc
-        return frame(message.frame_id, data)
+        return frame(message.frame_id, self._layouts[message.frame_id].encode(values))
 
     def encode_rates(
         self, rates_rad_s: Sequence[float], status: int = 0, sequence: int = 0
