@@ -10,6 +10,11 @@ Settled means, over the last ``window_s`` of samples (all of them, contiguous in
   * |thetadot| < ``pitch_rate_max`` and |wheel speed| < ``wheel_speed_max`` at every sample;
   * the observer's disturbance estimate has converged: max - min of f_hat over the window below
     ``fhat_band``;
+  * the robot is not still slowing down: the mean ground acceleration over the window (the slope
+    of the wheel speed) below ``accel_max``. A WIP accelerating
+    at a leans about 2 a / g off its balance pitch, so a window that starts as soon as the speed
+    drops under ``wheel_speed_max`` (the robot still braking) averaged 0.5-1 mrad off the true
+    balance angle in the ROS demo, always on the side of the acceleration;
   * optionally, the std of q_base below ``q_base_std_max``.
 Then ONE point is emitted: the window mean of every joint and of q_base, with the standard error
 of each mean by batch means (``BATCHES`` contiguous batches; the samples of a swaying robot are
@@ -68,6 +73,13 @@ class DetectorConfig:
         default=0.2, metadata={'doc': 'a longer gap between samples restarts the window, s'}
     )
     min_samples: int = field(default=10, metadata={'doc': 'fewest samples in a window'})
+    accel_max: float = field(
+        default=0.0005,
+        metadata={
+            'doc': '|mean ground acceleration| bound over the window, m/s^2 (a WIP leans about '
+            '2 a / g off balance: 0.1 mrad; 0 = off)'
+        },
+    )
 
     def __post_init__(self):
         if self.window_s <= 0 or self.rate_hz <= 0:
@@ -113,6 +125,7 @@ class BalancedPoseDetector:
         self.q_base_std_max = c.q_base_std_max or None
         self.max_gap_s = max(c.max_gap_s, 3.0 / c.rate_hz)
         self.min_samples = c.min_samples
+        self.accel_max = c.accel_max or None
         self.reset()
 
     def reset(self) -> None:
@@ -123,6 +136,15 @@ class BalancedPoseDetector:
 
     def _clear(self) -> None:
         self._buf.clear()
+
+    def mean_acceleration(self) -> float:
+        """Mean ground acceleration over the window, m/s^2: the least-squares slope of the wheel
+        speed (every sample counts, so the speed's noise averages out)."""
+        t = np.array([s[0] for s in self._buf])
+        v = np.array([s[4] for s in self._buf])
+        dt = t - t.mean()
+        den = float(dt @ dt)
+        return float(dt @ v / den) if den > 0 else 0.0
 
     def update(
         self,
@@ -155,7 +177,7 @@ class BalancedPoseDetector:
         if not still:
             self._clear()
             return None
-        self._buf.append((float(t), float(q_base), float(fhat), joints))
+        self._buf.append((float(t), float(q_base), float(fhat), joints, float(wheel_speed)))
         while self._buf and t - self._buf[0][0] > self.window_s:
             self._buf.popleft()
         # full window: n samples stand for n periods of span/(n-1) each, so require
@@ -170,6 +192,8 @@ class BalancedPoseDetector:
         jw = np.vstack([s[3] for s in self._buf])
         jmean = jw.mean(axis=0)
         if np.max(np.abs(jw - jmean)) > self.joint_tol:
+            return None
+        if self.accel_max is not None and abs(self.mean_acceleration()) > self.accel_max:
             return None
         qb = np.array([s[1] for s in self._buf])
         if self.q_base_std_max is not None and qb.std() > self.q_base_std_max:

@@ -31,6 +31,7 @@ import numpy as np
 from scipy.linalg import solve_discrete_are
 
 from krang_can_bridge.config import ImuConfig, KalmanConfig
+from krang_can_bridge.sample_clock import SampleClock
 
 
 def pitch_axis(mount_angle_rad: float) -> np.ndarray:
@@ -248,22 +249,40 @@ class PitchEstimate(NamedTuple):
 
 
 class ImuPitchEstimator:
-    """Bias removal + kore measurement + Kalman filter, driven by paired DMU samples."""
+    """Bias removal + kore measurement + Kalman filter, driven by paired DMU samples.
 
-    def __init__(self, imu: ImuConfig):
+    With `sample_period_s` > 0 and each sample's sequence number, the filter steps by the DMU's
+    own spacing (sequence counter x period), not by the difference of the sample times it is given:
+    the bridge keeps those stamps within 0.04 s of its clock and moves one forward when the
+    frames queue up, and a stamp moved 0.02-0.07 s during a pose move integrated the pitch rate
+    over that much extra time (10-35 mrad, which the slow accelerometer correction left in the
+    next balanced poses; README, Known issues)."""
+
+    def __init__(self, imu: ImuConfig, sample_period_s: float = 0.0):
         self.mount_angle_rad = imu.mount_angle_rad
         self.gyro_bias = np.array(imu.gyro_bias_rad_s, dtype=float)
         self.filter = PitchKalmanFilter.from_config(imu.kalman)
         self._last_t: float | None = None
+        # the counter's own time (never held near the caller's clock: only its steps are used)
+        self._counter = (
+            SampleClock(sample_period_s, lag_max_s=math.inf) if sample_period_s > 0 else None
+        )
 
     def corrected_rates(self, rates: Sequence[float]) -> np.ndarray:
         return np.asarray(rates, dtype=float) - self.gyro_bias
 
     def update(
-        self, rates: Sequence[float], specific_force: Sequence[float], t: float
+        self,
+        rates: Sequence[float],
+        specific_force: Sequence[float],
+        t: float,
+        sequence: int | None = None,
     ) -> PitchEstimate:
+        """One paired sample at time `t` (numbered `sequence` by the DMU, if known)."""
         w = self.corrected_rates(rates)
         raw_pitch, raw_rate = pitch_measurement(specific_force, w, self.mount_angle_rad)
+        if self._counter is not None and sequence is not None:
+            t = self._counter.time_of(sequence, t)
         dt = 0.0 if self._last_t is None else t - self._last_t
         self._last_t = t
         pitch, rate = self.filter.update(raw_pitch, raw_rate, dt)

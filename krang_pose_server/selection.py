@@ -15,6 +15,16 @@ the move is its time at the pose server's joint speed (StraightLineMove, every j
 once) plus the settle time of a balanced point, and the chosen pose is the one with the most gain
 per second: argmax gain_c / (settle_s + move_s_c). The reference poses are the pool itself (safe,
 balanced poses stand for the poses the robot will use).
+
+Caster margin. The pool is balanced under the nominal model, but the robot balances where the
+truth puts it: with a real-sized CoM error a pose, or a pose on the way to it, can balance beyond
+the caster (the controller then sits). So the choice keeps a margin for what the posterior does
+not know: along the straight-line move (`path_points` poses), the balance pitch the current beta
+predicts, less `margin_sigmas` of its posterior std (x_com there has variance g^T Sigma g and
+moves by z per radian of pitch, so std = sqrt(g^T Sigma g) / z), must stay `caster_margin_rad`
+above the caster pitch, or, where the robot already stands closer than that, never go lower
+than where it starts. A candidate that breaks this is not chosen; when every one does, the one
+whose path keeps the most margin is.
 """
 
 from dataclasses import dataclass
@@ -23,6 +33,7 @@ import numpy as np
 
 from krang_com_estimator.estimators import pitch_sensitivity
 from krang_model.com import balance_pitch, phi as phi_fn
+from krang_model.drivetrain import drivetrain
 
 from .sequence import move_times
 
@@ -37,6 +48,19 @@ class Choice:
     gain: float  # expected reduction (m^2 for 'forward', nats for 'd-optimal')
     rms_before_m: float  # predicted RMS forward error over the reference poses
     rms_after_m: float  # ... after learning from this pose ('forward' gain only)
+    margin_rad: float = np.nan  # lowest predicted pitch less its margin_sigmas std on the path,
+    # above the caster pitch
+
+
+def predicted_pitch(robot, joints, beta, covariance):
+    """(pitch, std) (N,), (N,): the balance pitch `beta` predicts at each pose (rows of joints) and
+    its posterior std, sqrt(g^T Sigma g) / |z| (g = phi at that pitch, z = d x_com / d pitch)."""
+    joints = np.atleast_2d(np.asarray(joints, dtype=float))
+    q = balance_pitch(robot, joints, beta)
+    g = phi_fn(robot, q, joints)
+    z = pitch_sensitivity(robot, q, joints, beta)
+    var = np.einsum('ij,ij->i', g @ np.asarray(covariance, dtype=float), g)
+    return q, np.sqrt(np.maximum(var, 0.0)) / np.abs(z)
 
 
 class AdaptiveSelector:
@@ -51,6 +75,10 @@ class AdaptiveSelector:
         settle_s=12.0,
         speed_fraction=0.8,
         reference_joints=None,
+        caster_margin_rad=0.1,
+        margin_sigmas=2.0,
+        path_points=8,
+        caster_pitch=None,
     ):
         if criterion not in CRITERIA:
             raise ValueError(f'criterion must be one of {CRITERIA}, not {criterion!r}')
@@ -65,13 +93,32 @@ class AdaptiveSelector:
         self.criterion = criterion
         self.settle_s = float(settle_s)
         self.speed_fraction = float(speed_fraction)
+        self.caster_margin = float(caster_margin_rad)
+        self.margin_sigmas = float(margin_sigmas)
+        self.path_points = max(1, int(path_points))
+        self.caster_pitch = float(
+            drivetrain(robot).caster_pitch if caster_pitch is None else caster_pitch
+        )
         self.used = set()
 
     def reset(self):
         self.used.clear()
 
+    def path_margins(self, beta, covariance, current_joints):
+        """(margin at the start, lowest margin on each candidate's path) (scalar, (N,)): the
+        predicted balance pitch less margin_sigmas of its std, above the caster pitch, rad."""
+        start = np.asarray(current_joints, dtype=float)
+        u = np.linspace(0.0, 1.0, self.path_points + 1)
+        paths = start + u[:, None, None] * (self.pool - start)[None]  # (P + 1, N, n_joints)
+        q, sd = predicted_pitch(
+            self.robot, paths.reshape(-1, self.pool.shape[1]), beta, covariance
+        )
+        lower = (q - self.margin_sigmas * sd - self.caster_pitch).reshape(len(u), -1)
+        return float(lower[0, 0]), lower[1:].min(axis=0)
+
     def scores(self, beta, covariance, current_joints, sigma_pitch_rad=None):
-        """(score, gain, move_s, rms_before, rms_after) over the pool; used poses score -inf."""
+        """(score, gain, move_s, rms_before, rms_after, path margin) over the pool; used poses,
+        and poses whose path breaks the caster margin while others keep it, score -inf."""
         beta = np.asarray(beta, dtype=float)
         cov = np.asarray(covariance, dtype=float)
         sigma = self.sigma_pitch if sigma_pitch_rad is None else float(sigma_pitch_rad)
@@ -94,6 +141,14 @@ class AdaptiveSelector:
             current_joints, self.pool, self.robot.velocity_limit, self.speed_fraction
         )
         score = gain / (self.settle_s + move)
+        start, margin = self.path_margins(beta, cov, current_joints)
+        safe = margin >= min(self.caster_margin, start)
+        if self.used:
+            safe[list(self.used)] = False
+        if safe.any():
+            score[~safe] = -np.inf
+        else:  # every path breaks the margin: the one that keeps the most
+            score = margin.copy()
         if self.used:
             score[list(self.used)] = -np.inf
         after = (
@@ -101,17 +156,23 @@ class AdaptiveSelector:
             if self.criterion == 'forward'
             else np.full(len(gain), np.nan)
         )
-        return score, gain, move, np.sqrt(before), after
+        return score, gain, move, np.sqrt(before), after, margin
 
     def choose(self, beta, covariance, current_joints, sigma_pitch_rad=None):
         """The next pose (a Choice), marked as used; None when the pool is used up."""
         if len(self.used) >= len(self.pool):
             return None
-        score, gain, move, before, after = self.scores(
+        score, gain, move, before, after, margin = self.scores(
             beta, covariance, current_joints, sigma_pitch_rad
         )
         i = int(np.argmax(score))
         self.used.add(i)
         return Choice(
-            i, self.pool[i].copy(), float(move[i]), float(gain[i]), float(before), float(after[i])
+            i,
+            self.pool[i].copy(),
+            float(move[i]),
+            float(gain[i]),
+            float(before),
+            float(after[i]),
+            float(margin[i]),
         )

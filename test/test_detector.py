@@ -9,8 +9,9 @@ import pytest
 from krang_adrc_controller.detector import BalancedPoseDetector, DetectorConfig
 
 H = 1 / 30
-#: thresholds for the synthetic stream below (its wheel-speed noise is 0.01 m/s, its f_hat's 0.004)
-STREAM = DetectorConfig(wheel_speed_max=0.05, fhat_band=0.05)
+#: thresholds for the synthetic stream below (its wheel-speed noise is 0.01 m/s, its f_hat's 0.004;
+#: the mean acceleration of a 2 s window then has a noise of about 0.003 m/s^2)
+STREAM = DetectorConfig(wheel_speed_max=0.05, fhat_band=0.05, accel_max=0.015)
 
 
 def detector(**kw):
@@ -129,3 +130,32 @@ def test_gap_in_samples_restarts_window():
     # only 1.5 s of fresh data after the gap: still no point
     assert feed(det, s.settle(-1.0, 0.0, 1.5, tau_s=0.01, f_tau=0.01)) == []
     assert len(feed(det, s.settle(-1.0, 0.0, 1.0, tau_s=0.01, f_tau=0.01))) == 1
+
+
+def braking_point(accel_max, tau_s=1.0, v0=0.0075, q_bal=-1.0, seed=7):
+    """The first point of a robot still braking after a move (ground speed v0 e^(-t/tau), under
+    the default wheel_speed_max from the start), with the default thresholds at the 50 Hz feed.
+    Its pitch leans 2 a / g off the balance angle, as a WIP's does while accelerating at a."""
+    det = BalancedPoseDetector(DetectorConfig(accel_max=accel_max))
+    rng = np.random.default_rng(seed)
+    joints = POSE_A.copy()
+    det.update(0.0, q_bal, 0.0, 0.0, 0.0, joints, True)  # the move's last sample
+    for k in range(1, 20 * 50):
+        t = k / 50.0
+        v = v0 * np.exp(-t / tau_s)
+        q = q_bal + 2.0 * (-v / tau_s) / 9.81 + rng.normal(0, 3e-4)
+        point = det.update(t, q, 0.0, v + rng.normal(0, 0.0015), 0.0, joints, False)
+        if point is not None:
+            return point
+    raise AssertionError('no point')
+
+
+def test_braking_robot_is_not_taken_for_balanced():
+    """A window that opens as soon as the speed is under wheel_speed_max averages a braking
+    robot's lean (0.5-0.6 mrad here, 0.5-1 mrad in the ROS demo); the acceleration bound waits
+    for a window whose mean is within 0.2 mrad."""
+    for seed in range(4):
+        early, settled = braking_point(0.0, seed=seed), braking_point(0.0005, seed=seed)
+        assert early.q_base - -1.0 < -0.45e-3
+        assert abs(settled.q_base - -1.0) < 0.2e-3
+        assert settled.t > early.t + 1.0

@@ -54,9 +54,10 @@ def test_adaptive_choice_prefers_the_pose_that_removes_the_uncertainty():
 
     pool = generate_pool(50, seed=3, robot=robot).joints
     beta = robot.nominal_beta
-    sel = AdaptiveSelector(robot, pool, settle_s=1e6)  # cost negligible: pure information
+    # cost negligible and no caster margin: pure information
+    sel = AdaptiveSelector(robot, pool, settle_s=1e6, caster_margin_rad=-np.inf)
     cov = np.diag(np.full(robot.n_beta, 1e-4))
-    score, gain, move, before, after = sel.scores(beta, cov, pool[0])
+    score, gain, move, before, after, _ = sel.scores(beta, cov, pool[0])
     assert np.all(gain > 0) and np.all(after <= before + 1e-15)
     choice = sel.choose(beta, cov, pool[0])
     assert choice.index == int(np.argmax(gain))
@@ -68,7 +69,7 @@ def test_adaptive_choice_prefers_the_pose_that_removes_the_uncertainty():
     r = (sel.sigma_pitch * pitch_sensitivity(robot, q, pool[choice.index][None], beta)[0]) ** 2
     k = cov @ g / (g @ cov @ g + r)
     cov2 = cov - np.outer(k, g @ cov)
-    _, gain2, _, before2, _ = sel.scores(beta, cov2, pool[0])
+    _, gain2, _, before2, _, _ = sel.scores(beta, cov2, pool[0])
     assert before2 == pytest.approx(after[choice.index], rel=1e-9)
     s = g @ cov @ g  # the same row again is worth r / (2 s + r) of its first time
     assert gain2[choice.index] == pytest.approx(gain[choice.index] * r / (2 * s + r), rel=1e-6)
@@ -84,6 +85,55 @@ def test_move_cost_steers_the_choice_to_near_poses():
     free = AdaptiveSelector(robot, pool, settle_s=1e6).scores(robot.nominal_beta, cov, pool[0])
     paid = AdaptiveSelector(robot, pool, settle_s=0.5).scores(robot.nominal_beta, cov, pool[0])
     assert paid[2][np.argmax(paid[0])] <= free[2][np.argmax(free[0])]
+
+
+def lowest_true_pitch_on_moves(robot, truth, pool, margin, n_poses=12, seed=0):
+    """A kinematic session (the learner told each chosen pose's true balance pitch, 0.3 mrad
+    noise) from the default stand pose: the lowest true balance pitch above the caster along
+    each straight-line move, rad, and the start's. Checks that every choice keeps the predicted
+    margin (or the start's, if lower) on its path."""
+    from krang_com_estimator.estimators import make_estimator
+    from krang_model.com import balance_pitch
+    from krang_sim.closed_loop import stand_pose
+
+    rng = np.random.default_rng(seed)
+    learner = make_estimator('map-online', robot, robot.nominal_beta)
+    sel = AdaptiveSelector(robot, pool, caster_margin_rad=margin)
+    current = stand_pose(robot, robot.nominal_beta)
+    start = balance_pitch(robot, current[None], truth)[0] - sel.caster_pitch
+    lowest = []
+    for _ in range(n_poses):
+        before, _ = sel.path_margins(learner.beta, learner.covariance, current)
+        choice = sel.choose(learner.beta, learner.covariance, current)
+        assert choice.margin_rad >= min(margin, before)
+        goal = choice.joints
+        path = current + np.linspace(0.0, 1.0, 41)[1:, None] * (goal - current)
+        lowest.append((balance_pitch(robot, path, truth) - sel.caster_pitch).min())
+        q = balance_pitch(robot, goal[None], truth)[0] + rng.normal(0.0, 3e-4)
+        learner.update(q, goal, sigma=3e-4)
+        current = goal
+    return np.array(lowest), start
+
+
+def test_caster_margin_on_truths_it_was_not_tuned_on():
+    """The choice keeps its margin (0.1 rad plus 2 posterior std of the predicted pitch) from the
+    caster along every move: on truths 7300-7303 (the margin was set on 0-11) no move brings the
+    true balance pitch within 0.2 rad of the caster, and the first one (from a stand pose that
+    some truths put only 0.03 rad above it) never lower than where it starts or 0.1 rad. Without
+    the margin the same sessions come within 0.13 rad."""
+    from krang_pose_server.pool import generate_pool
+
+    robot = load_krang()
+    pool = generate_pool(1000, seed=7, robot=robot).joints
+    for seed in range(7300, 7304):
+        truth = generate_truth(robot, seed).beta
+        lowest, start = lowest_true_pitch_on_moves(robot, truth, pool, 0.1)
+        print(f'truth {seed}: start {start:.3f}, lowest per move {np.round(lowest, 3)}')
+        assert lowest[0] >= min(start, 0.1) and lowest[1:].min() >= 0.2
+    unguarded, _ = lowest_true_pitch_on_moves(
+        robot, generate_truth(robot, 7300).beta, pool, -np.inf
+    )
+    assert unguarded.min() < 0.15
 
 
 @pytest.mark.timeout(900)
