@@ -180,7 +180,8 @@ class PoseServer(Node):
         return choice.joints, (
             f'adaptive pose {self.chosen} (pool pose {choice.index}; '
             f'predicted RMS forward error {1000 * choice.rms_before_m:.2f} -> '
-            f'{1000 * choice.rms_after_m:.2f} mm)'
+            f'{1000 * choice.rms_after_m:.2f} mm; predicted pitch {choice.margin_rad:.2f} rad '
+            'above the caster at worst on the way, less 2 std)'
         )
 
     def on_mode(self, msg):
