@@ -212,6 +212,8 @@ class Player:
         self.send(frames)
 
     def run(self):
+        # the sender loop must not wait out Python's 5 ms switch interval behind the receive thread
+        sys.setswitchinterval(0.0005)
         reader = BusReader(self.buses | {REF: self.ref_bus}, self.receive, self.receive_error)
         threading.Thread(target=self.commands_in, daemon=True).start()
         print('ready', flush=True)

@@ -22,6 +22,7 @@ from typing import Callable, Iterable, Mapping
 
 import can
 
+BURST = 16  # frames read from one bus before the others get their turn
 SO_ATTACH_FILTER = 26  # linux/socket.h (socket.SO_ATTACH_FILTER is not exported)
 # classic BPF opcodes (linux/filter.h)
 _LD_B_ABS, _LD_H_ABS = 0x30, 0x28
@@ -125,10 +126,13 @@ class BusReader:
             for fd in ready:
                 name, bus = self._by_fd[fd]
                 try:
-                    msg = bus.recv(0.0)
-                    while msg is not None:  # drain what is queued: one select per burst
-                        self._on_frame(name, msg)
+                    # what is queued, up to BURST frames: one select per burst, and a busy bus
+                    # (the wheel bus) that the thread cannot keep up with starves no other
+                    for _ in range(BURST):
                         msg = bus.recv(0.0)
+                        if msg is None:
+                            break
+                        self._on_frame(name, msg)
                 except Exception as exc:  # noqa: BLE001 - reported, the other buses go on
                     if self._stop.is_set():
                         return

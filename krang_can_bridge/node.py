@@ -224,6 +224,9 @@ class CanBridgeNode(Node):
         period = p.imu_sample_period_s
         self._imu_clock = SampleClock(period, lag_max_s=0.04) if period > 0 else None
         self._lock = threading.Lock()
+        # The receive thread runs in bursts (a TPDO set, a DMU sample): a wheel command waiting in
+        # the executor for the GIL could wait out Python's 5 ms switch interval; 0.5 ms bounds it.
+        sys.setswitchinterval(min(sys.getswitchinterval(), 0.0005))
         self._send_timeout = p.send_timeout_s
         self._stop = threading.Event()
         self._send_errors: dict[str, int] = {}

@@ -1,0 +1,110 @@
+"""Receiving cheaply (krang_can_bridge/bus_io.py) and the struct codecs compiled from the DBC."""
+
+import random
+import time
+
+import can
+import pytest
+
+from krang_can_bridge.bridge import BridgeCore
+from krang_can_bridge.bus_io import BusReader, receive_only
+from krang_can_bridge.config import load_devices
+from krang_can_bridge.protocols import FrameLayout, ValueOutOfRange, load_dbc
+from krang_can_bridge.protocols import powercube as pc
+from krang_model.config import config_path
+from krang_sim.devices import KrangCanDevices
+
+
+def _bus(port):
+    return can.Bus(interface='udp_multicast', channel='239.74.163.201', port=port)
+
+
+def _collect(buses, seconds=0.3):
+    got = []
+    reader = BusReader(buses, lambda name, m: got.append((name, m.arbitration_id)), print)
+    time.sleep(seconds)
+    reader.stop()
+    return got
+
+
+def test_udp_multicast_kernel_filter_passes_only_the_ids_asked_for():
+    port = random.Random().randrange(20000, 60000, 16)
+    rx, tx = _bus(port), _bus(port)
+    try:
+        keep = {0x05, 0x50, 0xA4, 0x2E3, 0x701}  # msgpack: fixint, uint8, uint16 encodings
+        receive_only(rx, keep)
+        sent = [0x05, 0x06, 0x50, 0x7F, 0x80, 0xA4, 0xA5, 0xFF, 0x100, 0x2E3, 0x2E4, 0x701, 0x7FF]
+        for i in sent:
+            tx.send(can.Message(arbitration_id=i, data=b'\x01', is_extended_id=False))
+        # an encoding the filter does not read (an extended id) passes: it only drops what it read
+        tx.send(can.Message(arbitration_id=0x12345, data=b'\x01', is_extended_id=True))
+        got = [aid for _, aid in _collect({'rx': rx})]
+        assert got == sorted(keep) + [0x12345]
+    finally:
+        rx.shutdown()
+        tx.shutdown()
+
+
+def test_reader_serves_every_bus_while_one_is_flooded():
+    port = random.Random().randrange(20000, 60000, 16)
+    a, b = _bus(port), can.Bus(interface='udp_multicast', channel='239.74.163.202', port=port + 1)
+    tx_a, tx_b = (
+        _bus(port),
+        can.Bus(interface='udp_multicast', channel='239.74.163.202', port=port + 1),
+    )
+    try:
+        for k in range(200):  # within the default socket buffer
+            tx_a.send(
+                can.Message(arbitration_id=0x10, data=bytes([k % 256]), is_extended_id=False)
+            )
+        tx_b.send(can.Message(arbitration_id=0x20, data=b'\x00', is_extended_id=False))
+        got = _collect({'a': a, 'b': b})
+        names = [n for n, _ in got]
+        assert names.count('a') == 200 and names.count('b') == 1
+        # a burst of at most 16 frames per bus before the other bus gets its turn
+        assert names.index('b') <= 16
+    finally:
+        for bus in (a, b, tx_a, tx_b):
+            bus.shutdown()
+
+
+def test_bridge_reads_every_device_frame_and_no_host_frame():
+    config = load_devices(config_path('can_devices.yaml'))
+    core = BridgeCore(config)
+    devices = KrangCanDevices(config, auto_enable_wheels=True)
+    wheels = {j: 0.1 for j in devices.wheels}
+    device_frames = devices.wheel_feedback_frames(wheels, wheels) + devices.imu_frames_from_pitch(
+        -1.0, 0.0
+    )
+    device_frames += [r for f in core.poll_frames() for r in devices.on_frame(f.bus, f.msg)]
+    for f in device_frames:
+        assert f.msg.arbitration_id in core.received_ids(f.bus), hex(f.msg.arbitration_id)
+    host_frames = core.poll_frames() + core.wheel_current_frames(0.0, 0.0)
+    for f in host_frames:
+        assert f.msg.arbitration_id not in core.received_ids(f.bus)
+        assert f.msg.arbitration_id in devices.host_ids(f.bus)
+    assert all(
+        pc.ACK_BASE < aid <= pc.ACK_BASE + pc.MODULE_ID_MASK for aid in core.received_ids('can0')
+    )
+
+
+def test_struct_layouts_agree_with_cantools():
+    dbc = load_dbc(config_path('krang_can.dbc'))
+    rng = random.Random(0)
+    for message in dbc.messages:
+        layout = FrameLayout(message)
+        for _ in range(50):
+            values = {
+                s.name: rng.randint(
+                    -(1 << (s.length - 1)) if s.is_signed else 0,
+                    (1 << (s.length - 1)) - 1 if s.is_signed else (1 << s.length) - 1,
+                )
+                for s in message.signals
+            }
+            data = layout.encode(values)
+            assert data == message.encode(values, scaling=False, strict=True)
+            assert layout.decode(data) == message.decode(data, scaling=False)
+        first = message.signals[0]
+        too_big = (1 << (first.length - (1 if first.is_signed else 0))) + 1
+        with pytest.raises(ValueOutOfRange):
+            layout.encode({s.name: 0 for s in message.signals} | {first.name: too_big})
