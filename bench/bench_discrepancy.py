@@ -128,6 +128,7 @@ def validate(seed):
         ),
         ('actuation_delay', SimEffects(actuation_delay_s=0.02), 0.02),
         ('encoder_offset', SimEffects(encoder_offset_rad=0.05), 0.05),
+        ('rolling_resistance', SimEffects(drive_extra={'ground_viscous': 4.0}), 4.0),
     ]
     model = NominalModel.default()
     print(
