@@ -173,7 +173,12 @@ def _float32_within(value: float, lower: float, upper: float) -> float:
 class BridgeCore:
     """State and command logic of the CAN bridge (see the module docstring)."""
 
-    def __init__(self, config: CanDevicesConfig, clock: Callable[[], float] = time.monotonic):
+    def __init__(
+        self,
+        config: CanDevicesConfig,
+        clock: Callable[[], float] = time.monotonic,
+        imu_sample_period_s: float = 0.0,
+    ):
         self.config = config
         self.clock = clock
         dbc = load_dbc(config.dbc_path)
@@ -209,7 +214,8 @@ class BridgeCore:
         self._fault = ''
 
         self._imu_device = _Device('imu', config.imu.required, config.imu.silence_timeout_s)
-        self._imu_estimator = ImuPitchEstimator(config.imu)
+        # the filter steps by the DMU's sequence counter (imu_filter.ImuPitchEstimator)
+        self._imu_estimator = ImuPitchEstimator(config.imu, imu_sample_period_s)
         self._imu_rates: DmuRates | None = None
         self._imu_accel: DmuAccelerations | None = None
         self._imu_snapshot: ImuSnapshot | None = None
@@ -436,7 +442,9 @@ class BridgeCore:
         if r is None or a is None or r.sequence != a.sequence:
             return None
         self._imu_rates = self._imu_accel = None  # one filter update per paired sample
-        est: PitchEstimate = self._imu_estimator.update((r.x, r.y, r.z), (a.x, a.y, a.z), now)
+        est: PitchEstimate = self._imu_estimator.update(
+            (r.x, r.y, r.z), (a.x, a.y, a.z), now, r.sequence
+        )
         w = self._imu_estimator.corrected_rates((r.x, r.y, r.z))
         self._imu_snapshot = ImuSnapshot(
             est.pitch,

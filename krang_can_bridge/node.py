@@ -217,7 +217,9 @@ class CanBridgeNode(Node):
         self._stamp_offset = (
             0.0 if self.get_parameter('use_sim_time').value else time.time() - time.monotonic()
         )
-        self.core = BridgeCore(self.config, clock=self._device_time)
+        self.core = BridgeCore(
+            self.config, clock=self._device_time, imu_sample_period_s=p.imu_sample_period_s
+        )
         # imu_sample_period_s > 0: DMU samples are timed by their sequence counter
         # (sample_clock.py); kept within 0.04 s of the clock, inside the IMU's 0.05 s silence
         # timeout
