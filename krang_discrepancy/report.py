@@ -37,6 +37,7 @@ from .effects import ModelTerms, apply_effects, get_effect, library
 from .locate import PHASE_COLOURS, locate, plot_location, shade_phases
 from .naming import (
     NamingConfig,
+    drop_null_effects,
     extended_terms,
     name_effects,
     per_record_values,
@@ -472,6 +473,10 @@ def run_discrepancy(
         fine = Replay(records, model, replace(replay.cfg, substep_s=replay.substep / 2), phases)
         fine.scales = replay.scales
         discretisation = refine_step(fine, base, result.selected, result.config)
+        dropped = drop_null_effects(replay, base, result)
+        if dropped:
+            say(f'dropped (within 2 sigma of zero): {", ".join(dropped)}; named: {result.name}')
+            discretisation = {k: v for k, v in discretisation.items() if k not in dropped}
         timing['refine_s'] = time.perf_counter() - t
     t = time.perf_counter()
     structure = residual_structure(

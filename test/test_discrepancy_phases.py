@@ -232,3 +232,28 @@ def test_an_unadmitted_sitting_offset_is_unexplained_not_a_wrong_name(tmp_path):
     expected = _geometric_sitting_pitch(0.25) - _geometric_sitting_pitch(DRIVE.wheel_radius)
     assert js['sitting_offset']['off']
     assert js['sitting_offset']['pooled'] == pytest.approx(expected, rel=0.2)
+
+
+def test_an_effect_indistinguishable_from_zero_is_not_named(tmp_path):
+    """A clean record (seed 164, sensor noise x0.5, the one false name of 94 clean records): the
+    naming stage admits a torque constant of 0.9994 x nominal (held-out improvement 0.11, t 3.3),
+    within its own sigma of 1; the workflow drops it and answers none."""
+    from dataclasses import replace as dc_replace
+
+    from krang_discrepancy.report import run_discrepancy
+    from krang_sim.physics import SensorNoise
+
+    base = SensorNoise()
+    noise = dc_replace(
+        base,
+        imu_pitch_std_rad=base.imu_pitch_std_rad * 0.5,
+        gyro_std_rad_s=base.gyro_std_rad_s * 0.5,
+        joint_std_rad=base.joint_std_rad * 0.5,
+    )
+    rec = simulate_record(
+        SimEffects(), seed=164, seconds=22.0, hold_s=2.0, sit_down=False, noise=noise
+    )
+    out = run_discrepancy([rec], tmp_path, plots=False, replay_config=SIM_REPLAY)
+    assert [f.key for f in out['result'].singles[:1]] == ['torque_constant']
+    assert out['result'].singles[0].improvement >= 0.10  # the rule alone would name it
+    assert out['json']['effect'] == 'none'
