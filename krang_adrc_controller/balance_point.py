@@ -65,8 +65,21 @@ class ObserverConfig:
             'this, rad (~2.5 mm of CoM at 0.5 m height)'
         },
     )
+    place_tol_m: float = field(
+        default=0.8,
+        metadata={
+            'doc': 'while the joints move the estimate counts as converged as long as the robot '
+            'stays within this of its position reference, m (and place_speed_m_s)'
+        },
+    )
+    place_speed_m_s: float = field(
+        default=0.3,
+        metadata={'doc': '... and its ground speed below this, m/s'},
+    )
 
     def __post_init__(self):
+        if self.place_tol_m <= 0 or self.place_speed_m_s <= 0:
+            raise ValueError('balance_point.place_tol_m and place_speed_m_s must be positive')
         if (
             self.time_constant_s <= 0
             or self.limit_rad <= 0

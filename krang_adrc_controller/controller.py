@@ -134,7 +134,32 @@ class ControlSample:
     wheel_left_rate: float
     wheel_right_rate: float
     joints: np.ndarray  # body joints, pose order
-    joints_moving: bool = False
+    joints_moving: bool = False  # measured: the joints move now (not: a move is commanded)
+    move_pending: bool = False  # the pose server's target is not reached yet (paused or not)
+
+
+class JointMotion:
+    """Whether the joints move, measured from their positions: the largest change over at least
+    `window_s` above `speed_rad_s` times the time elapsed. A window, not one sample: the pose
+    server streams targets at 20 Hz and the joints stop briefly between them, and a per-sample
+    difference would be mostly encoder noise."""
+
+    def __init__(self, speed_rad_s: float = 0.02, window_s: float = 0.1):
+        self.speed = float(speed_rad_s)
+        self.window = float(window_s)
+        self._ref = None  # (t, joints) at the start of the current window
+        self.moving = False
+
+    def update(self, t: float, joints) -> bool:
+        joints = np.asarray(joints, float)
+        if self._ref is None or t < self._ref[0]:
+            self._ref = (t, joints.copy())
+            return self.moving
+        elapsed = t - self._ref[0]
+        if elapsed >= self.window:
+            self.moving = bool(np.max(np.abs(joints - self._ref[1])) > self.speed * elapsed)
+            self._ref = (t, joints.copy())
+        return self.moving
 
 
 @dataclass(slots=True)
@@ -167,7 +192,9 @@ class Reply:
     message: str
 
 
-def sample_from_sensors(sensors, joints_moving: bool = False) -> ControlSample:
+def sample_from_sensors(
+    sensors, joints_moving: bool = False, move_pending: bool = False
+) -> ControlSample:
     """ControlSample from a ``krang_sim.physics.Sensors`` reading."""
     return ControlSample(
         sensors.t,
@@ -179,6 +206,7 @@ def sample_from_sensors(sensors, joints_moving: bool = False) -> ControlSample:
         sensors.wheel_right_rate,
         sensors.joints,
         joints_moving,
+        move_pending,
     )
 
 
@@ -206,6 +234,7 @@ class BalanceController:
         self._spin = (*cfg.modes.spin_gains, cfg.modes.spin_limit_a)
         self._current_limit = drive.current_limit
         self._caster_limit = drive.caster_pitch + cfg.safety.caster_margin_rad
+        self._place = (cfg.balance_point.place_tol_m, cfg.balance_point.place_speed_m_s)
         self._caster_since: float | None = None
         self._on_caster = False  # caught on the caster in BALANCE: sit (modes.py)
         self._pose_check_every = max(1, int(round(cfg.lqr.pose_check_period_s * cfg.rate_hz)))
@@ -731,25 +760,34 @@ class BalanceController:
     def _balance_law(self, sample, theta, x, dx, dth, psi, dpsi, dt, k, events):
         """ADRC about the balance point, the BalLo spin PD, and the detector's feed. Returns
         (i_left, i_right, f_hat_x, f_hat_theta, saturated, trim, balanced point or None,
-        converged). Converged: the joints have been still for the observer's hold and one time
-        constant, and its estimate has caught up (``BalancePointObserver.converged``)."""
+        converged). Converged, the flag the pose server pauses a move on: while the observer is
+        held (the joints move, measured, or stopped less than its hold ago) the robot keeps its
+        place (|x - x_ref| and |dx| within ``balance_point.place_tol_m`` / ``place_speed_m_s``:
+        the observer's raw estimate then carries the joints' reaction torques and says
+        nothing); at rest the joints have been still for the hold and one time constant and the
+        estimate has caught up (``BalancePointObserver.converged``). The detector takes no point
+        while a move is pending or the joints move."""
         t = sample.t
         trim = 0.0
         theta_c = theta
-        converged = not self._moving
+        bp = self.balance_point
+        if bp is None:
+            converged = not self._moving or self._keeps_place(x, dx)
+        else:
+            still = t - self._t_still
+            held = self._moving or still < bp.hold_s
+            converged = self._keeps_place(x, dx) if held else True
         if self._balance_point_active:
             # regulate about the balance point the observer found (theta_c = 0 there)
-            bp = self.balance_point
-            still = t - self._t_still
-            hold = not bp.track_moves and (self._moving or still < bp.hold_s)
+            hold = not bp.track_moves and held
             trim = bp.update(theta, dt, hold)
             theta_c = theta - trim
-            converged = (
-                not hold
-                and still >= bp.hold_s + bp.time_constant
-                and t - self._t_balance >= bp.hold_s + bp.time_constant
-                and bp.converged
-            )
+            if not held:
+                converged = (
+                    still >= bp.hold_s + bp.time_constant
+                    and t - self._t_balance >= bp.hold_s + bp.time_constant
+                    and bp.converged
+                )
         c = self.adrc.update(theta_c, x - self.x_ref, dt, dtheta=dth, dx=dx)
         il, ir = c.i_left, c.i_right
         kp, kd, lim = self._spin
@@ -761,12 +799,23 @@ class BalanceController:
         point = None
         if k % self._detector_every == 0:
             point = self.detector.update(
-                t, sample.q_base, dth, dx, c.fhat_theta, sample.joints, sample.joints_moving
+                t,
+                sample.q_base,
+                dth,
+                dx,
+                c.fhat_theta,
+                sample.joints,
+                sample.joints_moving or sample.move_pending,
             )
             if point is not None:
                 self.points.append(point)
                 events.append(f'balanced_point: q_base={point.q_base:.5f}')
         return il, ir, c.fhat_x, c.fhat_theta, c.saturated, trim, point, converged
+
+    def _keeps_place(self, x, dx) -> bool:
+        """The robot stays near its position reference and slow (the flag during a move)."""
+        tol, speed = self._place
+        return abs(x - self.x_ref) < tol and abs(dx) < speed
 
     def _sit_ref(self, t) -> float:
         """SIT_DOWN's pitch reference: from the pitch at the request down to the sit limit at

@@ -5,8 +5,8 @@ net wheel torque is zero, so the true CoM is over the axle whatever the CoM mode
 measured IMU pitch q_base then *is* the balance angle (kit README: "q_base is the IMU pitch").
 
 Settled means, over the last ``window_s`` of samples (all of them, contiguous in time):
-  * joints not moving (the pose server's flag) and every joint within ``joint_tol_rad`` of its
-    window mean;
+  * no move under way (the caller's flag: the joints move, or the pose server's target is not
+    reached, e.g. a paused move) and every joint within ``joint_tol_rad`` of its window mean;
   * |thetadot| < ``pitch_rate_max`` and |wheel speed| < ``wheel_speed_max`` at every sample;
   * the observer's disturbance estimate has converged: max - min of f_hat over the window below
     ``fhat_band``;

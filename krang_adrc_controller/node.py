@@ -36,7 +36,7 @@ from krang_ros import messages, names, params, topics
 from krang_ros.names import WHEEL_JOINTS as WHEELS
 from krang_ros.spin import Polled, run_node, take_latest
 
-from .controller import BalanceController, ControllerConfig, ControlSample, Reply
+from .controller import BalanceController, ControllerConfig, ControlSample, JointMotion, Reply
 
 #: the node's own parameters besides ControllerConfig's: name -> (type, default, description)
 NODE_PARAMETERS = {
@@ -84,6 +84,7 @@ class AdrcControllerNode(Node):
         self.imu = None
         self.joint_state = None
         self.target = None
+        self.motion = JointMotion()  # the joints move (measured), from /joint_states positions
         self.answered_stamp = None  # header stamp of the last imu/data sample stepped on
         self.mode = None
         self.converged = None
@@ -275,7 +276,9 @@ class AdrcControllerNode(Node):
         else:
             _, q_base, pitch_rate, _ = self.imu
             _, joints, wheels, rates = self.joint_state
-            moving = self.target is not None and bool(np.any(np.abs(self.target - joints) > 0.01))
+            # a move pending (the pose server's target not reached, paused or not) is not the
+            # joints moving: the observer's hold follows the joints, the detector waits for both
+            pending = self.target is not None and bool(np.any(np.abs(self.target - joints) > 0.01))
             sample = ControlSample(
                 sample_t,
                 q_base,
@@ -285,7 +288,8 @@ class AdrcControllerNode(Node):
                 rates[0],
                 rates[1],
                 joints,
-                moving,
+                self.motion.update(self.joint_state[0], joints),
+                pending,
             )
         out = self.controller.step(sample, stale=stale)
         self.last_output = out

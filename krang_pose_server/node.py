@@ -7,7 +7,10 @@ second of move and settle, given the estimator's posterior on /com_estimator/pos
 paper's method).
 
 ~/next_pose is refused unless the controller balances (its latched mode topic) and while a move is
-under way; a move stops where it is if the controller leaves balance."""
+under way; a move stops where it is if the controller leaves balance. While the controller's
+latched balance_converged is false a move holds its setpoint (at most max_pause_s in total per
+move, then the rest at slow_fraction of its speed: krang_pose_server.streaming); each pause is
+logged, and the next reply and the diagnostics give the pauses of the last move."""
 
 import math
 import sys
@@ -18,7 +21,7 @@ import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.node import Node
 from sensor_msgs.msg import JointState
-from std_msgs.msg import Float64MultiArray, String
+from std_msgs.msg import Bool, Float64MultiArray, String
 from std_srvs.srv import Trigger
 
 from krang_model.config import config_path
@@ -30,6 +33,7 @@ from krang_ros.spin import run_node
 from .pool import generate_pool
 from .selection import CRITERIA, AdaptiveSelector
 from .sequence import PoseSequence, StraightLineMove
+from .streaming import MoveStreamer, PauseConfig
 
 
 def _doc(default, text):
@@ -58,8 +62,19 @@ class PoseServerParams:
         0.8, "moves run at this fraction of the joints' speed limits, (0, 1]"
     )
     stream_rate_hz: float = _doc(20.0, 'rate of the streamed joint targets during a move, > 0')
+    max_pause_s: float = _doc(
+        PauseConfig.max_pause_s,
+        "a move holds while the controller's balance_converged is false, at most this long in "
+        'total, s, >= 0',
+    )
+    slow_fraction: float = _doc(
+        PauseConfig.slow_fraction,
+        'after max_pause_s of pauses the rest of the move runs at this fraction of its speed, '
+        '(0, 1]',
+    )
 
     def __post_init__(self):
+        PauseConfig(self.max_pause_s, self.slow_fraction)  # checks them
         if self.selection not in ('adaptive', 'fixed'):
             raise ValueError(f"selection must be 'adaptive' or 'fixed', got {self.selection!r}")
         if self.criterion not in CRITERIA:
@@ -120,10 +135,16 @@ class PoseServer(Node):
             Float64MultiArray, names.relative(names.POSTERIOR), self.on_posterior, topics.LATCHED
         )
         self.create_subscription(String, names.relative(names.MODE), self.on_mode, topics.LATCHED)
+        self.create_subscription(
+            Bool, names.relative(names.BALANCE_CONVERGED), self.on_converged, topics.LATCHED
+        )
+        self.pause = PauseConfig(cfg.max_pause_s, cfg.slow_fraction)
+        self.converged = None  # the controller's flag; unknown = do not wait
         self.stream_rate = cfg.stream_rate_hz
         self.measured = None
-        self.move = None
-        self.move_started = None
+        self.move = None  # the MoveStreamer under way
+        self.last_move = None  # ... and the one before, for its pauses
+        self.last_tick = None
         self.create_timer(1.0 / self.stream_rate, self.stream_move)
         self.create_timer(1.0, self.publish_diagnostics)
 
@@ -190,6 +211,9 @@ class PoseServer(Node):
             self.get_logger().warning(f'controller left balance ({self.mode}): the move stops')
             self.move = None
 
+    def on_converged(self, msg):
+        self.converged = bool(msg.data)
+
     def on_joint_states(self, msg):
         joints = messages.joints_from_state(msg, self.robot.pose_joints)
         if joints is not None:
@@ -199,16 +223,32 @@ class PoseServer(Node):
         return self.get_clock().now().nanoseconds * 1e-9
 
     def stream_move(self):
-        if self.move is None:
+        move = self.move
+        if move is None:
             return
-        t = self.now() - self.move_started
+        now = self.now()
+        event = move.advance(max(now - self.last_tick, 0.0), self.converged is not False)
+        self.last_tick = now
+        if event == 'pause':
+            self.get_logger().info(
+                'move paused: the controller reports an unconverged balance estimate '
+                f'({move.summary()} so far)'
+            )
+        elif event == 'resume':
+            self.get_logger().info(f'move resumed ({move.summary()})')
+        elif event == 'slow':
+            self.get_logger().warning(
+                f'move paused {self.pause.max_pause_s:g} s in total: the rest at '
+                f'{self.pause.slow_fraction:g} of its speed'
+            )
         self.cmd_pub.publish(
             messages.joint_state(
-                self.get_clock().now().to_msg(), self.robot.pose_joints, self.move.at(t)
+                self.get_clock().now().to_msg(), self.robot.pose_joints, move.setpoint
             )
         )
-        if t >= self.move.duration:
-            self.move = None
+        if move.done:
+            self.get_logger().info(f'move done ({move.summary()})')
+            self.last_move, self.move = move, None
 
     def on_next_pose(self, request, response):
         if self.mode != 'balance':
@@ -231,17 +271,17 @@ class PoseServer(Node):
             response.message = text
             return response
         start = goal if start is None else start
-        self.move = StraightLineMove.plan(
-            start, goal, self.robot.velocity_limit, self.speed_fraction
-        )
-        self.move_started = self.now()
+        plan = StraightLineMove.plan(start, goal, self.robot.velocity_limit, self.speed_fraction)
+        self.move = MoveStreamer(plan, self.pause)
+        self.last_tick = self.now()
         self.target_pub.publish(
             messages.joint_state(self.get_clock().now().to_msg(), self.robot.pose_joints, goal)
         )
-        duration = self.move.duration
         self.stream_move()
         response.success = True
-        response.message = f'{text} (a move of {duration:.1f} s)'
+        response.message = f'{text} (a move of {plan.duration:.1f} s)'
+        if self.last_move is not None:
+            response.message += f'; the last move: {self.last_move.summary()}'
         self.get_logger().info(f'commanding {response.message}')
         return response
 
@@ -270,6 +310,10 @@ class PoseServer(Node):
             else:
                 text = f'waiting for next_pose ({len(self.sequence)} poses)'
             values = {'cursor': self.sequence.cursor, 'total': len(self.sequence)}
+        shown = self.move or self.last_move
+        if shown is not None:
+            values['pauses'] = shown.pauses
+            values['paused_s'] = f'{shown.paused_s:.1f}'
         self.diag_pub.publish(
             messages.diagnostics(
                 self.get_clock().now().to_msg(), 'pose_server', 'ok', text, values

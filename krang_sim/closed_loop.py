@@ -8,8 +8,9 @@ controller at its own rate (500 Hz) and the physics at 1 kHz.
   paper's Table II definitions (20-sample smoothing, mJ-per-step "power") mean what they meant.
 * ``run_online_session``: the online learning loop: command a pose (a fixed list, or a chooser
   such as krang_pose_server.selection.AdaptiveSelector asked with the learner's posterior), move
-  there as the pose server does (a straight line streamed at 20 Hz), keep balancing while the
-  joints move, wait for the detector's point, update beta with the learner (with the point's
+  there as the pose server does (a straight line streamed at 20 Hz by the pose server's own
+  ``MoveStreamer``, held while the controller's balance_converged is false), keep balancing while
+  the joints move, wait for the detector's point, update beta with the learner (with the point's
   standard error), push it into the controller, repeat.
   The learner is any estimator of the registry (krang_com_estimator.estimators.make_estimator;
   default the paper's GD, ``paper-gd``): ``update(q_base, joints)``, then ``beta``.
@@ -43,6 +44,7 @@ from krang_adrc_controller.metrics import BalancingRun
 from krang_com_estimator.estimators import make_estimator
 from krang_model.com import balance_pitch
 from krang_pose_server.sequence import StraightLineMove
+from krang_pose_server.streaming import MoveStreamer, PauseConfig
 
 from .physics import KrangSim, SimConfig
 
@@ -235,6 +237,7 @@ class ClosedLoop:
                 'i_left',
                 'i_right',
                 'x_wheel_rad',
+                'x_ref_m',
                 'dx_wheel_rad_s',
                 'theta_rad',
                 'dtheta_rad_s',
@@ -256,6 +259,44 @@ class ClosedLoop:
         self._extra_current = (0.0, 0.0, -1.0)  # (left, right, until)
         self.last_output = None
         self.control_steps = 0
+        self.streamer: MoveStreamer | None = None  # the pose server's move under way
+        self.goal = None  # its goal until the joints reach it (the sample's move_pending)
+        self.moves: list[MoveStreamer] = []  # every move streamed, for its pauses
+        self._stream = (0.0, 0.0, 0)  # (start, period, ticks sent)
+        self._pause_on_flag = True
+
+    def start_move(self, goal, speed_fraction=0.8, rate_hz=20.0, pause=PauseConfig()):
+        """Start the pose server's move to `goal` (StraightLineMove from the current joint
+        targets, streamed at `rate_hz` by krang_pose_server.streaming.MoveStreamer, paused on the
+        controller's balance_converged as `pause` says; None = never pause). rate_hz=0: the goal
+        at once (each joint dashes at its own top speed). Returns the planned duration, s."""
+        sim = self.sim
+        goal = np.asarray(goal, float)
+        self.goal = goal
+        if not rate_hz:
+            sim.command_joints(goal)
+            return 0.0
+        move = StraightLineMove.plan(
+            sim.joint_targets, goal, self.robot.velocity_limit, speed_fraction
+        )
+        self.streamer = MoveStreamer(move, pause or PauseConfig())
+        self._pause_on_flag = pause is not None
+        self.moves.append(self.streamer)
+        self._stream = (sim.t, 1.0 / rate_hz, 1)
+        sim.command_joints(self.streamer.setpoint)
+        return move.duration
+
+    def _stream_tick(self, converged):
+        """One streamed target, as the pose server's timer sends it."""
+        start, period, k = self._stream
+        self._stream = (start, period, k + 1)
+        st = self.streamer
+        event = st.advance(period, converged or not self._pause_on_flag)
+        if event is not None:
+            self.events.append((self.sim.t, f'move {event}: {st.summary()}'))
+        self.sim.command_joints(st.setpoint)
+        if st.done:
+            self.streamer = None
 
     def schedule(self, *disturbances: Disturbance):
         self.disturbances.extend(disturbances)
@@ -298,7 +339,17 @@ class ClosedLoop:
         for _ in range(steps):
             if self.disturbances:
                 self._apply_disturbances()
+            if self.streamer is not None:
+                start, period, k = self._stream
+                if sim.t >= start + k * period - 1e-9:
+                    last = self.last_output
+                    self._stream_tick(last is not None and last.balance_converged)
             sample = self._frozen if self._frozen is not None else sim.control_sample()
+            if self.goal is not None:
+                if self.streamer is None and not np.any(np.abs(self.goal - sim.joints) > 0.01):
+                    self.goal = None
+                else:
+                    sample.move_pending = True
             out = ctl.step(sample, now=sim.t)
             self.control_steps += 1
             il, ir = out.current_left, out.current_right
@@ -320,6 +371,7 @@ class ClosedLoop:
                 log['i_left'].append(out.current_left)
                 log['i_right'].append(out.current_right)
                 log['x_wheel_rad'].append(out.x / r)
+                log['x_ref_m'].append(out.x_ref)
                 log['dx_wheel_rad_s'].append(out.dx / r)
                 log['theta_rad'].append(out.theta)
                 log['dtheta_rad_s'].append(out.dtheta)
@@ -514,26 +566,6 @@ def stand_pose(
     return out
 
 
-def _stream_move(loop, goal, speed_fraction, rate_hz):
-    """Schedule the pose server's move to `goal` (krang_pose_server.sequence.StraightLineMove:
-    every joint arrives at once, at `speed_fraction` of the joint speed limits), streamed as joint
-    targets at `rate_hz` as the node streams /joint_position_cmd. rate_hz=0: the goal at once (each
-    joint then dashes at its own top speed)."""
-    sim = loop.sim
-    if not rate_hz:
-        sim.command_joints(goal)
-        return 0.0
-    move = StraightLineMove.plan(
-        sim.joint_targets, goal, loop.robot.velocity_limit, speed_fraction
-    )
-    ts = np.arange(0.0, move.duration, 1.0 / rate_hz)
-    loop.schedule(
-        *(Disturbance(sim.t + t, 'joints', move.at(t)) for t in ts),
-        Disturbance(sim.t + move.duration, 'joints', move.goal),
-    )
-    return move.duration
-
-
 def run_online_session(
     robot,
     true_beta,
@@ -551,6 +583,7 @@ def run_online_session(
     log_rate_hz: float = 0.0,
     speed_fraction: float = 0.8,
     stream_rate_hz: float = 20.0,
+    pause: PauseConfig | None = PauseConfig(),
     n_poses: int | None = None,
 ) -> SessionResult:
     """Stand up in `start_pose` (default: ``stand_pose(robot, beta0)``, the Table II pose with the
@@ -565,7 +598,8 @@ def run_online_session(
     returning an object with ``joints`` (krang_pose_server.selection.AdaptiveSelector), asked
     before each of `n_poses` moves with the learner's current posterior. Each move is the pose
     server's streamed straight line (`speed_fraction` of the joint speed limits, targets at
-    `stream_rate_hz`)."""
+    `stream_rate_hz`), held while the controller's balance_converged is false as `pause` says
+    (``ClosedLoop.start_move``; None = never pause)."""
     adaptive = not isinstance(poses, (np.ndarray, list, tuple))
     if adaptive:
         chooser, poses = poses, [None] * int(n_poses)
@@ -613,11 +647,11 @@ def run_online_session(
                 pose = choice.joints
                 chosen.append(pose)
             t0 = loop.sim.t
-            t_arrive = t0 + _stream_move(loop, pose, speed_fraction, stream_rate_hz)
+            loop.start_move(pose, speed_fraction, stream_rate_hz, pause)
             moved = [None]
 
-            def done(o, moved=moved, t_arrive=t_arrive):
-                if moved[0] is None and loop.sim.t >= t_arrive and not loop.sim._moving:
+            def done(o, moved=moved):
+                if moved[0] is None and loop.streamer is None and not loop.sim._moving:
                     moved[0] = loop.sim.t
                 return o.balanced_point is not None or o.mode != 'balance'
 
@@ -644,8 +678,15 @@ def run_online_session(
             idx.append(i)
             t1 = loop.sim.t
             mv = (moved[0] if moved[0] is not None else t1) - t0
+            paused = loop.moves[-1].paused_s if loop.moves and stream_rate_hz else 0.0
             timings.append(
-                {'move_s': mv, 'settle_s': t1 - t0 - mv, 'total_s': t1 - t0, 'ok': True}
+                {
+                    'move_s': mv,
+                    'settle_s': t1 - t0 - mv,
+                    'total_s': t1 - t0,
+                    'paused_s': paused,
+                    'ok': True,
+                }
             )
             if bar is not None:
                 bar.update(1)
