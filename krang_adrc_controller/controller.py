@@ -783,7 +783,7 @@ class BalanceController:
             trim = bp.update(theta, dt, hold)
             theta_c = theta - trim
             if not held:
-                converged = (
+                converged = bool(  # a numpy bool would reach std_msgs/Bool as false
                     still >= bp.hold_s + bp.time_constant
                     and t - self._t_balance >= bp.hold_s + bp.time_constant
                     and bp.converged
@@ -815,7 +815,7 @@ class BalanceController:
     def _keeps_place(self, x, dx) -> bool:
         """The robot stays near its position reference and slow (the flag during a move)."""
         tol, speed = self._place
-        return abs(x - self.x_ref) < tol and abs(dx) < speed
+        return bool(abs(x - self.x_ref) < tol and abs(dx) < speed)
 
     def _sit_ref(self, t) -> float:
         """SIT_DOWN's pitch reference: from the pitch at the request down to the sit limit at

@@ -132,6 +132,7 @@ def test_convergence_flag_during_a_move_is_keeping_place(robot):
     loop = balancing_loop(robot)
     assert not loop.last_output.balance_converged  # just entered: not yet settled
     assert loop.run(20.0, until=lambda o: o.balance_converged)
+    assert type(loop.last_output.balance_converged) is bool  # std_msgs/Bool takes no numpy bool
     goal = TABLE2_POSE.copy()
     goal[2] += 0.3  # an arm joint
     loop.schedule(Disturbance(loop.sim.t, 'joints', goal))
