@@ -132,7 +132,6 @@ def test_convergence_flag_during_a_move_is_keeping_place(robot):
     loop = balancing_loop(robot)
     assert not loop.last_output.balance_converged  # just entered: not yet settled
     assert loop.run(20.0, until=lambda o: o.balance_converged)
-    assert type(loop.last_output.balance_converged) is bool  # std_msgs/Bool takes no numpy bool
     goal = TABLE2_POSE.copy()
     goal[2] += 0.3  # an arm joint
     loop.schedule(Disturbance(loop.sim.t, 'joints', goal))
@@ -148,6 +147,22 @@ def test_convergence_flag_during_a_move_is_keeping_place(robot):
     loop.schedule(Disturbance(loop.sim.t, 'joints', goal))
     assert loop.run(3.0, until=lambda o: not o.balance_converged)
     assert loop.sim.joints_moving
+
+
+def test_the_flag_is_a_python_bool_with_numpy_samples(robot):
+    """The node's samples carry numpy floats (its wheel angles come from an array); a numpy bool
+    flag reached std_msgs/Bool as false, and the pose server never saw the flag return."""
+    loop = balancing_loop(robot)
+    plain = loop.sim.control_sample
+
+    def numpy_sample():
+        sample = plain()
+        sample.wheel_left, sample.wheel_right = np.array([sample.wheel_left, sample.wheel_right])
+        return sample
+
+    loop.sim.control_sample = numpy_sample
+    assert loop.run(20.0, until=lambda o: o.balance_converged)
+    assert type(loop.last_output.balance_converged) is bool
 
 
 def test_a_paused_move_lets_the_estimate_converge_before_the_target(robot):
