@@ -98,3 +98,10 @@ def test_shift_hold_and_limit():
     assert obs.delta == pytest.approx(0.25)
     with pytest.raises(ValueError):
         obs.set_model(*model(0.0, b))
+
+
+def test_the_place_thresholds_must_be_positive():
+    """balance_point.place_tol_m / place_speed_m_s: the flag while the joints move."""
+    for bad in ({'place_tol_m': 0.0}, {'place_speed_m_s': -0.1}):
+        with pytest.raises(ValueError):
+            ObserverConfig(**bad)
