@@ -24,7 +24,7 @@ from krang_cli.processes import NodeSet  # noqa: E402
 from krang_model.drivetrain import drivetrain  # noqa: E402
 from krang_model.robot import load_krang  # noqa: E402
 from krang_ros import names, topics  # noqa: E402
-from krang_ros.session_client import open_session_client  # noqa: E402
+from krang_ros.session_client import SessionError, open_session_client  # noqa: E402
 from krang_sim.node import GROUND_TRUTH_FIELDS  # noqa: E402
 from krang_sim.session_config import session_devices_file  # noqa: E402
 
@@ -66,8 +66,11 @@ def test_operator_services_over_ros(tmp_path):
         fault_pub = client.create_publisher(String, names.DRIVE_FAULT, topics.LATCHED)
         enable = client.enable
         for _ in range(60):  # refused until the sensor data flow
-            if client.call(enable, SetBool.Request(data=True)).success:
-                break
+            try:
+                if client.call(enable, SetBool.Request(data=True), timeout=5.0).success:
+                    break
+            except SessionError:  # a lost first answer (SessionClient.enable_controller): retry
+                continue
             client.pause(1.0)
         wait_mode(client, 'sit', 10.0)
         client.pause(3.0)
