@@ -11,6 +11,8 @@ from std_srvs.srv import SetBool, Trigger
 
 from . import names, topics
 
+REFUSAL_RETRY_S = 3.0  # see SessionClient.learn_next_pose
+
 
 class SessionError(RuntimeError):
     """The session could not continue (a node is missing, the robot did not balance, ...)."""
@@ -123,6 +125,14 @@ class SessionClient(Node):
         reply text."""
         before = len(self.betas)
         reply = self.call(self.next_pose, Trigger.Request())
+        # The pose server moves the robot only while it sees the controller balance, from the
+        # same latched mode topic as this client, which can reach it a moment later (a stand-up of
+        # 1.4 s in an unpaced simulation): a refusal while this client sees balance is asked again
+        # for up to REFUSAL_RETRY_S.
+        retry_until = time.monotonic() + REFUSAL_RETRY_S
+        while not reply.success and self.mode == 'balance' and time.monotonic() < retry_until:
+            self.pause(0.2)
+            reply = self.call(self.next_pose, Trigger.Request())
         if not reply.success:
             raise SessionError(f'next_pose refused: {reply.message}')
         self.spin_until(
