@@ -228,6 +228,29 @@ def travel_per_pose(res):
     return np.array(out)
 
 
+def adaptive_session_off_model(robot, pool, seed, n_poses, **kw):
+    """The online session (adaptive selection, map-online) on generated truth `seed`, started
+    from a model 2.5 cm forward of the truth at the nominal stand pose."""
+    from krang_com_estimator.estimators import make_estimator
+    from krang_pose_server.selection import AdaptiveSelector
+
+    truth = generate_truth(robot, seed).beta
+    beta0 = shifted_beta(robot, truth, stand_pose(robot, robot.nominal_beta), 0.025)
+    return run_online_session(
+        robot,
+        truth,
+        beta0,
+        AdaptiveSelector(robot, pool),
+        make_estimator('map-online', robot, beta0),
+        start_pose=stand_pose(robot, beta0),
+        seed=1,
+        progress=False,
+        log_rate_hz=50,
+        n_poses=n_poses,
+        **kw,
+    )
+
+
 @pytest.mark.slow
 @pytest.mark.timeout(3600)
 def test_twelve_poses_with_the_model_two_and_a_half_centimetres_off(robot):
@@ -235,27 +258,11 @@ def test_twelve_poses_with_the_model_two_and_a_half_centimetres_off(robot):
     stand pose, the online session (adaptive selection, map-online) balances through every one
     of 12 moves on generated truths: 12 points, no safe stop, no caster catch, and a wheel travel
     of at most SESSION_TRAVEL_FAR_M per pose."""
-    from krang_com_estimator.estimators import make_estimator
     from krang_pose_server.pool import generate_pool
-    from krang_pose_server.selection import AdaptiveSelector
 
     pool = generate_pool(1000, seed=7, robot=robot).joints
-    start = stand_pose(robot, robot.nominal_beta)
     for seed in (7400, 7401, 7402):
-        truth = generate_truth(robot, seed).beta
-        beta0 = shifted_beta(robot, truth, start, 0.025)
-        res = run_online_session(
-            robot,
-            truth,
-            beta0,
-            AdaptiveSelector(robot, pool),
-            make_estimator('map-online', robot, beta0),
-            start_pose=stand_pose(robot, beta0),
-            seed=1,
-            progress=False,
-            log_rate_hz=50,
-            n_poses=12,
-        )
+        res = adaptive_session_off_model(robot, pool, seed, 12)
         events = [e for _, e in res.loop.events]
         travel = travel_per_pose(res)
         print(f'truth {seed}: {len(res.points)} poses, travel per pose {np.round(travel, 2)} m')
@@ -324,30 +331,13 @@ def test_pausing_shortens_the_adaptive_moves_with_the_model_two_and_a_half_centi
     of moves 2-3 0.5 + 0.86 / 0.49 + 0.88 m against 0.49 + 1.10 / 0.5 + 1.10 m). The first
     move's travel from where the robot stood up is longer with pausing (1.98 against 1.19 m):
     the robot goes back to its reference during the pause."""
-    from krang_com_estimator.estimators import make_estimator
     from krang_pose_server.pool import generate_pool
-    from krang_pose_server.selection import AdaptiveSelector
 
     pool = generate_pool(1000, seed=7, robot=robot).joints
-    start = stand_pose(robot, robot.nominal_beta)
     for seed in (7400, 7401):
-        truth = generate_truth(robot, seed).beta
-        beta0 = shifted_beta(robot, truth, start, 0.025)
         got = {}
         for pause in (PauseConfig(), None):
-            res = run_online_session(
-                robot,
-                truth,
-                beta0,
-                AdaptiveSelector(robot, pool),
-                make_estimator('map-online', robot, beta0),
-                start_pose=stand_pose(robot, beta0),
-                seed=1,
-                progress=False,
-                log_rate_hz=50,
-                n_poses=3,
-                pause=pause,
-            )
+            res = adaptive_session_off_model(robot, pool, seed, 3, pause=pause)
             assert len(res.points) == 3 and not res.failures
             got[pause is not None] = (excursion_per_move(res, robot), travel_per_pose(res), res)
         (exc, travel, res), (exc0, travel0, _) = got[True], got[False]
