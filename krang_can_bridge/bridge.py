@@ -26,9 +26,9 @@ Safety rules, all enforced here so the ROS shell cannot get them wrong:
   wheel commands are zero current and joint commands produce no frames;
 - an effort command older than `wheels.command_timeout_s` is replaced by zero current
   (`wheel_command_frames`), because an AMC drive holds its last current forever; the node sends
-  the current frames from each command and, while commands stop, from a watchdog timer
-  (`wheel_watchdog_frames`: the same frames, so zero current once the command is stale or motion
-  is not allowed, within `WATCHDOG_QUIET_PERIODS` refresh periods).
+  the current frames from each command, and a watchdog timer sends zero current once the command
+  is stale or motion is not allowed (`wheel_watchdog_frames`, within `WATCHDOG_QUIET_PERIODS`
+  refresh periods); it never repeats a command in force.
 
 `on_frame` returns which sample a frame completed (`IMU_SAMPLE`: the DMU's rates and
 accelerations of one sequence number; `WHEEL_SAMPLE`: position, velocity and current of every
@@ -584,15 +584,25 @@ class BridgeCore:
         return self.wheel_current_frames(cmd[0], cmd[1], now)
 
     def wheel_watchdog_frames(self, now: float | None = None) -> list[BusFrame]:
-        """The wheel command loop's timer: `wheel_command_frames` when no current frame went out
-        for WATCHDOG_QUIET_PERIODS refresh periods (commands stopped), else []. Either way the
-        loop counts as running, which keeps the drives' watchdog fed."""
+        """The wheel command loop's timer: zero current once the latest command is stale (older
+        than command_timeout_s) or motion is not allowed, repeated every WATCHDOG_QUIET_PERIODS
+        refresh periods; [] otherwise. A command in force is never repeated: its frames went out
+        with it, the drive holds that current, and a repeat would only be a frame that answers
+        no sample (in lockstep simulation sim_krang would take it for the controller's answer
+        and run on while the controller is late). Either way the loop counts as running, which
+        keeps the drives' watchdog fed."""
         now = self._now(now)
         self._command_loop_at = now
         quiet = WATCHDOG_QUIET_PERIODS / self.config.wheels.command_rate_hz
         if self._wheel_sent_at is not None and now - self._wheel_sent_at < quiet:
             return []
-        return self.wheel_command_frames(now)
+        cmd = self._wheel_command
+        in_force = (
+            cmd is not None
+            and now - cmd[2] <= self.config.wheels.command_timeout_s
+            and self.motion_allowed(now)
+        )
+        return [] if in_force else self.wheel_command_frames(now)
 
     # ---- joint commands -------------------------------------------------------------------------
     def _module_target(

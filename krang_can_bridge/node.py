@@ -37,9 +37,10 @@ components and linear_acceleration (specific force, m/s^2) are the bias-correcte
 turned by the mount angle into x forward, y left, z up (at zero pitch). Roll and yaw are not
 observed: their orientation variances are set to 1e6.
 
-Wheel currents go out from each command; a watchdog timer at wheels.command_rate_hz sends them
-only while commands stop (BridgeCore.wheel_watchdog_frames). Each command restarts that timer, so
-it costs no executor wake (about 0.2 ms of CPU here) while commands flow. A command older than
+Wheel currents go out from each command; a watchdog timer at wheels.command_rate_hz sends zero
+current once commands stop or motion is not allowed, and never repeats a command in force
+(BridgeCore.wheel_watchdog_frames). Each command restarts that timer, so it costs no executor
+wake (about 0.2 ms of CPU here) while commands flow. A command older than
 wheels.command_timeout_s, a malformed one, a silent device, or an AMC start-up not (yet) done or
 whose drive constants disagree with the config gives zero current (see BridgeCore).
 

@@ -25,12 +25,13 @@ def register(subparsers):
     p = subparsers.add_parser(
         'demo',
         help='THE MAIN JOB: simulated Krang, whole node set, online learning, report',
-        description='Starts sim_krang (a simulated Krang with a hidden true mass model: a '
-        "physically consistent fit to the real robot's balanced poses) and the node "
-        'set over simulated CAN buses, records every topic to DIR/session.mcap, lets '
-        'the robot stand up, then walks through the meta-learned poses over '
-        '/pose_server/next_pose while com_estimator learns beta online from each '
-        'balanced pose. Writes DIR/beta.yaml, DIR/report.md with PNG figures, and '
+        description='Starts sim_krang (a simulated Krang with a hidden true mass model, by '
+        'default config/sim_demo_true_beta.yaml: 13 mm of forward CoM error against the '
+        'nominal model) and the node set over simulated CAN buses, records every topic to '
+        'DIR/session.mcap, lets the robot stand up, then asks /pose_server/next_pose for '
+        "each pose (adaptive selection by default: the pose that most lowers the estimator's "
+        'expected forward CoM error per second) while com_estimator learns beta online '
+        'from each balanced pose. Writes DIR/beta.yaml, DIR/report.md with PNG figures, and '
         'prints a JSON summary.',
     )
     p.add_argument(

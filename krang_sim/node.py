@@ -17,9 +17,12 @@ physics goes on), so the node set runs as fast as the control path allows (with
 `real_time_factor` 0; real time until the commands come) and every command acts from the same
 simulated time in every run, however late it came in wall time. It waits on the bus, not on
 /wheel_effort_cmd: the current takes effect when the drive receives its frame, and a message on the
-topic can overtake the bridge's frames. The topic arms it: lockstep holds while wheel commands
-arrive (within `lockstep_timeout_s` of wall time), so a node set without a controller, or one that
-stopped, still runs; a sample left unanswered that long is counted (`lockstep_misses` in
+topic can overtake the bridge's frames. Every current frame after a sample is an answer because
+can_bridge sends them only from a command (its watchdog timer sends zero current once commands
+stop, and never repeats a command in force: a repeat let the physics run on, 130 ms once, while
+a loaded controller was late, and the robot fell). The topic arms it: lockstep holds while wheel
+commands arrive (within `lockstep_timeout_s` of wall time), so a node set without a controller, or
+one that stopped, still runs; a sample left unanswered that long is counted (`lockstep_misses` in
 /diagnostics) and the physics goes on. The answer acts from `lockstep_delay_s` after its sample in
 simulated time (whole physics steps, less than one sample period), the latency the simulated robot
 sees, whatever the wall-clock one was.

@@ -12,6 +12,7 @@ import random
 import struct
 
 import can
+import numpy as np
 import pytest
 import yaml
 
@@ -571,15 +572,27 @@ def test_on_frame_reports_each_sample_when_its_frames_are_in():
 
 
 def test_watchdog_sends_only_while_commands_stop():
-    """Commands send their own frames; the watchdog timer adds none while they flow, and once they
-    stop it sends the (stale: zero) current within WATCHDOG_QUIET_PERIODS refresh periods."""
-    core, _, t = healthy_core()
+    """Commands send their own frames; the watchdog timer never repeats a command in force (in
+    lockstep simulation a repeat would pass for the controller's answer to the next sample), and
+    once commands stop it sends zero current within WATCHDOG_QUIET_PERIODS refresh periods of
+    the command going stale, again every such period."""
+    core, dev, t = healthy_core()
     period = 1.0 / CFG.wheels.command_rate_hz
+    timeout = CFG.wheels.command_timeout_s
     core.set_wheel_effort_command([10.0, 10.0], t)
     assert [wheel_amps_by_hand(f) for f in core.wheel_command_frames(t)] != [0.0, 0.0]
-    assert core.wheel_watchdog_frames(t + 0.5 * period) == []
-    assert core.wheel_watchdog_frames(t + (bridge.WATCHDOG_QUIET_PERIODS - 0.1) * period) == []
-    late = t + CFG.wheels.command_timeout_s + period
-    assert [wheel_amps_by_hand(f) for f in core.wheel_watchdog_frames(late)] == [0.0, 0.0]
+
+    def tick(now):  # the devices keep talking: only the command's age changes
+        dev.feed(now)
+        assert core.motion_allowed(now)
+        return [wheel_amps_by_hand(f) for f in core.wheel_watchdog_frames(now)]
+
+    quiet_ticks = np.arange(t + 0.5 * period, t + timeout, 0.5 * period)
+    assert len(quiet_ticks) > 2 * bridge.WATCHDOG_QUIET_PERIODS
+    assert [tick(now) for now in quiet_ticks] == [[]] * len(quiet_ticks)
+    late = t + timeout + period
+    assert tick(late) == [0.0, 0.0]
+    assert tick(late + 0.5 * period) == []
+    assert tick(late + bridge.WATCHDOG_QUIET_PERIODS * period) == [0.0, 0.0]
     # the loop counts as running either way: the drives' watchdog keeps being fed
     assert core.watchdog_frames(late) != []
