@@ -14,6 +14,11 @@ test/test_discrepancy.py: 22 s records, seed 3, one hidden effect each, plus no 
 small effects, pairs, effects outside the library): answer, values, 2-sigma coverage, false names.
 --null N runs N no-effect records (seeds 101.., noise x0.5, x1, x2) and counts false names: the
 selection rule's false-positive rate on records.
+--gap-null N [--design suite|30hz|long] [--seed S] the gap test's null distribution
+(verdict.gap_test): N fresh no-effect records (noise x0.5, x1, x2 in turn), the nominal model's gap
+on the balancing windows of each, its 99th percentile and how many exceed verdict.MAX_OWN_GAP.
+Designs: the suite's 22 s records; 22 s records whose controller runs and logs at 30 Hz like the
+hardware's (default pose delay); 30 s records that sit down at the end, at the default stride.
 --real DIR runs the baseline on all Table II runs of the kit at DIR (balancing_runs/table2) and
 judges one new-tyre run against it, timed.
 """
@@ -42,7 +47,11 @@ def main(argv=None):
     ap.add_argument('--hidden', action='store_true')
     ap.add_argument('--real', metavar='KIT', default=None)
     ap.add_argument('--null', type=int, default=0, metavar='N')
+    ap.add_argument('--gap-null', type=int, default=0, metavar='N')
+    ap.add_argument('--design', default='suite', choices=('suite', '30hz', 'long'))
     args = ap.parse_args(argv)
+    if args.gap_null:
+        return gap_null(args.gap_null, args.seed if args.seed != 1 else 1001, args.design)
     if args.validate:
         return validate(args.seed if args.seed != 1 else 3)
     if args.null:
@@ -282,6 +291,68 @@ def null_records(n, first_seed):
     print(
         f'false names on {false} of {n} no-effect records'
         + (f' (95 % upper bound of the rate {upper:.1%})' if false == 0 else '')
+    )
+    return 0
+
+
+def gap_null(n, first_seed, design):
+    """The gap test's null distribution (module docstring, --gap-null): no naming is needed,
+    since on a no-effect record the gap after the (no) named effects is the nominal model's."""
+    from dataclasses import replace
+
+    import numpy as np
+    from krang_adrc_controller.controller import ControllerConfig
+    from krang_discrepancy.nominal import NominalModel
+    from krang_discrepancy.replay import Replay, ReplayConfig
+    from krang_discrepancy.synthetic import simulate_record
+    from krang_discrepancy.verdict import MAX_OWN_GAP, gap_test
+    from krang_sim.physics import SensorNoise
+
+    model = NominalModel.default()
+    at_30hz = ControllerConfig().override(
+        {
+            'balance_point.enabled': False,
+            'modes.stand_error_min_rad': -0.30944,  # as simulate_record's own default
+            'rate_hz': 30.0,
+            'detector.rate_hz': 30.0,
+        }
+    )
+    base = SensorNoise()
+    gaps = []
+    for i in range(n):
+        seed, k = first_seed + i, (0.5, 1.0, 2.0)[i % 3]
+        noise = replace(
+            base,
+            imu_pitch_std_rad=base.imu_pitch_std_rad * k,
+            gyro_std_rad_s=base.gyro_std_rad_s * k,
+            joint_std_rad=base.joint_std_rad * k,
+        )
+        if design == 'long':
+            rec = simulate_record(None, seed=seed, seconds=30.0, hold_s=2.5, noise=noise)
+            cfg = ReplayConfig(pose_delay_s=0.01)
+        else:
+            rec = simulate_record(
+                None,
+                seed=seed,
+                seconds=22.0,
+                hold_s=2.0,
+                sit_down=False,
+                noise=noise,
+                controller_config=at_30hz if design == '30hz' else None,
+            )
+            delay = {} if design == '30hz' else {'pose_delay_s': 0.01}  # the logs' own timing
+            cfg = ReplayConfig(stride_s=0.1, **delay)
+        rp = Replay([rec], model, cfg)
+        r0 = rp.residuals([model.terms()])[0]
+        rp.set_scales(r0)
+        g = gap_test(rp, r0)['gap']
+        gaps.append(g)
+        print(f'seed {seed}, noise x{k:g}: gap on the balancing windows {g:.4f}', flush=True)
+    gaps = np.array(gaps)
+    print(
+        f'{design}: {n} records, gap {gaps.min():.3f}-{gaps.max():.3f}, median '
+        f'{np.median(gaps):.3f}, 99th percentile {np.percentile(gaps, 99):.3f}; above '
+        f'MAX_OWN_GAP {MAX_OWN_GAP:g}: {int(np.sum(gaps > MAX_OWN_GAP))} of {n}'
     )
     return 0
 

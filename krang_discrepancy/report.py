@@ -44,7 +44,14 @@ from .naming import (
     per_third_values,
     refine_step,
 )
-from .verdict import MAX_GAP, SITTING_TOL, residual_structure, sitting_offset
+from .verdict import (
+    MAX_GAP,
+    SITTING_TOL,
+    gap_sentence,
+    gap_test,
+    residual_structure,
+    sitting_offset,
+)
 from krang_model.files import atomic_open, save_figure, write_text
 
 FORMAT = 'krang_discrepancy/extended_model/1'
@@ -521,8 +528,9 @@ def run_discrepancy(
         else float(np.nanmean(result.nominal_heldout)),
     }
     sitting = sitting_offset(replay, extended_terms(base, result.selected))
+    excess = gap_test(replay, r1)
     verdict, reason = _verdict(
-        result, structure, gaps_yaml, ref_scales is not None, drift, sitting
+        result, structure, gaps_yaml, ref_scales is not None, drift, sitting, excess
     )
     say(f'verdict: {verdict}' + (f' ({reason})' if reason else ''))
     r1a = r1[replay.active]
@@ -534,6 +542,7 @@ def run_discrepancy(
         'per_record': per_record,
         'per_third': drift,
         'sitting_offset': sitting,
+        'gap_test': excess,
         'reference': {
             'scales': own.tolist(),
             'horizon_s': replay.horizon,
@@ -567,6 +576,8 @@ def run_discrepancy(
         js['discretisation'] = discretisation
     if sitting:
         js['sitting_offset'] = sitting
+    if excess:
+        js['gap_test'] = excess
     if per_record:
         js['per_record'] = per_record
         if split:
@@ -647,13 +658,16 @@ def _reference_scales(base_doc, replay, say):
     return sc
 
 
-def _verdict(result, structure, gaps_yaml, referenced: bool, drift=None, sitting=None):
+def _verdict(
+    result, structure, gaps_yaml, referenced: bool, drift=None, sitting=None, excess=None
+):
     """('unexplained' | 'named' | 'none', reason). Unexplained when the residual after the
     selected effects is still predictable by generic forces (verdict.py), when the model's pitch
     on the caster misses the measured one (``verdict.sitting_offset``), when a selected effect's
-    value changes between the thirds of the records (it is not a constant of the robot), or when,
+    value changes between the thirds of the records (it is not a constant of the robot), when,
     judged against a baseline's own yardstick, the model is still more than MAX_GAP times its
-    typical error off."""
+    typical error off, or, judged on its own yardstick, when its gap off the caster exceeds what
+    a right model shows (``verdict.gap_test``)."""
     if structure.significant:
         return 'unexplained', (
             'the residual after the library effects is still structured: ' + structure.sentence()
@@ -678,6 +692,11 @@ def _verdict(result, structure, gaps_yaml, referenced: bool, drift=None, sitting
         return 'unexplained', (
             f'the model is still {gap:.3g}x its own typical error off after the '
             'library effects (more than ' + f'{MAX_GAP:g}x)'
+        )
+    if not referenced and (excess or {}).get('exceeds'):
+        return 'unexplained', (
+            'the model is further off than a right model is after the library effects: '
+            + gap_sentence(excess)
         )
     return ('none' if result.selected is None else 'named'), ''
 

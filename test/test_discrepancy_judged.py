@@ -98,6 +98,40 @@ def test_no_effect_is_none_and_its_residual_unstructured(tmp_path):
     js = _run(rec, tmp_path)['json']
     assert js['effect'] == 'none', js
     assert not js['signature']['significant']
+    assert not js['gap_test']['exceeds'] and js['gap_test']['gap'] < 1.0
+
+
+def test_an_arm_encoder_offset_is_unexplained_where_the_arm_swings(tmp_path):
+    """A 0.1 rad offset of the left shoulder's encoder (LJ2), outside the library: no effect
+    is admitted (the offset moves the CoM only in the poses that swing the arm), and the answer
+    was 'none'. The gap on the balancing windows exceeds what a right model shows
+    (verdict.MAX_OWN_GAP): 'unexplained', with the stretches that carry the excess, each in a
+    pose that has LJ2 away from the first pose."""
+    hidden = SimEffects(encoder_offset_rad=0.1, encoder_offset_joint='LJ2')
+    js = _run(simulate_record(hidden, seed=3, **RECORD), tmp_path)['json']
+    assert js['effect'] == 'unexplained', js
+    gt = js['gap_test']
+    assert gt['exceeds'] and gt['gap'] > gt['limit']
+    assert 'quiet balancing windows' in js['reason']
+    assert gt['stretches'] and 'LJ2' in gt['joints_in_every_stretch']
+    assert sum(s['share'] for s in gt['stretches']) > 0.5
+
+
+def test_the_gap_test_applies_on_the_models_own_yardstick_only():
+    """Nothing named, the residual test quiet: a gap on the balancing windows above the limit
+    gives 'unexplained' on the model's own yardstick; judged against a baseline MAX_GAP rules."""
+    from types import SimpleNamespace
+    from krang_discrepancy.report import _verdict
+    from krang_discrepancy.verdict import MAX_OWN_GAP, Structure
+
+    quiet = Structure(0.0, 0.0, False)
+    nothing = SimpleNamespace(selected=None)
+    gaps = {'after': {'gap': 1.0}}
+    over = {'gap': 1.5 * MAX_OWN_GAP, 'limit': MAX_OWN_GAP, 'exceeds': True, 'signals': {},
+            'phases': {}, 'stretches': [], 'joints_in_every_stretch': []}
+    assert _verdict(nothing, quiet, gaps, False, excess=over)[0] == 'unexplained'
+    assert _verdict(nothing, quiet, gaps, True, excess=over)[0] == 'none'
+    assert _verdict(nothing, quiet, gaps, False, excess=dict(over, exceeds=False))[0] == 'none'
 
 
 # ----------------------------------------------------------------------------- baselines
@@ -172,8 +206,6 @@ def test_records_that_disagree_raise_the_misattribution_warning(tmp_path):
 KNOWN_MISSES = {
     'pair torque_constant + wheel_radius': 'answered unexplained: the pair fits, but the radius '
     "rests on the record's one sitting block, which the block rule cannot weigh (§4d)",
-    'out: LJ2 (arm) encoder offset 0.1 rad': 'answered none: in 22 s the offset moves the CoM '
-    'too little to detect',
 }
 SUITE = [
     pytest.param(c, marks=pytest.mark.xfail(strict=True, reason=KNOWN_MISSES[c[0]]))
