@@ -16,7 +16,9 @@ small effects, pairs, effects outside the library): answer, values, 2-sigma cove
 selection rule's false-positive rate on records.
 --gap-null N [--design suite|30hz|long] [--seed S] the gap test's null distribution
 (verdict.gap_test): N fresh no-effect records (noise x0.5, x1, x2 in turn), the nominal model's gap
-on the balancing windows of each, its 99th percentile and how many exceed verdict.MAX_OWN_GAP.
+on the balancing windows of each, its 99th percentile and how many exceed verdict.MAX_OWN_GAP; and
+its pitch on the caster, which must miss by more than verdict.SITTING_TOL to open the sitting route
+of the selection rule (naming._admit_by_sitting).
 Designs: the suite's 22 s records; 22 s records whose controller runs and logs at 30 Hz like the
 hardware's (default pose delay); 30 s records that sit down at the end, at the default stride.
 --real DIR runs the baseline on all Table II runs of the kit at DIR (balancing_runs/table2) and
@@ -305,7 +307,7 @@ def gap_null(n, first_seed, design):
     from krang_discrepancy.nominal import NominalModel
     from krang_discrepancy.replay import Replay, ReplayConfig
     from krang_discrepancy.synthetic import simulate_record
-    from krang_discrepancy.verdict import MAX_OWN_GAP, gap_test
+    from krang_discrepancy.verdict import MAX_OWN_GAP, SITTING_TOL, gap_test, sitting_offset
     from krang_sim.physics import SensorNoise
 
     model = NominalModel.default()
@@ -318,7 +320,7 @@ def gap_null(n, first_seed, design):
         }
     )
     base = SensorNoise()
-    gaps = []
+    gaps, sits = [], []
     for i in range(n):
         seed, k = first_seed + i, (0.5, 1.0, 2.0)[i % 3]
         noise = replace(
@@ -346,13 +348,21 @@ def gap_null(n, first_seed, design):
         r0 = rp.residuals([model.terms()])[0]
         rp.set_scales(r0)
         g = gap_test(rp, r0)['gap']
+        sit = abs(sitting_offset(rp, model.terms())['pooled'])
         gaps.append(g)
-        print(f'seed {seed}, noise x{k:g}: gap on the balancing windows {g:.4f}', flush=True)
+        sits.append(sit)
+        print(
+            f'seed {seed}, noise x{k:g}: gap on the balancing windows {g:.4f}, pitch on the '
+            f'caster off by {1e3 * sit:.2f} mrad',
+            flush=True,
+        )
     gaps = np.array(gaps)
     print(
         f'{design}: {n} records, gap {gaps.min():.3f}-{gaps.max():.3f}, median '
         f'{np.median(gaps):.3f}, 99th percentile {np.percentile(gaps, 99):.3f}; above '
-        f'MAX_OWN_GAP {MAX_OWN_GAP:g}: {int(np.sum(gaps > MAX_OWN_GAP))} of {n}'
+        f'MAX_OWN_GAP {MAX_OWN_GAP:g}: {int(np.sum(gaps > MAX_OWN_GAP))} of {n}; pitch on the '
+        f'caster off by at most {1e3 * max(sits):.2f} mrad, more than SITTING_TOL '
+        f'{1e3 * SITTING_TOL:g} mrad on {sum(x > SITTING_TOL for x in sits)} of {n}'
     )
     return 0
 

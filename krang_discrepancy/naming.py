@@ -29,7 +29,9 @@ Procedure (``name_effects``):
    values move with the partner, ``_joint_step``),
    with a backward step once a third effect enters (``_drop_redundant``). With a long record an
    information criterion alone admits spurious terms (notes/identification.md §4); the minimum
-   effect size on held-out data does not.
+   effect size on held-out data does not. When no partner passes and the accepted set misses the
+   pitch on the caster, the sitting route (``_admit_by_sitting``) weighs that static evidence
+   against its own run-to-run noise instead of as the block or two the sitting lasts.
 6. Uncertainty: the larger of the cluster-robust sandwich (``cluster_s`` clusters) and the
    delete-a-fold jackknife of the fold fits (``_uncertainty``), combined with the discretisation
    error of the replay (``refine_step``, run by ``krang_discrepancy.report``).
@@ -47,6 +49,7 @@ import numpy as np
 
 from .replay import Replay, gap_metrics
 from .effects import Effect, ModelTerms, apply_effects, library
+from .verdict import SITTING_TOL, sitting_offset
 
 
 @dataclass
@@ -663,6 +666,8 @@ def name_effects(
                 if _accept(fit, cfg) and (best is None or fit.improvement > best.improvement):
                     best = fit
             if best is None:
+                best = _admit_by_sitting(replay, base, selected, fits, cfg, blocks)
+            if best is None:
                 break
             selected = best
             reduced = _drop_redundant(replay, base, selected, cfg, folds, blocks, nominal)
@@ -675,6 +680,34 @@ def name_effects(
     return NamingResult(
         selected, singles, combos, nominal, replay.scales, cfg, folds, blocks, timing
     )
+
+
+def _admit_by_sitting(replay, base, selected: Fit, fits, cfg, blocks):
+    """The sitting route of the selection rule, for a partner none of which passed the block
+    rule: the pitch on the caster is a static, model-free measurement, weighed against its own
+    run-to-run noise rather than as the one or two time blocks the sitting lasts. When the
+    accepted set misses it by more than ``SITTING_TOL`` (3x the hardware's run-to-run spread),
+    the partner is admitted if its set brings it within ``SITTING_TOL``, removes at least
+    ``min_improvement`` of the held-out loss (the sitting block predicted by the fold fit that
+    did not see it) and leaves the held-out loss off the caster no worse. Best improvement wins;
+    None if no partner qualifies."""
+    ref = sitting_offset(replay, extended_terms(base, selected))
+    if not ref.get('off'):
+        return None
+    off_caster = replay.active & (replay.win_phase != 'sitting')
+    best = None
+    for fit in fits:
+        if fit.improvement < cfg.min_improvement:
+            continue
+        if abs(sitting_offset(replay, extended_terms(base, fit))['pooled']) > SITTING_TOL:
+            continue
+        if _compare(selected.heldout_loss, fit.heldout_loss, blocks, off_caster)[0] < 0.0:
+            continue
+        if best is None or fit.improvement > best.improvement:
+            best = fit
+    if best is not None:
+        best.reference = f'{selected.key} (sitting route)'
+    return best
 
 
 def _drop_redundant(replay, base, selected: Fit, cfg, folds, blocks, nominal):

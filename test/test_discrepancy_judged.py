@@ -203,10 +203,7 @@ def test_records_that_disagree_raise_the_misattribution_warning(tmp_path):
 
 
 #: The suite's known wrong answers (docs/discrepancy.md §6), kept visible: strict, so a fix shows.
-KNOWN_MISSES = {
-    'pair torque_constant + wheel_radius': 'answered unexplained: the pair fits, but the radius '
-    "rests on the record's one sitting block, which the block rule cannot weigh (§4d)",
-}
+KNOWN_MISSES = {}
 SUITE = [
     pytest.param(c, marks=pytest.mark.xfail(strict=True, reason=KNOWN_MISSES[c[0]]))
     if c[0] in KNOWN_MISSES

@@ -218,16 +218,30 @@ def test_discretisation_error_is_refitted_away_and_counted_in_sigma(tmp_path):
     assert js['uncertainty'] >= abs(d['value_h'] - d['value_h2'])
 
 
-def test_an_unadmitted_sitting_offset_is_unexplained_not_a_wrong_name(tmp_path):
-    """Kt x0.85 and wheels of 0.25 m in 22 s with 1 s of sitting: the pair fits exactly, but the
-    radius's decisive evidence (the sitting pitch, +0.031 rad) lies in one block, so the block
-    rule cannot admit it; Kt alone leaves the caster pitch off by the geometric amount, and the
-    answer is unexplained (it was Kt alone, 6 % off, before the sitting check)."""
+def test_a_sitting_offset_admits_its_partner_or_is_unexplained(tmp_path):
+    """Kt x0.85 and wheels of 0.25 m in 22 s with 1 s of sitting: the radius's decisive evidence,
+    the pitch on the caster (+0.031 rad off with Kt alone), lies in one block, which the block rule
+    cannot weigh (t 2.0 on the suite's record). The sitting route of the selection rule
+    (``naming._admit_by_sitting``) weighs it against its own run-to-run noise and admits the pair,
+    both values within 1 %. With the radius not in the library, Kt alone leaves the caster pitch
+    off by the geometric amount: the answer is unexplained, not a name."""
     from krang_discrepancy.report import run_discrepancy
 
     eff = SimEffects(torque_constant_scale=0.85, wheel_radius_m=0.25)
-    rec = simulate_record(eff, seconds=22.0, hold_s=2.0, sit_down=False, seed=31)
-    js = run_discrepancy([rec], tmp_path, plots=False, replay_config=SIM_REPLAY)['json']
+    rec = simulate_record(eff, seconds=22.0, hold_s=2.0, sit_down=False, seed=35)
+    out = run_discrepancy([rec], tmp_path / 'all', plots=False, replay_config=SIM_REPLAY)
+    named = {e['effect']: e['value'] for e in out['json'].get('effects', [])}
+    assert set(named) == {'torque_constant', 'wheel_radius'}, out['json']
+    assert named['torque_constant'] == pytest.approx(0.85 * DRIVE.torque_constant, rel=0.01)
+    assert named['wheel_radius'] == pytest.approx(0.25, rel=0.01)
+    assert 'sitting route' in out['result'].selected.reference
+    js = run_discrepancy(
+        [rec],
+        tmp_path / 'kt',
+        plots=False,
+        replay_config=SIM_REPLAY,
+        candidates=['torque_constant'],
+    )['json']
     assert js['effect'] == 'unexplained'
     expected = _geometric_sitting_pitch(0.25) - _geometric_sitting_pitch(DRIVE.wheel_radius)
     assert js['sitting_offset']['off']
