@@ -666,8 +666,8 @@ def _verdict(
     on the caster misses the measured one (``verdict.sitting_offset``), when a selected effect's
     value changes between the thirds of the records (it is not a constant of the robot), when,
     judged against a baseline's own yardstick, the model is still more than MAX_GAP times its
-    typical error off, or, judged on its own yardstick, when its gap off the caster exceeds what
-    a right model shows (``verdict.gap_test``)."""
+    typical error off, or, judged on its own yardstick, when its gap on the balancing windows
+    exceeds what a right model shows (``verdict.gap_test``)."""
     if structure.significant:
         return 'unexplained', (
             'the residual after the library effects is still structured: ' + structure.sentence()

@@ -16,7 +16,9 @@ missing dynamic effect can.
 
 ``residual_structure`` returns the test and the residual's signature: which signals carry the
 predictable part, which phases, which features predict it, and the lag structure (decorrelation
-time, dominant frequency) of the residual sequence.
+time, dominant frequency) of the residual sequence. The forces cannot predict an error that comes
+and goes with the pose (an arm's encoder offset): ``gap_test`` compares the gap on the balancing
+windows with its distribution for a right model, measured on fresh no-effect records.
 """
 
 from __future__ import annotations
