@@ -136,6 +136,9 @@ class ControlSample:
     joints: np.ndarray  # body joints, pose order
     joints_moving: bool = False  # measured: the joints move now (not: a move is commanded)
     move_pending: bool = False  # the pose server's target is not reached yet (paused or not)
+    # the accelerometer's pitch (messages.pitch_from_specific_force): gravity's direction, true
+    # at rest and free of the gyro's drift; the detector averages it (NaN: not measured)
+    gravity_pitch: float = math.nan
 
 
 class JointMotion:
@@ -229,6 +232,7 @@ class BalanceController:
         self.modes = ModeMachine(cfg.modes, cfg.safety, initial_mode=first)
         self.detector = BalancedPoseDetector(cfg.detector)
         self._detector_every = max(1, int(round(cfg.rate_hz / cfg.detector.rate_hz)))
+        self._gravity_pitch = [0.0, 0]  # sum and count since the detector's last feed
         # read by every step: plain attributes, not nested lookups
         self._safety_limits = (cfg.safety.max_speed_m_s, cfg.safety.stand_timeout_s)
         self._spin = (*cfg.modes.spin_gains, cfg.modes.spin_limit_a)
@@ -797,6 +801,9 @@ class BalanceController:
             il += u_spin
             ir -= u_spin
         point = None
+        acc = self._gravity_pitch  # every sample's, averaged over the detector's decimation
+        acc[0] += sample.gravity_pitch
+        acc[1] += 1
         if k % self._detector_every == 0:
             point = self.detector.update(
                 t,
@@ -806,7 +813,9 @@ class BalanceController:
                 c.fhat_theta,
                 sample.joints,
                 sample.joints_moving or sample.move_pending,
+                gravity_pitch=acc[0] / acc[1],
             )
+            acc[0], acc[1] = 0.0, 0
             if point is not None:
                 self.points.append(point)
                 events.append(f'balanced_point: q_base={point.q_base:.5f}')

@@ -148,11 +148,13 @@ class AdrcControllerNode(Node):
     def on_imu(self, msg):
         q = msg.orientation
         stamp = msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
+        a = msg.linear_acceleration
         self.imu = (
             self.now(),
             messages.pitch_from_quaternion(q.x, q.y, q.z, q.w),
             msg.angular_velocity.y,
             stamp,
+            messages.pitch_from_specific_force(a.x, a.z),
         )
         if self.step_on_imu:
             self.timer.reset()
@@ -281,7 +283,7 @@ class AdrcControllerNode(Node):
                 False,
             )
         else:
-            _, q_base, pitch_rate, _ = self.imu
+            _, q_base, pitch_rate, _, gravity_pitch = self.imu
             _, joints, wheels, rates = self.joint_state
             # a move pending (the pose server's target not reached, paused or not) is not the
             # joints moving: the observer's hold follows the joints, the detector waits for both
@@ -297,6 +299,7 @@ class AdrcControllerNode(Node):
                 joints,
                 self.motion.update(self.joint_state[0], joints),
                 pending,
+                gravity_pitch,
             )
         out = self.controller.step(sample, stale=stale)
         self.last_output = out
@@ -332,7 +335,8 @@ class AdrcControllerNode(Node):
             self.pose_pub.publish(msg)
             self.get_logger().info(
                 f'balanced pose detected: q_base {point.q_base:+.4f} rad '
-                f'(standard error {point.q_base_se:.5f})'
+                f'(standard error {point.q_base_se:.5f}; the IMU filter: '
+                f'{point.q_base_filter:+.4f})'
             )
 
     def publish_diagnostics(self):

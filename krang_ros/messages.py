@@ -114,6 +114,14 @@ def pitch_from_quaternion(x, y, z, w):
     return math.atan2(2.0 * (w * y - x * z), 1.0 - 2.0 * (x * x + y * y))
 
 
+def pitch_from_specific_force(x, z):
+    """q_base from an /imu/data linear_acceleration (x forward, z up at zero pitch, as can_bridge
+    turns the DMU's specific force): at rest gravity's reaction reads (-g sin q, ., g cos q).
+    Only the direction of gravity, so true only while the robot does not accelerate, but free of
+    the gyro's drift."""
+    return math.atan2(-x, z)
+
+
 def imu(stamp, frame_id, pitch, pitch_variance, angular_velocity, linear_acceleration):
     """sensor_msgs/Imu of a pitch-only orientation (pitch_quaternion); roll and yaw are not
     observed, so their variances are UNOBSERVED_VARIANCE. Vectors are (x, y, z)."""

@@ -159,3 +159,34 @@ def test_braking_robot_is_not_taken_for_balanced():
         assert early.q_base - -1.0 < -0.45e-3
         assert abs(settled.q_base - -1.0) < 0.2e-3
         assert settled.t > early.t + 1.0
+
+
+def test_the_accelerometer_pitch_leaves_the_filter_drift_out():
+    """In the settled window the point's pitch is the mean of the accelerometer's (gravity_pitch):
+    white noise 2 mrad per sample (the DMU's 0.02 m/s^2 over g) averages to its standard error,
+    while the IMU filter's pitch carries a gyro random walk that no window mean removes (here
+    1 mrad and a slow drift). Without a gravity pitch on every sample, the filter's mean."""
+    rng = np.random.default_rng(3)
+    q_true, n = -1.2, 90
+    ts = np.arange(1, n + 1) * H
+    filt = q_true + 1e-3 + 2e-4 * ts  # drifting, 1 mrad off
+    grav = q_true + rng.normal(0.0, 2e-3, n)
+    joints = np.zeros(16)
+
+    def run(gravity):
+        det = detector()
+        points = [
+            det.update(t, f, 0.0, 0.0, 0.0, joints, False, gravity_pitch=g)
+            for t, f, g in zip(ts, filt, gravity)
+        ]
+        return next(p for p in points if p is not None)
+
+    p = run(grav)
+    assert abs(p.q_base - q_true) < 3 * p.q_base_se
+    assert p.q_base_se == pytest.approx(2e-3 / np.sqrt(p.n_samples), rel=0.5)
+    assert p.q_base_filter - q_true > 1e-3
+    missing = grav.copy()
+    missing[len(missing) // 2] = np.nan
+    fallback = run(missing)
+    assert fallback.q_base == pytest.approx(fallback.q_base_filter)
+    assert fallback.q_base - q_true > 1e-3

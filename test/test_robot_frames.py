@@ -108,6 +108,8 @@ def test_accelerometer_sees_gravity_of_the_published_orientation(q_base):
     expected = matrix_from_quaternion(o.x, o.y, o.z, o.w).T @ np.array([0.0, 0.0, G])
     np.testing.assert_allclose([a.x, a.y, a.z], expected, atol=1e-9)
     assert msg.header.frame_id == IMU_LINK
+    # the controller reads the pitch back from the specific force alone (the detector's mean)
+    assert messages.pitch_from_specific_force(a.x, a.z) == pytest.approx(q_base, abs=1e-12)
 
 
 def test_com_is_over_the_axle_at_the_balance_pitch(poses):
