@@ -303,9 +303,7 @@ def gap_test(replay: Replay, residual, limit=MAX_OWN_GAP) -> dict:
         'gap_off_caster': float(np.sqrt(per_win[w].mean())),
         'limit': float(limit),
         'exceeds': bool(gap > limit),
-        'signals': {
-            ch: float(np.sqrt(z2[bal][:, :, c].mean())) for c, ch in enumerate(CHANNELS)
-        },
+        'signals': {ch: float(np.sqrt(z2[bal][:, :, c].mean())) for c, ch in enumerate(CHANNELS)},
         'phases': {},
         'stretches': [],
     }

@@ -127,8 +127,15 @@ def test_the_gap_test_applies_on_the_models_own_yardstick_only():
     quiet = Structure(0.0, 0.0, False)
     nothing = SimpleNamespace(selected=None)
     gaps = {'after': {'gap': 1.0}}
-    over = {'gap': 1.5 * MAX_OWN_GAP, 'limit': MAX_OWN_GAP, 'exceeds': True, 'signals': {},
-            'phases': {}, 'stretches': [], 'joints_in_every_stretch': []}
+    over = {
+        'gap': 1.5 * MAX_OWN_GAP,
+        'limit': MAX_OWN_GAP,
+        'exceeds': True,
+        'signals': {},
+        'phases': {},
+        'stretches': [],
+        'joints_in_every_stretch': [],
+    }
     assert _verdict(nothing, quiet, gaps, False, excess=over)[0] == 'unexplained'
     assert _verdict(nothing, quiet, gaps, True, excess=over)[0] == 'none'
     assert _verdict(nothing, quiet, gaps, False, excess=dict(over, exceeds=False))[0] == 'none'
