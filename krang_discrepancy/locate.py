@@ -119,37 +119,47 @@ def locate(replay: Replay, terms=None, max_lag_s: float = 5.0) -> Location:
     )
     hot = loss > 3.0 * med
     spots = []
-    for ri in np.unique(replay.win_record):
-        idx = np.flatnonzero(replay.win_record == ri)
-        h = hot[idx]
-        i = 0
-        while i < idx.size:
-            if not h[i]:
-                i += 1
-                continue
-            j = i
-            while j < idx.size and h[j]:
-                j += 1
-            seg = idx[i:j]
-            t0, t1 = replay.win_t[seg[0]], replay.win_t[seg[-1]] + replay.horizon
-            if t1 - t0 >= 0.5:
-                z = np.mean((res[seg] / replay.scales) ** 2, axis=(0, 1))
-                phases, counts = np.unique(replay.win_phase[seg], return_counts=True)
-                spots.append(
-                    {
-                        'record': replay.records[ri].name,
-                        't0': float(t0),
-                        't1': float(t1),
-                        'phase': str(phases[np.argmax(counts)]),
-                        'channel': CHANNELS[int(np.argmax(z))],
-                        'loss_x_median': float(loss[seg].mean() / med),
-                    }
-                )
-            i = j
+    for ri, seg in hot_stretches(replay, hot):
+        t0, t1 = replay.win_t[seg[0]], replay.win_t[seg[-1]] + replay.horizon
+        z = np.mean((res[seg] / replay.scales) ** 2, axis=(0, 1))
+        phases, counts = np.unique(replay.win_phase[seg], return_counts=True)
+        spots.append(
+            {
+                'record': replay.records[ri].name,
+                't0': float(t0),
+                't1': float(t1),
+                'phase': str(phases[np.argmax(counts)]),
+                'channel': CHANNELS[int(np.argmax(z))],
+                'loss_x_median': float(loss[seg].mean() / med),
+            }
+        )
     spots.sort(key=lambda s: -s['loss_x_median'] * (s['t1'] - s['t0']))
     loc = Location(res, loss, stats, acf, decor, spots, statics(replay))
     loc.summary = _summarise(loc, replay)
     return loc
+
+
+def hot_stretches(replay: Replay, hot, windows=None, min_s: float = 0.5) -> list:
+    """[(record index, window indices)] of every run of consecutive `hot` windows of one record
+    lasting at least `min_s` (first window's start to the last one's end). `windows`: the windows
+    that count (default all); one left out ends a run."""
+    windows = np.ones(len(hot), dtype=bool) if windows is None else windows
+    out = []
+    for ri in np.unique(replay.win_record):
+        idx = np.flatnonzero(windows & (replay.win_record == ri))
+        i = 0
+        while i < idx.size:
+            if not hot[idx[i]]:
+                i += 1
+                continue
+            j = i + 1
+            while j < idx.size and hot[idx[j]] and idx[j] == idx[j - 1] + 1:
+                j += 1
+            seg = idx[i:j]
+            i = j
+            if replay.win_t[seg[-1]] + replay.horizon - replay.win_t[seg[0]] >= min_s:
+                out.append((int(ri), seg))
+    return out
 
 
 def statics(replay: Replay, terms=None, min_rest_s: float = 2.0, rate_tol: float = 0.02) -> dict:

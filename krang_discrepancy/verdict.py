@@ -28,6 +28,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .locate import hot_stretches
 from .phases import PHASES
 from .record import CHANNELS
 from .replay import Replay
@@ -313,41 +314,29 @@ def gap_test(replay: Replay, residual, limit=MAX_OWN_GAP) -> dict:
             out['phases'][ph] = {'windows': int(m.sum()), 'gap': float(np.sqrt(per_win[m].mean()))}
     excess = float(np.sum(np.maximum(per_win[w] - 1.0, 0.0)))
     names = replay.model.robot.pose_joints
-    for ri, rec in enumerate(replay.records):
-        idx = np.flatnonzero(w & (replay.win_record == ri))
-        hot = per_win[idx] > STRETCH_LOSS
-        pose0 = rec.joints[int(np.searchsorted(rec.t, replay.win_t[idx[0]]))] if idx.size else 0
-        i = 0
-        while i < idx.size:
-            if not hot[i]:
-                i += 1
-                continue
-            j = i
-            while j < idx.size and hot[j] and idx[j] - idx[max(j - 1, i)] <= 1:
-                j += 1
-            seg = idx[i:j]
-            t0, t1 = float(replay.win_t[seg[0]]), float(replay.win_t[seg[-1]] + replay.horizon)
-            i = j
-            if t1 - t0 < STRETCH_S:
-                continue
-            m = (rec.t >= t0) & (rec.t <= t1)
-            delta = np.median(rec.joints[m], axis=0) - pose0
-            ch = z2[seg].mean(axis=(0, 1))
-            out['stretches'].append(
-                {
-                    'record': rec.name,
-                    't0': t0,
-                    't1': t1,
-                    'phases': sorted(set(replay.win_phase[seg])),
-                    'channel': CHANNELS[int(np.argmax(ch))],
-                    'share': float(np.sum(per_win[seg] - 1.0) / max(excess, 1e-300)),
-                    'joints': {
-                        names[k]: float(delta[k])
-                        for k in np.argsort(-np.abs(delta))
-                        if abs(delta[k]) > JOINT_DISPLACED
-                    },
-                }
-            )
+    for ri, seg in hot_stretches(replay, per_win > STRETCH_LOSS, w, STRETCH_S):
+        rec = replay.records[ri]
+        first = np.flatnonzero(w & (replay.win_record == ri))[0]
+        pose0 = rec.joints[int(np.searchsorted(rec.t, replay.win_t[first]))]
+        t0, t1 = float(replay.win_t[seg[0]]), float(replay.win_t[seg[-1]] + replay.horizon)
+        m = (rec.t >= t0) & (rec.t <= t1)
+        delta = np.median(rec.joints[m], axis=0) - pose0
+        ch = z2[seg].mean(axis=(0, 1))
+        out['stretches'].append(
+            {
+                'record': rec.name,
+                't0': t0,
+                't1': t1,
+                'phases': sorted(set(replay.win_phase[seg])),
+                'channel': CHANNELS[int(np.argmax(ch))],
+                'share': float(np.sum(per_win[seg] - 1.0) / max(excess, 1e-300)),
+                'joints': {
+                    names[k]: float(delta[k])
+                    for k in np.argsort(-np.abs(delta))
+                    if abs(delta[k]) > JOINT_DISPLACED
+                },
+            }
+        )
     out['stretches'].sort(key=lambda s: -s['share'])
     common = [set(s['joints']) for s in out['stretches']]
     out['joints_in_every_stretch'] = sorted(set.intersection(*common)) if common else []
