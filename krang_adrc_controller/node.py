@@ -5,7 +5,7 @@ a timer at `rate_hz` (the node's clock: wall time, or /clock with use_sim_time) 
 Stepping on the sample removes the phase lag between two free-running loops at the same rate:
 the timer fired just before the bridge's next sample arrived and so used a sample one period old
 (measured over DDS at 100 Hz: median 10 ms, p90 25 ms of extra sample age). The timer then only
-watches: if no sample has driven the loop for two periods it steps anyway, so stale data still
+watches: if no sample has driven the loop for three periods it steps anyway, so stale data still
 end in a safe stop; each sample restarts it, so it costs no executor wake (about 0.2 ms of CPU
 here, a tenth of a 500 Hz period) while samples flow. /joint_states is read by each step, not by
 a callback of its own, for the same reason. If either input is older than `stale_timeout_s`,
@@ -62,6 +62,10 @@ def describe_parameters():
     ]
     rows += [(name, kind, default, doc) for name, (kind, default, doc) in NODE_PARAMETERS.items()]
     return [f'{name} ({kind.__name__}, {default!r}): {doc}' for name, kind, default, doc in rows]
+
+
+#: with step_on_imu the watch timer steps once no sample came for this many control periods
+WATCH_PERIODS = 3.0
 
 
 class AdrcControllerNode(Node):
@@ -161,13 +165,16 @@ class AdrcControllerNode(Node):
             self.on_tick(sample_t=stamp, stamp=msg.header.stamp)
 
     def on_timer(self):
-        """With step_on_imu, the watch: a step only when the newest sample is two periods old by
-        its own stamp. The timer's reset follows this node's clock, which can lag the samples, and
-        a step of the timer's would answer the next sample in its place (sim_krang's lockstep
-        takes the first current frame after a sample for its answer)."""
-        newest = None if self.imu is None else self.imu[3]
-        if self.step_on_imu and newest is not None and self.now() - newest < 2 * self.period:
-            return
+        """With step_on_imu, the watch: a step only when the newest sample is WATCH_PERIODS old,
+        both by its arrival on this node's clock and by its own stamp. A step of the timer's
+        would answer the next sample in its place (sim_krang's lockstep takes the first current
+        frame after a sample for its answer), and in lockstep this node's /clock runs up to a
+        period ahead of the sample it has, while the bridge's DMU stamps, anchored at the first
+        sample's arrival, can sit a period behind the clock."""
+        if self.step_on_imu and self.imu is not None:
+            newest = max(self.imu[0], self.imu[3])
+            if self.now() - newest < WATCH_PERIODS * self.period:
+                return
         self.on_tick()
 
     def read_joint_states(self):
