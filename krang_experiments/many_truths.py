@@ -20,7 +20,7 @@ import numpy as np
 
 from krang_bag.session_report import held_out_configurations
 from krang_com_estimator.estimators import make_estimator
-from krang_model.com import com_error
+from krang_model.com import balance_pitch, com_error
 from krang_model.config import config_path
 from krang_model.poses import load_poses
 from krang_model.robot import KRANG_POSE_COLUMNS, load_krang
@@ -87,6 +87,43 @@ def session(robot, true_beta, selection, params, pool=None, held_out=None):
         'wall_s': res.wall_s,
         'pitch_error_rad': [p.q_base - t for p, t in zip(res.points, res.true_pitch)],
     }
+
+
+def exact_pitch_error(
+    robot,
+    true_beta,
+    pool_joints,
+    n_poses,
+    selection='adaptive',
+    pitch_std_rad=5e-4,
+    seed=0,
+    held_out=None,
+    **selector_options,
+):
+    """The forward CoM error (m) after `n_poses` poses learned from their true balance pitch plus
+    N(0, pitch_std_rad) noise, without the closed loop: what the choice of poses alone allows.
+    selection 'adaptive' (AdaptiveSelector on the pool, `selector_options` passed on) or 'first'
+    (the pool's first n_poses, a random draw). README "Known issues" quotes it."""
+    held_out = held_out_configurations(robot) if held_out is None else held_out
+    learner = make_estimator('map-online', robot, robot.nominal_beta)
+    rng = np.random.default_rng(seed)
+    pool = np.asarray(pool_joints, dtype=float)
+    chooser = (
+        AdaptiveSelector(robot, pool, **selector_options) if selection == 'adaptive' else None
+    )
+    current = np.zeros(pool.shape[1])
+    for k in range(n_poses):
+        joints = (
+            chooser.choose(learner.beta, learner.covariance, current).joints
+            if chooser is not None
+            else pool[k]
+        )
+        q = balance_pitch(robot, joints[None], true_beta)[0] + rng.normal(0.0, pitch_std_rad)
+        learner.update(q, joints, sigma=pitch_std_rad)
+        current = joints
+    if chooser is None:
+        learner.finalize()
+    return com_error(robot, learner.beta, true_beta, held_out)
 
 
 def run(params=None):

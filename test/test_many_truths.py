@@ -10,8 +10,9 @@ poses: every pose completes without a safe stop and the error falls under 3 mm."
 import numpy as np
 import pytest
 
-from krang_experiments.many_truths import Params, run
+from krang_experiments.many_truths import Params, exact_pitch_error, run
 from krang_model.robot import load_krang
+from krang_pose_server.pool import generate_pool
 from krang_pose_server.selection import AdaptiveSelector
 from krang_sim.truths import TruthRecipe, generate_truth
 
@@ -183,3 +184,19 @@ def test_report_draws_both_selections_and_writes_the_json(tmp_path):
     assert (tmp_path / 'many_truths.png').stat().st_size > 0
     doc = json.loads((tmp_path / 'many_truths.json').read_text())
     assert doc['summary']['adaptive']['median_final_m'] == pytest.approx(0.00095)
+
+
+def test_exact_pitch_error_falls_with_the_number_of_poses():
+    """What the choice of poses alone allows (README, Known issues): with exact-ish pitches
+    (0.5 mrad) on the ROS pool's first poses, 50 poses leave less error than 12, and many poses
+    drive it towards zero; the adaptive choice of 12 beats the first 12 of the random pool."""
+    robot = load_krang()
+    pool = generate_pool(300, seed=0, robot=robot).joints
+    truth = generate_truth(robot, 7200).beta
+    first12, first50, first300 = (
+        exact_pitch_error(robot, truth, pool, n, 'first') for n in (12, 50, 300)
+    )
+    adaptive12 = exact_pitch_error(robot, truth, pool, 12)
+    assert first300 < first50 < first12
+    assert first300 < 0.1e-3
+    assert adaptive12 < first12
