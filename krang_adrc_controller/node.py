@@ -158,7 +158,7 @@ class AdrcControllerNode(Node):
             messages.pitch_from_quaternion(q.x, q.y, q.z, q.w),
             msg.angular_velocity.y,
             stamp,
-            messages.pitch_from_specific_force(a.x, a.z),
+            messages.pitch_from_specific_force(a.x, a.y, a.z, self.controller.drive.gravity),
         )
         if self.step_on_imu:
             self.timer.reset()

@@ -114,11 +114,14 @@ def pitch_from_quaternion(x, y, z, w):
     return math.atan2(2.0 * (w * y - x * z), 1.0 - 2.0 * (x * x + y * y))
 
 
-def pitch_from_specific_force(x, z):
+def pitch_from_specific_force(x, y, z, gravity, tol=0.05):
     """q_base from an /imu/data linear_acceleration (x forward, z up at zero pitch, as can_bridge
     turns the DMU's specific force): at rest gravity's reaction reads (-g sin q, ., g cos q).
     Only the direction of gravity, so true only while the robot does not accelerate, but free of
-    the gyro's drift."""
+    the gyro's drift. NaN (not measured) when the force is not gravity alone: its magnitude off
+    `gravity` by more than `tol` of it, as for a driver that leaves the field zero."""
+    if abs(math.sqrt(x * x + y * y + z * z) - gravity) > tol * gravity:
+        return math.nan
     return math.atan2(-x, z)
 
 

@@ -109,7 +109,10 @@ def test_accelerometer_sees_gravity_of_the_published_orientation(q_base):
     np.testing.assert_allclose([a.x, a.y, a.z], expected, atol=1e-9)
     assert msg.header.frame_id == IMU_LINK
     # the controller reads the pitch back from the specific force alone (the detector's mean)
-    assert messages.pitch_from_specific_force(a.x, a.z) == pytest.approx(q_base, abs=1e-12)
+    assert messages.pitch_from_specific_force(a.x, a.y, a.z, G) == pytest.approx(q_base, abs=1e-12)
+    # not gravity alone (an accelerating robot, a driver that leaves the field zero): not measured
+    assert math.isnan(messages.pitch_from_specific_force(0.0, 0.0, 0.0, G))
+    assert math.isnan(messages.pitch_from_specific_force(1.1 * a.x, a.y, 1.1 * a.z, G))
 
 
 def test_com_is_over_the_axle_at_the_balance_pitch(poses):
