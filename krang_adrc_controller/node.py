@@ -25,7 +25,6 @@ import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
 from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.node import Node
-from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import Imu, JointState
 from std_msgs.msg import Bool, Float64MultiArray, String
 from std_srvs.srv import SetBool, Trigger
@@ -90,6 +89,7 @@ class AdrcControllerNode(Node):
         self.target = None
         self.motion = JointMotion()  # the joints move (measured), from /joint_states positions
         self.answered_stamp = None  # header stamp of the last imu/data sample stepped on
+        self.samples_answered = 0  # steps on a new imu/data sample (the control rate achieved)
         self.mode = None
         self.converged = None
         qos = topics.QOS
@@ -105,15 +105,14 @@ class AdrcControllerNode(Node):
         self.converged_pub = publisher(Bool, names.BALANCE_CONVERGED, True, topics.LATCHED)
         # Control acts on the newest sample only: after a stall, a queue of older samples (sensor
         # QoS keeps 5, /joint_states 10) would be worked off one control step each, all late.
-        latest = QoSProfile(depth=1, reliability=ReliabilityPolicy.BEST_EFFORT)
-        self.create_subscription(Imu, names.relative(names.IMU), self.on_imu, latest)
+        self.create_subscription(Imu, names.relative(names.IMU), self.on_imu, topics.LATEST)
         # joint_states is read by each control step (read_joint_states), not by a callback: one
         # executor wake per sample, not two
         self.joint_sub = self.create_subscription(
             JointState,
             names.relative(names.JOINT_STATES),
             self.on_joint_states,
-            latest,
+            topics.LATEST,
             callback_group=Polled(),
         )
         self.create_subscription(
@@ -314,6 +313,7 @@ class AdrcControllerNode(Node):
         # timer step answers no new sample and repeats the last sample's stamp
         if stamp is not None:
             self.answered_stamp = stamp
+            self.samples_answered += 1
         self.effort_pub.publish(
             messages.wheel_effort(
                 self.answered_stamp or self.get_clock().now().to_msg(),
@@ -363,6 +363,7 @@ class AdrcControllerNode(Node):
                 'balance_converged': str(out.balance_converged),
             }
         )
+        values['samples_answered'] = self.samples_answered
         if self.controller.drive_fault:
             values['drive_fault'] = self.controller.drive_fault
         self.diag_pub.publish(

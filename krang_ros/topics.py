@@ -13,7 +13,10 @@ from . import names
 
 DEFAULT = QoSProfile(depth=10)
 SENSOR = qos_profile_sensor_data
-COMMAND = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
+# A stream where only the newest message counts: after a stall the reader acts on the newest, never
+# on a queue of older ones (a wheel current, a control sample), and no reliable bookkeeping is paid
+# per message. rclpy's own /clock subscription (rclpy.time_source) uses this profile.
+LATEST = QoSProfile(depth=1, reliability=ReliabilityPolicy.BEST_EFFORT)
 KEEP_ALL = QoSProfile(
     depth=1000, history=HistoryPolicy.KEEP_ALL, reliability=ReliabilityPolicy.RELIABLE
 )
@@ -24,13 +27,13 @@ LATCHED = QoSProfile(
 QOS = {
     names.JOINT_STATES: DEFAULT,
     names.IMU: SENSOR,
-    names.WHEEL_EFFORT_CMD: COMMAND,
+    names.WHEEL_EFFORT_CMD: LATEST,
     names.JOINT_POSITION_CMD: DEFAULT,
     names.BALANCED_POSE: KEEP_ALL,
     names.BETA: LATCHED,
     names.COM: DEFAULT,
     names.POSE_TARGET: LATCHED,
     names.DIAGNOSTICS: DEFAULT,
-    names.CLOCK: DEFAULT,
+    names.CLOCK: LATEST,
     names.GROUND_TRUTH: DEFAULT,
 }

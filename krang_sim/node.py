@@ -56,7 +56,7 @@ from krang_can_bridge.protocols import amc as amc_proto
 from krang_model.beta import load_beta
 from krang_model.robot import load_krang
 from krang_ros import messages, names, params, topics
-from krang_ros.spin import run_node
+from krang_ros.spin import Polled, run_node, take_latest
 
 from .devices import KrangCanDevices
 from .physics import KrangSim, SensorNoise, SimConfig, SimEffects
@@ -222,6 +222,7 @@ class SimKrangNode(Node):
         self.rpdo_seen = set()  # drives whose current frame came in since the last sample
         self.command_at = -math.inf  # wall time of the last command answering a new sample
         self.command_stamp = -math.inf  # the sample stamp it answered
+        self.is_armed = False  # armed() at the last sample
         self.lockstep_misses = 0
         self.lockstep_wait_s = 0.0
         self.rpdo_ids = {w.codec.ids[amc_proto.RPDO_CURRENT] for w in self.devices.wheels.values()}
@@ -235,13 +236,14 @@ class SimKrangNode(Node):
         self.reader = BusReader(self.buses, self.on_host_frame, self.on_bus_error)
         qos = topics.QOS
         self.clock_pub = self.create_publisher(Clock, names.CLOCK, qos[names.CLOCK])
-        if self.lockstep:
-            self.create_subscription(
-                JointState,
-                names.relative(names.WHEEL_EFFORT_CMD),
-                self.on_effort_command,
-                qos[names.WHEEL_EFFORT_CMD],
-            )
+        # read by the physics thread at each sample (take_latest), never a wake of the executor
+        self.command_sub = self.create_subscription(
+            JointState,
+            names.relative(names.WHEEL_EFFORT_CMD),
+            lambda msg: None,
+            qos[names.WHEEL_EFFORT_CMD],
+            callback_group=Polled(),
+        )
         self.truth_pub = self.create_publisher(
             Float64MultiArray, names.private(names.GROUND_TRUTH), qos[names.GROUND_TRUTH]
         )
@@ -308,23 +310,26 @@ class SimKrangNode(Node):
             self.get_logger().info('fault injection: every device transmits again')
         self.publish_diagnostics()
 
-    def on_effort_command(self, msg):
-        stamp = messages.stamp_seconds(msg.header.stamp)
-        if stamp != self.command_stamp:  # answers a new sample (a repeat keeps the old stamp)
-            self.command_at = time.monotonic()
-            self.command_stamp = stamp
-
     def armed(self):
         """Lockstep holds while wheel commands answering new samples come (within
         lockstep_timeout_s of wall time): a controller that repeats its last command under the old
         stamp (its IMU silent) is not answering, and the simulated time must go on for its
         stale-sensor check to fire."""
-        return self.lockstep and time.monotonic() - self.command_at <= self.lockstep_timeout
+        if not self.lockstep:
+            return False
+        msg = take_latest(self.command_sub)
+        if msg is not None:
+            stamp = messages.stamp_seconds(msg.header.stamp)
+            if stamp != self.command_stamp:  # answers a new sample (a repeat keeps the stamp)
+                self.command_at = time.monotonic()
+                self.command_stamp = stamp
+        return time.monotonic() - self.command_at <= self.lockstep_timeout
 
     def wait_for_answer(self):
         """Lockstep: hold the physics until every drive's current frame answered the last sample
         (called with self.lock held; the wait releases it for the bus threads)."""
-        if not self.armed():
+        self.is_armed = self.armed()
+        if not self.is_armed:
             return
         start = time.monotonic()
         if not self.answered.wait_for(
@@ -389,7 +394,7 @@ class SimKrangNode(Node):
 
             k += 1
             factor = self.factor
-            if factor <= 0 and self.lockstep and not self.armed():
+            if factor <= 0 and self.lockstep and not self.is_armed:
                 # unpaced lockstep without a control loop (yet): real time, not a free run of
                 # simulated minutes before the nodes are up
                 factor = 1.0
@@ -426,7 +431,7 @@ class SimKrangNode(Node):
             'true_balance_pitch': f'{bal:+.4f}',
             'frames_sent': self.sent_frames,
             'real_time_slips': self.slips,
-            'lockstep_wait_s': f'{self.lockstep_wait_s:.1f}',
+            'lockstep_wait_s': f'{self.lockstep_wait_s:.3f}',
             'lockstep_misses': self.lockstep_misses,
         }
         if silent:
