@@ -31,8 +31,9 @@ The control rate (`rate_hz`) is the controller's own count of steps on new sampl
 (`samples_answered` in its diagnostics) per second of its clock across the window. The bus gives
 two cross-checks: the new RPDOs per second, and those that follow distinct samples by timing alone
 (the newest sample before each), which undercounts as soon as two answers fall between two
-samples, i.e. whenever the latency jitters around the sample period. The device player runs at
-nice -10 where the OS allows it: it stands in for devices that have their own processors.
+samples, i.e. whenever the latency jitters around the sample period. With --load the device player
+runs at nice -10 where the OS allows it (--player-nice): it stands in for devices that have their
+own processors, and starved it missed its periods.
 
 Default (no --robot): the simulated node set's parameters (config/sim_params.yaml) on wall time,
 the robot sitting, the wheel velocity toggled every 0.5 s: the first current frame that changes
@@ -64,7 +65,7 @@ from krang_can_bridge.config import load_devices
 from krang_can_bridge.protocols import load_dbc
 from krang_can_bridge.protocols.amc import AmcDriveCodec
 from krang_cli.node_set import params_files
-from krang_cli.processes import NodeSet
+from krang_cli.processes import NodeSet, niceness
 from krang_model.robot import load_krang
 from krang_ros import names, topics
 from krang_ros.session_client import SessionError, open_session_client
@@ -225,17 +226,6 @@ def _start(cmd, log_dir, name, **kwargs):
     return subprocess.Popen(cmd, stdout=kwargs.pop('stdout', log), stderr=log, **kwargs), log
 
 
-def _raise_priority():
-    """In the player's process before it starts: nice -10 where the OS allows it. The player
-    stands in for the devices, which have their own processors on the robot; starved by the busy
-    loops of --load, it missed its DMU period and its PowerCube polls, and the controller stopped
-    on stale data."""
-    try:
-        os.nice(-10)
-    except OSError:
-        pass  # not permitted: the player runs at the default priority (printed)
-
-
 def _stop(proc, timeout=5.0):
     if proc.poll() is None:
         proc.terminate()
@@ -284,9 +274,15 @@ def bring_to_balance(client, tell, timeout, dead=dict):
             client.pause(0.05)
 
 
-def run_robot(seconds, rate_hz, load, tpdo_hz):
+def run_robot(seconds, rate_hz, load, tpdo_hz, player_nice=None, nodes_nice=0):
     """Start the player, the reference chain and the node set; measure `seconds` while the
-    controller balances; return the figures of `analyse`."""
+    controller balances; return the figures of `analyse`. `player_nice` (default -10 with busy
+    loops, else 0): the player stands in for the devices, which have their own processors on the
+    robot; starved by --load it missed its DMU period and its PowerCube polls, and the controller
+    stopped on stale data. `nodes_nice`: can_bridge, adrc_controller and the reference chain's
+    two processes alike."""
+    if player_nice is None:
+        player_nice = -10 if load else 0
     tmp = tempfile.mkdtemp(prefix='krang_latency_')
     logs = os.path.join(tmp, 'logs')
     os.makedirs(logs)
@@ -314,9 +310,9 @@ def run_robot(seconds, rate_hz, load, tpdo_hz):
         stdin=subprocess.PIPE,
         stdout=subprocess.PIPE,
         text=True,
-        preexec_fn=_raise_priority,
+        preexec_fn=niceness(player_nice),
     )
-    player_nice = os.getpriority(os.PRIO_PROCESS, player.pid)
+    player_nice = os.getpriority(os.PRIO_PROCESS, player.pid)  # what was applied
     children = [(player, player_log)]
     busy = []
     nodes = NodeSet(params_files(sim=False), log_dir=logs)
@@ -335,10 +331,14 @@ def run_robot(seconds, rate_hz, load, tpdo_hz):
                     [py, str(BENCH / 'ref_chain.py'), role, '--port', str(port + 15)],
                     logs,
                     f'ref_{role}',
+                    preexec_fn=niceness(nodes_nice),
                 )
             )
-        nodes.start('can_bridge', {'devices_file': devices_file})
-        nodes.start('adrc_controller', CONTROLLER_OVERRIDES | {'rate_hz': rate_hz})
+        bridge = nodes.start('can_bridge', {'devices_file': devices_file}, nice=nodes_nice)
+        nodes_nice = os.getpriority(os.PRIO_PROCESS, bridge.pid)  # what was applied
+        nodes.start(
+            'adrc_controller', CONTROLLER_OVERRIDES | {'rate_hz': rate_hz}, nice=nodes_nice
+        )
         client, context = open_session_client()
         diag = []  # the controller's (stamp, samples_answered)
 
@@ -385,6 +385,7 @@ def run_robot(seconds, rate_hz, load, tpdo_hz):
         return analyse(record, window, rate_hz, diag) | {
             'left_balance': left_modes,
             'player_nice': player_nice,
+            'nodes_nice': nodes_nice,
         }
 
 
@@ -408,7 +409,8 @@ def print_robot(fig, load):
         f'count), {fig["configured_rate_hz"]:.0f} Hz configured ({100 * fig["rate_ratio"]:.1f} '
         f'%); on the bus {fig["new_commands_hz"]:.1f} new current commands/s, '
         f'{fig["bus_rate_hz"]:.1f}/s after distinct samples by timing alone; DMU played at '
-        f'{fig["dmu_rate_hz"]:.1f} Hz (player nice {fig["player_nice"]})'
+        f'{fig["dmu_rate_hz"]:.1f} Hz (nice: player {fig["player_nice"]}, nodes '
+        f'{fig["nodes_nice"]})'
     )
     print(
         f'reference (bare rclpy chain, same run): p50 {fig["ref_p50_ms"]:.2f} ms, '
@@ -569,6 +571,19 @@ def main():
         '--load', type=int, default=0, help='--robot: busy-loop processes during the measurement'
     )
     parser.add_argument(
+        '--player-nice',
+        type=int,
+        default=None,
+        help='--robot: niceness of the device player, which stands in for the devices '
+        '(default -10 with --load, else 0)',
+    )
+    parser.add_argument(
+        '--nodes-nice',
+        type=int,
+        default=0,
+        help='--robot: niceness of can_bridge, adrc_controller and the reference chain alike',
+    )
+    parser.add_argument(
         '--json', action='store_true', help='--robot: print the figures as JSON on the last line'
     )
     args = parser.parse_args()
@@ -577,7 +592,9 @@ def main():
     if not args.robot:
         run_sim_params(args.seconds)
         return
-    fig = run_robot(args.seconds, args.rate_hz, args.load, args.tpdo_hz)
+    fig = run_robot(
+        args.seconds, args.rate_hz, args.load, args.tpdo_hz, args.player_nice, args.nodes_nice
+    )
     print_robot(fig, args.load)
     if args.json:
         print(

@@ -1,10 +1,12 @@
 """The bare reference chain of `bench_ros_latency.py --robot`: the physical limit of rclpy here.
 
     can:   a frame 0x7E0 [counter] on a udp_multicast bus, received (python-can Notifier thread,
-           as in can_bridge) and published as std_msgs/Float64MultiArray [counter] with the QoS of
-           /imu/data; its subscription callback sends 0x7E1 [counter] back on the bus.
-    relay: republishes each message from its subscription callback with the QoS of
-           /wheel_effort_cmd.
+           as in can_bridge) and published as std_msgs/Float64MultiArray [counter], sensor QoS
+           (as /imu/data); its subscription callback sends 0x7E1 [counter] back on the bus.
+    relay: republishes each message from its subscription callback, reliable, depth 10.
+
+The QoS is fixed (REF_QOS), not taken from ours: the reference stays the chain issue 11 measured
+(nothing lost), whatever our topics use.
 
 Each runs in its own process on a SingleThreadedExecutor; the device player (device_player.py)
 sends 0x7E0 and times the answer on the bus.
@@ -22,10 +24,14 @@ from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from std_msgs.msg import Float64MultiArray
 
-from krang_ros import names, topics
+from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 
 REF_REQUEST_ID, REF_ANSWER_ID = 0x7E0, 0x7E1
 OUT, BACK = '/krang_bench/ref_sample', '/krang_bench/ref_command'
+REF_QOS = {
+    OUT: qos_profile_sensor_data,
+    BACK: QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE),
+}
 
 
 class _Listener(can.Listener):
@@ -42,10 +48,8 @@ class CanEnd(Node):
     def __init__(self, channel, port):
         super().__init__('bench_ref_can')
         self.bus = can.Bus(interface='udp_multicast', channel=channel, port=port)
-        self.pub = self.create_publisher(Float64MultiArray, OUT, topics.QOS[names.IMU])
-        self.create_subscription(
-            Float64MultiArray, BACK, self.on_back, topics.QOS[names.WHEEL_EFFORT_CMD]
-        )
+        self.pub = self.create_publisher(Float64MultiArray, OUT, REF_QOS[OUT])
+        self.create_subscription(Float64MultiArray, BACK, self.on_back, REF_QOS[BACK])
         self.notifier = can.Notifier(self.bus, [_Listener(self)], timeout=0.1)
 
     def on_frame(self, msg):
@@ -72,10 +76,8 @@ class Relay(Node):
 
     def __init__(self):
         super().__init__('bench_ref_relay')
-        self.pub = self.create_publisher(
-            Float64MultiArray, BACK, topics.QOS[names.WHEEL_EFFORT_CMD]
-        )
-        self.create_subscription(Float64MultiArray, OUT, self.pub.publish, topics.QOS[names.IMU])
+        self.pub = self.create_publisher(Float64MultiArray, BACK, REF_QOS[BACK])
+        self.create_subscription(Float64MultiArray, OUT, self.pub.publish, REF_QOS[OUT])
 
     def close(self):
         pass

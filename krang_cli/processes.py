@@ -10,6 +10,19 @@ import time
 log = logging.getLogger('krang.bringup')
 
 
+def niceness(nice):
+    """A preexec_fn that sets the child's niceness (`nice` < 0 needs CAP_SYS_NICE; without it the
+    child keeps the default, which os.getpriority then shows)."""
+
+    def apply():
+        try:
+            os.nice(nice)
+        except OSError:
+            pass
+
+    return apply
+
+
 class NodeSet:
     """A group of node processes that live and die together."""
 
@@ -19,7 +32,8 @@ class NodeSet:
         self.env = dict(os.environ if env is None else env)
         self.procs = {}
 
-    def start(self, name, extra_params=None):
+    def start(self, name, extra_params=None, nice=0):
+        """Start node `name` with `extra_params`, at niceness `nice` (below 0 where permitted)."""
         cmd = [sys.executable, '-m', 'krang_ros.entry', name, '--ros-args']
         for f in self.params_files:
             cmd += ['--params-file', f]
@@ -37,6 +51,7 @@ class NodeSet:
                 stderr=subprocess.STDOUT if out else None,
                 env=self.env,
                 start_new_session=True,
+                preexec_fn=niceness(nice) if nice else None,
             ),
             out,
         )

@@ -122,7 +122,12 @@ class SessionClient(Node):
 
     def learn_next_pose(self, timeout):
         """Command the next pose and wait until the estimator has learned from it; returns the
-        reply text."""
+        reply text. The estimator's latched beta must be in first: it can reach this client after
+        the call (a stand-up of 1.5 s when the simulation runs at 3x real time) and would pass for
+        the beta learned from the pose."""
+        self.spin_until(
+            lambda: len(self.betas) > 0, timeout, "com_estimator's current beta (latched)"
+        )
         before = len(self.betas)
         reply = self.call(self.next_pose, Trigger.Request())
         # The pose server moves the robot only while it sees the controller balance, from the

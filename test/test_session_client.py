@@ -1,0 +1,66 @@
+"""The session client counts a pose as learned only from a beta published after it: the
+estimator's latched beta, reaching the client late, must not pass for a learned one (a demo
+stopped with "a move is still under way" when the simulation got fast enough for that race)."""
+
+import threading
+import time
+
+import pytest
+
+pytestmark = pytest.mark.ros
+
+rclpy = pytest.importorskip('rclpy')
+
+from rclpy.executors import SingleThreadedExecutor  # noqa: E402
+from std_msgs.msg import Float64MultiArray  # noqa: E402
+from std_srvs.srv import Trigger  # noqa: E402
+
+from krang_ros import names, topics  # noqa: E402
+from krang_ros.session_client import open_session_client  # noqa: E402
+
+LATCHED_AFTER_S = 0.5  # the estimator's initial beta comes this late
+LEARNED_AFTER_S = 1.0  # the beta learned from the pose, after the next_pose call
+
+
+def test_latched_beta_arriving_late_is_not_taken_for_a_learned_one():
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    node = rclpy.create_node('fake_estimator_and_pose_server', context=context)
+    beta_pub = node.create_publisher(
+        Float64MultiArray, names.relative(names.BETA), topics.QOS[names.BETA]
+    )
+    calls = []
+
+    def publish_once(delay, value):
+        def fire():
+            timer.cancel()
+            beta_pub.publish(Float64MultiArray(data=[value]))
+
+        timer = node.create_timer(delay, fire)
+
+    def next_pose(request, response):
+        calls.append(time.monotonic())
+        publish_once(LEARNED_AFTER_S, 2.0)
+        response.success, response.message = True, 'pose 1'
+        return response
+
+    node.create_service(Trigger, names.relative(names.NEXT_POSE), next_pose)
+    publish_once(LATCHED_AFTER_S, 1.0)
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(node)
+    spinner = threading.Thread(target=executor.spin, daemon=True)
+    spinner.start()
+    client, client_context = open_session_client()
+    try:
+        start = time.monotonic()
+        client.learn_next_pose(timeout=10.0)
+        done = time.monotonic()
+        assert [b[0] for b in client.betas] == [1.0, 2.0]
+        assert calls and calls[0] >= start + LATCHED_AFTER_S * 0.9
+        assert done >= calls[0] + LEARNED_AFTER_S * 0.9
+    finally:
+        client.close()
+        rclpy.try_shutdown(context=client_context)
+        executor.shutdown()
+        node.destroy_node()
+        rclpy.try_shutdown(context=context)
