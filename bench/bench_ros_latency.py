@@ -28,12 +28,13 @@ answer differ). Times are kernel receive stamps on the player's socket: the bus 
 see it.
 
 The control rate (`rate_hz`) is the controller's own count of steps on new samples
-(`samples_answered` in its diagnostics) per second of its clock across the window. The bus gives
-two cross-checks: the new RPDOs per second, and those that follow distinct samples by timing alone
-(the newest sample before each), which undercounts as soon as two answers fall between two
-samples, i.e. whenever the latency jitters around the sample period. With --load the device player
-runs at nice -10 where the OS allows it (--player-nice): it stands in for devices that have their
-own processors, and starved it missed its periods.
+(`samples_stepped` in its diagnostics) per second of its clock across the window; a sample
+stepped while a newer one waited sends no command (`samples_superseded`, printed as a rate
+too). The bus gives two cross-checks: the new RPDOs per second, and those that follow distinct
+samples by timing alone (the newest sample before each), which undercounts as soon as two
+answers fall between two samples, i.e. whenever the latency jitters around the sample period.
+With --load the device player runs at nice -10 where the OS allows it (--player-nice): it
+stands in for devices that have their own processors, and starved it missed its periods.
 
 Default (no --robot): the simulated node set's parameters (config/sim_params.yaml) on wall time,
 the robot sitting, the wheel velocity toggled every 0.5 s: the first current frame that changes
@@ -157,14 +158,14 @@ def reference_latencies(req, ans, window):
 
 
 def controller_rate(diag, window):
-    """Steps on new samples per second by adrc_controller's own count (`samples_answered` in
-    its 1 Hz diagnostics, as (stamp, count) pairs): between the first report in the window and
-    the last."""
-    inside = [(t, n) for t, n in diag if window[0] <= t <= window[1]]
+    """(steps on new samples, of them superseded) per second by adrc_controller's own counts
+    (`samples_stepped`, `samples_superseded` in its 1 Hz diagnostics, as (stamp, stepped,
+    superseded)): between the first report in the window and the last."""
+    inside = [d for d in diag if window[0] <= d[0] <= window[1]]
     if len(inside) < 2:
-        return float('nan')
-    (t0, n0), (t1, n1) = inside[0], inside[-1]
-    return (n1 - n0) / (t1 - t0)
+        return float('nan'), float('nan')
+    (t0, n0, s0), (t1, n1, s1) = inside[0], inside[-1]
+    return (n1 - n0) / (t1 - t0), (s1 - s0) / (t1 - t0)
 
 
 def analyse(record, window, rate_hz, diag=()):
@@ -188,10 +189,11 @@ def analyse(record, window, rate_hz, diag=()):
     ref_lat, ref_lost = reference_latencies(record['ref_req'], record['ref_ans'], window)
     cmd_in = (cmd_t >= w0) & (cmd_t <= w1)
     ms = lambda x, q: float(1e3 * np.percentile(x, q)) if len(x) else float('nan')  # noqa: E731
+    stepped, superseded = controller_rate(diag, window)
     out = {
         'p50_ms': ms(lat, 50),
         'p99_ms': ms(lat, 99),
-        'rate_hz': controller_rate(diag, window),
+        'rate_hz': stepped,
         'configured_rate_hz': rate_hz,
         'ref_p50_ms': ms(ref_lat, 50),
         'ref_p99_ms': ms(ref_lat, 99),
@@ -202,6 +204,7 @@ def analyse(record, window, rate_hz, diag=()):
             'p99_ratio': out['p99_ms'] / out['ref_p99_ms'],
             'rate_ratio': out['rate_hz'] / rate_hz,
             'bus_rate_hz': answered / duration,
+            'superseded_hz': superseded,
             'match': 'probe' if by_probe else 'timing',
             'timing_p50_ms': ms(t_lat, 50),
             'timing_p99_ms': ms(t_lat, 99),
@@ -340,14 +343,15 @@ def run_robot(seconds, rate_hz, load, tpdo_hz, player_nice=None, nodes_nice=0):
             'adrc_controller', CONTROLLER_OVERRIDES | {'rate_hz': rate_hz}, nice=nodes_nice
         )
         client, context = open_session_client()
-        diag = []  # the controller's (stamp, samples_answered)
+        diag = []  # the controller's (stamp, samples_stepped, samples_superseded)
 
         def on_diag(msg):
             for status in msg.status:
                 values = {kv.key: kv.value for kv in status.values}
-                if status.name == 'adrc_controller' and 'samples_answered' in values:
+                if status.name == 'adrc_controller' and 'samples_stepped' in values:
                     t = msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
-                    diag.append((t, int(values['samples_answered'])))
+                    counts = (int(values['samples_stepped']), int(values['samples_superseded']))
+                    diag.append((t, *counts))
 
         client.create_subscription(DiagnosticArray, names.DIAGNOSTICS, on_diag, 50)
         try:
@@ -406,7 +410,8 @@ def print_robot(fig, load):
     )
     print(
         f"control rate: {fig['rate_hz']:.1f} Hz of steps on new samples (the controller's "
-        f'count), {fig["configured_rate_hz"]:.0f} Hz configured ({100 * fig["rate_ratio"]:.1f} '
+        f'count; {fig["superseded_hz"]:.1f}/s of them superseded by a newer sample before their '
+        f'command), {fig["configured_rate_hz"]:.0f} Hz configured ({100 * fig["rate_ratio"]:.1f} '
         f'%); on the bus {fig["new_commands_hz"]:.1f} new current commands/s, '
         f'{fig["bus_rate_hz"]:.1f}/s after distinct samples by timing alone; DMU played at '
         f'{fig["dmu_rate_hz"]:.1f} Hz (nice: player {fig["player_nice"]}, nodes '

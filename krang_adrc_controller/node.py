@@ -33,7 +33,7 @@ from krang_model.beta import load_beta
 from krang_model.robot import load_krang
 from krang_ros import messages, names, params, topics
 from krang_ros.names import WHEEL_JOINTS as WHEELS
-from krang_ros.spin import Polled, run_node, take_latest
+from krang_ros.spin import Polled, run_node, take_latest, take_waiting
 
 from .controller import BalanceController, ControllerConfig, ControlSample, JointMotion, Reply
 
@@ -89,7 +89,8 @@ class AdrcControllerNode(Node):
         self.target = None
         self.motion = JointMotion()  # the joints move (measured), from /joint_states positions
         self.answered_stamp = None  # header stamp of the last imu/data sample stepped on
-        self.samples_answered = 0  # steps on a new imu/data sample (the control rate achieved)
+        self.samples_stepped = 0  # steps on a new imu/data sample (the control rate achieved)
+        self.samples_superseded = 0  # of those, stepped without a command: a newer one waited
         self.mode = None
         self.converged = None
         qos = topics.QOS
@@ -103,9 +104,12 @@ class AdrcControllerNode(Node):
         self.diag_pub = publisher(DiagnosticArray, names.DIAGNOSTICS)
         self.mode_pub = publisher(String, names.MODE, True, topics.LATCHED)
         self.converged_pub = publisher(Bool, names.BALANCE_CONVERGED, True, topics.LATCHED)
-        # Control acts on the newest sample only: after a stall, a queue of older samples (sensor
-        # QoS keeps 5, /joint_states 10) would be worked off one control step each, all late.
-        self.create_subscription(Imu, names.relative(names.IMU), self.on_imu, topics.LATEST)
+        # Every imu/data sample steps the control law (the observer sees each measurement), but
+        # only the newest one waiting sends a command: on_imu takes the queue (sensor QoS keeps 5)
+        # in one wake, so a burst of samples from the bridge costs no late commands.
+        self.imu_sub = self.create_subscription(
+            Imu, names.relative(names.IMU), self.on_imu, qos[names.IMU]
+        )
         # joint_states is read by each control step (read_joint_states), not by a callback: one
         # executor wake per sample, not two
         self.joint_sub = self.create_subscription(
@@ -149,6 +153,14 @@ class AdrcControllerNode(Node):
         return self.get_clock().now().nanoseconds * 1e-9
 
     def on_imu(self, msg):
+        """Steps on `msg` and on every newer sample waiting behind it, in order; only the last
+        step's command goes to the wheels (the others are superseded before they could act)."""
+        queue = [msg, *take_waiting(self.imu_sub)]
+        self.samples_superseded += len(queue) - 1
+        for k, sample in enumerate(queue):
+            self.step_on_sample(sample, command=k == len(queue) - 1)
+
+    def step_on_sample(self, msg, command):
         q = msg.orientation
         stamp = msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
         a = msg.linear_acceleration
@@ -161,7 +173,7 @@ class AdrcControllerNode(Node):
         )
         if self.step_on_imu:
             self.timer.reset()
-            self.on_tick(sample_t=stamp, stamp=msg.header.stamp)
+            self.on_tick(sample_t=stamp, stamp=msg.header.stamp, command=command)
 
     def on_timer(self):
         """With step_on_imu, the watch: a step only when the newest sample is WATCH_PERIODS old,
@@ -263,10 +275,11 @@ class AdrcControllerNode(Node):
     def on_recover(self, request, response):
         return self.answer(response, self.fresh(self.controller.recover), 'recover')
 
-    def on_tick(self, sample_t=None, stamp=None):
+    def on_tick(self, sample_t=None, stamp=None, command=True):
         """One control step. `sample_t`: the time of the IMU sample that triggered it (its header
         stamp, the sample's time at the bridge), so the ESO integrates over the samples' own
-        spacing; `stamp`: that header stamp, which the wheel command carries back."""
+        spacing; `stamp`: that header stamp, which the wheel command carries back; `command`:
+        publish the wheel command (not for a sample a newer one already supersedes)."""
         now = self.now()
         stale = self.sensors_stale()
         if sample_t is None:
@@ -313,14 +326,15 @@ class AdrcControllerNode(Node):
         # timer step answers no new sample and repeats the last sample's stamp
         if stamp is not None:
             self.answered_stamp = stamp
-            self.samples_answered += 1
-        self.effort_pub.publish(
-            messages.wheel_effort(
-                self.answered_stamp or self.get_clock().now().to_msg(),
-                WHEELS,
-                (out.torque_left, out.torque_right),
+            self.samples_stepped += 1
+        if command:
+            self.effort_pub.publish(
+                messages.wheel_effort(
+                    self.answered_stamp or self.get_clock().now().to_msg(),
+                    WHEELS,
+                    (out.torque_left, out.torque_right),
+                )
             )
-        )
         for event in out.events:
             self.get_logger().info(event)
         if out.mode != self.mode:
@@ -363,7 +377,8 @@ class AdrcControllerNode(Node):
                 'balance_converged': str(out.balance_converged),
             }
         )
-        values['samples_answered'] = self.samples_answered
+        values['samples_stepped'] = self.samples_stepped
+        values['samples_superseded'] = self.samples_superseded
         if self.controller.drive_fault:
             values['drive_fault'] = self.controller.drive_fault
         self.diag_pub.publish(

@@ -53,12 +53,19 @@ class Polled(CallbackGroup):
         pass
 
 
-def take_latest(subscription):
-    """The newest message waiting on a `Polled` subscription (older ones are dropped), or None."""
-    latest = None
+def take_waiting(subscription):
+    """Every message waiting on `subscription`, oldest first: on a `Polled` one, or on one whose
+    callback is running (the executor then finds nothing more to take)."""
+    waiting = []
     with subscription.handle:
         while True:
             taken = subscription.handle.take_message(subscription.msg_type, subscription.raw)
             if taken is None:
-                return latest
-            latest = taken[0]
+                return waiting
+            waiting.append(taken[0])
+
+
+def take_latest(subscription):
+    """The newest message waiting on a `Polled` subscription (older ones are dropped), or None."""
+    waiting = take_waiting(subscription)
+    return waiting[-1] if waiting else None

@@ -97,10 +97,16 @@ def test_analyse_gives_the_json_keys_first(bench):
         'ref_req': np.column_stack([t, np.arange(len(t))]),
         'ref_ans': np.column_stack([t + 0.001, np.arange(len(t))]),
     }
-    fig = bench.analyse(record, (t[600], t[-20]), 500.0)
+    # the controller's 1 Hz reports (stamp, samples_stepped, samples_superseded): 490 steps/s,
+    # 20 of them superseded; one report before the window, which must not count
+    reports = [(t[0] + 0.5 * k, 245 * k + (1000 if k == 0 else 0), 10 * k) for k in range(9)]
+    window = (t[600], t[-20])
+    fig = bench.analyse(record, window, 500.0, reports)
     assert tuple(fig)[:6] == bench.JSON_KEYS
     assert fig['match'] == 'probe' and fig['p50_ms'] == pytest.approx(3.1, abs=1e-6)
-    assert fig['rate_hz'] == pytest.approx(500.0, rel=0.01)
+    assert fig['rate_hz'] == pytest.approx(490.0, rel=1e-9)
+    assert fig['superseded_hz'] == pytest.approx(20.0, rel=1e-9)
+    assert fig['bus_rate_hz'] == pytest.approx(500.0, rel=0.01)
     assert fig['ref_p50_ms'] == pytest.approx(1.0, abs=1e-6)
 
 
