@@ -33,14 +33,17 @@ stepped while a newer one waited sends no command (`samples_superseded`, printed
 too). The bus gives two cross-checks: the new RPDOs per second, and those that follow distinct
 samples by timing alone (the newest sample before each), which undercounts as soon as two
 answers fall between two samples, i.e. whenever the latency jitters around the sample period.
-With --load the device player runs at nice -10 where the OS allows it (--player-nice): it
-stands in for devices that have their own processors, and starved it missed its periods.
+--rt runs the device player under SCHED_FIFO at priority 20 (it stands in for devices that have
+their own processors) and can_bridge, adrc_controller and the reference chain alike at 10, as a
+lab runs the control processes of a robot computer that does other work. With --load and without
+--rt the measurement is not valid: starved, the player missed its periods and the controller
+stopped on stale data.
 
 Default (no --robot): the simulated node set's parameters (config/sim_params.yaml) on wall time,
 the robot sitting, the wheel velocity toggled every 0.5 s: the first current frame that changes
 after a toggle ends the path (in SIT the ground PD commands -10 A per rad/s).
 
-    .venv/bin/python bench/bench_ros_latency.py --robot [--seconds 20] [--load 2] [--json]
+    .venv/bin/python bench/bench_ros_latency.py --robot [--seconds 20] [--load 2] [--rt] [--json]
     .venv/bin/python bench/bench_ros_latency.py [--seconds 20]
 """
 
@@ -66,7 +69,7 @@ from krang_can_bridge.config import load_devices
 from krang_can_bridge.protocols import load_dbc
 from krang_can_bridge.protocols.amc import AmcDriveCodec
 from krang_cli.node_set import params_files
-from krang_cli.processes import NodeSet, niceness
+from krang_cli.processes import NodeSet, is_real_time, real_time
 from krang_model.robot import load_krang
 from krang_ros import names, topics
 from krang_ros.session_client import SessionError, open_session_client
@@ -81,6 +84,7 @@ BENCH = Path(__file__).resolve().parent
 #: a stall of 0.1 s (the robot's stale timeout) or 0.5 s (the simulator's), seen on the shared
 #: 2-core box, ends the measurement in SAFE_STOP, where every command is zero; 2 s rides it out.
 CONTROLLER_OVERRIDES = {'adrc.use_disturbance_rejection': False, 'safety.stale_timeout_s': 2.0}
+PLAYER_RT_PRIORITY, NODES_RT_PRIORITY = 20, 10  # --rt: SCHED_FIFO, the devices above the nodes
 MIN_PROBES = 20  # answered probes needed for percentiles by probe
 JSON_KEYS = ('p50_ms', 'p99_ms', 'rate_hz', 'configured_rate_hz', 'ref_p50_ms', 'ref_p99_ms')
 
@@ -277,15 +281,11 @@ def bring_to_balance(client, tell, timeout, dead=dict):
             client.pause(0.05)
 
 
-def run_robot(seconds, rate_hz, load, tpdo_hz, player_nice=None, nodes_nice=0):
+def run_robot(seconds, rate_hz, load, tpdo_hz, rt=False):
     """Start the player, the reference chain and the node set; measure `seconds` while the
-    controller balances; return the figures of `analyse`. `player_nice` (default -10 with busy
-    loops, else 0): the player stands in for the devices, which have their own processors on the
-    robot; starved by --load it missed its DMU period and its PowerCube polls, and the controller
-    stopped on stale data. `nodes_nice`: can_bridge, adrc_controller and the reference chain's
-    two processes alike."""
-    if player_nice is None:
-        player_nice = -10 if load else 0
+    controller balances; return the figures of `analyse`. `rt`: SCHED_FIFO, the player at
+    PLAYER_RT_PRIORITY, the nodes and the reference chain at NODES_RT_PRIORITY."""
+    player_rt, nodes_rt = (PLAYER_RT_PRIORITY, NODES_RT_PRIORITY) if rt else (0, 0)
     tmp = tempfile.mkdtemp(prefix='krang_latency_')
     logs = os.path.join(tmp, 'logs')
     os.makedirs(logs)
@@ -313,9 +313,8 @@ def run_robot(seconds, rate_hz, load, tpdo_hz, player_nice=None, nodes_nice=0):
         stdin=subprocess.PIPE,
         stdout=subprocess.PIPE,
         text=True,
-        preexec_fn=niceness(player_nice),
+        preexec_fn=real_time(player_rt) if rt else None,
     )
-    player_nice = os.getpriority(os.PRIO_PROCESS, player.pid)  # what was applied
     children = [(player, player_log)]
     busy = []
     nodes = NodeSet(params_files(sim=False), log_dir=logs)
@@ -334,14 +333,21 @@ def run_robot(seconds, rate_hz, load, tpdo_hz, player_nice=None, nodes_nice=0):
                     [py, str(BENCH / 'ref_chain.py'), role, '--port', str(port + 15)],
                     logs,
                     f'ref_{role}',
-                    preexec_fn=niceness(nodes_nice),
+                    preexec_fn=real_time(nodes_rt) if rt else None,
                 )
             )
-        bridge = nodes.start('can_bridge', {'devices_file': devices_file}, nice=nodes_nice)
-        nodes_nice = os.getpriority(os.PRIO_PROCESS, bridge.pid)  # what was applied
-        nodes.start(
-            'adrc_controller', CONTROLLER_OVERRIDES | {'rate_hz': rate_hz}, nice=nodes_nice
-        )
+        procs = {
+            'device player': player,
+            'can_bridge': nodes.start(
+                'can_bridge', {'devices_file': devices_file}, rt_priority=nodes_rt
+            ),
+            'adrc_controller': nodes.start(
+                'adrc_controller',
+                CONTROLLER_OVERRIDES | {'rate_hz': rate_hz},
+                rt_priority=nodes_rt,
+            ),
+        }
+        rt_applied = ', '.join(name for name, p in procs.items() if is_real_time(p.pid))
         client, context = open_session_client()
         diag = []  # the controller's (stamp, samples_stepped, samples_superseded)
 
@@ -388,8 +394,7 @@ def run_robot(seconds, rate_hz, load, tpdo_hz, player_nice=None, nodes_nice=0):
     with np.load(record_file) as record:
         return analyse(record, window, rate_hz, diag) | {
             'left_balance': left_modes,
-            'player_nice': player_nice,
-            'nodes_nice': nodes_nice,
+            'real_time': rt_applied,
         }
 
 
@@ -414,8 +419,7 @@ def print_robot(fig, load):
         f'command), {fig["configured_rate_hz"]:.0f} Hz configured ({100 * fig["rate_ratio"]:.1f} '
         f'%); on the bus {fig["new_commands_hz"]:.1f} new current commands/s, '
         f'{fig["bus_rate_hz"]:.1f}/s after distinct samples by timing alone; DMU played at '
-        f'{fig["dmu_rate_hz"]:.1f} Hz (nice: player {fig["player_nice"]}, nodes '
-        f'{fig["nodes_nice"]})'
+        f'{fig["dmu_rate_hz"]:.1f} Hz; SCHED_FIFO: {fig["real_time"] or "no"}'
     )
     print(
         f'reference (bare rclpy chain, same run): p50 {fig["ref_p50_ms"]:.2f} ms, '
@@ -576,17 +580,10 @@ def main():
         '--load', type=int, default=0, help='--robot: busy-loop processes during the measurement'
     )
     parser.add_argument(
-        '--player-nice',
-        type=int,
-        default=None,
-        help='--robot: niceness of the device player, which stands in for the devices '
-        '(default -10 with --load, else 0)',
-    )
-    parser.add_argument(
-        '--nodes-nice',
-        type=int,
-        default=0,
-        help='--robot: niceness of can_bridge, adrc_controller and the reference chain alike',
+        '--rt',
+        action='store_true',
+        help='--robot: SCHED_FIFO for the device player (priority 20), the nodes and the '
+        'reference chain (10), where permitted',
     )
     parser.add_argument(
         '--json', action='store_true', help='--robot: print the figures as JSON on the last line'
@@ -597,9 +594,7 @@ def main():
     if not args.robot:
         run_sim_params(args.seconds)
         return
-    fig = run_robot(
-        args.seconds, args.rate_hz, args.load, args.tpdo_hz, args.player_nice, args.nodes_nice
-    )
+    fig = run_robot(args.seconds, args.rate_hz, args.load, args.tpdo_hz, args.rt)
     print_robot(fig, args.load)
     if args.json:
         print(

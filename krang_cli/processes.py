@@ -10,17 +10,23 @@ import time
 log = logging.getLogger('krang.bringup')
 
 
-def niceness(nice):
-    """A preexec_fn that sets the child's niceness (`nice` < 0 needs CAP_SYS_NICE; without it the
-    child keeps the default, which os.getpriority then shows)."""
+def real_time(priority):
+    """A preexec_fn that puts the child, and every thread it starts, under SCHED_FIFO at
+    `priority` (needs CAP_SYS_NICE or an rtprio limit; without it the child keeps the default
+    policy, which os.sched_getscheduler then shows)."""
 
     def apply():
         try:
-            os.nice(nice)
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
         except OSError:
             pass
 
     return apply
+
+
+def is_real_time(pid):
+    """Whether process `pid` runs under SCHED_FIFO."""
+    return os.sched_getscheduler(pid) == os.SCHED_FIFO
 
 
 class NodeSet:
@@ -32,8 +38,9 @@ class NodeSet:
         self.env = dict(os.environ if env is None else env)
         self.procs = {}
 
-    def start(self, name, extra_params=None, nice=0):
-        """Start node `name` with `extra_params`, at niceness `nice` (below 0 where permitted)."""
+    def start(self, name, extra_params=None, rt_priority=0):
+        """Start node `name` with `extra_params`; under SCHED_FIFO at `rt_priority` if > 0 (where
+        permitted)."""
         cmd = [sys.executable, '-m', 'krang_ros.entry', name, '--ros-args']
         for f in self.params_files:
             cmd += ['--params-file', f]
@@ -51,7 +58,7 @@ class NodeSet:
                 stderr=subprocess.STDOUT if out else None,
                 env=self.env,
                 start_new_session=True,
-                preexec_fn=niceness(nice) if nice else None,
+                preexec_fn=real_time(rt_priority) if rt_priority > 0 else None,
             ),
             out,
         )
