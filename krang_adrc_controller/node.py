@@ -153,9 +153,11 @@ class AdrcControllerNode(Node):
         return self.get_clock().now().nanoseconds * 1e-9
 
     def on_imu(self, msg):
-        """Steps on `msg` and on every newer sample waiting behind it, in order; only the last
-        step's command goes to the wheels (the others are superseded before they could act)."""
-        queue = [msg, *take_waiting(self.imu_sub)]
+        self.on_samples([msg, *take_waiting(self.imu_sub)])
+
+    def on_samples(self, queue):
+        """Steps on each sample of `queue` in order; only the last step's command goes to the
+        wheels (the others are superseded before they could act)."""
         self.samples_superseded += len(queue) - 1
         for k, sample in enumerate(queue):
             self.step_on_sample(sample, command=k == len(queue) - 1)
@@ -181,11 +183,18 @@ class AdrcControllerNode(Node):
         would answer the next sample in its place (sim_krang's lockstep takes the first current
         frame after a sample for its answer), and in lockstep this node's /clock runs up to a
         period ahead of the sample it has, while the bridge's DMU stamps, anchored at the first
-        sample's arrival, can sit a period behind the clock."""
-        if self.step_on_imu and self.imu is not None:
-            newest = max(self.imu[0], self.imu[3])
-            if self.now() - newest < WATCH_PERIODS * self.period:
+        sample's arrival, can sit a period behind the clock. After a stall of this process the
+        executor runs a due timer before a waiting subscription: a sample already waiting is
+        stepped on here instead of repeating the last one's stamp."""
+        if self.step_on_imu:
+            waiting = take_waiting(self.imu_sub)
+            if waiting:
+                self.on_samples(waiting)
                 return
+            if self.imu is not None:
+                newest = max(self.imu[0], self.imu[3])
+                if self.now() - newest < WATCH_PERIODS * self.period:
+                    return
         self.on_tick()
 
     def read_joint_states(self):
