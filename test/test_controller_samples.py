@@ -29,85 +29,76 @@ def spin_until(executor, condition, timeout=5.0):
     return condition()
 
 
-def test_a_burst_of_samples_is_stepped_whole_and_answered_once_for_the_newest():
-    rclpy.init(args=['--ros-args', '-p', 'step_on_imu:=true'])  # as config/krang_params.yaml
-    try:
-        controller = AdrcControllerNode()
+class Rig:
+    """adrc_controller in this process (step_on_imu, as config/krang_params.yaml) and a probe
+    that publishes imu/data samples and keeps the stamps of every wheel command."""
+
+    def __init__(self):
+        self.controller = AdrcControllerNode()
         probe = rclpy.create_node('sample_probe')
-        imu_pub = probe.create_publisher(Imu, names.IMU, topics.QOS[names.IMU])
-        commands = []
+        self.imu_pub = probe.create_publisher(Imu, names.IMU, topics.QOS[names.IMU])
+        self.commands = []
         probe.create_subscription(
             JointState,
             names.WHEEL_EFFORT_CMD,
-            lambda m: commands.append(messages.stamp_seconds(m.header.stamp)),
+            lambda m: self.commands.append(messages.stamp_seconds(m.header.stamp)),
             EVERY_COMMAND,
         )
-        probe_exec, control_exec = SingleThreadedExecutor(), SingleThreadedExecutor()
-        probe_exec.add_node(probe)
-        control_exec.add_node(controller)
-        assert spin_until(probe_exec, lambda: imu_pub.get_subscription_count() > 0)
-        assert spin_until(control_exec, lambda: controller.count_publishers(names.IMU) > 0), (
-            'the controller never saw the probe'
-        )
-        start = controller.samples_stepped
-        stamps = [1000.0 + 0.002 * k for k in range(BURST)]
-        for t in stamps:  # all in before the controller's executor runs again
-            msg = Imu()
-            msg.header.stamp = messages.stamp(t)
-            msg.orientation.w = 1.0
-            msg.linear_acceleration.z = 9.81
-            imu_pub.publish(msg)
-        time.sleep(0.2)  # delivered to the controller's reader queue
-        assert spin_until(control_exec, lambda: controller.samples_stepped > start)
-        assert controller.samples_stepped - start == BURST
-        assert controller.samples_superseded == BURST - 1
-        answered = lambda t: any(abs(c - t) < 1e-6 for c in commands)  # noqa: E731
-        assert spin_until(probe_exec, lambda: answered(stamps[-1]))
-        assert not any(answered(t) for t in stamps[:-1])
+        self.probe_exec, self.control_exec = SingleThreadedExecutor(), SingleThreadedExecutor()
+        self.probe_exec.add_node(probe)
+        self.control_exec.add_node(self.controller)
+        assert spin_until(self.probe_exec, lambda: self.imu_pub.get_subscription_count() > 0)
+        assert spin_until(
+            self.control_exec, lambda: self.controller.count_publishers(names.IMU) > 0
+        ), 'the controller never saw the probe'
+
+    def sample(self, t):
+        msg = Imu()
+        msg.header.stamp = messages.stamp(t)
+        msg.orientation.w = 1.0
+        msg.linear_acceleration.z = 9.81
+        self.imu_pub.publish(msg)
+
+    def answers(self, t):
+        """How many wheel commands the probe got that answer the sample stamped `t`."""
+        self.probe_exec.spin_once(timeout_sec=0.05)
+        return sum(abs(c - t) < 1e-6 for c in self.commands)
+
+
+@pytest.fixture
+def rig():
+    rclpy.init(args=['--ros-args', '-p', 'step_on_imu:=true'])
+    try:
+        yield Rig()
     finally:
         rclpy.try_shutdown()
 
 
-def test_the_watch_timer_steps_on_a_waiting_sample_rather_than_repeat_the_last():
+def test_a_burst_of_samples_is_stepped_whole_and_answered_once_for_the_newest(rig):
+    start = rig.controller.samples_stepped
+    stamps = [1000.0 + 0.002 * k for k in range(BURST)]
+    for t in stamps:  # all in before the controller's executor runs again
+        rig.sample(t)
+    time.sleep(0.2)  # delivered to the controller's reader queue
+    assert spin_until(rig.control_exec, lambda: rig.controller.samples_stepped > start)
+    assert rig.controller.samples_stepped - start == BURST
+    assert rig.controller.samples_superseded == BURST - 1
+    assert spin_until(rig.probe_exec, lambda: rig.answers(stamps[-1]) == 1)
+    assert [rig.answers(t) for t in stamps[:-1]] == [0] * (BURST - 1)
+
+
+def test_the_watch_timer_steps_on_a_waiting_sample_rather_than_repeat_the_last(rig):
     """After a stall the executor runs a due timer before a waiting subscription: the watch must
     step on the waiting sample, not repeat the last sample's stamp (sim_krang's lockstep would
     take the repeat for the next sample's answer)."""
-    rclpy.init(args=['--ros-args', '-p', 'step_on_imu:=true'])
-    try:
-        controller = AdrcControllerNode()
-        probe = rclpy.create_node('sample_probe')
-        imu_pub = probe.create_publisher(Imu, names.IMU, topics.QOS[names.IMU])
-        commands = []
-        probe.create_subscription(
-            JointState,
-            names.WHEEL_EFFORT_CMD,
-            lambda m: commands.append(messages.stamp_seconds(m.header.stamp)),
-            EVERY_COMMAND,
-        )
-        probe_exec, control_exec = SingleThreadedExecutor(), SingleThreadedExecutor()
-        probe_exec.add_node(probe)
-        control_exec.add_node(controller)
-        assert spin_until(probe_exec, lambda: imu_pub.get_subscription_count() > 0)
-        assert spin_until(control_exec, lambda: controller.count_publishers(names.IMU) > 0)
-
-        def sample(t):
-            msg = Imu()
-            msg.header.stamp = messages.stamp(t)
-            msg.orientation.w = 1.0
-            msg.linear_acceleration.z = 9.81
-            imu_pub.publish(msg)
-
-        sample(time.time())
-        assert spin_until(control_exec, lambda: controller.samples_stepped == 1)
-        time.sleep(0.2)  # the stall: well past the watch's three periods
-        newer = time.time()
-        sample(newer)
-        time.sleep(0.2)  # waiting in the controller's queue
-        controller.on_timer()  # the due timer runs first
-        assert controller.samples_stepped == 2
-        assert spin_until(probe_exec, lambda: len(commands) >= 2)
-        probe_exec.spin_once(timeout_sec=0.1)
-        assert commands[1] == pytest.approx(newer, abs=1e-6)
-        assert len(set(round(c, 6) for c in commands)) == len(commands), commands
-    finally:
-        rclpy.try_shutdown()
+    first = time.time()
+    rig.sample(first)
+    assert spin_until(rig.control_exec, lambda: rig.controller.samples_stepped == 1)
+    time.sleep(0.2)  # the stall: well past the watch's three periods
+    newer = time.time()
+    rig.sample(newer)
+    time.sleep(0.2)  # waiting in the controller's queue
+    rig.controller.on_timer()  # the due timer runs first
+    assert rig.controller.samples_stepped == 2
+    assert spin_until(rig.probe_exec, lambda: rig.answers(newer) == 1)
+    assert rig.answers(first) == 1
