@@ -58,10 +58,14 @@ def measure(factor, seconds, rate_hz=None):
         Clock, names.CLOCK, lambda m: None, topics.QOS[names.CLOCK], callback_group=Polled()
     )
 
-    def clock_now():
-        msg = None
-        while msg is None:
-            msg = take_latest(clock_sub)
+    def clock_now(timeout=5.0):
+        """(wall, simulated) time at the next /clock message (one already waiting is old)."""
+        take_latest(clock_sub)
+        deadline = time.monotonic() + timeout
+        while (msg := take_latest(clock_sub)) is None:
+            if time.monotonic() > deadline:
+                raise RuntimeError(f'no /clock for {timeout:g} s: is sim_krang running?')
+            time.sleep(0.0005)
         return time.monotonic(), msg.clock.sec + msg.clock.nanosec * 1e-9
 
     def on_diag(msg):
