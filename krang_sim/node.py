@@ -223,6 +223,7 @@ class SimKrangNode(Node):
         self.command_at = -math.inf  # wall time of the last command answering a new sample
         self.command_stamp = -math.inf  # the sample stamp it answered
         self.is_armed = False  # armed() at the last sample
+        self.first_armed_at = None  # simulated time the lockstep first held the physics
         self.lockstep_misses = 0
         self.lockstep_wait_s = 0.0
         self.rpdo_ids = {w.codec.ids[amc_proto.RPDO_CURRENT] for w in self.devices.wheels.values()}
@@ -331,6 +332,8 @@ class SimKrangNode(Node):
         self.is_armed = self.armed()
         if not self.is_armed:
             return
+        if self.first_armed_at is None:
+            self.first_armed_at = self.sim.t
         start = time.monotonic()
         if not self.answered.wait_for(
             lambda: self.rpdo_seen == self.rpdo_ids or not self.running, self.lockstep_timeout
@@ -426,6 +429,7 @@ class SimKrangNode(Node):
         with self.lock:
             t, qb, bal = self.sim.t, self.sim.q_base, self.sim.balance_pitch()
             silent, since = sorted(self.devices.silent), self.silent_since
+            armed_at = self.first_armed_at
         values = {
             'q_base': f'{qb:+.4f}',
             'true_balance_pitch': f'{bal:+.4f}',
@@ -433,6 +437,8 @@ class SimKrangNode(Node):
             'real_time_slips': self.slips,
             'lockstep_wait_s': f'{self.lockstep_wait_s:.3f}',
             'lockstep_misses': self.lockstep_misses,
+            # before it, the physics ran at real time without waiting for answers
+            'lockstep_first_armed_s': 'no' if armed_at is None else f'{armed_at:.4f}',
         }
         if silent:
             values.update(silent_devices=', '.join(silent), silent_since_s=f'{since:.4f}')

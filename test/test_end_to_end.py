@@ -13,6 +13,7 @@ import pytest
 
 from conftest import REPO
 from krang_cli.relearn import REPRODUCTION_TOLERANCE
+from krang_ros import messages
 
 # In the default run: ~55 s on the 2-core machine (simulator in lockstep, unpaced).
 pytestmark = pytest.mark.ros
@@ -111,14 +112,28 @@ def test_wheel_commands_name_the_wheels_and_the_sample_they_answer(demo):
     answered = sum((m.header.stamp.sec, m.header.stamp.nanosec) in imu for m in commands)
     # the recorder, a best-effort subscriber on a busy machine, may miss some samples it answered
     assert answered > 0.5 * len(commands), (answered, len(commands))
-    # one answer per sample: sim_krang's lockstep takes the first current frame after a sample
-    # for its answer, so a second command (a watch timer's step, a bridge repeat) would stand in
-    # for the controller's answer to the next sample (once 7.5 % of them, and a fall)
-    stamps = Counter((m.header.stamp.sec, m.header.stamp.nanosec) for m in commands)
+    # One answer per sample while the lockstep holds (sim_krang's diagnostics say since when;
+    # before, the physics ran at real time and a watch timer's step after a stall answered
+    # nobody). The lockstep takes the first current frame after a sample for its answer, so a
+    # second command (a watch timer's step, a bridge repeat) would stand in for the controller's
+    # answer to the next sample (once 7.5 % of them, and a fall).
+    armed_at = None
+    for _, _, m in iter_messages(bag, ['/diagnostics']):
+        for status in m.status:
+            values = {kv.key: kv.value for kv in status.values}
+            if status.name == 'sim_krang' and values.get('lockstep_first_armed_s', 'no') != 'no':
+                armed_at = float(values['lockstep_first_armed_s'])
+    assert armed_at is not None, 'the lockstep never held'
+    stamps = Counter(
+        (m.header.stamp.sec, m.header.stamp.nanosec)
+        for m in commands
+        if messages.stamp_seconds(m.header.stamp) >= armed_at
+    )
     twice = sorted(s for s, n in stamps.items() if n > 1)
     first = min(stamps)
     assert not twice, (
-        f'{len(twice)} samples answered more than once, first {twice[:5]}; first command {first}'
+        f'{len(twice)} samples answered more than once, first {twice[:5]}; lockstep from '
+        f'{armed_at} s, first command since {first}'
     )
 
 
