@@ -23,9 +23,11 @@ stop, and never repeats a command in force: a repeat let the physics run on, 130
 a loaded controller was late, and the robot fell). The topic arms it: lockstep holds while wheel
 commands arrive (within `lockstep_timeout_s` of wall time), so a node set without a controller, or
 one that stopped, still runs; a sample left unanswered that long is counted (`lockstep_misses` in
-/diagnostics) and the physics goes on. The answer acts from `lockstep_delay_s` after its sample in
-simulated time (whole physics steps, less than one sample period), the latency the simulated robot
-sees, whatever the wall-clock one was.
+/diagnostics) and the physics goes on. The physics thread reads the topic's newest stamp at each
+sample (a `Polled` subscription: no executor wake per command); /diagnostics reports when the
+lockstep first held (`lockstep_first_armed_s`). The answer acts from `lockstep_delay_s` after
+its sample in simulated time (whole physics steps, less than one sample period), the latency the
+simulated robot sees, whatever the wall-clock one was.
 
 Fault injection: `silent_devices` (string array, settable at run time, e.g. through
 /sim_krang/set_parameters) silences devices as devices.py describes: 'imu', a wheel joint for its
