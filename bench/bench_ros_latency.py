@@ -69,7 +69,7 @@ from krang_can_bridge.config import load_devices
 from krang_can_bridge.protocols import load_dbc
 from krang_can_bridge.protocols.amc import AmcDriveCodec
 from krang_cli.node_set import params_files
-from krang_cli.processes import NodeSet, is_real_time, real_time
+from krang_cli.processes import NodeSet, child_setup, is_real_time
 from krang_model.robot import load_krang
 from krang_ros import names, topics
 from krang_ros.session_client import SessionError, open_session_client
@@ -313,7 +313,7 @@ def run_robot(seconds, rate_hz, load, tpdo_hz, rt=False):
         stdin=subprocess.PIPE,
         stdout=subprocess.PIPE,
         text=True,
-        preexec_fn=real_time(player_rt) if rt else None,
+        preexec_fn=child_setup(player_rt),
     )
     children = [(player, player_log)]
     busy = []
@@ -333,7 +333,7 @@ def run_robot(seconds, rate_hz, load, tpdo_hz, rt=False):
                     [py, str(BENCH / 'ref_chain.py'), role, '--port', str(port + 15)],
                     logs,
                     f'ref_{role}',
-                    preexec_fn=real_time(nodes_rt) if rt else None,
+                    preexec_fn=child_setup(nodes_rt),
                 )
             )
         procs = {
@@ -367,7 +367,10 @@ def run_robot(seconds, rate_hz, load, tpdo_hz, rt=False):
         modes_before = len(client.modes)
         client.pause(1.0)  # the command noise without probes (noise_level)
         tell('probe')
-        busy = [subprocess.Popen([py, '-c', 'while True: pass']) for _ in range(load)]
+        busy = [
+            subprocess.Popen([py, '-c', 'while True: pass'], preexec_fn=child_setup())
+            for _ in range(load)
+        ]
         client.pause(1.0)
         window = (time.time(), None)
         client.pause(seconds)

@@ -1,5 +1,6 @@
 """Start the node set as child processes and stop it cleanly (our stand-in for ros2 launch)."""
 
+import ctypes
 import logging
 import os
 import signal
@@ -10,16 +11,29 @@ import time
 log = logging.getLogger('krang.bringup')
 
 
-def real_time(priority):
-    """A preexec_fn that puts the child, and every thread it starts, under SCHED_FIFO at
-    `priority` (needs CAP_SYS_NICE or an rtprio limit; without it the child keeps the default
-    policy, which os.sched_getscheduler then shows)."""
+_PR_SET_PDEATHSIG = 1  # linux/prctl.h
+_libc = ctypes.CDLL(None, use_errno=True)  # loaded here: the child runs no more than a call
+
+
+def child_setup(rt_priority=0):
+    """A preexec_fn for a node process:
+    - it gets SIGINT, its clean stop, when the thread that started it dies, even by SIGKILL,
+      so no node outlives the `krang` command that started it (call `NodeSet.start` from a
+      thread that lives as long as the nodes should: the main one);
+    - with `rt_priority` > 0 it runs, and every thread it starts, under SCHED_FIFO at that
+      priority (needs CAP_SYS_NICE or an rtprio limit; without it the child keeps the default
+      policy, which `is_real_time` then shows)."""
+    parent = os.getpid()
 
     def apply():
-        try:
-            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
-        except OSError:
-            pass
+        _libc.prctl(_PR_SET_PDEATHSIG, signal.SIGINT)
+        if os.getppid() != parent:  # the parent died before the prctl
+            os.kill(os.getpid(), signal.SIGINT)
+        if rt_priority > 0:
+            try:
+                os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(rt_priority))
+            except OSError:
+                pass
 
     return apply
 
@@ -39,8 +53,9 @@ class NodeSet:
         self.procs = {}
 
     def start(self, name, extra_params=None, rt_priority=0):
-        """Start node `name` with `extra_params`; under SCHED_FIFO at `rt_priority` if > 0 (where
-        permitted)."""
+        """Start node `name` with `extra_params`, in a session of its own (a Ctrl-C at the
+        terminal reaches `stop`, which stops the nodes in order), stopped with this process
+        (`child_setup`) and under SCHED_FIFO at `rt_priority` if > 0 (where permitted)."""
         cmd = [sys.executable, '-m', 'krang_ros.entry', name, '--ros-args']
         for f in self.params_files:
             cmd += ['--params-file', f]
@@ -58,7 +73,7 @@ class NodeSet:
                 stderr=subprocess.STDOUT if out else None,
                 env=self.env,
                 start_new_session=True,
-                preexec_fn=real_time(rt_priority) if rt_priority > 0 else None,
+                preexec_fn=child_setup(rt_priority),
             ),
             out,
         )

@@ -1,11 +1,14 @@
 """Every node executable answers --help without starting, and ends with exit code 0 and no
 traceback on SIGINT or SIGTERM, whether the signal comes while it imports, while it is being
-built, or while it spins; `krang bringup --sim` too (issue: RCLError and KeyError on Ctrl-C)."""
+built, or while it spins; `krang bringup --sim` too (issue: RCLError and KeyError on Ctrl-C),
+and no node outlives a killed `krang bringup`."""
 
+import os
 import signal
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import pytest
 
@@ -97,3 +100,53 @@ def test_bringup_sim_without_record_exits_cleanly(signum, tmp_path):
     logs = ''.join(p.read_text() for p in (tmp_path / 'logs').glob('*.log'))
     assert 'Traceback' not in out + logs, (out + logs)[-3000:]
     assert proc.returncode == 0, out[-3000:]
+
+
+def _children(pid):
+    """PIDs of the live processes whose parent is `pid` (from /proc)."""
+    found = []
+    for stat in Path('/proc').glob('[0-9]*/stat'):
+        try:
+            fields = stat.read_text().rsplit(')', 1)[1].split()
+        except OSError:
+            continue
+        if int(fields[1]) == pid and fields[0] != 'Z':
+            found.append(int(stat.parent.name))
+    return found
+
+
+def _alive(pid):
+    try:
+        state = Path(f'/proc/{pid}/stat').read_text().rsplit(')', 1)[1].split()[0]
+    except OSError:
+        return False
+    return state != 'Z'
+
+
+@pytest.mark.ros
+def test_nodes_stop_when_bringup_is_killed(tmp_path):
+    """SIGKILL of `krang bringup` leaves no node running: each gets SIGINT (child_setup's
+    parent-death signal) and stops cleanly (the bridge with zero current, as on Ctrl-C)."""
+    proc = subprocess.Popen(
+        [sys.executable, '-m', 'krang_cli.main', 'bringup', '--sim', '--log-dir', 'logs'],
+        cwd=tmp_path,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        start_new_session=True,
+    )
+    try:
+        time.sleep(6.0)
+        nodes = _children(proc.pid)
+        assert len(nodes) == 5, f'bringup --sim started {len(nodes)} nodes, expected 5'
+    finally:
+        proc.kill()
+        proc.wait()
+    deadline = time.monotonic() + 30.0
+    while any(map(_alive, nodes)) and time.monotonic() < deadline:
+        time.sleep(0.2)
+    left = [pid for pid in nodes if _alive(pid)]
+    for pid in left:
+        os.kill(pid, signal.SIGKILL)
+    assert not left, f'{len(left)} node(s) still ran 30 s after bringup was killed'
+    logs = ''.join(p.read_text() for p in (tmp_path / 'logs').glob('*.log'))
+    assert 'Traceback' not in logs, logs[-3000:]
