@@ -68,8 +68,8 @@ WATCH_PERIODS = 3.0
 
 
 class AdrcControllerNode(Node):
-    def __init__(self):
-        super().__init__('adrc_controller')
+    def __init__(self, **kwargs):
+        super().__init__('adrc_controller', **kwargs)
         self.robot = load_krang()
         # every ControllerConfig leaf is a dotted ROS parameter (adrc.eso.omega_o; controller.yaml)
         self.config = params.declare(self, ControllerConfig)

@@ -9,6 +9,10 @@ BPF socket filter on the id in python-can's message encoding (any frame whose en
 recognise passes, so the filter only ever drops what it has read). `BusReader` reads all buses
 from one thread with select() instead of one python-can Notifier thread per bus, whose wake-ups
 compete for the GIL with the process's real work.
+
+`Pump` is the reader of a node set composed in one process (krang_cli.composed): no thread, the
+frames queued on in-process `virtual` buses are handed over when the composition calls `pump()`,
+so what each node sees, and in which order, is the same in every run.
 """
 
 from __future__ import annotations
@@ -77,6 +81,10 @@ def receive_only(bus: can.BusABC, ids: Iterable[int]) -> None:
     """Let `bus` receive only standard frames with these ids (see the module docstring); on an
     interface with no kernel filter python-can filters in Python (correct, not cheaper)."""
     ids = sorted({int(i) for i in ids})
+    if type(bus).__name__ == 'VirtualBus':
+        # in-process queues, nothing to save; and with a Python filter recv(0) returns None at
+        # the first frame it drops, before the queue is empty (Pump relies on an empty queue)
+        return
     if type(bus).__name__ == 'UdpMulticastBus':
         program = ctypes.create_string_buffer(udp_multicast_filter(ids))
         fprog = struct.pack('HL', len(program.raw) // 8, ctypes.addressof(program))
@@ -156,3 +164,49 @@ class _Listener(can.Listener):
 
     def on_error(self, exc: Exception) -> None:
         self.reader._on_error(self.name, exc)
+
+
+class Pump:
+    """Hands the frames queued on in-process buses to their readers when `pump()` is called, in a
+    fixed order (reader by reader in the order they were made, bus by bus by name, each bus's
+    frames in order). `reader` takes BusReader's arguments and is used in its place."""
+
+    def __init__(self):
+        self._readers: list[_Pumped] = []
+
+    def reader(self, buses, on_frame, on_error) -> '_Pumped':
+        pumped = _Pumped(dict(sorted(buses.items())), on_frame, on_error)
+        self._readers.append(pumped)
+        return pumped
+
+    def pump(self) -> int:
+        """Deliver every frame queued now (and those the deliveries queue); the number."""
+        delivered = 0
+        while True:
+            moved = sum(r.deliver() for r in self._readers)
+            if not moved:
+                return delivered
+            delivered += moved
+
+
+class _Pumped:
+    def __init__(self, buses, on_frame, on_error):
+        self.buses, self.on_frame, self.on_error = buses, on_frame, on_error
+        self.stopped = False
+
+    def deliver(self) -> int:
+        n = 0
+        for name, bus in list(self.buses.items()):
+            if self.stopped:
+                break
+            try:
+                while (msg := bus.recv(0.0)) is not None:
+                    self.on_frame(name, msg)
+                    n += 1
+            except Exception as exc:  # noqa: BLE001 - as BusReader: that bus is no longer read
+                del self.buses[name]
+                self.on_error(name, exc)
+        return n
+
+    def stop(self, timeout_s: float = 1.0) -> None:
+        self.stopped = True

@@ -184,7 +184,9 @@ class _RosLogHandler(logging.Handler):
 
 
 class CanBridgeNode(Node):
-    def __init__(self, **kwargs):
+    def __init__(self, pump=None, **kwargs):
+        """`pump` (a bus_io.Pump): composed in one process, its frames handed over by the
+        composition (krang_cli.composed) instead of a receive thread."""
         super().__init__('can_bridge', **kwargs)
         self.params = params.declare(self, BridgeParams)
         p = self.params
@@ -294,7 +296,9 @@ class CanBridgeNode(Node):
         self.create_timer(0.5 * self.config.imu.stream_toggle_retry_s, self.check_imu_stream)
         self.create_timer(1.0, self.publish_diagnostics)
         # frames only once every publisher exists (a sample completed earlier ended the thread)
-        self.reader = BusReader(self.buses, self.on_received, self.on_bus_error)
+        self.reader = (pump.reader if pump else BusReader)(
+            self.buses, self.on_received, self.on_bus_error
+        )
 
         for drive in self.config.wheels.drives:
             self._startup_status[drive.joint] = 'pending'
@@ -453,6 +457,12 @@ class CanBridgeNode(Node):
                         self._startup_status[drive.joint] = 'enabled'
                         self.core.inhibit(key, None)
                 break
+
+    @property
+    def startup_status(self) -> dict[str, str]:
+        """Each drive's start-up: 'pending', 'enabled', 'failed: ...' or 'constants
+        mismatch: ...'."""
+        return dict(self._startup_status)
 
     # ---- drive faults ---------------------------------------------------------------------------
     def publish_fault(self) -> None:

@@ -15,6 +15,7 @@ from krang_sim.session_config import session_devices_file, sim_truth_file
 from krang_sim.truths import generate_truth
 
 from .bringup import start_node_set
+from .composed import ComposedSimulation
 from .node_set import STOP_ORDER
 from .common import print_json
 
@@ -25,14 +26,16 @@ def register(subparsers):
     p = subparsers.add_parser(
         'demo',
         help='THE MAIN JOB: simulated Krang, whole node set, online learning, report',
-        description='Starts sim_krang (a simulated Krang with a hidden true mass model, by '
+        description='Composes sim_krang (a simulated Krang with a hidden true mass model, by '
         'default config/sim_demo_true_beta.yaml: 13 mm of forward CoM error against the '
-        'nominal model) and the node set over simulated CAN buses, records every topic to '
-        'DIR/session.mcap, lets the robot stand up, then asks /pose_server/next_pose for '
+        'nominal model) and the node set in this process, on one executor over DDS and '
+        'in-process CAN buses, so that the same seed gives the same session and the same beta '
+        '(--processes: a process per node instead). Records every topic to DIR/session.mcap, '
+        'lets the robot stand up, then asks /pose_server/next_pose for '
         "each pose (adaptive selection by default: the pose that most lowers the estimator's "
         'expected forward CoM error per second) while com_estimator learns beta online '
-        'from each balanced pose. Writes DIR/beta.yaml, DIR/report.md with PNG figures, and '
-        'prints a JSON summary.',
+        'from each balanced pose. Writes DIR/beta.yaml, DIR/report.md with PNG figures and '
+        'DIR/logs, and prints a JSON summary.',
     )
     p.add_argument(
         '--poses',
@@ -73,9 +76,11 @@ def register(subparsers):
         help="seed of the simulator's and CAN devices' noise (default 0)",
     )
     p.add_argument(
-        '--keep-logs',
+        '--processes',
         action='store_true',
-        help='keep node logs in DIR/logs (always kept on failure)',
+        help='run each node in a process of its own, in lockstep with the simulator (as `krang '
+        'bringup --sim`): closer to the robot, but not reproducible. By default the node set is '
+        'composed in this process, and the same seed gives the same session and the same beta',
     )
     p.set_defaults(func=run)
 
@@ -100,8 +105,8 @@ def run(args):
         true_beta = load_beta(truth_source, robot, row=args.row)
         meta = {'source': f'{truth_source}' + (f' row {args.row}' if args.row is not None else '')}
     truth_file = save_beta(out / 'true_beta.yaml', true_beta, robot, **meta)
-    devices = session_devices_file(out)
-    beta_file = (out / 'beta.yaml').resolve()
+    devices = str(session_devices_file(out, virtual=not args.processes))
+    beta_file = str((out / 'beta.yaml').resolve())
     # unpaced: the simulator runs in lockstep with the control path, as fast as it answers
     overrides = {
         'sim_krang': {
@@ -114,12 +119,18 @@ def run(args):
         'com_estimator': {'output': beta_file, 'method': args.method},
     }
     started = time.monotonic()
-    nodes = start_node_set(sim=True, record=str(bag), log_dir=out / 'logs', overrides=overrides)
-    client = context = None
+    client = context = nodes = composed = None
     learned = 0
     failure = None
     try:
-        client, context = open_session_client()
+        if args.processes:
+            nodes = start_node_set(
+                sim=True, record=str(bag), log_dir=out / 'logs', overrides=overrides
+            )
+            client, context = open_session_client()
+        else:
+            composed = ComposedSimulation(overrides, record=bag, log_dir=out / 'logs')
+            client = composed.session_client()
         message = client.enable_controller(timeout=60.0)
         log.info(
             'adrc_controller: %s; waiting for the simulated robot to stand up and balance ...',
@@ -139,8 +150,12 @@ def run(args):
     finally:
         if client is not None:
             client.close()
+        if context is not None:
             rclpy.try_shutdown(context=context)
-        nodes.stop(STOP_ORDER)
+        if nodes is not None:
+            nodes.stop(STOP_ORDER)
+        if composed is not None:
+            composed.close()
     wall = time.monotonic() - started
     (curve, lateral), figures = session_figures(bag, robot, true_beta, out)
     result = {

@@ -55,8 +55,8 @@ def describe_parameters():
 
 
 class ComEstimatorNode(Node):
-    def __init__(self):
-        super().__init__('com_estimator')
+    def __init__(self, **kwargs):
+        super().__init__('com_estimator', **kwargs)
         self.robot = load_krang()
         cfg = params.declare(self, EstimatorParams)
         method, beta_file, self.output = cfg.method, cfg.initial_beta, Path(cfg.output)

@@ -97,8 +97,8 @@ def describe_parameters():
 
 
 class PoseServer(Node):
-    def __init__(self):
-        super().__init__('pose_server')
+    def __init__(self, **kwargs):
+        super().__init__('pose_server', **kwargs)
         self.robot = load_krang()
         cfg = params.declare(self, PoseServerParams)
         poses_file = cfg.poses_file or str(config_path('excitatory_poses.csv'))

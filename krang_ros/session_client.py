@@ -19,7 +19,12 @@ class SessionError(RuntimeError):
 
 
 class SessionClient(Node):
-    def __init__(self, context=None):
+    def __init__(self, context=None, composed=None):
+        """On its own, the client spins an executor of its own and waits in wall time. With
+        `composed` (a krang_cli.composed.ComposedSimulation) it joins the composition's executor,
+        each wait is a step of the whole simulated node set, its clock is simulated time, and a
+        service call waits for its answer with the physics held: a session then takes the same
+        steps in every run."""
         super().__init__('krang_session', context=context)
         self.modes = []
         self.betas = []
@@ -36,8 +41,17 @@ class SessionClient(Node):
             name: self.create_client(Trigger, names.relative(name))
             for name in (names.STAND_UP, names.SIT_DOWN, names.HALT, names.CONTROLLER_RECOVER)
         }
-        self.spinner = SingleThreadedExecutor(context=context)
-        self.spinner.add_node(self)
+        self.composed = composed
+        if composed is None:
+            self.spinner = SingleThreadedExecutor(context=context)
+            self.spinner.add_node(self)
+            self.clock = time.monotonic
+            self.advance = lambda: self.spinner.spin_once(timeout_sec=0.05)
+        else:
+            self.spinner = None
+            composed.executor.add_node(self)
+            self.clock = lambda: composed.sim_time
+            self.advance = composed.advance
 
     @property
     def mode(self):
@@ -50,22 +64,34 @@ class SessionClient(Node):
         self.betas.append(list(msg.data))
 
     def spin_until(self, condition, timeout, what):
-        deadline = time.monotonic() + timeout
+        deadline = self.clock() + timeout
         while not condition():
-            if time.monotonic() > deadline:
+            if self.clock() > deadline:
                 raise SessionError(f'timed out after {timeout:.0f} s waiting for {what}')
-            self.spinner.spin_once(timeout_sec=0.05)
+            self.advance()
 
     def pause(self, seconds):
         """Keep processing messages for `seconds`."""
-        end = time.monotonic() + seconds
-        while time.monotonic() < end:
-            self.spinner.spin_once(timeout_sec=0.05)
+        end = self.clock() + seconds
+        while self.clock() < end:
+            self.advance()
 
     def call(self, client, request, timeout=10.0):
         self.spin_until(lambda: client.service_is_ready(), timeout, f'service {client.srv_name}')
         future = client.call_async(request)
-        self.spin_until(future.done, timeout, f'the answer of {client.srv_name}')
+        if self.composed is None:
+            self.spin_until(future.done, timeout, f'the answer of {client.srv_name}')
+            return future.result()
+        # Composed: a topic message is in its reader's queue when publish returns, but a service
+        # answer comes back through DDS a moment later (test/test_composed.py). The physics waits
+        # for it, or the call would take a number of steps that depends on the scheduler.
+        deadline = time.monotonic() + timeout
+        while not future.done():
+            if time.monotonic() > deadline:
+                raise SessionError(
+                    f'timed out after {timeout:.0f} s waiting for the answer of {client.srv_name}'
+                )
+            self.composed.deliver()
         return future.result()
 
     def operate(self, name, timeout=10.0):
@@ -77,10 +103,10 @@ class SessionClient(Node):
         flow), wait until it sits powered, then ask it to stand up (enable alone does not).
         A lost answer (DDS drops a service response whose reader it has not matched yet) is
         retried: enable is idempotent, and a stand_up is judged by the mode topic."""
-        deadline = time.monotonic() + timeout
+        deadline = self.clock() + timeout
 
         def left():
-            return max(1.0, deadline - time.monotonic())
+            return max(1.0, deadline - self.clock())
 
         while True:
             try:
@@ -88,12 +114,12 @@ class SessionClient(Node):
                     self.enable, SetBool.Request(data=True), timeout=min(5.0, left())
                 )
             except SessionError:
-                if time.monotonic() > deadline:
+                if self.clock() > deadline:
                     raise
                 continue
             if reply.success:
                 break
-            if time.monotonic() > deadline:
+            if self.clock() > deadline:
                 raise SessionError(f'adrc_controller did not accept enable: {reply.message}')
             self.pause(1.0)
         self.spin_until(
@@ -105,7 +131,7 @@ class SessionClient(Node):
             try:
                 stand = self.operate(names.STAND_UP, timeout=min(5.0, left()))
             except SessionError:
-                if time.monotonic() > deadline:
+                if self.clock() > deadline:
                     raise
                 continue
             if not stand.success:
@@ -134,8 +160,8 @@ class SessionClient(Node):
         # same latched mode topic as this client, which can reach it a moment later (a stand-up of
         # 1.4 s in an unpaced simulation): a refusal while this client sees balance is asked again
         # for up to REFUSAL_RETRY_S.
-        retry_until = time.monotonic() + REFUSAL_RETRY_S
-        while not reply.success and self.mode == 'balance' and time.monotonic() < retry_until:
+        retry_until = self.clock() + REFUSAL_RETRY_S
+        while not reply.success and self.mode == 'balance' and self.clock() < retry_until:
             self.pause(0.2)
             reply = self.call(self.next_pose, Trigger.Request())
         if not reply.success:
@@ -148,7 +174,8 @@ class SessionClient(Node):
         return reply.message
 
     def close(self):
-        self.spinner.shutdown()
+        if self.spinner is not None:
+            self.spinner.shutdown()
         self.destroy_node()
 
 

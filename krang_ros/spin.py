@@ -5,7 +5,7 @@ import sys
 
 import rclpy
 from rclpy.callback_groups import CallbackGroup
-from rclpy.executors import ExternalShutdownException
+from rclpy.executors import ExternalShutdownException, TimeoutException
 
 from .params import ParameterError
 
@@ -69,3 +69,18 @@ def take_latest(subscription):
     """The newest message waiting on a `Polled` subscription (older ones are dropped), or None."""
     waiting = take_waiting(subscription)
     return waiting[-1] if waiting else None
+
+
+def run_ready(executor):
+    """Run every callback of `executor` that is ready now, and those they make ready, without
+    waiting; the number run (0: nothing was ready)."""
+    ran = 0
+    while True:
+        try:
+            handler, _, _ = executor.wait_for_ready_callbacks(timeout_sec=0)
+        except TimeoutException:
+            return ran
+        handler()
+        if handler.exception() is not None:
+            raise handler.exception()
+        ran += 1

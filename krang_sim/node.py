@@ -9,7 +9,7 @@ move the body joints at their speed limits. With `publish_clock` the node publis
 `clock_rate_hz`, right after the sensor frames of that step), so nodes running with use_sim_time
 follow the simulated time whether it runs faster or slower than real time: `krang demo` runs the
 node set that way, because a simulator starved of CPU slows down. Ground truth for evaluation goes
-to /sim_krang/ground_truth.
+to /sim_krang/ground_truth (every 0.1 s of simulated time).
 
 Lockstep (`lockstep`): after each sensor sample the physics waits until the wheel current frames
 that answer it are on the bus (an RPDO from every drive, applied to the emulated drives before the
@@ -28,6 +28,12 @@ sample (a `Polled` subscription: no executor wake per command); /diagnostics rep
 lockstep first held (`lockstep_first_armed_s`). The answer acts from `lockstep_delay_s` after
 its sample in simulated time (whole physics steps, less than one sample period), the latency the
 simulated robot sees, whatever the wall-clock one was.
+
+Composed (constructed with a bus_io.Pump, krang_cli.composed): no physics or bus thread. The
+composition calls `advance()`, which steps the physics up to the step from which the answer to the
+next sample acts, and then delivers everything the sample caused before the next call: the
+simulator then waits for the whole node set, not only the wheel command, and a session gives the
+same result in every run. The ground truth goes out every 0.1 s of simulated time.
 
 Fault injection: `silent_devices` (string array, settable at run time, e.g. through
 /sim_krang/set_parameters) silences devices as devices.py describes: 'imu', a wheel joint for its
@@ -157,8 +163,10 @@ def describe_parameters():
 
 
 class SimKrangNode(Node):
-    def __init__(self):
-        super().__init__('sim_krang')
+    def __init__(self, pump=None, **kwargs):
+        """`pump` (a bus_io.Pump): composed in one process, stepped by `advance()` (no physics
+        or bus thread)."""
+        super().__init__('sim_krang', **kwargs)
         self.robot = load_krang()
         cfg = params.declare(self, SimNodeParams)
         devices_file = str(resolve_config_file(cfg.devices_file, default_devices_file().name))
@@ -236,7 +244,9 @@ class SimKrangNode(Node):
             bus = can.Bus(**self.config.buses[name].bus_kwargs())
             self.buses[name] = bus
             receive_only(bus, self.devices.host_ids(name))
-        self.reader = BusReader(self.buses, self.on_host_frame, self.on_bus_error)
+        self.reader = (pump.reader if pump else BusReader)(
+            self.buses, self.on_host_frame, self.on_bus_error
+        )
         qos = topics.QOS
         self.clock_pub = self.create_publisher(Clock, names.CLOCK, qos[names.CLOCK])
         # read by the physics thread at each sample (take_latest), never a wake of the executor
@@ -253,7 +263,7 @@ class SimKrangNode(Node):
         self.diag_pub = self.create_publisher(
             DiagnosticArray, names.relative(names.DIAGNOSTICS), qos[names.DIAGNOSTICS]
         )
-        self.create_timer(0.1, self.publish_truth)
+        self.truth_every = max(1, round(0.1 * self.rate))  # ground truth at 10 Hz of sim time
         self.create_timer(1.0, self.publish_diagnostics)
         self.running = True
         # When behind real time the physics loop does not sleep, and it would keep the GIL for the
@@ -270,8 +280,12 @@ class SimKrangNode(Node):
         if silent:
             self.silence(silent)
         self.add_on_set_parameters_callback(self.on_parameters)
-        self.thread = threading.Thread(target=self.physics_loop, name='physics', daemon=True)
-        self.thread.start()
+        self.k = 0  # physics steps taken
+        self.answer_due = None  # the step from which the answer to the last sample acts
+        self.thread = None
+        if pump is None:
+            self.thread = threading.Thread(target=self.physics_loop, name='physics', daemon=True)
+            self.thread.start()
         self.get_logger().info(
             f'simulated Krang: truth {truth_file}, sitting at q_base '
             f'{self.sim.q_base:+.3f} rad, true balance '
@@ -353,51 +367,73 @@ class SimKrangNode(Node):
                     f'send on {frame.bus} failed: {err}', throttle_duration_sec=5
                 )
 
-    def physics_loop(self):
+    def _step(self):
+        """One physics step, with self.lock held; the sensor frames of the step (at a sample)."""
         dt = 1.0 / self.rate
-        start = time.monotonic()
-        k = 0
-        answer_due = None  # the step from which the answer to the last sample acts
-        paced_at = self.factor
-        while self.running:
-            with self.lock:
-                if k == answer_due:
-                    self.wait_for_answer()
-                self.devices.step(dt)
-                joints = self.devices.joint_positions()
-                currents = self.devices.wheel_currents()
-                self.sim.command_joints([joints[j] for j in self.robot.pose_joints])
-                self.sim.command_currents(currents['JLWheel'], currents['JRWheel'])
-                self.sim.step()
-                frames = []
-                if k % self.feedback_every == 0:
-                    answer_due = k + 1 + self.lockstep_delay_steps
-                    self.rpdo_seen = set()
-                    read = self.sim.sensors()
-                    frames = self.devices.wheel_feedback_frames(
-                        {'JLWheel': read.wheel_left, 'JRWheel': read.wheel_right},
-                        {'JLWheel': read.wheel_left_rate, 'JRWheel': read.wheel_right_rate},
-                    )
-                    frames += self.devices.imu_frames_from_pitch(
-                        self.sim.q_base + self.sim.config.effects.imu_pitch_bias_rad,
-                        self.sim.state[3],
-                        forward_specific_force=self.sim.axle_acceleration,
-                    )
-            self.send(frames)
+        k = self.k
+        self.devices.step(dt)
+        joints = self.devices.joint_positions()
+        currents = self.devices.wheel_currents()
+        self.sim.command_joints([joints[j] for j in self.robot.pose_joints])
+        self.sim.command_currents(currents['JLWheel'], currents['JRWheel'])
+        self.sim.step()
+        self.k += 1
+        if k % self.feedback_every:
+            return []
+        # the answer to this sample acts from this step on
+        self.answer_due = k + 1 + self.lockstep_delay_steps
+        self.rpdo_seen = set()
+        read = self.sim.sensors()
+        frames = self.devices.wheel_feedback_frames(
+            {'JLWheel': read.wheel_left, 'JRWheel': read.wheel_right},
+            {'JLWheel': read.wheel_left_rate, 'JRWheel': read.wheel_right_rate},
+        )
+        frames += self.devices.imu_frames_from_pitch(
+            self.sim.q_base + self.sim.config.effects.imu_pitch_bias_rad,
+            self.sim.state[3],
+            forward_specific_force=self.sim.axle_acceleration,
+        )
+        return frames
+
+    def _after_step(self, frames):
+        """Send the step's frames, then /clock (a node's timer that fires on this time finds the
+        samples) and the ground truth when due; False once shut down."""
+        self.send(frames)
+        k = self.k - 1
+        try:
             if self.publish_clock and k % self.clock_every == 0:
-                # right after the samples of this step: a node's timer that fires on this time
-                # finds them
                 clock = Clock()
                 clock.clock.sec, nanosec = divmod(int(round(self.sim.t * 1e9)), 1_000_000_000)
                 clock.clock.nanosec = nanosec
-                try:
-                    self.clock_pub.publish(clock)
-                except RCLError:
-                    if self.context.ok():
-                        raise
-                    break  # shut down by a signal under this thread: close() ends the rest
+                self.clock_pub.publish(clock)
+            if k % self.truth_every == 0:
+                self.publish_truth()
+        except RCLError:
+            if self.context.ok():
+                raise
+            return False  # shut down by a signal under this thread: close() ends the rest
+        return True
 
-            k += 1
+    def advance(self):
+        """Composed (krang_cli.composed): step the physics up to the moment the answer to the
+        next sample is due; the composition then delivers everything the sample caused."""
+        while True:
+            with self.lock:
+                frames = self._step()
+            self._after_step(frames)
+            if self.k == self.answer_due:
+                return
+
+    def physics_loop(self):
+        start = time.monotonic()
+        paced_at = self.factor
+        while self.running:
+            with self.lock:
+                if self.k == self.answer_due:
+                    self.wait_for_answer()
+                frames = self._step()
+            if not self._after_step(frames):
+                break
             factor = self.factor
             if factor <= 0 and self.lockstep and not self.is_armed:
                 # unpaced lockstep without a control loop (yet): real time, not a free run of
@@ -459,7 +495,8 @@ class SimKrangNode(Node):
         with self.lock:
             self.running = False
             self.answered.notify_all()
-        self.thread.join(timeout=2.0)
+        if self.thread is not None:
+            self.thread.join(timeout=2.0)
         self.reader.stop()
         for bus in self.buses.values():
             bus.shutdown()

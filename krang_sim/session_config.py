@@ -25,23 +25,30 @@ def sim_truth_file():
     return resolve_config_file(params.get('true_beta'), 'sim_true_beta.yaml')
 
 
-def session_devices_file(directory, port=None):
+def session_devices_file(directory, port=None, virtual=False):
     """Write <directory>/can_devices_session.yaml: the package's device map on private UDP ports
-    (`port`, `port`+1, ... one per bus: a udp_multicast socket hears every group on its port)."""
+    (`port`, `port`+1, ... one per bus: a udp_multicast socket hears every group on its port), or
+    with `virtual` on python-can's in-process `virtual` buses (a composed simulation,
+    krang_cli.composed)."""
     port = port or random.Random().randrange(20000, 60000, 16)
     base = default_devices_file()
     config = load_devices(base)
-    buses = config.buses
+
+    def bus_entry(k, name, bus):
+        if virtual:
+            return {'interface': 'virtual', 'channel': f'krang-{name}'}
+        return {
+            'interface': bus.interface,
+            'channel': bus.channel,
+            'options': {**dict(bus.options), 'port': port + k},
+        }
+
     doc = {
         'extends': str(Path(base).resolve()),
         'dbc_file': str(Path(config.dbc_path).resolve()),
         'buses': {
-            name: {
-                'interface': bus.interface,
-                'channel': bus.channel,
-                'options': {**dict(bus.options), 'port': port + k},
-            }
-            for k, (name, bus) in enumerate(sorted(buses.items()))
+            name: bus_entry(k, name, bus)
+            for k, (name, bus) in enumerate(sorted(config.buses.items()))
         },
     }
     path = Path(directory) / 'can_devices_session.yaml'

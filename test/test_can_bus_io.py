@@ -7,7 +7,7 @@ import can
 import pytest
 
 from krang_can_bridge.bridge import BridgeCore
-from krang_can_bridge.bus_io import BusReader, receive_only
+from krang_can_bridge.bus_io import BusReader, Pump, receive_only
 from krang_can_bridge.config import load_devices
 from krang_can_bridge.protocols import FrameLayout, ValueOutOfRange, load_dbc
 from krang_can_bridge.protocols import powercube as pc
@@ -86,6 +86,49 @@ def test_bridge_reads_every_device_frame_and_no_host_frame():
     assert all(
         pc.ACK_BASE < aid <= pc.ACK_BASE + pc.MODULE_ID_MASK for aid in core.received_ids('can0')
     )
+
+
+def _virtual(channel):
+    return can.Bus(interface='virtual', channel=channel)
+
+
+def test_pump_hands_over_everything_queued_in_a_fixed_order():
+    """Two readers (a host and a device, as the bridge and sim_krang composed): one pump() hands
+    over every frame, the replies the handlers send included, reader by reader, bus by bus by
+    name, each bus in order; nothing arrives without a pump()."""
+    tag = f'pump-{random.random()}'
+    host = {name: _virtual(f'{tag}-{name}') for name in ('b', 'a')}
+    device = {name: _virtual(f'{tag}-{name}') for name in ('a', 'b')}
+    got = []
+
+    def on_device(name, msg):
+        got.append(('device', name, msg.arbitration_id))
+        host_reply = can.Message(arbitration_id=msg.arbitration_id + 0x80, is_extended_id=False)
+        device[name].send(host_reply)
+
+    pump = Pump()
+    pump.reader(host, lambda name, m: got.append(('host', name, m.arbitration_id)), print)
+    pump.reader(device, on_device, print)
+    for i in (1, 2):
+        host['b'].send(can.Message(arbitration_id=0x10 + i, is_extended_id=False))
+        host['a'].send(can.Message(arbitration_id=0x20 + i, is_extended_id=False))
+    receive_only(device['a'], {0x21})  # no effect on an in-process bus: 0x22 still arrives
+    time.sleep(0.05)
+    assert got == []
+    assert pump.pump() == 8
+    assert got == [
+        ('device', 'a', 0x21),
+        ('device', 'a', 0x22),
+        ('device', 'b', 0x11),
+        ('device', 'b', 0x12),
+        ('host', 'a', 0xA1),
+        ('host', 'a', 0xA2),
+        ('host', 'b', 0x91),
+        ('host', 'b', 0x92),
+    ]
+    assert pump.pump() == 0
+    for bus in (*host.values(), *device.values()):
+        bus.shutdown()
 
 
 def test_struct_layouts_agree_with_cantools():

@@ -1,7 +1,9 @@
-"""The product end to end: `krang demo` with a few poses over real rclpy nodes (DDS) and real CAN
-frames on udp_multicast buses. The learned beta must reduce the CoM error against the simulator's
-hidden truth, and the bag must be readable by rosbags and mcap_ros2 with the counts the session saw
-published."""
+"""The product end to end: `krang demo` with a few poses over real rclpy nodes (DDS, composed in
+one process) and real CAN frames on in-process buses. The learned beta must reduce the CoM error
+against the simulator's hidden truth, a second run with the same seed must learn the same beta to
+1e-12, and the bag must be readable by rosbags and mcap_ros2 with the counts the session saw
+published. `--processes` (a process per node, the lockstep of `krang bringup --sim`) runs in the
+slow set."""
 
 import json
 import os
@@ -9,13 +11,13 @@ import subprocess
 import sys
 from collections import Counter
 
+import numpy as np
 import pytest
 
 from conftest import REPO
 from krang_cli.relearn import REPRODUCTION_TOLERANCE
-from krang_ros import messages
 
-# In the default run: ~55 s on the 2-core machine (simulator in lockstep, unpaced).
+# In the default run: two demos of ~30 s on the 2-core machine.
 pytestmark = pytest.mark.ros
 
 
@@ -112,29 +114,28 @@ def test_wheel_commands_name_the_wheels_and_the_sample_they_answer(demo):
     answered = sum((m.header.stamp.sec, m.header.stamp.nanosec) in imu for m in commands)
     # the recorder, a best-effort subscriber on a busy machine, may miss some samples it answered
     assert answered > 0.5 * len(commands), (answered, len(commands))
-    # One answer per sample while the lockstep holds (sim_krang's diagnostics say since when;
-    # before, the physics ran at real time and a watch timer's step after a stall answered
-    # nobody). The lockstep takes the first current frame after a sample for its answer, so a
-    # second command (a watch timer's step, a bridge repeat) would stand in for the controller's
-    # answer to the next sample (once 7.5 % of them, and a fall).
-    armed_at = None
-    for _, _, m in iter_messages(bag, ['/diagnostics']):
-        for status in m.status:
-            values = {kv.key: kv.value for kv in status.values}
-            if status.name == 'sim_krang' and values.get('lockstep_first_armed_s', 'no') != 'no':
-                armed_at = float(values['lockstep_first_armed_s'])
-    assert armed_at is not None, 'the lockstep never held'
-    stamps = Counter(
-        (m.header.stamp.sec, m.header.stamp.nanosec)
-        for m in commands
-        if messages.stamp_seconds(m.header.stamp) >= armed_at
-    )
+    # One answer per sample, from the first: a second command (a watch timer's step, a bridge
+    # repeat) would stand in for the controller's answer to the next sample. (Over processes the
+    # lockstep has the same check: test_sim_node_set.py.)
+    stamps = Counter((m.header.stamp.sec, m.header.stamp.nanosec) for m in commands)
     twice = sorted(s for s, n in stamps.items() if n > 1)
-    first = min(stamps)
-    assert not twice, (
-        f'{len(twice)} samples answered more than once, first {twice[:5]}; lockstep from '
-        f'{armed_at} s, first command since {first}'
-    )
+    assert not twice, f'{len(twice)} samples answered more than once, first {twice[:5]}'
+
+
+def test_same_seed_learns_the_same_beta(demo, tmp_path):
+    """Issue 11: a second demo with the same seed learns the same beta, to 1e-12, and reports the
+    same errors."""
+    out, summary = demo
+    again = run_demo(tmp_path, '--poses', '3')
+    from krang_model.beta import load_beta
+    from krang_model.robot import load_krang
+
+    robot = load_krang()
+    first, second = (load_beta(d / 'beta.yaml', robot) for d in (out, tmp_path))
+    assert np.max(np.abs(first - second)) <= 1e-12
+    assert {k: v for k, v in again.items() if k != 'bag'} == {
+        k: v for k, v in summary.items() if k != 'bag'
+    }
 
 
 def test_relearn_reproduces_the_online_beta(demo, tmp_path):
@@ -163,3 +164,12 @@ def test_twelve_poses_on_a_generated_truth_end_under_a_millimetre(tmp_path):
     assert 'seed 5000' in summary['true_beta']
     assert summary['com_error_before_m'] > 0.012
     assert summary['com_error_after_m'] < 0.001
+
+
+@pytest.mark.slow
+def test_processes_learn_too(tmp_path):
+    """`krang demo --processes`: a process per node, the simulator in lockstep with the control
+    path (not reproducible to the bit, README). One pose, learned."""
+    summary = run_demo(tmp_path, '--processes', '--poses', '1')
+    assert summary['poses'] == 1
+    assert summary['com_error_after_m'] < summary['com_error_before_m']

@@ -11,6 +11,7 @@ plus its own stale timeout. Times are the simulator's: the moment the fault took
 diagnostics stamp."""
 
 import contextlib
+from collections import Counter
 
 import pytest
 
@@ -22,6 +23,8 @@ pytest.importorskip('msgpack')  # python-can's udp_multicast needs it
 from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
 from rcl_interfaces.srv import SetParameters  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
+from rclpy.qos import qos_profile_sensor_data  # noqa: E402
+from sensor_msgs.msg import JointState  # noqa: E402
 from std_msgs.msg import Float64MultiArray  # noqa: E402
 
 from krang_adrc_controller.controller import ControllerConfig  # noqa: E402
@@ -29,7 +32,7 @@ from krang_can_bridge.config import load_devices  # noqa: E402
 from krang_cli.node_set import params_files  # noqa: E402
 from krang_cli.processes import NodeSet  # noqa: E402
 from krang_model.config import load_config  # noqa: E402
-from krang_ros import names, topics  # noqa: E402
+from krang_ros import messages, names, topics  # noqa: E402
 from krang_ros.session_client import open_session_client  # noqa: E402
 from krang_ros.names import GROUND_TRUTH  # noqa: E402
 from krang_sim.node import GROUND_TRUTH_FIELDS  # noqa: E402
@@ -61,7 +64,14 @@ class Observer:
         self.fault_at = None
         self.safe_stop_at = None
         self.sim = {}  # sim_krang's latest diagnostics values
+        self.command_stamps = []  # of /wheel_effort_cmd (best effort: some may be missed)
         client.create_subscription(Float64MultiArray, GROUND_TRUTH, self.on_truth, 50)
+        client.create_subscription(
+            JointState,
+            names.WHEEL_EFFORT_CMD,
+            lambda m: self.command_stamps.append(messages.stamp_seconds(m.header.stamp)),
+            qos_profile_sensor_data,
+        )
         client.create_subscription(
             DiagnosticArray,
             names.DIAGNOSTICS,
@@ -129,6 +139,15 @@ def test_unpaced_simulation_keeps_balancing(tmp_path):
         truth = observer.truth_rows[start:]
     # every sample answered: nothing lost from the DMU frames to the current frames
     assert int(observer.sim['lockstep_misses']) == misses
+    # ... and answered once: the lockstep takes the first current frame after a sample for its
+    # answer, so a second command (a watch timer's step, a bridge repeat) would stand in for the
+    # controller's answer to the next sample (once 7.5 % of them, and a fall). Before the lockstep
+    # first held, the physics ran at real time and a watch step after a stall answered nobody.
+    armed_at = float(observer.sim['lockstep_first_armed_s'])
+    stamps = Counter(t for t in observer.command_stamps if t >= armed_at)
+    assert len(stamps) > 400
+    twice = sorted(t for t, n in stamps.items() if n > 1)
+    assert not twice, f'{len(twice)} samples answered more than once, first {twice[:5]}'
     assert len(truth) > 40
     assert observer.safe_stop_at is None and client.mode == 'balance'
     simulated = truth[-1]['t'] - truth[0]['t']
