@@ -1,8 +1,9 @@
-"""How fast the simulated node set runs: sim_krang, can_bridge and adrc_controller as processes on
-their udp_multicast buses, balancing, in lockstep (krang_sim/node.py: the physics waits for the
-wheel command that answers each sample), at the configured real-time factor (1: real time) and
-unpaced (0: as fast as the control path answers). Also prints the lockstep's waits and misses and
-the mean round trip per sample (wall time per simulated sample while unpaced).
+"""How fast the simulated node set runs while balancing: sim_krang, can_bridge and adrc_controller
+as processes on their udp_multicast buses, in lockstep (krang_sim/node.py: the physics waits for
+the wheel command that answers each sample), at the configured real-time factor (1: real time) and
+unpaced (0: as fast as the control path answers); then the same three nodes composed in this
+process as `krang demo` runs them (krang_cli/composed.py), with its ratio to the unpaced processes.
+Also prints the lockstep's waits and misses and the wall time per sample.
 
     .venv/bin/python bench/bench_sim_speed.py [--seconds 15] [--factors 1 0] [--rate-hz 500]
 """
@@ -17,6 +18,7 @@ import yaml
 from diagnostic_msgs.msg import DiagnosticArray
 from rosgraph_msgs.msg import Clock
 
+from krang_cli.composed import ComposedSimulation
 from krang_cli.node_set import params_files
 from krang_cli.processes import NodeSet
 from krang_model.config import config_path
@@ -92,6 +94,34 @@ def measure(factor, seconds, rate_hz=None):
         nodes.stop()
 
 
+def measure_composed(seconds, rate_hz=None):
+    """Simulated seconds per wall second while balancing, composed (no recorder, pose server and
+    estimator idle)."""
+    tmp = tempfile.mkdtemp(prefix='krang_sim_speed_')
+    devices = str(session_devices_file(tmp, virtual=True))
+    sim, bridge, controller = rate_overrides(rate_hz)
+    composed = ComposedSimulation(
+        {
+            'sim_krang': {'devices_file': devices, **sim},
+            'can_bridge': {'devices_file': devices, **bridge},
+            'adrc_controller': controller,
+        },
+        log_dir=os.path.join(tmp, 'logs'),
+    )
+    try:
+        client = composed.session_client()
+        client.enable_controller(60.0)
+        client.wait_for_balance(120.0)
+        client.pause(2.0)
+        wall0, sim0 = time.monotonic(), composed.sim_time
+        while time.monotonic() - wall0 < seconds:
+            composed.advance()
+        ratio = (composed.sim_time - sim0) / (time.monotonic() - wall0)
+        return ratio, client.mode
+    finally:
+        composed.close()
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__.split('\n')[0])
     parser.add_argument(
@@ -113,15 +143,24 @@ def main():
     args = parser.parse_args()
     os.environ.setdefault('ROS_DOMAIN_ID', str(130 + os.getpid() % 50))
     os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
+    rate = args.rate_hz or SIM_RATE_HZ
+    unpaced = None
     for factor in args.factors:
         ratio, misses, waiting, mode = measure(factor, args.seconds, args.rate_hz)
-        rate = args.rate_hz or SIM_RATE_HZ
+        unpaced = ratio if factor == 0 else unpaced
         print(
-            f'real_time_factor {factor:g}: {ratio:.2f}x real time while balancing at '
+            f'processes, real_time_factor {factor:g}: {ratio:.2f}x real time while balancing at '
             f'{rate:g} Hz (mode {mode}; {1e3 / (ratio * rate):.2f} ms wall per sample, of which '
             f'{1e3 * waiting / (ratio * rate):.2f} ms waiting for the answer; lockstep misses '
-            f'{misses})'
+            f'{misses})',
+            flush=True,
         )
+    ratio, mode = measure_composed(args.seconds, args.rate_hz)
+    against = f', {ratio / unpaced:.2f}x the unpaced processes' if unpaced else ''
+    print(
+        f'composed: {ratio:.2f}x real time while balancing at {rate:g} Hz (mode {mode}; '
+        f'{1e3 / (ratio * rate):.2f} ms wall per sample{against})'
+    )
 
 
 if __name__ == '__main__':

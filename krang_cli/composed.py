@@ -20,6 +20,7 @@ import time
 import rclpy
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
+from rclpy.signals import SignalHandlerOptions
 
 from krang_can_bridge.bus_io import Pump
 from krang_ros.spin import Polled, run_ready
@@ -48,6 +49,10 @@ def node_classes():
         'com_estimator': ComEstimatorNode,
         RECORDER: McapRecorder,
     }
+
+
+class CompositionError(RuntimeError):
+    """The composed node set could not start."""
 
 
 def _log_to(log_dir):
@@ -94,7 +99,8 @@ class ComposedSimulation:
             _log_to(log_dir)
             args.append('--disable-stdout-logs')
         self.context = rclpy.Context()
-        rclpy.init(args=args, context=self.context)
+        # Ctrl-C stays Python's KeyboardInterrupt: the caller stops between steps and closes
+        rclpy.init(args=args, context=self.context, signal_handler_options=SignalHandlerOptions.NO)
         self.executor = SingleThreadedExecutor(context=self.context)
         self.pump = Pump()
         self.nodes = {}
@@ -125,7 +131,7 @@ class ComposedSimulation:
         deadline = time.monotonic() + STARTUP_TIMEOUT_S
         while any(s != 'enabled' for s in bridge.startup_status.values()):
             if time.monotonic() > deadline:
-                raise RuntimeError(f'the drives did not start: {bridge.startup_status}')
+                raise CompositionError(f'the drives did not start: {bridge.startup_status}')
             self.deliver()
             time.sleep(0.001)
 

@@ -15,7 +15,7 @@ from krang_sim.session_config import session_devices_file, sim_truth_file
 from krang_sim.truths import generate_truth
 
 from .bringup import start_node_set
-from .composed import ComposedSimulation
+from .composed import ComposedSimulation, CompositionError
 from .node_set import STOP_ORDER
 from .common import print_json
 
@@ -144,9 +144,12 @@ def run(args):
                 bar.set_postfix_str(message)
                 bar.update()
         client.call(client.save, Trigger.Request())
-    except SessionError as err:
+    except (SessionError, CompositionError) as err:
         failure = str(err)
         log.error('session stopped early: %s (node logs in %s)', failure, out / 'logs')
+    except KeyboardInterrupt:
+        failure = 'interrupted (Ctrl-C)'
+        log.error('session stopped early: %s', failure)
     finally:
         if client is not None:
             client.close()

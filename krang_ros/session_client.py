@@ -114,8 +114,8 @@ class SessionClient(Node):
                     self.enable, SetBool.Request(data=True), timeout=min(5.0, left())
                 )
             except SessionError:
-                if self.clock() > deadline:
-                    raise
+                if self.composed is not None or self.clock() > deadline:
+                    raise  # composed, no answer is lost: a missing one is a fault
                 continue
             if reply.success:
                 break
@@ -131,7 +131,7 @@ class SessionClient(Node):
             try:
                 stand = self.operate(names.STAND_UP, timeout=min(5.0, left()))
             except SessionError:
-                if self.clock() > deadline:
+                if self.composed is not None or self.clock() > deadline:
                     raise
                 continue
             if not stand.success:

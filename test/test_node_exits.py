@@ -150,3 +150,25 @@ def test_nodes_stop_when_bringup_is_killed(tmp_path):
     assert not left, f'{len(left)} node(s) still ran 30 s after bringup was killed'
     logs = ''.join(p.read_text() for p in (tmp_path / 'logs').glob('*.log'))
     assert 'Traceback' not in logs, logs[-3000:]
+
+
+@pytest.mark.ros
+def test_ctrl_c_stops_the_composed_demo_with_a_report(tmp_path):
+    """Ctrl-C during `krang demo`: the session stops between two steps, the bag is finished and
+    the report says why; exit code 1, no traceback."""
+    proc = subprocess.Popen(
+        [sys.executable, '-m', 'krang_cli.main', 'demo', '--out', str(tmp_path)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
+    time.sleep(10.0)
+    assert proc.poll() is None, proc.communicate()[0][-3000:]
+    proc.send_signal(signal.SIGINT)
+    out, _ = proc.communicate(timeout=60)
+    assert 'Traceback' not in out, out[-3000:]
+    assert proc.returncode == 1, out[-3000:]
+    assert 'interrupted (Ctrl-C)' in (tmp_path / 'report.md').read_text()
+    from krang_bag.reader import bag_info
+
+    assert bag_info(tmp_path / 'session.mcap').topics['/clock'].message_count > 0
