@@ -33,7 +33,7 @@ Composed (constructed with a bus_io.Pump, krang_cli.composed): no physics or bus
 composition calls `advance()`, which steps the physics up to the step from which the answer to the
 next sample acts, and then delivers everything the sample caused before the next call: the
 simulator then waits for the whole node set, not only the wheel command, and a session gives the
-same result in every run. The ground truth goes out every 0.1 s of simulated time.
+same result in every run.
 
 Fault injection: `silent_devices` (string array, settable at run time, e.g. through
 /sim_krang/set_parameters) silences devices as devices.py describes: 'imu', a wheel joint for its
