@@ -64,8 +64,8 @@ def test_dds_delivers_within_a_process_before_publish_returns(profile):
 
 
 def balance(tmp_path, seed, seconds=3.0):
-    """A composition stands the robot up and balances `seconds` of simulated time; the
-    simulator's state then, and the number of commands the bridge received."""
+    """A composition stands the robot up and balances `seconds` of simulated time; then the
+    simulated time, the robot's state and the drives' currents."""
     devices = str(session_devices_file(tmp_path, virtual=True))
     composed = ComposedSimulation(
         {
