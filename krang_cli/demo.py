@@ -48,10 +48,16 @@ def register(subparsers):
         '--method', default='map-online', help='estimator of com_estimator (default map-online)'
     )
     p.add_argument(
-        '--stand-timeout', type=float, default=120.0, help='s to wait for the robot to balance'
+        '--stand-timeout',
+        type=float,
+        default=120.0,
+        help='s to wait for the robot to balance (simulated s; wall s with --processes)',
     )
     p.add_argument(
-        '--pose-timeout', type=float, default=90.0, help='s to wait for each balanced pose'
+        '--pose-timeout',
+        type=float,
+        default=90.0,
+        help='s to wait for each balanced pose (simulated s; wall s with --processes)',
     )
     p.add_argument(
         '--true-beta',
