@@ -23,7 +23,7 @@ from rclpy.parameter import Parameter
 from rclpy.signals import SignalHandlerOptions
 
 from krang_can_bridge.bus_io import Pump
-from krang_ros.spin import Polled, run_ready
+from krang_ros.spin import run_ready, without_qos_events
 
 from .node_set import RECORDER, SIM_NODE, STOP_ORDER, node_set, params_files
 
@@ -69,19 +69,6 @@ def _log_to(log_dir):
         logger.propagate = False
 
 
-def _without_qos_events(node):
-    """`node` with the QoS event handlers rclpy gives each publisher and subscription (they
-    report incompatible QoS between processes) left out of the executor's wait set: it adds each
-    one at every wait, two thirds of a composed step's time, and here every endpoint is in this
-    process with the QoS of krang_ros.topics. (Removing them from the node would break its
-    destroy_publisher; a group that never runs keeps them out of the wait set.)"""
-    never = Polled()
-    for endpoint in (*node.publishers, *node.subscriptions):
-        for handler in endpoint.event_handlers:
-            handler.callback_group = never
-    return node
-
-
 class ComposedSimulation:
     """sim_krang and the robot's nodes (and the recorder with `record`) in this process, with the
     parameter files of `krang bringup --sim` and `overrides` (node -> {name: value}); their logs
@@ -116,7 +103,7 @@ class ComposedSimulation:
                 }
                 if name in (SIM_NODE, 'can_bridge'):
                     kwargs['pump'] = self.pump
-                self.nodes[name] = _without_qos_events(classes[name](**kwargs))
+                self.nodes[name] = without_qos_events(classes[name](**kwargs))
                 self.executor.add_node(self.nodes[name])
             self.sim = self.nodes[SIM_NODE]
             self._wait_for_drives()
@@ -153,7 +140,7 @@ class ComposedSimulation:
     def session_client(self):
         from krang_ros.session_client import SessionClient
 
-        return _without_qos_events(SessionClient(context=self.context, composed=self))
+        return without_qos_events(SessionClient(context=self.context, composed=self))
 
     def close(self):
         """Stop the nodes in STOP_ORDER (the recorder last, after the rest was delivered)."""
