@@ -43,9 +43,9 @@ def without_qos_events(node):
     which the peer's own handlers log as well (a `ros2 topic echo` with the wrong reliability
     says so); our nodes share one QoS table (topics.py). But rclpy re-adds every handler to the
     wait set at each wake, more than half of the entities of a node: without them the sample ->
-    command latency of the robot's control path fell from 1.45-1.63x to 1.22x the bare chain's
-    at p50 (bench_ros_latency.py --robot). A group that never runs keeps them out; removing them
-    from the node would break its destroy_publisher."""
+    command latency of the robot's control path fell from 1.32-1.63x to 1.22-1.31x the bare
+    chain's at p50 (bench_ros_latency.py --robot). A group that never runs keeps them out;
+    removing them from the node would break its destroy_publisher."""
     never = Polled()
     for endpoint in (*node.publishers, *node.subscriptions):
         for handler in endpoint.event_handlers:
