@@ -5,6 +5,7 @@ pinocchio ends it quietly with exit code 0 instead of a KeyboardInterrupt traceb
 prints what the node does and its parameters without starting it (no bus is opened, no node joins
 the graph)."""
 
+import faulthandler
 import importlib
 import os
 import signal
@@ -37,12 +38,22 @@ def _exit_now(signum, frame):
     os._exit(0)
 
 
+#: Seconds a node has for its clean stop after SIGINT or SIGTERM. Past it, faulthandler dumps
+#: every thread's stack to stderr (the node's log) and ends the process with exit code 1: no
+#: supervisor escalates to SIGKILL when the signal is `krang bringup`'s parent-death signal.
+STOP_DEADLINE_S = 10.0
+
+
 def _exit_quietly(signum, frame):
+    """Unwind, so that the node's close() runs (the bridge zeroes the currents), within
+    STOP_DEADLINE_S. rclpy chains its own SIGINT and SIGTERM handlers to this one."""
+    faulthandler.dump_traceback_later(STOP_DEADLINE_S, exit=True)
     raise SystemExit(0)
 
 
 def run(executable, argv=None):
-    """Run the node `executable`; rclpy's own signal handling takes over once it is initialised."""
+    """Run the node `executable`. A signal while its module imports ends it at once; a later one
+    unwinds it (rclpy's handlers chain to ours), with STOP_DEADLINE_S for its clean stop."""
     argv = sys.argv[1:] if argv is None else list(argv)
     signal.signal(signal.SIGINT, _exit_now)
     signal.signal(signal.SIGTERM, _exit_now)

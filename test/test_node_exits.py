@@ -110,6 +110,45 @@ def test_sigint_at_random_moments_of_the_start(tmp_path):
         busy.kill()
 
 
+HANGING_NODE = """
+import sys, time, types
+from krang_ros import entry
+node = types.ModuleType('hanging_node')
+node.describe_parameters = lambda: []
+def main(args):
+    try:
+        print('spinning', flush=True)
+        time.sleep(600)
+    finally:
+        time.sleep(600)  # a clean stop that never ends
+node.main = main
+sys.modules['hanging_node'] = node
+entry.NODE_MODULES['hanging_node'] = 'hanging_node'
+entry.STOP_DEADLINE_S = 1.0
+sys.exit(entry.run('hanging_node', []))
+"""
+
+
+@pytest.mark.parametrize('signum', [signal.SIGINT, signal.SIGTERM])
+def test_a_stop_that_hangs_ends_at_the_deadline(signum):
+    """A node whose clean stop hangs still ends, STOP_DEADLINE_S after the signal, with every
+    thread's stack in its output and exit code 1 (nothing else would end it after a parent-death
+    signal)."""
+    proc = subprocess.Popen(
+        [sys.executable, '-c', HANGING_NODE],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
+    assert proc.stdout.readline().strip() == 'spinning'
+    start = time.monotonic()
+    proc.send_signal(signum)
+    out = finish(proc, 30)
+    assert proc.returncode == 1, out
+    assert 1.0 <= time.monotonic() - start < 10.0
+    assert 'Timeout (0:00:01)!' in out and 'in main' in out, out
+
+
 @pytest.mark.ros
 @pytest.mark.parametrize('signum', [signal.SIGINT, signal.SIGTERM])
 def test_bringup_sim_without_record_exits_cleanly(signum, tmp_path):
@@ -150,6 +189,16 @@ def _children(pid):
     return found
 
 
+def _cmdline(pid):
+    """The node a process runs (its executable name after `krang_ros.entry`)."""
+    try:
+        args = Path(f'/proc/{pid}/cmdline').read_bytes().split(b'\0')
+    except OSError:
+        return '?'
+    after = args.index(b'krang_ros.entry') + 1 if b'krang_ros.entry' in args else 0
+    return args[after].decode() if after else b' '.join(args).decode()
+
+
 def _alive(pid):
     try:
         state = Path(f'/proc/{pid}/stat').read_text().rsplit(')', 1)[1].split()[0]
@@ -183,12 +232,16 @@ def test_nodes_stop_when_bringup_is_killed(tmp_path):
     deadline = time.monotonic() + 30.0
     while any(map(_alive, nodes)) and time.monotonic() < deadline:
         time.sleep(0.2)
-    left = [pid for pid in nodes if _alive(pid)]
+    left = {pid: _cmdline(pid) for pid in nodes if _alive(pid)}
     for pid in left:
         os.kill(pid, signal.SIGKILL)
-    assert not left, f'{len(left)} node(s) still ran 30 s after bringup was killed'
-    logs = ''.join(p.read_text() for p in (tmp_path / 'logs').glob('*.log'))
+    by_node = {p.name: p.read_text() for p in (tmp_path / 'logs').glob('*.log')}
+    assert not left, f'{len(left)} node(s) still ran 30 s after bringup was killed: {left}\n' + (
+        ''.join(f'--- {name}\n{text[-1500:]}' for name, text in by_node.items())
+    )
+    logs = ''.join(by_node.values())
     assert 'Traceback' not in logs, logs[-3000:]
+    assert 'Timeout (' not in logs, f'a clean stop hung until the deadline: {logs[-3000:]}'
 
 
 @pytest.mark.ros
