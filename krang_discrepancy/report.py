@@ -49,6 +49,8 @@ from .verdict import (
     SITTING_TOL,
     gap_sentence,
     gap_test,
+    phase_gaps,
+    phase_matched_gap,
     residual_structure,
     sitting_offset,
 )
@@ -345,6 +347,8 @@ def contract(result, gaps_yaml, base) -> dict:
         'gap_pitch_rad': [b['rms_q_base'], a['rms_q_base']],
         'gap_wheel_rad': [b['rms_wheel'], a['rms_wheel']],
     }
+    if 'gap_matched' in a:  # judged against a baseline: the figure its verdict uses
+        extra['gap_matched'] = [b['gap_matched'], a['gap_matched']]
     if result.selected is None:
         return {
             'effect': 'none',
@@ -462,6 +466,7 @@ def run_discrepancy(
     t = time.perf_counter()
     cands = library() if candidates is None else library(candidates)
     ref_scales = _reference_scales(base_doc, replay, say)
+    ref_phase_gaps = (base_doc or {}).get('reference', {}).get('phase_gaps') or {}
     result = name_effects(
         replay,
         base,
@@ -507,6 +512,9 @@ def run_discrepancy(
     r0 = replay.residuals([base])[0]
     r1 = replay.residuals([ext_terms])[0]
     gaps_yaml = {'before': gap_metrics(replay, r0), 'after': gap_metrics(replay, r1)}
+    if ref_scales is not None:
+        for key, r in (('before', r0), ('after', r1)):
+            gaps_yaml[key]['gap_matched'] = phase_matched_gap(replay, r, ref_phase_gaps)
     steps = []
     if result.selected is not None:
         for k in range(1, len(result.selected.effects) + 1):
@@ -545,10 +553,12 @@ def run_discrepancy(
         'gap_test': excess,
         'reference': {
             'scales': own.tolist(),
+            'phase_gaps': phase_gaps(replay, r1, own),
             'horizon_s': replay.horizon,
             'n_eval': int(replay.measured.shape[1]),
             'meaning': 'robust RMS error of this model on its own data, per '
-            'horizon point and signal: the yardstick of later runs',
+            'horizon point and signal: the yardstick of later runs; phase_gaps: its gap in '
+            'those scales in each phase, which later runs are matched to',
         },
     }
     # rewrite the YAML with the gap figures
@@ -665,9 +675,10 @@ def _verdict(
     selected effects is still predictable by generic forces (verdict.py), when the model's pitch
     on the caster misses the measured one (``verdict.sitting_offset``), when a selected effect's
     value changes between the thirds of the records (it is not a constant of the robot), when,
-    judged against a baseline's own yardstick, the model is still more than MAX_GAP times its
-    typical error off, or, judged on its own yardstick, when its gap on the balancing windows
-    exceeds what a right model shows (``verdict.gap_test``)."""
+    judged against a baseline, the model is still more than MAX_GAP times its error on the
+    baseline's own data off, phase for phase (``verdict.phase_matched_gap``), or, judged on its
+    own yardstick, when its gap on the balancing windows exceeds what a right model shows
+    (``verdict.gap_test``)."""
     if structure.significant:
         return 'unexplained', (
             'the residual after the library effects is still structured: ' + structure.sentence()
@@ -687,11 +698,12 @@ def _verdict(
             + ', '.join(f'{x:.4g}' for x in v['values'])
             + f' {v["unit"]} (chi2/dof {v["chi2_per_dof"]:.1f}): not a constant of the robot'
         )
-    gap = gaps_yaml['after']['gap']
+    after = gaps_yaml['after']
+    gap = after.get('gap_matched', after['gap'])
     if referenced and gap > MAX_GAP:
         return 'unexplained', (
-            f'the model is still {gap:.3g}x its own typical error off after the '
-            'library effects (more than ' + f'{MAX_GAP:g}x)'
+            f"the model is still {gap:.3g}x its error on the baseline's own data off after the "
+            'library effects, phase for phase (more than ' + f'{MAX_GAP:g}x)'
         )
     if not referenced and (excess or {}).get('exceeds'):
         return 'unexplained', (
@@ -820,6 +832,11 @@ def _write_report(
         f'{_f(a["rms_wheel"], 3)} rad; '
         f'held-out robust loss {_f(heldout["before"], 3)} -> {_f(heldout["after"], 3)}.\n'
     )
+    if 'gap_matched' in a:
+        L.append(
+            "Phase for phase against the baseline's own errors (the verdict's figure, 1 = as "
+            f'good as there): {_f(b["gap_matched"], 3)} before, {_f(a["gap_matched"], 3)} after.\n'
+        )
     L.append('## Data\n')
     L.append(
         '| record | source | kind | duration (s) | sample period (s) | windows (fitting / all) |'

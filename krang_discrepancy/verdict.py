@@ -36,7 +36,8 @@ from .replay import Replay
 #: minimum share of the held-out loss the residual predictor must remove to call it structure
 MIN_STRUCTURE = 0.10
 #: a comparison model (a baseline) whose gap after the named effects is still above this many
-#: times its own typical error is far off: its residual is reported as unexplained
+#: times its own error on its own data, phase for phase (``phase_matched_gap``), is far off: its
+#: residual is reported as unexplained
 MAX_GAP = 2.0
 #: the gap on the balancing windows (``gap_test``) of a model judged on its own yardstick above
 #: which it is not the whole story: the largest 99th percentile (Gaussian fit) over six groups of
@@ -341,6 +342,31 @@ def gap_test(replay: Replay, residual, limit=MAX_OWN_GAP) -> dict:
     common = [set(s['joints']) for s in out['stretches']]
     out['joints_in_every_stretch'] = sorted(set.intersection(*common)) if common else []
     return out
+
+
+def phase_gaps(replay: Replay, residual, scales) -> dict:
+    """The gap of `residual` (S, E, 4) in each phase, over the active windows, in `scales` (E, 4):
+    what a baseline stores as its own error phase by phase (``phase_matched_gap``)."""
+    per_win = ((residual / scales) ** 2).mean(axis=(1, 2))
+    out = {}
+    for ph in PHASES:
+        m = replay.active & (replay.win_phase == ph)
+        if m.any():
+            out[ph] = float(np.sqrt(per_win[m].mean()))
+    return out
+
+
+def phase_matched_gap(replay: Replay, residual, baseline_phase_gaps: dict) -> float:
+    """The gap of `residual` in a baseline's scales, each window's loss divided by the baseline's
+    own loss in that window's phase (``phase_gaps`` of the baseline on its own data; a phase it
+    did not see counts at 1). So 1 = as far off as the baseline was on its own data, phase for
+    phase, whatever the mix of phases. A right model's errors differ by phase: on the caster they
+    are twice the balancing ones in the baseline's scales (the scales are the robust RMS over all
+    of its phases), so a record that never leaves the caster read 2x without it."""
+    per_win = ((residual / replay.scales) ** 2).mean(axis=(1, 2))
+    own = np.array([baseline_phase_gaps.get(ph, 1.0) ** 2 for ph in replay.win_phase])
+    w = replay.active
+    return float(np.sqrt(np.mean(per_win[w] / own[w]))) if w.any() else math.nan
 
 
 def gap_sentence(gt: dict) -> str:

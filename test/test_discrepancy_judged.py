@@ -160,11 +160,45 @@ def test_far_off_a_baseline_is_unexplained_not_none():
     assert _verdict(nothing, quiet, {'after': {'gap': 0.5 * MAX_GAP}}, True)[0] == 'none'
 
 
+def test_the_baseline_gap_is_matched_phase_for_phase():
+    """A right model on a record that never leaves the caster, where the baseline's own errors
+    were twice its balancing ones, is 1x off, not 2x; a model 3x off in every phase is 3x off,
+    whatever the mix of phases. (Before: the raw gap in the baseline's scales, 2.0-2.2 for the
+    right 5 kg payload below, which sits for the whole record, so 'unexplained' or not by the
+    machine's rounding.)"""
+    from types import SimpleNamespace
+    from krang_discrepancy.verdict import phase_gaps, phase_matched_gap
+
+    rng = np.random.default_rng(0)
+    scales = np.full((3, 4), 0.01)
+
+    def replay(phases):
+        return SimpleNamespace(
+            scales=scales, active=np.ones(len(phases), bool), win_phase=np.array(phases)
+        )
+
+    own_size = {'sitting': 2.0, 'balancing': 1.0}
+    baseline = replay(['sitting'] * 50 + ['balancing'] * 150)
+    noise = rng.standard_normal((200, 3, 4)) * scales
+    own = noise * np.array([own_size[p] for p in baseline.win_phase])[:, None, None]
+    stored = phase_gaps(baseline, own, scales)
+    assert stored['sitting'] == pytest.approx(2.0, rel=0.05)
+    assert stored['balancing'] == pytest.approx(1.0, rel=0.05)
+    sits = replay(['sitting'] * 200)
+    right = 2.0 * rng.standard_normal((200, 3, 4)) * scales
+    raw = float(np.sqrt(np.mean((right / scales) ** 2)))
+    assert raw == pytest.approx(2.0, rel=0.05)
+    assert phase_matched_gap(sits, right, stored) == pytest.approx(1.0, rel=0.05)
+    assert phase_matched_gap(baseline, 3.0 * own, stored) == pytest.approx(3.0, rel=0.05)
+    assert phase_matched_gap(sits, right, {}) == pytest.approx(raw)  # an older baseline file
+
+
 def test_baseline_chain_of_two_names_what_changed_in_physical_units(tmp_path):
     """A: slope 0.02 rad (its own run). B = A + torque constant 0.8 x, judged against A: names
     the torque constant as N m/A, its file holds slope + Kt. C = B + 5 kg on the left gripper,
     judged against B: names the payload; its file holds all three and the simulator's SimEffects
-    built from it carries all three."""
+    built from it carries all three. C's robot never stands up (its record is the caster and
+    the attempts), so it is judged phase for phase against B's own errors."""
     slope = SimEffects(floor_slope_rad=0.02)
     kt = SimEffects(floor_slope_rad=0.02, torque_constant_scale=0.8)
     pay = SimEffects(floor_slope_rad=0.02, torque_constant_scale=0.8, payload_kg=5.0)
@@ -182,6 +216,7 @@ def test_baseline_chain_of_two_names_what_changed_in_physical_units(tmp_path):
     c = _run(simulate_record(pay, seed=5, **RECORD), tmp_path / 'c', baseline=yb)['json']
     assert set(_named(c)) == {'payload'}, c
     assert c['value'] == pytest.approx(5.0, rel=0.05)
+    assert c['gap_matched'][1] < 1.5  # the raw gap: 2.0-2.2 (seeds 5-9)
     sim, terms = load_extended_model(tmp_path / 'c' / 'extended_model.yaml')
     assert sim.floor_slope_rad == pytest.approx(0.02, rel=0.05)
     assert sim.torque_constant_scale == pytest.approx(0.8, rel=0.05)
