@@ -100,16 +100,31 @@ class ComposedSimulation:
                     'parameter_overrides': [
                         Parameter(k, value=v) for k, v in overrides.get(name, {}).items()
                     ],
+                    # nothing from outside reaches a composed session (that is what makes it
+                    # reproducible), so no parameter services: each is an entity of the one wait
+                    # set, rebuilt at every wake (6 per node; measured below)
+                    'start_parameter_services': False,
                 }
                 if name in (SIM_NODE, 'can_bridge'):
                     kwargs['pump'] = self.pump
                 self.nodes[name] = without_qos_events(classes[name](**kwargs))
                 self.executor.add_node(self.nodes[name])
             self.sim = self.nodes[SIM_NODE]
+            self._share_the_clock()
             self._wait_for_drives()
         except BaseException:
             self.close()
             raise
+
+    def _share_the_clock(self):
+        """One /clock subscription for the set, as one TimeSource can drive several clocks: the
+        bridge's time source sets every node's clock, the others stop listening. Four nodes on sim
+        time each took every /clock message in a callback of its own, one per step each."""
+        keeper = self.nodes['can_bridge']._time_source
+        for name, node in self.nodes.items():
+            if name not in ('can_bridge', SIM_NODE) and node._time_source.ros_time_is_active:
+                node._time_source.detach_node()
+                keeper.attach_clock(node.get_clock())
 
     def _wait_for_drives(self):
         """The bridge enables the drives through SDO from a thread of its own; the physics starts

@@ -28,7 +28,7 @@ from krang_model.config import config_path
 from krang_model.poses import load_poses
 from krang_model.robot import KRANG_POSE_COLUMNS, load_krang
 from krang_ros import messages, names, params, topics
-from krang_ros.spin import run_node
+from krang_ros.spin import Polled, run_node, take_waiting
 
 from .pool import generate_pool
 from .selection import CRITERIA, AdaptiveSelector
@@ -125,11 +125,14 @@ class PoseServer(Node):
         )
         self.create_service(Trigger, names.private(names.NEXT_POSE), self.on_next_pose)
         self.create_service(Trigger, names.private(names.POSE_RESET), self.on_reset)
-        self.create_subscription(
+        # read when a move is planned (measured_joints), not by a callback: the executor would
+        # wake for every sample (100-500 Hz) to keep one of them
+        self.joint_sub = self.create_subscription(
             JointState,
             names.relative(names.JOINT_STATES),
-            self.on_joint_states,
+            lambda msg: None,
             qos[names.JOINT_STATES],
+            callback_group=Polled(),
         )
         self.create_subscription(
             Float64MultiArray, names.relative(names.POSTERIOR), self.on_posterior, topics.LATCHED
@@ -214,10 +217,16 @@ class PoseServer(Node):
     def on_converged(self, msg):
         self.converged = bool(msg.data)
 
-    def on_joint_states(self, msg):
-        joints = messages.joints_from_state(msg, self.robot.pose_joints)
-        if joints is not None:
-            self.measured = joints
+    def measured_joints(self):
+        """The body joints of the newest /joint_states that has them all, among those waiting
+        (the QoS depth: the last 10 samples); the last known ones if none of them has; None before
+        the first."""
+        for msg in reversed(take_waiting(self.joint_sub)):
+            joints = messages.joints_from_state(msg, self.robot.pose_joints)
+            if joints is not None:
+                self.measured = joints
+                break
+        return self.measured
 
     def now(self):
         return self.get_clock().now().nanoseconds * 1e-9
@@ -262,7 +271,7 @@ class PoseServer(Node):
             response.success = False
             response.message = 'refused: a move is still under way'
             return response
-        start = self.measured
+        start = self.measured_joints()
         goal, text = self._next_target(
             start if start is not None else np.zeros(len(self.robot.pose_joints))
         )
