@@ -276,6 +276,12 @@ def sitting_offset(replay: Replay, terms) -> dict:
     }
 
 
+def window_mean_square(residual, scales) -> np.ndarray:
+    """Mean squared whitened error of each window of `residual` (S, E, 4) in `scales` (E, 4):
+    the gap of one window, squared."""
+    return ((residual / scales) ** 2).mean(axis=(1, 2))
+
+
 def gap_test(replay: Replay, residual, limit=MAX_OWN_GAP) -> dict:
     """Is the model still off by more than a right model is? The gap of `residual` (S, E, 4: the
     model after the named effects) on the quiet balancing windows, in the whitening scales (the
@@ -298,7 +304,7 @@ def gap_test(replay: Replay, residual, limit=MAX_OWN_GAP) -> dict:
     if not np.any(bal):
         return {}
     z2 = (residual / replay.scales) ** 2
-    per_win = z2.mean(axis=(1, 2))
+    per_win = window_mean_square(residual, replay.scales)
     gap = float(np.sqrt(per_win[bal].mean()))
     out = {
         'gap': gap,
@@ -347,7 +353,7 @@ def gap_test(replay: Replay, residual, limit=MAX_OWN_GAP) -> dict:
 def phase_gaps(replay: Replay, residual, scales) -> dict:
     """The gap of `residual` (S, E, 4) in each phase, over the active windows, in `scales` (E, 4):
     what a baseline stores as its own error phase by phase (``phase_matched_gap``)."""
-    per_win = ((residual / scales) ** 2).mean(axis=(1, 2))
+    per_win = window_mean_square(residual, scales)
     out = {}
     for ph in PHASES:
         m = replay.active & (replay.win_phase == ph)
@@ -363,7 +369,7 @@ def phase_matched_gap(replay: Replay, residual, baseline_phase_gaps: dict) -> fl
     phase, whatever the mix of phases. A right model's errors differ by phase: on the caster they
     are twice the balancing ones in the baseline's scales (the scales are the robust RMS over all
     of its phases), so a record that never leaves the caster read 2x without it."""
-    per_win = ((residual / replay.scales) ** 2).mean(axis=(1, 2))
+    per_win = window_mean_square(residual, replay.scales)
     own = np.array([baseline_phase_gaps.get(ph, 1.0) ** 2 for ph in replay.win_phase])
     w = replay.active
     return float(np.sqrt(np.mean(per_win[w] / own[w]))) if w.any() else math.nan
