@@ -3,9 +3,9 @@
 As processes (`krang bringup --sim`, `krang demo --processes`) the nodes run concurrently. The
 lockstep makes each wheel command act at a fixed simulated time, but the moments at which the other
 inputs meet the physics (pose commands, PowerCube polls, a new beta, the session's calls) depend on
-the scheduler. Composed, the same node classes share one rclpy context and one
-SingleThreadedExecutor, as a ROS 2 component container composes nodes, and their CAN buses are
-python-can `virtual` buses read by a `bus_io.Pump`. DDS delivers between the nodes of one
+the scheduler. Composed, the same node classes share one rclpy context and one single-threaded
+executor (krang_ros.executor), as a ROS 2 component container composes nodes, and their CAN buses
+are python-can `virtual` buses read by a `bus_io.Pump`. DDS delivers between the nodes of one
 participant synchronously (Fast DDS intra-process delivery: the message is in the reader's queue
 when `publish` returns; test/test_composed.py checks it). So `advance()` can step the physics up to
 the moment the answer to the next sample is due and then deliver everything, callbacks and frames,
@@ -18,11 +18,11 @@ import os
 import time
 
 import rclpy
-from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 from rclpy.signals import SignalHandlerOptions
 
 from krang_can_bridge.bus_io import Pump
+from krang_ros.executor import StaticSingleThreadedExecutor
 from krang_ros.spin import run_ready, without_qos_events
 
 from .node_set import RECORDER, SIM_NODE, STOP_ORDER, node_set, params_files
@@ -88,7 +88,7 @@ class ComposedSimulation:
         self.context = rclpy.Context()
         # Ctrl-C stays Python's KeyboardInterrupt: the caller stops between steps and closes
         rclpy.init(args=args, context=self.context, signal_handler_options=SignalHandlerOptions.NO)
-        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor = StaticSingleThreadedExecutor(context=self.context)
         self.pump = Pump()
         self.nodes = {}
         classes = node_classes()

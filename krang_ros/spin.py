@@ -7,6 +7,7 @@ import rclpy
 from rclpy.callback_groups import CallbackGroup
 from rclpy.executors import ExternalShutdownException, TimeoutException
 
+from .executor import StaticSingleThreadedExecutor
 from .params import ParameterError
 
 
@@ -16,9 +17,11 @@ def run_node(node_class, args=None):
     context down under the constructor, whose next ROS call fails) is a clean exit too."""
     rclpy.init(args=args)
     node = None
+    executor = StaticSingleThreadedExecutor()
     try:
         node = without_qos_events(node_class())
-        rclpy.spin(node)
+        executor.add_node(node)
+        executor.spin()
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except ParameterError as err:
@@ -30,10 +33,14 @@ def run_node(node_class, args=None):
         # the context was shut down by a signal under a ROS call: a requested stop, not a fault
     finally:
         if node is not None:
+            executor.remove_node(node)
             if hasattr(node, 'close'):
                 node.close()
             node.destroy_node()
         rclpy.try_shutdown()
+        # last, as rclpy.spin's executor: shutdown() destroys the executor's SIGINT guard
+        # condition, and rclpy's signal thread may still be triggering it just after a signal
+        executor.shutdown()
     return 0
 
 
