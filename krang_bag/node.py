@@ -20,7 +20,7 @@ import time
 from datetime import datetime
 
 import rclpy
-from rclpy.executors import SingleThreadedExecutor
+
 from rclpy.node import Node
 from rclpy.qos import (
     DurabilityPolicy,
@@ -41,6 +41,7 @@ from krang_bag.recording import (
 )
 from krang_bag.writer import BagWriter, OfferedQos
 from krang_ros import params
+from krang_ros.executor import StaticSingleThreadedExecutor
 
 NODE_NAME = 'mcap_recorder'
 
@@ -240,6 +241,7 @@ def main(args=None) -> int:
     stop = _install_stop_handlers()
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     node = None
+    executor = StaticSingleThreadedExecutor()
     try:
         try:
             node = McapRecorder()
@@ -252,13 +254,13 @@ def main(args=None) -> int:
         except params.ParameterError as err:
             print(f'error: {err}', file=sys.stderr)
             return 2
-        executor = SingleThreadedExecutor()
         executor.add_node(node)
         while not stop.is_set() and rclpy.ok():
             executor.spin_once(timeout_sec=0.1)
         _drain(executor, node)
         return 0
     finally:
+        executor.shutdown()  # releases the handles it kept, before their node is destroyed
         if node is not None:
             node.close()
             node.destroy_node()

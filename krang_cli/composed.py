@@ -102,7 +102,7 @@ class ComposedSimulation:
                     ],
                     # nothing from outside reaches a composed session (that is what makes it
                     # reproducible), so no parameter services: each is an entity of the one wait
-                    # set, rebuilt at every wake (6 per node)
+                    # set, refilled at every wake (6 per node)
                     'start_parameter_services': False,
                 }
                 if name in (SIM_NODE, 'can_bridge'):

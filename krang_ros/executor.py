@@ -9,11 +9,11 @@ same problem the same way: the entity collection is built once, rebuilt only whe
 is added or removed (`wake`, which every create_* and destroy_* of a node calls), and the rcl wait
 set is refilled from that collection at each wait.
 
-Callbacks run in the order rclpy's SingleThreadedExecutor runs them (per node: timers,
-subscriptions, guard conditions, clients, services, then waitables first of all), one at a time in
-the calling thread, so any code written for it runs unchanged. test_executor.py checks this against
-rclpy's executor. rclpy's EventsExecutor would be cheaper still, but in rclpy 7.1.6 its services
-never answered and it ignored SIGTERM (README, "Performance").
+Callbacks run in the order rclpy's SingleThreadedExecutor runs them (waitables, then per node
+timers, subscriptions, guard conditions, clients and services), one at a time in the calling
+thread, so code written for it runs unchanged; test/test_executor.py checks this against rclpy's
+executor. rclpy's EventsExecutor would be cheaper still, but in rclpy 7.1.6 its services never
+answered and it ignored SIGTERM (README, "The online loop over ROS and CAN").
 """
 
 import threading
@@ -130,7 +130,7 @@ class StaticSingleThreadedExecutor(SingleThreadedExecutor):
                 raise ShutdownException()
             if not self._context.ok():
                 raise ExternalShutdownException()
-            return plan.ready(self)
+            return plan.ready()
         finally:
             with self._plan_lock:
                 self._waiting = False
@@ -226,7 +226,7 @@ class _WaitPlan:
             waitable.add_to_wait_set(wait_set)
         return wait_set
 
-    def ready(self, executor):
+    def ready(self):
         """After a wait, the entities to run as (entity, node, take), as rclpy orders them:
         waitables, then per node timers, subscriptions, guard conditions, clients, services."""
         wait_set = self.wait_set

@@ -4,12 +4,13 @@ tests)."""
 import time
 
 import rclpy
-from rclpy.executors import SingleThreadedExecutor
+
 from rclpy.node import Node
 from std_msgs.msg import Float64MultiArray, String
 from std_srvs.srv import SetBool, Trigger
 
 from . import names, topics
+from .executor import StaticSingleThreadedExecutor
 
 REFUSAL_RETRY_S = 3.0  # see SessionClient.learn_next_pose
 
@@ -43,7 +44,7 @@ class SessionClient(Node):
         }
         self.composed = composed
         if composed is None:
-            self.spinner = SingleThreadedExecutor(context=context)
+            self.spinner = StaticSingleThreadedExecutor(context=context)
             self.spinner.add_node(self)
             self.clock = time.monotonic
             self.advance = lambda: self.spinner.spin_once(timeout_sec=0.05)
