@@ -33,3 +33,13 @@ def krang_data():
             'checkout'
         )
     return path
+
+
+@pytest.fixture
+def context():
+    """An rclpy context of the test's own, shut down after it."""
+    rclpy = pytest.importorskip('rclpy')
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    yield context
+    rclpy.try_shutdown(context=context)

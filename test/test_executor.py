@@ -28,12 +28,13 @@ from krang_ros.spin import Polled, run_ready, take_waiting  # noqa: E402
 EXECUTORS = {'rclpy': SingleThreadedExecutor, 'static': StaticSingleThreadedExecutor}
 
 
-@pytest.fixture
-def context():
-    context = rclpy.Context()
-    rclpy.init(context=context)
-    yield context
-    rclpy.try_shutdown(context=context)
+def spinning_node(context, name):
+    """Our executor with one node that subscribes to `name`."""
+    executor = StaticSingleThreadedExecutor(context=context)
+    node = rclpy.create_node(name, context=context)
+    node.create_subscription(Int32, name, lambda m: None, 10)
+    executor.add_node(node)
+    return executor, node
 
 
 def traffic(executor_class, context):
@@ -225,10 +226,7 @@ def test_a_coroutine_callback_awaits_a_call_to_another_service(name, context):
 
 
 def test_a_shutdown_wakes_a_blocked_spin(context):
-    executor = StaticSingleThreadedExecutor(context=context)
-    node = rclpy.create_node('blocked', context=context)
-    node.create_subscription(Int32, 'blocked', lambda m: None, 10)
-    executor.add_node(node)
+    executor, node = spinning_node(context, 'blocked')
     ended = []
 
     def spin():
@@ -249,10 +247,7 @@ def test_a_shutdown_wakes_a_blocked_spin(context):
 
 
 def test_a_timeout_with_nothing_ready(context):
-    executor = StaticSingleThreadedExecutor(context=context)
-    node = rclpy.create_node('idle', context=context)
-    node.create_subscription(Int32, 'idle', lambda m: None, 10)
-    executor.add_node(node)
+    executor, node = spinning_node(context, 'idle')
     with pytest.raises(TimeoutException):
         executor.wait_for_ready_callbacks(timeout_sec=0)
     start = time.monotonic()

@@ -28,14 +28,6 @@ class Config:
             raise ValueError(f'method must be map or gd, got {self.method!r}')
 
 
-@pytest.fixture
-def context():
-    ctx = rclpy.Context()
-    rclpy.init(context=ctx)
-    yield ctx
-    rclpy.try_shutdown(context=ctx)
-
-
 def make_node(context, **overrides):
     return Node(
         'params_probe',
