@@ -26,6 +26,7 @@ even when the answer comes later than the next samples (bench_ros_latency.py).
 """
 
 import argparse
+import gc
 import math
 import resource
 import socket
@@ -216,6 +217,10 @@ class Player:
         sys.setswitchinterval(0.0005)
         reader = BusReader(self.buses | {REF: self.ref_bus}, self.receive, self.receive_error)
         threading.Thread(target=self.commands_in, daemon=True).start()
+        # as the nodes do (krang_ros.spin.settle_garbage_collector, which would import rclpy
+        # here): what is alive now is out of the cyclic collector's full passes
+        gc.collect()
+        gc.freeze()
         print('ready', flush=True)
         a = self.args
         period = 1.0 / a.rate_hz

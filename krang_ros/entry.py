@@ -10,6 +10,7 @@ import importlib
 import os
 import signal
 import sys
+import threading
 
 # Before numpy is imported: our linear algebra is on 4x4 to 92x92 matrices, where OpenBLAS's
 # thread pool gains nothing and, on a loaded machine, turned a 1 ms LQR redesign into 20-65 ms
@@ -44,11 +45,31 @@ def _exit_now(signum, frame):
 STOP_DEADLINE_S = 10.0
 
 
+#: Set by a SIGINT or SIGTERM once the node's module is imported. `krang_ros.spin.run_node` ends
+#: its loop when it is set, also where the SystemExit raised with it was lost.
+STOP_REQUESTED = threading.Event()
+
+
 def _exit_quietly(signum, frame):
     """Unwind, so that the node's close() runs (the bridge zeroes the currents), within
-    STOP_DEADLINE_S. rclpy chains its own SIGINT and SIGTERM handlers to this one."""
+    STOP_DEADLINE_S. rclpy chains its own SIGINT and SIGTERM handlers to this one. Inside a
+    finalizer (`__del__`) Python prints an exception and ignores it: the node then ran on after
+    `krang bringup` was killed, with a traceback in its log. There the handler only sets
+    STOP_REQUESTED, and run_node's loop ends at its next wake (rclpy's SIGINT guard condition
+    wakes it)."""
+    STOP_REQUESTED.set()
     faulthandler.dump_traceback_later(STOP_DEADLINE_S, exit=True)
-    raise SystemExit(0)
+    if not _in_finalizer(frame):
+        raise SystemExit(0)
+
+
+def _in_finalizer(frame):
+    """Whether `frame` runs inside a `__del__`, where an exception would be ignored."""
+    while frame is not None:
+        if frame.f_code.co_name == '__del__':
+            return True
+        frame = frame.f_back
+    return False
 
 
 def run(executable, argv=None):

@@ -15,6 +15,7 @@ import pytest
 
 from krang_cli.node_set import params_files
 from krang_model.config import load_config
+from krang_ros.entry import STOP_DEADLINE_S
 from krang_ros.params import nested_to_dotted
 from krang_ros.entry import NODE_MODULES
 from krang_sim.session_config import session_devices_file
@@ -147,6 +148,60 @@ def test_a_stop_that_hangs_ends_at_the_deadline(signum):
     assert proc.returncode == 1, out
     assert 1.0 <= time.monotonic() - start < 10.0
     assert 'Timeout (0:00:01)!' in out and 'in main' in out, out
+
+
+CHURNING_NODE = """
+import sys, time, types
+from rclpy.node import Node
+from krang_ros import entry
+from krang_ros.spin import run_node
+
+class Slow:
+    def __del__(self):
+        time.sleep(0.05)  # nearly all of the node's time is spent in finalizers
+
+class Churn(Node):
+    def __init__(self):
+        super().__init__('churn')
+        self.create_timer(0.001, self.tick)
+        print('spinning', flush=True)
+
+    def tick(self):
+        for _ in range(4):
+            Slow()
+
+    def close(self):
+        print('closed', flush=True)
+
+node = types.ModuleType('churn_node')
+node.describe_parameters = lambda: []
+node.main = lambda args: run_node(Churn, args)
+sys.modules['churn_node'] = node
+entry.NODE_MODULES['churn_node'] = 'churn_node'
+sys.exit(entry.run('churn_node', []))
+"""
+
+
+@pytest.mark.ros
+@pytest.mark.parametrize('signum', [signal.SIGINT, signal.SIGTERM])
+def test_a_signal_inside_a_finalizer_still_stops_the_node(signum):
+    """A signal that lands in a `__del__`: the SystemExit of a handler is ignored there (Python
+    prints it), and a node stopped that way ran on until the deadline. It must stop cleanly, at
+    once, with no traceback."""
+    proc = subprocess.Popen(
+        [sys.executable, '-c', CHURNING_NODE],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
+    assert proc.stdout.readline().strip() == 'spinning'
+    time.sleep(0.5)
+    start = time.monotonic()
+    proc.send_signal(signum)
+    out = finish(proc, 30)
+    assert 'Traceback' not in out and 'Exception ignored' not in out, out[-3000:]
+    assert proc.returncode == 0 and 'closed' in out, out[-3000:]
+    assert time.monotonic() - start < STOP_DEADLINE_S / 2, 'it needed the stop deadline'
 
 
 @pytest.mark.ros
