@@ -130,18 +130,24 @@ sys.exit(entry.run('hanging_node', []))
 """
 
 
-@pytest.mark.parametrize('signum', [signal.SIGINT, signal.SIGTERM])
-def test_a_stop_that_hangs_ends_at_the_deadline(signum):
-    """A node whose clean stop hangs still ends, STOP_DEADLINE_S after the signal, with every
-    thread's stack in its output and exit code 1 (nothing else would end it after a parent-death
-    signal)."""
+def spinning_script(script):
+    """A Python process running `script`, once it printed 'spinning'."""
     proc = subprocess.Popen(
-        [sys.executable, '-c', HANGING_NODE],
+        [sys.executable, '-c', script],
         stdout=subprocess.PIPE,
         stderr=subprocess.STDOUT,
         text=True,
     )
     assert proc.stdout.readline().strip() == 'spinning'
+    return proc
+
+
+@pytest.mark.parametrize('signum', [signal.SIGINT, signal.SIGTERM])
+def test_a_stop_that_hangs_ends_at_the_deadline(signum):
+    """A node whose clean stop hangs still ends, STOP_DEADLINE_S after the signal, with every
+    thread's stack in its output and exit code 1 (nothing else would end it after a parent-death
+    signal)."""
+    proc = spinning_script(HANGING_NODE)
     start = time.monotonic()
     proc.send_signal(signum)
     out = finish(proc, 30)
@@ -188,13 +194,7 @@ def test_a_signal_inside_a_finalizer_still_stops_the_node(signum):
     """A signal that lands in a `__del__`: the SystemExit of a handler is ignored there (Python
     prints it), and a node stopped that way ran on until the deadline. It must stop cleanly, at
     once, with no traceback."""
-    proc = subprocess.Popen(
-        [sys.executable, '-c', CHURNING_NODE],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
-        text=True,
-    )
-    assert proc.stdout.readline().strip() == 'spinning'
+    proc = spinning_script(CHURNING_NODE)
     time.sleep(0.5)
     start = time.monotonic()
     proc.send_signal(signum)
