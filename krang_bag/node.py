@@ -20,7 +20,6 @@ import time
 from datetime import datetime
 
 import rclpy
-
 from rclpy.node import Node
 from rclpy.qos import (
     DurabilityPolicy,

@@ -4,7 +4,6 @@ tests)."""
 import time
 
 import rclpy
-
 from rclpy.node import Node
 from std_msgs.msg import Float64MultiArray, String
 from std_srvs.srv import SetBool, Trigger
