@@ -26,7 +26,6 @@ even when the answer comes later than the next samples (bench_ros_latency.py).
 """
 
 import argparse
-import gc
 import math
 import resource
 import socket
@@ -45,6 +44,7 @@ from krang_can_bridge.protocols.dmu_imu import ACCELERATIONS_ID
 from krang_model.com import base_regressor
 from krang_model.config import load_config
 from krang_model.robot import load_krang
+from krang_ros.entry import settle_garbage_collector
 from krang_sim.devices import KrangCanDevices
 
 REF_REQUEST_ID, REF_ANSWER_ID = 0x7E0, 0x7E1
@@ -217,10 +217,7 @@ class Player:
         sys.setswitchinterval(0.0005)
         reader = BusReader(self.buses | {REF: self.ref_bus}, self.receive, self.receive_error)
         threading.Thread(target=self.commands_in, daemon=True).start()
-        # as the nodes do (krang_ros.spin.settle_garbage_collector, which would import rclpy
-        # here): what is alive now is out of the cyclic collector's full passes
-        gc.collect()
-        gc.freeze()
+        settle_garbage_collector()  # as the nodes: no full collection pass stalls the samples
         print('ready', flush=True)
         a = self.args
         period = 1.0 / a.rate_hz

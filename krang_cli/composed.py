@@ -23,7 +23,8 @@ from rclpy.signals import SignalHandlerOptions
 
 from krang_can_bridge.bus_io import Pump
 from krang_ros.executor import StaticSingleThreadedExecutor
-from krang_ros.spin import run_ready, settle_garbage_collector, without_qos_events
+from krang_ros.entry import settle_garbage_collector
+from krang_ros.spin import run_ready, without_qos_events
 
 from .node_set import RECORDER, SIM_NODE, STOP_ORDER, node_set, params_files
 

@@ -1,14 +1,13 @@
 """The one way our nodes run: init, spin until Ctrl-C or shutdown, then close and shut down
 cleanly, with exit code 0 and no traceback however early the signal comes."""
 
-import gc
 import sys
 
 import rclpy
 from rclpy.callback_groups import CallbackGroup
 from rclpy.executors import ExternalShutdownException, TimeoutException
 
-from .entry import STOP_REQUESTED
+from .entry import STOP_REQUESTED, settle_garbage_collector
 from .executor import StaticSingleThreadedExecutor
 from .params import ParameterError
 
@@ -50,18 +49,6 @@ def run_node(node_class, args=None):
         # condition, and rclpy's signal thread may still be triggering it just after a signal
         executor.shutdown()
     return 0
-
-
-def settle_garbage_collector():
-    """Collect once, then move every object alive (the modules, the node, its configuration) out
-    of reach of Python's cyclic garbage collector. With numpy, scipy and pinocchio loaded a full
-    pass walks about 135,000 objects: in bench_ros_latency.py the controller's and the bridge's
-    took 40-190 ms while they started, during which a process answers nothing. After the freeze
-    a full pass walks only what the node built since. In the benchmark's 20 s of balancing no full
-    pass ran either way: this guards the long run on the robot, not a figure. Called once a node
-    or a composition is built, before it runs."""
-    gc.collect()
-    gc.freeze()
 
 
 def without_qos_events(node):
