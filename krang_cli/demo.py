@@ -201,8 +201,12 @@ def write_report(out, result, curve, lateral, figures, counts, wall, args, failu
         f'- mean sideways CoM error: {1000 * lateral[0]:.2f} mm before, '
         f'{1000 * lateral[-1]:.2f} mm after. A robot that balances in pitch never observes '
         'it: it stays where the prior put it.',
-        f'- learned beta: `beta.yaml`; bag: `{Path(result["bag"]).name}` '
-        f'({sum(counts.values())} messages)',
+        (
+            '- learned beta: `beta.yaml`'
+            if (out / 'beta.yaml').exists()
+            else '- learned beta: none (no pose was learned, nothing was saved)'
+        )
+        + f'; bag: `{Path(result["bag"]).name}` ({sum(counts.values())} messages)',
         '',
     ]
     if failure:

@@ -316,7 +316,10 @@ def test_ctrl_c_stops_the_composed_demo_with_a_report(tmp_path):
     assert proc.returncode == 1, out[-3000:]
     report = tmp_path / 'report.md'
     assert report.exists(), out[-3000:]
-    assert 'interrupted (Ctrl-C)' in report.read_text()
+    text = report.read_text()
+    assert 'interrupted (Ctrl-C)' in text
+    # it names a learned beta only if one was saved (interrupted at 10 s, none is)
+    assert ('`beta.yaml`' in text) == (tmp_path / 'beta.yaml').exists(), text[:600]
     from krang_bag.reader import bag_info
 
     assert bag_info(tmp_path / 'session.mcap').topics['/clock'].message_count > 0
