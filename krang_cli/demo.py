@@ -1,6 +1,7 @@
 """krang demo: the simulated Krang end to end, learning its mass model online over next_pose."""
 
 import logging
+import signal
 import time
 from pathlib import Path
 
@@ -11,6 +12,7 @@ from krang_bag.session_report import session_figures
 from krang_model.beta import load_beta, save_beta
 from krang_model.robot import load_krang
 from krang_model.files import write_text
+from krang_ros.entry import interrupt
 from krang_sim.session_config import session_devices_file, sim_truth_file
 from krang_sim.truths import generate_truth
 
@@ -124,6 +126,7 @@ def run(args):
         'can_bridge': {'devices_file': devices},
         'com_estimator': {'output': beta_file, 'method': args.method},
     }
+    signal.signal(signal.SIGINT, interrupt)  # Ctrl-C: the report says so (finally, below)
     started = time.monotonic()
     client = context = nodes = composed = None
     learned = 0

@@ -64,6 +64,16 @@ def _exit_quietly(signum, frame):
         raise SystemExit(0)
 
 
+def interrupt(signum, frame):
+    """SIGINT for a command that runs a session in its own process (`krang demo`): Python's
+    KeyboardInterrupt, and STOP_REQUESTED for the session loop (krang_ros.session_client), which
+    stops on it where the KeyboardInterrupt was lost in a finalizer (a Ctrl-C of the demo once
+    ran the session to its end)."""
+    STOP_REQUESTED.set()
+    if not _in_finalizer(frame):
+        raise KeyboardInterrupt
+
+
 def _in_finalizer(frame):
     """Whether `frame` runs inside a `__del__`, where an exception would be ignored."""
     while frame is not None:

@@ -9,6 +9,7 @@ from std_msgs.msg import Float64MultiArray, String
 from std_srvs.srv import SetBool, Trigger
 
 from . import names, topics
+from .entry import STOP_REQUESTED
 from .executor import StaticSingleThreadedExecutor
 
 REFUSAL_RETRY_S = 3.0  # see SessionClient.learn_next_pose
@@ -68,13 +69,18 @@ class SessionClient(Node):
         while not condition():
             if self.clock() > deadline:
                 raise SessionError(f'timed out after {timeout:.0f} s waiting for {what}')
-            self.advance()
+            self._step()
 
     def pause(self, seconds):
         """Keep processing messages for `seconds`."""
         end = self.clock() + seconds
         while self.clock() < end:
-            self.advance()
+            self._step()
+
+    def _step(self):
+        if STOP_REQUESTED.is_set():  # a Ctrl-C whose KeyboardInterrupt a finalizer swallowed
+            raise KeyboardInterrupt
+        self.advance()
 
     def call(self, client, request, timeout=10.0):
         self.spin_until(lambda: client.service_is_ready(), timeout, f'service {client.srv_name}')
