@@ -10,10 +10,12 @@ the robot, PowerCube modules); the robot sits,
 the controller is enabled and asked to stand up, the player pitches the robot up to the nominal
 balance pitch and holds it there quietly (white sensor noise, no physics), the controller goes
 through STAND_UP to BALANCE by its own mode machine, and the measurement runs while it balances.
-In the same run, the bare reference chain (bench/ref_chain.py: CAN -> process 1 -> topic ->
-process 2 -> topic -> process 1 -> CAN, SingleThreadedExecutor) is played at the same rate, so
-the ratios compare the two under the same load. --load N adds N busy-loop processes during the
-measurement.
+In the same run, before the nodes start, the bare reference chain (bench/ref_chain.py: CAN ->
+process 1 -> topic -> process 2 -> topic -> process 1 -> CAN, SingleThreadedExecutor) is played
+at the same rate for as long, with the player playing the devices all the while: each chain runs
+alone beside the same player, as issue 11 measured the reference. Run together, each chain's CPU
+was the other's load (on 2 cores the reference takes half a core), a load the robot does not
+have. --load N adds N busy-loop processes during both measurements.
 
 Matching a wheel command to its sample: every 5th DMU sample is a probe (a 0.03 rad/s step of the
 pitch rate, taken back over the next 4 samples, alternating in sign); its answer is the first
@@ -52,6 +54,7 @@ import importlib
 import json
 import os
 import random
+import select
 import subprocess
 import sys
 import tempfile
@@ -172,9 +175,9 @@ def controller_rate(diag, window):
     return (n1 - n0) / (t1 - t0), (s1 - s0) / (t1 - t0)
 
 
-def analyse(record, window, rate_hz, diag=()):
+def analyse(record, window, rate_hz, diag=(), ref_window=None):
     """Figures of one --robot run from the player's record and the controller's diagnostics
-    (see the module docstring)."""
+    (see the module docstring); the reference chain's from `ref_window` (default `window`)."""
     w0, w1 = window
     duration = w1 - w0
     left = record['cmd_id'] == int(record['left_id'])
@@ -190,7 +193,9 @@ def analyse(record, window, rate_hz, diag=()):
     # a probe's answer must stand well above the command noise to carry its identity
     by_probe = len(p_lat) >= MIN_PROBES and abs(response) > 5.0 * noise
     lat = p_lat if by_probe else t_lat
-    ref_lat, ref_lost = reference_latencies(record['ref_req'], record['ref_ans'], window)
+    ref_lat, ref_lost = reference_latencies(
+        record['ref_req'], record['ref_ans'], ref_window or window
+    )
     cmd_in = (cmd_t >= w0) & (cmd_t <= w1)
     ms = lambda x, q: float(1e3 * np.percentile(x, q)) if len(x) else float('nan')  # noqa: E731
     stepped, superseded = controller_rate(diag, window)
@@ -282,9 +287,10 @@ def bring_to_balance(client, tell, timeout, dead=dict):
 
 
 def run_robot(seconds, rate_hz, load, tpdo_hz, rt=False):
-    """Start the player, the reference chain and the node set; measure `seconds` while the
-    controller balances; return the figures of `analyse`. `rt`: SCHED_FIFO, the player at
-    PLAYER_RT_PRIORITY, the nodes and the reference chain at NODES_RT_PRIORITY."""
+    """Start the player; measure the reference chain alone for `seconds`, then the node set for
+    `seconds` while the controller balances, each with `load` busy loops; return the figures of
+    `analyse`. `rt`: SCHED_FIFO, the player at PLAYER_RT_PRIORITY, the nodes and the reference
+    chain at NODES_RT_PRIORITY."""
     player_rt, nodes_rt = (PLAYER_RT_PRIORITY, NODES_RT_PRIORITY) if rt else (0, 0)
     tmp = tempfile.mkdtemp(prefix='krang_latency_')
     logs = os.path.join(tmp, 'logs')
@@ -324,18 +330,42 @@ def run_robot(seconds, rate_hz, load, tpdo_hz, rt=False):
         player.stdin.write(word + '\n')
         player.stdin.flush()
 
+    def loaded(n):
+        return [
+            subprocess.Popen([py, '-c', 'while True: pass'], preexec_fn=child_setup())
+            for _ in range(n)
+        ]
+
     try:
         if player.stdout.readline().strip() != 'ready':
             raise RuntimeError(f'device player did not start (see {logs}/device_player.log)')
-        for role in ('can', 'relay'):
-            children.append(
-                _start(
-                    [py, str(BENCH / 'ref_chain.py'), role, '--port', str(port + 15)],
-                    logs,
-                    f'ref_{role}',
-                    preexec_fn=child_setup(nodes_rt),
-                )
+        # 1. the reference chain alone (the nodes not yet started)
+        ref = [
+            _start(
+                [py, str(BENCH / 'ref_chain.py'), role, '--port', str(port + 15)],
+                logs,
+                f'ref_{role}',
+                preexec_fn=child_setup(nodes_rt),
+                **({'stdout': subprocess.PIPE, 'text': True} if role == 'can' else {}),
             )
+            for role in ('can', 'relay')
+        ]
+        children += ref
+        tell('ref')
+        ready, _, _ = select.select([ref[0][0].stdout], [], [], 60.0)
+        if not ready or ref[0][0].stdout.readline().strip() != 'answering':
+            raise RuntimeError(f'the reference chain did not answer (see {logs}/ref_*.log)')
+        busy = loaded(load)
+        time.sleep(1.0)
+        ref_window = (time.time(), None)
+        time.sleep(seconds)
+        ref_window = (ref_window[0], time.time())
+        tell('noref')
+        for proc in busy:
+            _stop(proc)
+        for proc, _ in ref:
+            _stop(proc)
+        # 2. the node set, balancing
         procs = {
             'device player': player,
             'can_bridge': nodes.start(
@@ -367,10 +397,7 @@ def run_robot(seconds, rate_hz, load, tpdo_hz, rt=False):
         modes_before = len(client.modes)
         client.pause(1.0)  # the command noise without probes (noise_level)
         tell('probe')
-        busy = [
-            subprocess.Popen([py, '-c', 'while True: pass'], preexec_fn=child_setup())
-            for _ in range(load)
-        ]
+        busy = loaded(load)
         client.pause(1.0)
         window = (time.time(), None)
         client.pause(seconds)
@@ -395,7 +422,7 @@ def run_robot(seconds, rate_hz, load, tpdo_hz, rt=False):
             _stop(proc)
             log.close()
     with np.load(record_file) as record:
-        return analyse(record, window, rate_hz, diag) | {
+        return analyse(record, window, rate_hz, diag, ref_window) | {
             'left_balance': left_modes,
             'real_time': rt_applied,
         }

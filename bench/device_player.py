@@ -9,13 +9,14 @@ below) and, on the command `stand`, pitches up to the nominal model's balance pi
 (a cosine ramp, the wheels rolling back so that the axle stays put), then holds it, with white
 gyro and accelerometer noise so that every sample gives a different wheel command.
 
-It also plays the reference chain's end: a frame 0x7E0 carrying a counter on its own bus
-(--ref-port) at --rate-hz, answered by 0x7E1 with the same counter (bench/ref_chain.py).
+It also plays the reference chain's end, while told to: a frame 0x7E0 carrying a counter on its
+own bus (--ref-port) at --rate-hz, answered by 0x7E1 with the same counter (bench/ref_chain.py).
 
 Every time is the kernel's receive stamp of the frame on this process's own socket (the player
 hears its own frames too), so the figures are those of the bus. Commands on stdin, one a line:
 `stand`, `sit` (back on the caster at once), `probe` (from now on every --probe-every th sample
-is a probe, see below), `quit` (write --out and exit). Prints `ready` once the buses are open.
+is a probe, see below), `ref` / `noref` (start / stop the reference frames), `quit` (write --out
+and exit). Prints `ready` once the buses are open.
 
 Probes: the sample is sent with its pitch rate raised by --probe-rad-s and the following
 --probe-every - 1 samples lowered by a share of it each, so that the integrated pitch is
@@ -133,6 +134,7 @@ class Player:
         self.lock = threading.Lock()
         self.stop = threading.Event()
         self.probing = False
+        self.playing_ref = False
         self.probe_sign = -1  # probes alternate in sign, the first is positive
         self.samples = []  # (kernel time of the 0x50 frame, sequence)
         self.sent = []  # (sequence, probe sign or 0) of every sample sent, in order
@@ -177,6 +179,8 @@ class Player:
                 self.pitch.start = None
             elif word == 'probe':
                 self.probing = True
+            elif word in ('ref', 'noref'):
+                self.playing_ref = word == 'ref'
             elif word == 'quit':
                 break
         self.stop.set()
@@ -239,14 +243,15 @@ class Player:
                 self.dmu_sample(k % a.probe_every)
                 k += 1
             elif job[2] == 'ref':
-                self.ref_bus.send(
-                    can.Message(
-                        arbitration_id=REF_REQUEST_ID,
-                        is_extended_id=False,
-                        data=ref.to_bytes(4, 'little'),
+                if self.playing_ref:
+                    self.ref_bus.send(
+                        can.Message(
+                            arbitration_id=REF_REQUEST_ID,
+                            is_extended_id=False,
+                            data=ref.to_bytes(4, 'little'),
+                        )
                     )
-                )
-                ref += 1
+                    ref += 1
             else:
                 self.tpdos(job[1])
             job[0] += job[1]

@@ -9,7 +9,7 @@ The QoS is fixed (REF_QOS), not taken from ours: the reference stays the chain i
 (nothing lost), whatever our topics use.
 
 Each runs in its own process on a SingleThreadedExecutor; the device player (device_player.py)
-sends 0x7E0 and times the answer on the bus.
+sends 0x7E0 and times the answer on the bus. The `can` end prints `answering` at its first answer.
 
     .venv/bin/python bench/ref_chain.py can --channel 239.74.163.99 --port 45000
     .venv/bin/python bench/ref_chain.py relay
@@ -51,6 +51,7 @@ class CanEnd(Node):
         self.pub = self.create_publisher(Float64MultiArray, OUT, REF_QOS[OUT])
         self.create_subscription(Float64MultiArray, BACK, self.on_back, REF_QOS[BACK])
         self.notifier = can.Notifier(self.bus, [_Listener(self)], timeout=0.1)
+        self.answering = False
 
     def on_frame(self, msg):
         if msg.arbitration_id == REF_REQUEST_ID and len(msg.data) == 4:
@@ -58,6 +59,9 @@ class CanEnd(Node):
 
     def on_back(self, msg):
         counter = int(msg.data[0]) & 0xFFFFFFFF
+        if not self.answering:
+            self.answering = True
+            print('answering', flush=True)  # the chain is up (bench_ros_latency.py waits for it)
         self.bus.send(
             can.Message(
                 arbitration_id=REF_ANSWER_ID,

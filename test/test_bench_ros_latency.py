@@ -108,6 +108,10 @@ def test_analyse_gives_the_json_keys_first(bench):
     assert fig['superseded_hz'] == pytest.approx(20.0, rel=1e-9)
     assert fig['bus_rate_hz'] == pytest.approx(500.0, rel=0.01)
     assert fig['ref_p50_ms'] == pytest.approx(1.0, abs=1e-6)
+    assert fig['ref_frames'] == 1981 - 600  # the reference frames of the window only
+    # the reference measured in a window of its own (before the nodes start)
+    ref_only = bench.analyse(record, window, 500.0, reports, ref_window=(t[0], t[99]))
+    assert ref_only['ref_frames'] == 100 and ref_only['p50_ms'] == fig['p50_ms']
 
 
 @pytest.mark.ros
