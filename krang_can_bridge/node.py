@@ -250,16 +250,25 @@ class CanBridgeNode(Node):
         logging.getLogger('krang_can_bridge').setLevel(logging.INFO)
 
         self.buses: dict[str, can.BusABC] = {}
+        # the DMU's samples on a socket of their own when other devices share its bus, read
+        # before their frames (BusReader's `first`): a sample waits behind no TPDO backlog
+        imu_bus, sample_ids = self.config.imu.bus, self.core.dmu.feedback_ids
+        self.sample_buses: dict[str, can.BusABC] = {}
         try:
             for name in self.config.buses_in_use():
                 self.buses[name] = open_bus(self.config.buses[name])
+            if not pump and self.core.received_ids(imu_bus) - sample_ids:
+                self.sample_buses[imu_bus] = open_bus(self.config.buses[imu_bus])
         except BusOpenError:
-            for b in self.buses.values():
+            for b in [*self.buses.values(), *self.sample_buses.values()]:
                 b.shutdown()
             logging.getLogger('krang_can_bridge').removeHandler(self._log_handler)
             raise
+        for bus in self.sample_buses.values():
+            receive_only(bus, sample_ids)
         for name, bus in self.buses.items():
-            receive_only(bus, self.core.received_ids(name))
+            ids = self.core.received_ids(name)
+            receive_only(bus, ids - sample_ids if name in self.sample_buses else ids)
         self.canopen = canopen.Network(self.buses[self.config.wheels.bus])
 
         qos = topics.QOS
@@ -296,9 +305,12 @@ class CanBridgeNode(Node):
         self.create_timer(0.5 * self.config.imu.stream_toggle_retry_s, self.check_imu_stream)
         self.create_timer(1.0, self.publish_diagnostics)
         # frames only once every publisher exists (a sample completed earlier ended the thread)
-        self.reader = (pump.reader if pump else BusReader)(
-            self.buses, self.on_received, self.on_bus_error
-        )
+        if pump:
+            self.reader = pump.reader(self.buses, self.on_received, self.on_bus_error)
+        else:
+            self.reader = BusReader(
+                self.buses, self.on_received, self.on_bus_error, first=self.sample_buses
+            )
 
         for drive in self.config.wheels.drives:
             self._startup_status[drive.joint] = 'pending'
@@ -639,7 +651,7 @@ class CanBridgeNode(Node):
         except Exception:  # noqa: BLE001 - best effort on the way out
             pass
         self.reader.stop()
-        for b in self.buses.values():
+        for b in [*self.buses.values(), *self.sample_buses.values()]:
             b.shutdown()
         logging.getLogger('krang_can_bridge').removeHandler(self._log_handler)
 
