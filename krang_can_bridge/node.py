@@ -6,7 +6,9 @@ passes `can_devices.yaml` in config/sim_params.yaml). A bus that cannot be opene
 with one line naming the interface (and, for SocketCAN, the `ip link` command) and exit code 1.
 One receive thread (bus_io.BusReader) feeds the frames of every bus to the core (under a lock),
 so the executor never blocks on CAN; the kernel passes it only the ids the core reads
-(BridgeCore.received_ids, bus_io.receive_only). The node is event-driven: the receive thread
+(BridgeCore.received_ids, bus_io.receive_only). The DMU's sample frames come on a second socket
+of their bus, read before that bus's TPDO backlog (BusReader's `first`; not when composed, where
+the frames are pumped in order). The node is event-driven: the receive thread
 publishes each sample
 as soon as the core says its frames are in (rclpy publishers may be called from any thread; the
 message is built outside the lock), and the wheel current frames go out from the command
