@@ -87,6 +87,7 @@ from krang_ros.spin import run_node
 SIM_TIME_SLACK_S = 0.025  # with use_sim_time: checks run at most this far past the newest frame
 HARDWARE_ID = 'krang_can'
 CAN_BITRATE = 1000000  # every Krang net runs at 1 Mbit/s (docs/can.md)
+SAMPLE_SOCKET_INTERFACES = ('socketcan', 'udp_multicast')  # bus_io.receive_only: kernel filters
 
 
 def _doc(text: str) -> dict:
@@ -253,13 +254,18 @@ class CanBridgeNode(Node):
 
         self.buses: dict[str, can.BusABC] = {}
         # the DMU's samples on a socket of their own when other devices share its bus, read
-        # before their frames (BusReader's `first`): a sample waits behind no TPDO backlog
+        # before their frames (BusReader's `first`): a sample waits behind no TPDO backlog. Only
+        # where a second socket on the net gets a kernel filter of its own.
         imu_bus, sample_ids = self.config.imu.bus, self.core.dmu.feedback_ids
         self.sample_buses: dict[str, can.BusABC] = {}
         try:
             for name in self.config.buses_in_use():
                 self.buses[name] = open_bus(self.config.buses[name])
-            if not pump and self.core.received_ids(imu_bus) - sample_ids:
+            if (
+                not pump
+                and self.config.buses[imu_bus].interface in SAMPLE_SOCKET_INTERFACES
+                and self.core.received_ids(imu_bus) - sample_ids
+            ):
                 self.sample_buses[imu_bus] = open_bus(self.config.buses[imu_bus])
         except BusOpenError:
             for b in [*self.buses.values(), *self.sample_buses.values()]:
