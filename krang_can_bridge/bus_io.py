@@ -27,7 +27,6 @@ from typing import Callable, Iterable, Mapping
 import can
 
 BURST = 16  # frames read from one bus before the others get their turn
-FIRST_BURST = 4  # the same, while frames of a `first` socket wait (BusReader)
 SO_ATTACH_FILTER = 26  # linux/socket.h (socket.SO_ATTACH_FILTER is not exported)
 # classic BPF opcodes (linux/filter.h)
 _LD_B_ABS, _LD_H_ABS = 0x30, 0x28
@@ -101,13 +100,7 @@ def receive_only(bus: can.BusABC, ids: Iterable[int]) -> None:
 class BusReader:
     """Reads every bus of `buses` (name -> bus) on one thread and calls `on_frame(name, msg)` for
     each frame, in arrival order per bus; `on_error(name, exc)` when a bus fails (that bus is no
-    longer read, as with a python-can Notifier). Buses without a file descriptor get a Notifier.
-
-    `first` (name -> bus): more sockets, each on the channel of the bus of that name and receiving
-    only the frames that must not wait (the DMU's samples, which trigger a control step, beside
-    the drives' TPDOs at 8000 frames/s). Each round reads them before any other, and the others at
-    most FIRST_BURST frames at a time, so such a frame waits behind at most that many; their
-    frames reach `on_frame` under the bus's own name."""
+    longer read, as with a python-can Notifier). Buses without a file descriptor get a Notifier."""
 
     def __init__(
         self,
@@ -115,14 +108,10 @@ class BusReader:
         on_frame: Callable[[str, can.Message], None],
         on_error: Callable[[str, Exception], None],
         timeout_s: float = 0.1,
-        first: Mapping[str, can.BusABC] | None = None,
     ):
         self._on_frame, self._on_error, self._timeout = on_frame, on_error, timeout_s
         self._stop = threading.Event()
         self._by_fd: dict[int, tuple[str, can.BusABC]] = {}
-        self._first = {first_bus.fileno() for first_bus in (first or {}).values()}
-        self._burst = FIRST_BURST if self._first else BURST
-        self._by_fd.update({bus.fileno(): (name, bus) for name, bus in (first or {}).items()})
         self._notifiers = []
         for name, bus in buses.items():
             try:
@@ -142,14 +131,12 @@ class BusReader:
                 ready, _, _ = select.select(list(self._by_fd), [], [], self._timeout)
             except (OSError, ValueError):  # a bus closed under us (shutdown)
                 return
-            if self._first:
-                ready.sort(key=lambda fd: fd not in self._first)
             for fd in ready:
                 name, bus = self._by_fd[fd]
                 try:
-                    # what is queued, up to a burst: one select per burst, and a busy bus (the
-                    # wheel bus) that the thread cannot keep up with starves no other
-                    for _ in range(BURST if fd in self._first else self._burst):
+                    # what is queued, up to BURST frames: one select per burst, and a busy bus
+                    # (the wheel bus) that the thread cannot keep up with starves no other
+                    for _ in range(BURST):
                         msg = bus.recv(0.0)
                         if msg is None:
                             break

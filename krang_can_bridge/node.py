@@ -6,9 +6,7 @@ passes `can_devices.yaml` in config/sim_params.yaml). A bus that cannot be opene
 with one line naming the interface (and, for SocketCAN, the `ip link` command) and exit code 1.
 One receive thread (bus_io.BusReader) feeds the frames of every bus to the core (under a lock),
 so the executor never blocks on CAN; the kernel passes it only the ids the core reads
-(BridgeCore.received_ids, bus_io.receive_only). The DMU's sample frames come on a second socket
-of their bus, read before that bus's TPDO backlog (BusReader's `first`; not when composed, where
-the frames are pumped in order). The node is event-driven: the receive thread
+(BridgeCore.received_ids, bus_io.receive_only). The node is event-driven: the receive thread
 publishes each sample
 as soon as the core says its frames are in (rclpy publishers may be called from any thread; the
 message is built outside the lock), and the wheel current frames go out from the command
@@ -87,7 +85,6 @@ from krang_ros.spin import run_node
 SIM_TIME_SLACK_S = 0.025  # with use_sim_time: checks run at most this far past the newest frame
 HARDWARE_ID = 'krang_can'
 CAN_BITRATE = 1000000  # every Krang net runs at 1 Mbit/s (docs/can.md)
-SAMPLE_SOCKET_INTERFACES = ('socketcan', 'udp_multicast')  # bus_io.receive_only: kernel filters
 
 
 def _doc(text: str) -> dict:
@@ -253,30 +250,16 @@ class CanBridgeNode(Node):
         logging.getLogger('krang_can_bridge').setLevel(logging.INFO)
 
         self.buses: dict[str, can.BusABC] = {}
-        # the DMU's samples on a socket of their own when other devices share its bus, read
-        # before their frames (BusReader's `first`): a sample waits behind no TPDO backlog. Only
-        # where a second socket on the net gets a kernel filter of its own.
-        imu_bus, sample_ids = self.config.imu.bus, self.core.dmu.feedback_ids
-        self.sample_buses: dict[str, can.BusABC] = {}
         try:
             for name in self.config.buses_in_use():
                 self.buses[name] = open_bus(self.config.buses[name])
-            if (
-                not pump
-                and self.config.buses[imu_bus].interface in SAMPLE_SOCKET_INTERFACES
-                and self.core.received_ids(imu_bus) - sample_ids
-            ):
-                self.sample_buses[imu_bus] = open_bus(self.config.buses[imu_bus])
         except BusOpenError:
-            for b in [*self.buses.values(), *self.sample_buses.values()]:
+            for b in self.buses.values():
                 b.shutdown()
             logging.getLogger('krang_can_bridge').removeHandler(self._log_handler)
             raise
-        for bus in self.sample_buses.values():
-            receive_only(bus, sample_ids)
         for name, bus in self.buses.items():
-            ids = self.core.received_ids(name)
-            receive_only(bus, ids - sample_ids if name in self.sample_buses else ids)
+            receive_only(bus, self.core.received_ids(name))
         self.canopen = canopen.Network(self.buses[self.config.wheels.bus])
 
         qos = topics.QOS
@@ -313,12 +296,9 @@ class CanBridgeNode(Node):
         self.create_timer(0.5 * self.config.imu.stream_toggle_retry_s, self.check_imu_stream)
         self.create_timer(1.0, self.publish_diagnostics)
         # frames only once every publisher exists (a sample completed earlier ended the thread)
-        if pump:
-            self.reader = pump.reader(self.buses, self.on_received, self.on_bus_error)
-        else:
-            self.reader = BusReader(
-                self.buses, self.on_received, self.on_bus_error, first=self.sample_buses
-            )
+        self.reader = (pump.reader if pump else BusReader)(
+            self.buses, self.on_received, self.on_bus_error
+        )
 
         for drive in self.config.wheels.drives:
             self._startup_status[drive.joint] = 'pending'
@@ -659,7 +639,7 @@ class CanBridgeNode(Node):
         except Exception:  # noqa: BLE001 - best effort on the way out
             pass
         self.reader.stop()
-        for b in [*self.buses.values(), *self.sample_buses.values()]:
+        for b in self.buses.values():
             b.shutdown()
         logging.getLogger('krang_can_bridge').removeHandler(self._log_handler)
 

@@ -7,7 +7,7 @@ import can
 import pytest
 
 from krang_can_bridge.bridge import BridgeCore
-from krang_can_bridge.bus_io import FIRST_BURST, BusReader, Pump, receive_only
+from krang_can_bridge.bus_io import BusReader, Pump, receive_only
 from krang_can_bridge.config import load_devices
 from krang_can_bridge.protocols import FrameLayout, ValueOutOfRange, load_dbc
 from krang_can_bridge.protocols import powercube as pc
@@ -65,39 +65,6 @@ def test_reader_serves_every_bus_while_one_is_flooded():
         assert names.index('b') <= 16
     finally:
         for bus in (a, b, tx_a, tx_b):
-            bus.shutdown()
-
-
-def test_frames_of_a_first_socket_jump_the_queue_of_their_bus():
-    """The DMU's sample frames on a socket of their own (the bridge's `first`) are read before a
-    backlog of TPDOs on the same bus, and under that bus's name: one queued before the backlog is
-    read comes first, one that arrives while it is read waits behind at most FIRST_BURST frames.
-    Nothing is lost, each socket's frames stay in order."""
-    port = random.Random().randrange(20000, 60000, 16)
-    main, samples, tx = _bus(port), _bus(port), _bus(port)
-    try:
-        receive_only(samples, {0x50})
-        receive_only(main, {0x10})
-        for k in range(200):  # a TPDO backlog, queued before the reader starts
-            tx.send(can.Message(arbitration_id=0x10, data=bytes([k]), is_extended_id=False))
-        tx.send(can.Message(arbitration_id=0x50, data=b'\x00', is_extended_id=False))
-        got = []
-
-        def on_frame(name, msg):
-            got.append((name, msg.arbitration_id, msg.data[0]))
-            if msg.arbitration_id == 0x10 and msg.data[0] == 9:  # a sample while it is read
-                tx.send(can.Message(arbitration_id=0x50, data=b'\x01', is_extended_id=False))
-
-        reader = BusReader({'can3': main}, on_frame, print, first={'can3': samples})
-        time.sleep(0.3)
-        reader.stop()
-        assert got[0] == ('can3', 0x50, 0)
-        assert {name for name, _, _ in got} == {'can3'}
-        assert [k for _, aid, k in got if aid == 0x10] == list(range(200))
-        late = got.index(('can3', 0x50, 1)) - got.index(('can3', 0x10, 9))
-        assert 1 <= late <= FIRST_BURST
-    finally:
-        for bus in (main, samples, tx):
             bus.shutdown()
 
 
