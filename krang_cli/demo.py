@@ -22,6 +22,7 @@ from .node_set import STOP_ORDER
 from .common import print_json
 
 log = logging.getLogger('krang.demo')
+BETA_FILE = 'beta.yaml'  # the learned beta in the output directory
 
 
 def register(subparsers):
@@ -114,7 +115,7 @@ def run(args):
         meta = {'source': f'{truth_source}' + (f' row {args.row}' if args.row is not None else '')}
     truth_file = save_beta(out / 'true_beta.yaml', true_beta, robot, **meta)
     devices = str(session_devices_file(out, virtual=not args.processes))
-    beta_file = str((out / 'beta.yaml').resolve())
+    beta_file = str((out / BETA_FILE).resolve())
     # unpaced: the simulator runs in lockstep with the control path, as fast as it answers
     overrides = {
         'sim_krang': {
@@ -126,7 +127,7 @@ def run(args):
         'can_bridge': {'devices_file': devices},
         'com_estimator': {'output': beta_file, 'method': args.method},
     }
-    signal.signal(signal.SIGINT, interrupt)  # Ctrl-C: the report says so (finally, below)
+    sigint = signal.signal(signal.SIGINT, interrupt)  # Ctrl-C: the report says so (below)
     started = time.monotonic()
     client = context = nodes = composed = None
     learned = 0
@@ -168,6 +169,7 @@ def run(args):
             nodes.stop(STOP_ORDER)
         if composed is not None:
             composed.close()
+        signal.signal(signal.SIGINT, sigint)
     wall = time.monotonic() - started
     (curve, lateral), figures = session_figures(bag, robot, true_beta, out)
     result = {
@@ -205,8 +207,8 @@ def write_report(out, result, curve, lateral, figures, counts, wall, args, failu
         f'{1000 * lateral[-1]:.2f} mm after. A robot that balances in pitch never observes '
         'it: it stays where the prior put it.',
         (
-            '- learned beta: `beta.yaml`'
-            if (out / 'beta.yaml').exists()
+            f'- learned beta: `{BETA_FILE}`'
+            if (out / BETA_FILE).exists()
             else '- learned beta: none (no pose was learned, nothing was saved)'
         )
         + f'; bag: `{Path(result["bag"]).name}` ({sum(counts.values())} messages)',
