@@ -32,6 +32,7 @@ from std_srvs.srv import SetBool, Trigger
 from krang_model.beta import load_beta
 from krang_model.robot import load_krang
 from krang_ros import messages, names, params, topics
+from krang_ros.log import Throttled
 from krang_ros.names import WHEEL_JOINTS as WHEELS
 from krang_ros.spin import Polled, run_node, take_latest, take_waiting
 
@@ -86,6 +87,7 @@ class AdrcControllerNode(Node):
         self.controller = BalanceController(self.robot, beta, self.config)
         self.imu = None
         self.joint_state = None
+        self._warn_joints = Throttled(self.get_logger().warning, 5.0)
         self.target = None
         self.motion = JointMotion()  # the joints move (measured), from /joint_states positions
         self.answered_stamp = None  # header stamp of the last imu/data sample stepped on
@@ -206,9 +208,7 @@ class AdrcControllerNode(Node):
         joints = messages.joints_from_state(msg, self.robot.pose_joints)
         wheels = messages.joints_from_state(msg, WHEELS)
         if joints is None or wheels is None:
-            self.get_logger().warn(
-                'joint_states without all body joints and wheels; ignored', throttle_duration_sec=5
-            )
+            self._warn_joints('joint_states without all body joints and wheels; ignored')
             return
         rates = messages.velocities_from_state(msg, WHEELS)
         self.joint_state = (

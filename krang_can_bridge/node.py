@@ -7,12 +7,13 @@ with one line naming the interface (and, for SocketCAN, the `ip link` command) a
 One receive thread (bus_io.BusReader) feeds the frames of every bus to the core (under a lock),
 so the executor never blocks on CAN; the kernel passes it only the ids the core reads
 (BridgeCore.received_ids, bus_io.receive_only). The node is event-driven: the receive thread
-publishes each sample
-as soon as the core says its frames are in (rclpy publishers may be called from any thread; the
-message is built outside the lock), and the wheel current frames go out from the command
-callback; the AMC start-up and the recovery (blocking SDO transfers through
-canopen) run in their own threads, and so does the drive-side watchdog's heartbeat, which the core
-withholds when the wheel command loop (the executor) stops running (docs/can.md).
+publishes each sample as soon as the core says its frames are in (rclpy publishers may be called
+from any thread; the message is built outside the lock), and the wheel current frames go out from
+the command callback. The PowerCube polls and moves go out from a send thread
+(bus_io.SendThread), so that the executor is free for the next command while they are sent. The
+AMC start-up and the recovery (blocking SDO transfers through canopen) run in their own threads,
+and so does the drive-side watchdog's heartbeat, which the core withholds when the wheel command
+loop (the executor) stops running (docs/can.md).
 
 Topics:
 - publishes /joint_states (sensor_msgs/JointState: body joints + JLWheel/JRWheel, URDF names; only
@@ -60,8 +61,8 @@ from dataclasses import dataclass, field
 
 import can
 import canopen
-from diagnostic_msgs.msg import DiagnosticArray
 import rclpy
+from diagnostic_msgs.msg import DiagnosticArray
 from rclpy._rclpy_pybind11 import RCLError
 from rclpy.node import Node
 from sensor_msgs.msg import Imu, JointState
@@ -69,7 +70,7 @@ from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
 from krang_can_bridge.bridge import IMU_SAMPLE, WHEEL_SAMPLE, BridgeCore, BusFrame
-from krang_can_bridge.bus_io import BusReader, receive_only
+from krang_can_bridge.bus_io import BusReader, SendThread, receive_only
 from krang_can_bridge.config import (
     BusConfig,
     load_devices,
@@ -80,6 +81,7 @@ from krang_can_bridge.imu_filter import pitch_axis, tilt_direction
 from krang_can_bridge.protocols import amc as amc_proto
 from krang_can_bridge.sample_clock import SampleClock
 from krang_ros import messages, names, params, topics
+from krang_ros.log import Throttled
 from krang_ros.spin import run_node
 
 SIM_TIME_SLACK_S = 0.025  # with use_sim_time: checks run at most this far past the newest frame
@@ -235,6 +237,8 @@ class CanBridgeNode(Node):
         self._send_timeout = p.send_timeout_s
         self._stop = threading.Event()
         self._send_errors: dict[str, int] = {}
+        self._warn_send = Throttled(self.get_logger().warning, 1.0)
+        self._warn_joint_cmd = Throttled(self.get_logger().warning, 1.0)
         self._receive_errors: dict[str, str] = {}
         self._startup_status: dict[str, str] = {}
         self._sdo_lock = threading.Lock()  # one SDO user at a time: start-up or recover
@@ -299,6 +303,9 @@ class CanBridgeNode(Node):
         self.reader = (pump.reader if pump else BusReader)(
             self.buses, self.on_received, self.on_bus_error
         )
+        # the PowerCube polls and moves: off the executor, which sends the wheel currents
+        # (composed, in order with everything else: the run is the same every time)
+        self.sender = None if pump else SendThread(self.send, self.on_send_error)
 
         for drive in self.config.wheels.drives:
             self._startup_status[drive.joint] = 'pending'
@@ -392,15 +399,24 @@ class CanBridgeNode(Node):
         self._receive_errors[bus] = f'{type(exc).__name__}: {exc}'
         self.get_logger().error(f'CAN receive on {bus} stopped: {exc}')
 
+    def send_later(self, frames: list[BusFrame]) -> None:
+        """Frames no control loop waits for: sent by the send thread (see bus_io.SendThread)."""
+        if self.sender is None:
+            self.send(frames)
+        else:
+            self.sender.put(frames)
+
+    def on_send_error(self, exc: Exception) -> None:
+        if not self._stop.is_set():
+            self.get_logger().error(f'CAN send thread: {type(exc).__name__}: {exc}')
+
     def send(self, frames: list[BusFrame]) -> None:
         for bus, msg in frames:
             try:
                 self.buses[bus].send(msg, timeout=self._send_timeout)
             except can.CanError as exc:
                 self._send_errors[bus] = self._send_errors.get(bus, 0) + 1
-                self.get_logger().warning(
-                    f'send on {bus} failed: {exc}', throttle_duration_sec=1.0
-                )
+                self._warn_send(f'send on {bus} failed: {exc}')
 
     def _watchdog_worker(self) -> None:
         """Send the drives' watchdog frames every period; the core withholds them when the wheel
@@ -536,16 +552,15 @@ class CanBridgeNode(Node):
 
     def on_joint_position(self, msg: JointState) -> None:
         if len(msg.position) != len(msg.name):
-            self.get_logger().warning(
-                f'{names.JOINT_POSITION_CMD}: name and position lengths differ; ignored',
-                throttle_duration_sec=1.0,
+            self._warn_joint_cmd(
+                f'{names.JOINT_POSITION_CMD}: name and position lengths differ; ignored'
             )
             return
         with self._lock:
             frames = self.core.joint_position_frames(
                 dict(zip(msg.name, msg.position)), self._device_time()
             )
-        self.send(frames)
+        self.send_later(frames)
 
     def send_wheel_commands(self) -> None:
         with self._lock:
@@ -562,7 +577,7 @@ class CanBridgeNode(Node):
     def poll_modules(self) -> None:
         with self._lock:
             frames = self.core.poll_frames()
-        self.send(frames)
+        self.send_later(frames)
 
     def check_imu_stream(self) -> None:
         with self._lock:
@@ -639,6 +654,8 @@ class CanBridgeNode(Node):
         except Exception:  # noqa: BLE001 - best effort on the way out
             pass
         self.reader.stop()
+        if self.sender is not None:
+            self.sender.stop()
         for b in self.buses.values():
             b.shutdown()
         logging.getLogger('krang_can_bridge').removeHandler(self._log_handler)

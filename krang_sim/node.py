@@ -64,6 +64,7 @@ from krang_can_bridge.protocols import amc as amc_proto
 from krang_model.beta import load_beta
 from krang_model.robot import load_krang
 from krang_ros import messages, names, params, topics
+from krang_ros.log import Throttled
 from krang_ros.spin import Polled, run_node, take_latest
 
 from .devices import KrangCanDevices
@@ -219,6 +220,7 @@ class SimKrangNode(Node):
         )
         self.lock = threading.Lock()
         self.sent_frames = 0
+        self._warn_send = Throttled(self.get_logger().warning, 5.0)
         self.slips = 0
         self.max_lag = cfg.max_lag_s
         self.lockstep = cfg.lockstep
@@ -363,9 +365,7 @@ class SimKrangNode(Node):
                 self.buses[frame.bus].send(frame.msg, timeout=0.01)
                 self.sent_frames += 1
             except can.CanError as err:
-                self.get_logger().warn(
-                    f'send on {frame.bus} failed: {err}', throttle_duration_sec=5
-                )
+                self._warn_send(f'send on {frame.bus} failed: {err}')
 
     def _step(self):
         """One physics step, with self.lock held; the sensor frames of the step (at a sample)."""

@@ -1,13 +1,15 @@
-"""Receiving cheaply (krang_can_bridge/bus_io.py) and the struct codecs compiled from the DBC."""
+"""Receiving cheaply and sending off the executor (krang_can_bridge/bus_io.py), and the struct
+codecs compiled from the DBC."""
 
 import random
+import threading
 import time
 
 import can
 import pytest
 
 from krang_can_bridge.bridge import BridgeCore
-from krang_can_bridge.bus_io import BusReader, Pump, receive_only
+from krang_can_bridge.bus_io import BusReader, Pump, SendThread, receive_only
 from krang_can_bridge.config import load_devices
 from krang_can_bridge.protocols import FrameLayout, ValueOutOfRange, load_dbc
 from krang_can_bridge.protocols import powercube as pc
@@ -129,6 +131,47 @@ def test_pump_hands_over_everything_queued_in_a_fixed_order():
     assert pump.pump() == 0
     for bus in (*host.values(), *device.values()):
         bus.shutdown()
+
+
+def test_send_thread_keeps_order_and_never_holds_up_the_caller():
+    """put() returns while a send blocks; batches go out in order; a send that raises is
+    reported and the next batch still goes; after stop() nothing queued goes out."""
+    sent, errors = [], []
+    release = threading.Event()
+
+    def send(frames):
+        if frames == ['block']:
+            release.wait(5.0)
+        if frames == ['boom']:
+            raise can.CanOperationError('bus off')
+        sent.append(frames)
+
+    sender = SendThread(send, errors.append)
+    sender.put(['block'])
+    start = time.monotonic()
+    for k in range(50):
+        sender.put([k, k + 0.5])
+    sender.put(['boom'])
+    sender.put(['after'])
+    sender.put([])  # nothing to send: not queued
+    assert time.monotonic() - start < 0.5  # the caller was never held by the blocked send
+    assert sent == []
+    release.set()
+    deadline = time.monotonic() + 5.0
+    while len(sent) < 52 and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert sent == [['block']] + [[k, k + 0.5] for k in range(50)] + [['after']]
+    assert [str(e) for e in errors] == ['bus off']
+
+    release.clear()
+    sender.put(['block'])
+    time.sleep(0.05)  # the thread is in that send now
+    sender.put(['queued before the stop'])
+    sender.stop(timeout_s=0.0)  # not waiting for the send under way
+    sender.put(['put after the stop'])
+    release.set()
+    sender.stop()
+    assert sent[-1] == ['block']  # the send under way ends; nothing queued follows it
 
 
 def test_struct_layouts_agree_with_cantools():
