@@ -22,7 +22,6 @@ so what each node sees, and in which order, is the same in every run.
 from __future__ import annotations
 
 import ctypes
-import queue
 import select
 import socket
 import struct
@@ -177,32 +176,53 @@ class SendThread:
 
     Measured on udp_multicast beside the device player (bench_ros_latency.py --robot), the 38
     PowerCube polls sent from the executor held it 1.8 ms at the median and 14 ms at the 99th
-    percentile, 25 times a second: a wheel command arriving then waited as long."""
+    percentile, 25 times a second: a wheel command arriving then waited as long.
+
+    A batch `put` with a `key` replaces the batch of that key still waiting, in its place: a bus
+    whose sends time out (2 ms a frame, a net unplugged) makes a poll round longer than its
+    period, and the queue must neither grow nor send a joint target that a newer one replaced."""
 
     def __init__(
         self, send: Callable[[list], None], on_error: Callable[[Exception], None], name='can-tx'
     ):
         self._send, self._on_error = send, on_error
-        self._queue: queue.SimpleQueue = queue.SimpleQueue()
+        self._waiting: list[list] = []  # [key, frames] in order
+        self._cond = threading.Condition()
         self._stopped = False
         self._thread = threading.Thread(target=self._run, name=name, daemon=True)
         self._thread.start()
 
-    def put(self, frames: list) -> None:
-        if frames and not self._stopped:
-            self._queue.put(frames)
+    def put(self, frames: list, key=None) -> None:
+        if not frames:
+            return
+        with self._cond:
+            if self._stopped:
+                return
+            for batch in self._waiting:
+                if key is not None and batch[0] == key:
+                    batch[1] = frames
+                    return
+            self._waiting.append([key, frames])
+            self._cond.notify()
 
     def _run(self) -> None:
-        while (frames := self._queue.get()) is not None and not self._stopped:
+        while True:
+            with self._cond:
+                self._cond.wait_for(lambda: self._waiting or self._stopped)
+                if self._stopped:
+                    return
+                _, frames = self._waiting.pop(0)
             try:
                 self._send(frames)
             except Exception as exc:  # noqa: BLE001 - reported; the next batch may go through
                 self._on_error(exc)
 
     def stop(self, timeout_s: float = 1.0) -> None:
-        """Ends the thread; what is still queued is dropped (no poll or move after a stop)."""
-        self._stopped = True
-        self._queue.put(None)
+        """Ends the thread; what is still waiting is dropped (no poll or move after a stop)."""
+        with self._cond:
+            self._stopped = True
+            self._waiting.clear()
+            self._cond.notify()
         if self._thread is not threading.current_thread():
             self._thread.join(timeout_s)
 

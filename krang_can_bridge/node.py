@@ -399,12 +399,13 @@ class CanBridgeNode(Node):
         self._receive_errors[bus] = f'{type(exc).__name__}: {exc}'
         self.get_logger().error(f'CAN receive on {bus} stopped: {exc}')
 
-    def send_later(self, frames: list[BusFrame]) -> None:
-        """Frames no control loop waits for: sent by the send thread (see bus_io.SendThread)."""
+    def send_later(self, frames: list[BusFrame], key=None) -> None:
+        """Frames no control loop waits for: sent by the send thread, a newer batch of the same
+        `key` replacing one still waiting (see bus_io.SendThread)."""
         if self.sender is None:
             self.send(frames)
         else:
-            self.sender.put(frames)
+            self.sender.put(frames, key)
 
     def on_send_error(self, exc: Exception) -> None:
         if not self._stop.is_set():
@@ -560,7 +561,8 @@ class CanBridgeNode(Node):
             frames = self.core.joint_position_frames(
                 dict(zip(msg.name, msg.position)), self._device_time()
             )
-        self.send_later(frames)
+        # a newer target for the same modules replaces one not yet sent
+        self.send_later(frames, ('move', *sorted({(f.bus, f.msg.arbitration_id) for f in frames})))
 
     def send_wheel_commands(self) -> None:
         with self._lock:
@@ -577,7 +579,7 @@ class CanBridgeNode(Node):
     def poll_modules(self) -> None:
         with self._lock:
             frames = self.core.poll_frames()
-        self.send_later(frames)
+        self.send_later(frames, 'poll')
 
     def check_imu_stream(self) -> None:
         with self._lock:

@@ -134,8 +134,9 @@ def test_pump_hands_over_everything_queued_in_a_fixed_order():
 
 
 def test_send_thread_keeps_order_and_never_holds_up_the_caller():
-    """put() returns while a send blocks; batches go out in order; a send that raises is
-    reported and the next batch still goes; after stop() nothing queued goes out."""
+    """put() returns while a send blocks; batches go out in order; a batch with a key replaces
+    the waiting one of that key, in its place, so a stuck bus never grows the queue; a send that
+    raises is reported and the next batch still goes; after stop() nothing waiting goes out."""
     sent, errors = [], []
     release = threading.Event()
 
@@ -148,9 +149,13 @@ def test_send_thread_keeps_order_and_never_holds_up_the_caller():
 
     sender = SendThread(send, errors.append)
     sender.put(['block'])
+    time.sleep(0.05)  # the thread is in that send now
     start = time.monotonic()
+    sender.put(['move a 1'], key='a')
     for k in range(50):
-        sender.put([k, k + 0.5])
+        sender.put([f'poll {k}'], key='poll')  # a poll round every period while the bus hangs
+    sender.put(['move b'], key='b')
+    sender.put(['move a 2'], key='a')
     sender.put(['boom'])
     sender.put(['after'])
     sender.put([])  # nothing to send: not queued
@@ -158,20 +163,21 @@ def test_send_thread_keeps_order_and_never_holds_up_the_caller():
     assert sent == []
     release.set()
     deadline = time.monotonic() + 5.0
-    while len(sent) < 52 and time.monotonic() < deadline:
+    while len(sent) < 5 and time.monotonic() < deadline:
         time.sleep(0.01)
-    assert sent == [['block']] + [[k, k + 0.5] for k in range(50)] + [['after']]
+    time.sleep(0.05)
+    assert sent == [['block'], ['move a 2'], ['poll 49'], ['move b'], ['after']]
     assert [str(e) for e in errors] == ['bus off']
 
     release.clear()
     sender.put(['block'])
-    time.sleep(0.05)  # the thread is in that send now
-    sender.put(['queued before the stop'])
+    time.sleep(0.05)
+    sender.put(['waiting at the stop'])
     sender.stop(timeout_s=0.0)  # not waiting for the send under way
     sender.put(['put after the stop'])
     release.set()
     sender.stop()
-    assert sent[-1] == ['block']  # the send under way ends; nothing queued follows it
+    assert sent[-1] == ['block']  # the send under way ends; nothing that waited follows it
 
 
 def test_struct_layouts_agree_with_cantools():
