@@ -63,6 +63,17 @@ RECEIVE_BUFFER = 4 << 20  # bytes (the kernel caps it at net.core.rmem_max)
 CATCH_UP_PERIODS = 5
 
 
+def next_due(due, period, now):
+    """When the period after the one due at `due` is due: late periods are still played, late and
+    in order, unless `now` is more than CATCH_UP_PERIODS past it (then the missed ones are
+    skipped)."""
+    due += period
+    behind = now - due
+    if behind > CATCH_UP_PERIODS * period:
+        due += math.ceil(behind / period) * period
+    return due
+
+
 def bench_pose():
     """The Table II upper-body pose the simulated robot starts in (sim_params.yaml), as a dict."""
     robot = load_krang()
@@ -261,10 +272,7 @@ class Player:
                     ref += 1
             else:
                 self.tpdos(job[1])
-            job[0] += job[1]
-            behind = time.monotonic() - job[0]
-            if behind > CATCH_UP_PERIODS * job[1]:  # descheduled for long: skip, no long burst
-                job[0] += math.ceil(behind / job[1]) * job[1]
+            job[0] = next_due(job[0], job[1], time.monotonic())
         reader.stop()
         use = resource.getrusage(resource.RUSAGE_SELF)
         print(

@@ -1,5 +1,6 @@
 """bench/bench_ros_latency.py: the matching of wheel commands to sensor samples (fast, synthetic
-frame times) and a short --robot run (ros, slow) that must print its figures as JSON."""
+frame times), the device player's schedule, and a short --robot run (ros, slow) that must print
+its figures as JSON."""
 
 import importlib.util
 import json
@@ -18,12 +19,44 @@ BENCH = Path(__file__).resolve().parents[1] / 'bench' / 'bench_ros_latency.py'
 PERIOD = 0.002
 
 
-@pytest.fixture(scope='module')
-def bench():
-    spec = importlib.util.spec_from_file_location('bench_ros_latency', BENCH)
+def _load(path):
+    spec = importlib.util.spec_from_file_location(path.stem, path)
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
+
+
+@pytest.fixture(scope='module')
+def bench():
+    return _load(BENCH)
+
+
+@pytest.fixture(scope='module')
+def player():
+    return _load(BENCH.parent / 'device_player.py')
+
+
+def test_the_player_plays_late_periods_in_order_and_skips_only_a_long_stall(player):
+    """A device never drops a period: after a stall shorter than CATCH_UP_PERIODS every missed
+    period is still played, at once and in order; after a longer one the missed ones are skipped
+    and the next is due after the stall."""
+    n = player.CATCH_UP_PERIODS
+
+    def play(stall_periods, periods=100):
+        """Periods played in `periods` of time by a loop that stalls once, at period 10."""
+        due, now, count = 0.0, 0.0, 0
+        while due < periods * PERIOD:
+            now = max(now, due)
+            if count == 10:
+                now += stall_periods * PERIOD
+            count += 1
+            due = player.next_due(due, PERIOD, now)
+        return count
+
+    assert play(0) == 100
+    assert play(n - 0.5) == 100  # all played, the late ones in a burst
+    assert play(n + 3.5) < 100  # a long stall: the periods it missed are skipped
+    assert player.next_due(0.0, PERIOD, (n + 3.5) * PERIOD) > (n + 3.5) * PERIOD
 
 
 def played(n=2000, latency=0.003, probe_every=5, response=900.0, noise=10.0, seed=1):
