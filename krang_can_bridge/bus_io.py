@@ -178,9 +178,11 @@ class SendThread:
     PowerCube polls sent from the executor held it 1.8 ms at the median and 14 ms at the 99th
     percentile, 25 times a second: a wheel command arriving then waited as long.
 
-    A batch `put` with a `key` replaces the batch of that key still waiting, in its place: a bus
-    whose sends time out (2 ms a frame, a net unplugged) makes a poll round longer than its
-    period, and the queue must neither grow nor send a joint target that a newer one replaced."""
+    A batch `put` with a `key` replaces the batch of that key still waiting: a bus whose sends
+    time out (2 ms a frame, a net unplugged) makes a poll round longer than its period, and the
+    queue must neither grow nor send a joint target that a newer one replaced. The new batch goes
+    last, not in the old one's place: a target for some of the same modules put in between would
+    otherwise go out after it and leave those modules on the older target."""
 
     def __init__(
         self, send: Callable[[list], None], on_error: Callable[[Exception], None], name='can-tx'
@@ -198,10 +200,8 @@ class SendThread:
         with self._cond:
             if self._stopped:
                 return
-            for batch in self._waiting:
-                if key is not None and batch[0] == key:
-                    batch[1] = frames
-                    return
+            if key is not None:
+                self._waiting = [batch for batch in self._waiting if batch[0] != key]
             self._waiting.append([key, frames])
             self._cond.notify()
 

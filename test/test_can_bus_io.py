@@ -135,7 +135,7 @@ def test_pump_hands_over_everything_queued_in_a_fixed_order():
 
 def test_send_thread_keeps_order_and_never_holds_up_the_caller():
     """put() returns while a send blocks; batches go out in order; a batch with a key replaces
-    the waiting one of that key, in its place, so a stuck bus never grows the queue; a send that
+    the waiting one of that key (and goes last), so a stuck bus never grows the queue; a send that
     raises is reported and the next batch still goes; after stop() nothing waiting goes out."""
     sent, errors = [], []
     release = threading.Event()
@@ -166,7 +166,7 @@ def test_send_thread_keeps_order_and_never_holds_up_the_caller():
     while len(sent) < 5 and time.monotonic() < deadline:
         time.sleep(0.01)
     time.sleep(0.05)
-    assert sent == [['block'], ['move a 2'], ['poll 49'], ['move b'], ['after']]
+    assert sent == [['block'], ['poll 49'], ['move b'], ['move a 2'], ['after']]
     assert [str(e) for e in errors] == ['bus off']
 
     release.clear()
@@ -178,6 +178,32 @@ def test_send_thread_keeps_order_and_never_holds_up_the_caller():
     release.set()
     sender.stop()
     assert sent[-1] == ['block']  # the send under way ends; nothing that waited follows it
+
+
+def test_send_thread_sends_a_replacing_batch_after_everything_put_before_it():
+    """A newer target for two modules replaces the waiting one, but goes out after a target for
+    one of them that was put in between: the last target put for each module is the one it gets."""
+    sent = []
+    release = threading.Event()
+
+    def send(frames):
+        if frames == ['block']:
+            release.wait(5.0)
+        sent.append(frames)
+
+    sender = SendThread(send, print)
+    sender.put(['block'])
+    time.sleep(0.05)  # the thread is in that send now
+    sender.put(['a=1', 'b=1'], key=('a', 'b'))
+    sender.put(['a=2'], key=('a',))
+    sender.put(['a=3', 'b=3'], key=('a', 'b'))
+    release.set()
+    deadline = time.monotonic() + 5.0
+    while len(sent) < 3 and time.monotonic() < deadline:
+        time.sleep(0.01)
+    time.sleep(0.05)
+    sender.stop()
+    assert sent == [['block'], ['a=2'], ['a=3', 'b=3']]
 
 
 def test_struct_layouts_agree_with_cantools():
