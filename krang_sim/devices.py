@@ -461,17 +461,18 @@ class PowerCubeEmulator:
                 self.mode, self.commanded_current, self.velocity = 'current', req.value, 0.0
         return [pc.reply_motion(mid, req.selector, self.position, self.short_state())]
 
-    def step(self, dt: float) -> None:
-        """Advance the module by dt seconds within its velocity and acceleration limits."""
+    def step(self, dt: float) -> bool:
+        """Advance the module by dt seconds within its velocity and acceleration limits; whether
+        its position changed."""
         if dt <= 0.0 or self.halted or self.mode == 'current':
-            return
+            return False
         if (
             self.mode == 'ramp'
             and self.velocity == 0.0
             and self.position == self.target
             and self.min_position <= self.position <= self.max_position
         ):
-            return  # at rest on its target: the step below changes nothing (1 kHz x 17 modules)
+            return False  # at rest on its target: the step below changes nothing (1 kHz x 17)
         a = self.target_acceleration
         if self.mode == 'ramp':
             # Discrete braking curve: from v = (k + f) a dt, braking by a dt per step covers
@@ -495,7 +496,8 @@ class PowerCubeEmulator:
         if not self.min_position <= new_position <= self.max_position:
             new_position = min(self.max_position, max(self.min_position, new_position))
             self.velocity = 0.0
-        self.position = new_position
+        moved, self.position = new_position != self.position, new_position
+        return moved
 
 
 class KrangCanDevices:
@@ -590,9 +592,13 @@ class KrangCanDevices:
     def _unless_silent(self, device: str, frames: list) -> list:
         return [] if device in self.silent else frames
 
-    def step(self, dt: float) -> None:
+    def step(self, dt: float) -> bool:
+        """Advance every module by dt seconds; whether any joint position changed (a simulator
+        need not read them otherwise)."""
+        moved = False
         for em in self.modules.values():
-            em.step(dt)
+            moved = em.step(dt) or moved
+        return moved
 
     def joint_positions(self) -> dict[str, float]:
         """Body joint angles [rad] as the modules hold them (waist: mean of sign * module

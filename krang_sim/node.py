@@ -371,10 +371,10 @@ class SimKrangNode(Node):
         """One physics step, with self.lock held; the sensor frames of the step (at a sample)."""
         dt = 1.0 / self.rate
         k = self.k
-        self.devices.step(dt)
-        joints = self.devices.joint_positions()
+        if self.devices.step(dt) or k == 0:  # the modules moved (or the start): new joint targets
+            joints = self.devices.joint_positions()
+            self.sim.command_joints([joints[j] for j in self.robot.pose_joints])
         currents = self.devices.wheel_currents()
-        self.sim.command_joints([joints[j] for j in self.robot.pose_joints])
         self.sim.command_currents(currents['JLWheel'], currents['JRWheel'])
         self.sim.step()
         self.k += 1

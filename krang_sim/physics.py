@@ -123,6 +123,7 @@ class KrangSim:
         self._reduced_at = self.joints.copy()
         self._since_reduce = 0.0
         self._target_changed = False
+        self._still = False  # at rest at the pose last reduced (_move_joints skips its work)
         self._move_steps = 0
         self.dynamics = WipDynamics(reduce_pose(robot, self.joints, self.true_beta), self.drive)
         pitch = self.drive.caster_pitch if q_base is None else q_base
@@ -179,6 +180,9 @@ class KrangSim:
         PowerCube emulators move the target a little every step) the joints reach it at every step,
         and re-reducing each time cost ~500 reductions of 5 ms per simulated second, which held
         sim_krang at a fraction of real time, with 5 ms stalls, during every pose move."""
+        if self._still and not self._target_changed:
+            return  # at rest, reduced at this pose, and no new target: nothing below would change
+        self._still = False
         changed, self._target_changed = self._target_changed, False
         error = self.joint_targets - self.joints
         if np.any(np.abs(error) > 1e-9):
@@ -196,6 +200,7 @@ class KrangSim:
         else:
             self._move_steps = 0
             if np.array_equal(self.joints, self._reduced_at):
+                self._still = True
                 return  # still, and reduced at this pose
         self._since_reduce = 0.0
         self._reduced_at = self.joints.copy()

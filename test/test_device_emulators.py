@@ -353,3 +353,29 @@ def test_powercube_emulator_ramps_within_its_limits():
     assert em.position < 1.57
     # another module's frame
     assert em.on_frame(pc.get_param(12, pc.ACT_FPOS)) == []
+
+
+def test_devices_step_says_when_a_joint_moved():
+    """sim_krang reads the joints only when step() says a module moved: True exactly when
+    joint_positions() changed, through a ramp, its arrival, a hold, a halt and a current mode."""
+    devices = KrangCanDevices(CFG, initial_joint_positions={'JWaist': 1.0})
+    waist = [em for _, em in devices.joint_modules['JWaist']]
+    torso = devices.joint_modules['JTorso'][0][1]
+    dt, before, moves = 0.001, devices.joint_positions(), []
+    for k in range(3000):
+        if k == 10:
+            torso.on_frame(pc.set_motion(torso.module_id, pc.FRAMP_ACK, 0.05))
+        if k == 400:
+            for em in waist:
+                em.on_frame(pc.set_motion(em.module_id, pc.FRAMP_ACK, em.position * 1.02))
+        if k == 500:
+            torso.on_frame(pc.simple_command(torso.module_id, pc.HALT))
+        if k == 2000:
+            torso.on_frame(pc.simple_command(torso.module_id, pc.RESET))
+            torso.on_frame(pc.set_motion(torso.module_id, pc.FCUR_ACK, 1.0))
+        moved = devices.step(dt)
+        now = devices.joint_positions()
+        assert moved == (now != before), k
+        moves.append(moved)
+        before = now
+    assert 50 < sum(moves) < 1000  # it moved, and it held still

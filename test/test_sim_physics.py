@@ -164,3 +164,48 @@ def test_simulated_encoder_resolution_is_the_device_maps():
 
     wheels = load_devices().wheels
     assert SensorNoise().encoder_counts_per_rad == pytest.approx(wheels.counts_per_wheel_rad)
+
+
+class _AlwaysRecomputed(KrangSim):
+    """The second implementation: _move_joints never takes its at-rest shortcut."""
+
+    def _move_joints(self, dt):
+        self._still = False
+        super()._move_joints(dt)
+
+
+def test_a_robot_at_rest_skips_only_work_that_changes_nothing(krang, monkeypatch):
+    """The at-rest shortcut of _move_joints (most of a balancing session's steps) gives the same
+    states, bit for bit, as the full step, through moves, arrivals and holds."""
+    import krang_sim.physics as physics
+
+    reductions = []
+    real_reduce = physics.reduce_pose
+    monkeypatch.setattr(physics, 'reduce_pose', lambda *a: reductions.append(1) or real_reduce(*a))
+    fast, full = (
+        sim(krang, q_base=0.0),
+        _AlwaysRecomputed(
+            krang, krang.nominal_beta, POSE, q_base=0.0, config=SimConfig(noise=QUIET)
+        ),
+    )
+    rng = np.random.default_rng(3)
+    targets, still_steps = POSE.copy(), 0
+    for phase in range(6):
+        if phase % 2:  # a new target for a few joints, then hold it
+            joints = rng.choice(len(POSE), 3, replace=False)
+            targets = targets.copy()
+            targets[joints] += rng.uniform(-0.05, 0.05, 3)
+        for _ in range(300):
+            current = 2.0 * math.sin(0.01 * fast.t * 1000)
+            for s in (fast, full):
+                s.command_joints(targets)
+                s.command_currents(current, -current)
+                s.step()
+            still_steps += fast._still
+            assert fast.state == full.state
+            assert np.array_equal(fast.joints, full.joints)
+            assert fast.balance_pitch() == full.balance_pitch()
+    assert still_steps > 600  # the shortcut was taken, on most of the holds
+    before = len(reductions)
+    fast.step(100)
+    assert len(reductions) == before  # and it reduces nothing at rest
