@@ -218,6 +218,7 @@ class SimKrangNode(Node):
             imu_accel_noise_std_m_s2=0.02,
             initial_joint_positions=dict(zip(self.robot.pose_joints, pose)),
         )
+        self._command_joints()  # the modules clamp the pose to their limits
         self.lock = threading.Lock()
         self.sent_frames = 0
         self._warn_send = Throttled(self.get_logger().warning, 5.0)
@@ -367,13 +368,16 @@ class SimKrangNode(Node):
             except can.CanError as err:
                 self._warn_send(f'send on {frame.bus} failed: {err}')
 
+    def _command_joints(self):
+        joints = self.devices.joint_positions()
+        self.sim.command_joints([joints[j] for j in self.robot.pose_joints])
+
     def _step(self):
         """One physics step, with self.lock held; the sensor frames of the step (at a sample)."""
         dt = 1.0 / self.rate
         k = self.k
-        if self.devices.step(dt) or k == 0:  # the modules moved (or the start): new joint targets
-            joints = self.devices.joint_positions()
-            self.sim.command_joints([joints[j] for j in self.robot.pose_joints])
+        if self.devices.step(dt):  # the joints follow the modules, read only when one moved
+            self._command_joints()
         currents = self.devices.wheel_currents()
         self.sim.command_currents(currents['JLWheel'], currents['JRWheel'])
         self.sim.step()
