@@ -5,15 +5,18 @@ can_bridge and adrc_controller (real processes, DDS, udp_multicast CAN), and the
 (krang_cli.node_set.params_files(sim=False)) with the device map on private udp_multicast ports,
 DMU samples and the controller's rate_hz at --rate-hz (500) by parameter, plus
 CONTROLLER_OVERRIDES below. A separate process plays the
-devices (bench/device_player.py: DMU, AMC start-up and TPDOs at --tpdo-hz, 500 here and 1 kHz on
-the robot, PowerCube modules); the robot sits,
+devices (bench/device_player.py: DMU, AMC start-up and TPDOs at the timer cycle the bridge writes
+to the drives, the device map's wheels.tpdo_period_ms or --tpdo-period-ms, PowerCube modules); the
+robot sits,
 the controller is enabled and asked to stand up, the player pitches the robot up to the nominal
 balance pitch and holds it there quietly (white sensor noise, no physics), the controller goes
 through STAND_UP to BALANCE by its own mode machine, and the measurement runs while it balances.
 In the same run, before the nodes start, the bare reference chain (bench/ref_chain.py: CAN ->
 process 1 -> topic -> process 2 -> topic -> process 1 -> CAN, SingleThreadedExecutor) is played
-at the same rate for as long, with the player playing the devices all the while: each chain runs
-alone beside the same player, as issue 11 measured the reference. Run together, each chain's CPU
+at the same rate for as long, with the player playing the devices all the while (the TPDO sets
+too, from stand-in drives, as the drives are not started yet: before, the reference ran beside a
+player sending a ninth of the frames): each chain runs alone beside the same player, as issue 11
+measured the reference. Run together, each chain's CPU
 was the other's load (on 2 cores the reference takes half a core), a load the robot does not
 have. --load N adds N busy-loop processes during both measurements.
 
@@ -197,6 +200,8 @@ def analyse(record, window, rate_hz, diag=(), ref_window=None):
         record['ref_req'], record['ref_ans'], ref_window or window
     )
     cmd_in = (cmd_t >= w0) & (cmd_t <= w1)
+    r0, r1 = ref_window or window
+    tpdo_t = record['tpdo_t']
     ms = lambda x, q: float(1e3 * np.percentile(x, q)) if len(x) else float('nan')  # noqa: E731
     stepped, superseded = controller_rate(diag, window)
     out = {
@@ -223,6 +228,8 @@ def analyse(record, window, rate_hz, diag=(), ref_window=None):
             'probe_response_dc2': response,
             'command_noise_dc2': noise,
             'dmu_rate_hz': int(inside.sum()) / duration,
+            'tpdo_rate_hz': int(np.count_nonzero((tpdo_t >= w0) & (tpdo_t <= w1))) / duration,
+            'ref_tpdo_rate_hz': int(np.count_nonzero((tpdo_t >= r0) & (tpdo_t <= r1))) / (r1 - r0),
             'new_commands_hz': int(cmd_in.sum()) / duration,
             'ref_frames': len(ref_lat) + ref_lost,
             'ref_lost': ref_lost,
@@ -286,17 +293,22 @@ def bring_to_balance(client, tell, timeout, dead=dict):
             client.pause(0.05)
 
 
-def run_robot(seconds, rate_hz, load, tpdo_hz, rt=False):
+def run_robot(seconds, rate_hz, load, tpdo_period_ms=None, tpdo_phase=0.5, rt=False):
     """Start the player; measure the reference chain alone for `seconds`, then the node set for
     `seconds` while the controller balances, each with `load` busy loops; return the figures of
-    `analyse`. `rt`: SCHED_FIFO, the player at PLAYER_RT_PRIORITY, the nodes and the reference
-    chain at NODES_RT_PRIORITY."""
+    `analyse`. `tpdo_period_ms`: the drives' TPDO timer (default: the device map's);
+    `tpdo_phase`: where in the sample period their TPDOs come (device_player.py). `rt`:
+    SCHED_FIFO, the player at PLAYER_RT_PRIORITY, the nodes and the reference chain at
+    NODES_RT_PRIORITY."""
     player_rt, nodes_rt = (PLAYER_RT_PRIORITY, NODES_RT_PRIORITY) if rt else (0, 0)
     tmp = tempfile.mkdtemp(prefix='krang_latency_')
     logs = os.path.join(tmp, 'logs')
     os.makedirs(logs)
     port = random.Random().randrange(20000, 60000, 16)
-    devices_file = session_devices_file(tmp, port)
+    devices_file = session_devices_file(
+        tmp, port, wheels=None if tpdo_period_ms is None else {'tpdo_period_ms': tpdo_period_ms}
+    )
+    tpdo_period_ms = load_devices(devices_file).wheels.tpdo_period_ms
     record_file = os.path.join(tmp, 'record.npz')
     py = sys.executable
     player, player_log = _start(
@@ -309,8 +321,8 @@ def run_robot(seconds, rate_hz, load, tpdo_hz, rt=False):
             str(port + 15),
             '--rate-hz',
             str(rate_hz),
-            '--tpdo-hz',
-            str(tpdo_hz),
+            '--tpdo-phase',
+            str(tpdo_phase),
             '--out',
             record_file,
         ],
@@ -425,13 +437,16 @@ def run_robot(seconds, rate_hz, load, tpdo_hz, rt=False):
         return analyse(record, window, rate_hz, diag, ref_window) | {
             'left_balance': left_modes,
             'real_time': rt_applied,
+            'tpdo_period_ms': tpdo_period_ms,
+            'tpdo_phase': tpdo_phase,
         }
 
 
 def print_robot(fig, load):
     print(
         f'robot configuration, wall clock, {fig["configured_rate_hz"]:.0f} Hz configured, '
-        f'{load} busy loop(s), {fig["seconds"]:.1f} s balancing'
+        f'TPDOs every {fig["tpdo_period_ms"]} ms at phase {fig["tpdo_phase"]:.2f}, {load} busy '
+        f'loop(s), {fig["seconds"]:.1f} s balancing'
     )
     print(
         f'sensor frame -> wheel command frame (can_bridge + adrc_controller): '
@@ -449,7 +464,9 @@ def print_robot(fig, load):
         f'command), {fig["configured_rate_hz"]:.0f} Hz configured ({100 * fig["rate_ratio"]:.1f} '
         f'%); on the bus {fig["new_commands_hz"]:.1f} new current commands/s, '
         f'{fig["bus_rate_hz"]:.1f}/s after distinct samples by timing alone; DMU played at '
-        f'{fig["dmu_rate_hz"]:.1f} Hz; SCHED_FIFO: {fig["real_time"] or "no"}'
+        f'{fig["dmu_rate_hz"]:.1f} Hz, TPDO sets at {fig["tpdo_rate_hz"]:.1f} Hz '
+        f'({fig["ref_tpdo_rate_hz"]:.1f} Hz beside the reference); SCHED_FIFO: '
+        f'{fig["real_time"] or "no"}'
     )
     print(
         f'reference (bare rclpy chain, same run): p50 {fig["ref_p50_ms"]:.2f} ms, '
@@ -601,10 +618,17 @@ def main():
         help='--robot: DMU sample rate and the controller rate_hz',
     )
     parser.add_argument(
-        '--tpdo-hz',
+        '--tpdo-period-ms',
+        type=int,
+        help="--robot: the drives' TPDO timer in ms (default: the device map's "
+        'wheels.tpdo_period_ms, 2)',
+    )
+    parser.add_argument(
+        '--tpdo-phase',
         type=float,
-        default=500.0,
-        help='--robot: AMC TPDO sets per second (1 kHz on the robot)',
+        default=0.5,
+        help='--robot: the TPDO sets this fraction of a sample period after each DMU sample '
+        '(free-running drives come at any phase; 0.5 puts them where the command is due)',
     )
     parser.add_argument(
         '--load', type=int, default=0, help='--robot: busy-loop processes during the measurement'
@@ -624,7 +648,11 @@ def main():
     if not args.robot:
         run_sim_params(args.seconds)
         return
-    fig = run_robot(args.seconds, args.rate_hz, args.load, args.tpdo_hz, args.rt)
+    if not 0.0 <= args.tpdo_phase < 1.0:
+        parser.error('--tpdo-phase must be in [0, 1)')
+    fig = run_robot(
+        args.seconds, args.rate_hz, args.load, args.tpdo_period_ms, args.tpdo_phase, args.rt
+    )
     print_robot(fig, args.load)
     if args.json:
         print(

@@ -3,14 +3,17 @@
 It plays the buses of a device map (udp_multicast, e.g. krang_sim.session_config's private ports)
 with the emulators of krang_sim/devices.py, which speak through the bridge's own codecs: the DMU
 streams samples (0x40 rates + 0x50 accelerations, sequence counters) at --rate-hz, the AMC drives
-answer the bridge's start-up SDOs and send their TPDOs at --tpdo-hz, the PowerCube modules answer
+answer the bridge's start-up SDOs and send their TPDOs at the timer cycle the bridge wrote to them
+(wheels.tpdo_period_ms of the bridge's device map; none before), the PowerCube modules answer
 the polls. There is no physics: the robot sits on its caster (pitch -1.7628 rad in the pose
 below) and, on the command `stand`, pitches up to the nominal model's balance pitch in --ramp-s
 (a cosine ramp, the wheels rolling back so that the axle stays put), then holds it, with white
 gyro and accelerometer noise so that every sample gives a different wheel command.
 
 It also plays the reference chain's end, while told to: a frame 0x7E0 carrying a counter on its
-own bus (--ref-port) at --rate-hz, answered by 0x7E1 with the same counter (bench/ref_chain.py).
+own bus (--ref-port) at --rate-hz, answered by 0x7E1 with the same counter (bench/ref_chain.py),
+and meanwhile the TPDO sets the drives will send once started (wheels.tpdo_period_ms of the map),
+so that the reference is measured beside the same player load and bus traffic as the nodes.
 
 Every time is the kernel's receive stamp of the frame on this process's own socket (the player
 hears its own frames too), so the figures are those of the bus. Commands on stdin, one a line:
@@ -61,6 +64,7 @@ RECEIVE_BUFFER = 4 << 20  # bytes (the kernel caps it at net.core.rmem_max)
 #: played 481-497 of 500 DMU samples a second on the idle 2-core machine, and the control rate of
 #: bench_ros_latency.py measured the player, not the nodes.
 CATCH_UP_PERIODS = 5
+TIMER_POLL_S = 0.01  # how often the player looks whether the bridge has set the TPDO timer
 
 
 def next_due(due, period, now):
@@ -133,6 +137,10 @@ class Player:
             imu_accel_noise_std_m_s2=ACCEL_NOISE_M_S2,
             seed=args.seed,
         )
+        # While the reference chain plays, the drives are not yet started and send nothing: these
+        # enabled twins send the same TPDO sets at the device map's period instead, so that both
+        # chains are measured beside the same player load and the same frames on the buses.
+        self.stand_in = KrangCanDevices(config, auto_enable_wheels=True)
         self.pitch = Pitch(SIT_PITCH, balance_pitch(self.robot, joints), args.ramp_s)
         dbc = load_dbc(config.dbc_path)
         rpdo = amc_proto.RPDO_CURRENT
@@ -157,6 +165,7 @@ class Player:
         self.samples = []  # (kernel time of the 0x50 frame, sequence)
         self.sent = []  # (sequence, probe sign or 0) of every sample sent, in order
         self.commands = []  # (kernel time, RPDO id, DC2 raw value)
+        self.tpdo_sent = []  # time.time() of each TPDO set sent (real or stand-in drives)
         self.ref = {REF_REQUEST_ID: [], REF_ANSWER_ID: []}  # (kernel time, counter)
 
     # ---- receive -------------------------------------------------------------------------------
@@ -225,14 +234,24 @@ class Player:
         self.send(frames)
 
     def tpdos(self, dt):
+        """Send the drives' TPDO sets; return when to look again: the TPDO timer cycle the host
+        wrote to the drives; before it has, the map's period while the reference plays (the
+        stand-in drives), else TIMER_POLL_S."""
         q, dq = self.pitch.at(time.monotonic())
         wheel = SIT_PITCH - q  # the axle stays put while the body pitches
         with self.lock:
             self.devices.step(dt)
-            frames = self.devices.wheel_feedback_frames(
-                {j: wheel for j in self.devices.wheels}, {j: -dq for j in self.devices.wheels}
+            periods = {w.tpdo_period_s for w in self.devices.wheels.values()} - {None}
+            drives = self.stand_in if self.playing_ref and not periods else self.devices
+            frames = drives.wheel_feedback_frames(
+                {j: wheel for j in drives.wheels}, {j: -dq for j in drives.wheels}
             )
+        if frames:
+            self.tpdo_sent.append(time.time())
         self.send(frames)
+        if periods:
+            return min(periods)
+        return self.config.wheels.tpdo_period_ms / 1000.0 if self.playing_ref else TIMER_POLL_S
 
     def run(self):
         # the sender loop must not wait out Python's 5 ms switch interval behind the receive thread
@@ -244,12 +263,13 @@ class Player:
         a = self.args
         period = 1.0 / a.rate_hz
         # (next time, period, action): DMU samples, the reference frame a quarter period later,
-        # the TPDOs half a period later (free-running drives land anywhere in the period)
+        # the TPDOs --tpdo-phase periods later (free-running drives land anywhere in the period),
+        # at their timer's cycle once the bridge has set it
         start = time.monotonic() + 0.1
         jobs = [
             [start, period, 'dmu'],
             [start + 0.25 * period, period, 'ref'],
-            [start + 0.5 * period, 1.0 / a.tpdo_hz, 'tpdo'],
+            [start + a.tpdo_phase * period, TIMER_POLL_S, 'tpdo'],
         ]
         k = ref = 0
         while not self.stop.is_set():
@@ -271,7 +291,7 @@ class Player:
                     )
                     ref += 1
             else:
-                self.tpdos(job[1])
+                job[1] = self.tpdos(job[1])
             job[0] = next_due(job[0], job[1], time.monotonic())
         reader.stop()
         use = resource.getrusage(resource.RUSAGE_SELF)
@@ -306,6 +326,7 @@ class Player:
             left_id=next(i for i, j in self.rpdo_ids.items() if j == 'JLWheel'),
             ref_req=np.array(self.ref[REF_REQUEST_ID], float).reshape(-1, 2),
             ref_ans=np.array(self.ref[REF_ANSWER_ID], float).reshape(-1, 2),
+            tpdo_t=np.array(self.tpdo_sent),
         )
 
 
@@ -315,7 +336,12 @@ def main():
     p.add_argument('--ref-channel', default='239.74.163.99')
     p.add_argument('--ref-port', type=int, required=True)
     p.add_argument('--rate-hz', type=float, default=500.0, help='DMU samples per second')
-    p.add_argument('--tpdo-hz', type=float, default=500.0, help='AMC TPDO sets per second')
+    p.add_argument(
+        '--tpdo-phase',
+        type=float,
+        default=0.5,
+        help='the TPDO sets this fraction of a DMU period after the samples, in [0, 1)',
+    )
     p.add_argument('--ramp-s', type=float, default=1.0)
     p.add_argument('--probe-every', type=int, default=5, help='at least 2')
     p.add_argument('--probe-rad-s', type=float, default=0.03)

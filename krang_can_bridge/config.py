@@ -100,6 +100,7 @@ class WheelsConfig:
 
     bus: str
     encoder_counts_per_rev: float  # motor encoder, read by the drive
+    tpdo_period_ms: int  # the drives' TPDO timer (AMC timer 1), written at start-up
     silence_timeout_s: float
     command_timeout_s: float
     command_rate_hz: float
@@ -360,6 +361,25 @@ def _parse_watchdog(
     return cfg
 
 
+# A drive is declared silent only after this many TPDO periods without a frame, so that one lost or
+# late set never stops the robot.
+SILENCE_PERIODS_MIN = 3
+
+
+def _tpdo_period_ms(value: Any, silence_timeout_s: float) -> int:
+    """wheels.tpdo_period_ms: a whole number of milliseconds (the AMC timer's unit), short enough
+    that `silence_timeout_s` spans SILENCE_PERIODS_MIN periods."""
+    where = 'wheels.tpdo_period_ms'
+    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+        raise ConfigError(f'{where} must be a whole number of milliseconds >= 1, got {value!r}')
+    if SILENCE_PERIODS_MIN * value > silence_timeout_s * 1000.0:
+        raise ConfigError(
+            f'{where} = {value} ms: wheels.silence_timeout_s ({silence_timeout_s} s) must span at '
+            f'least {SILENCE_PERIODS_MIN} TPDO periods'
+        )
+    return value
+
+
 def _parse_wheels(d: Mapping, buses: Mapping, drive: Drivetrain, source: Path) -> WheelsConfig:
     where = 'wheels'
     _check_drivetrain(d, drive, source)
@@ -383,14 +403,14 @@ def _parse_wheels(d: Mapping, buses: Mapping, drive: Drivetrain, source: Path) -
         drives
     ):
         raise ConfigError(f'{where}: duplicate node id or joint')
+    silence_timeout_s = _positive(_req(d, 'silence_timeout_s', where), 'wheels.silence_timeout_s')
     cfg = WheelsConfig(
         bus=str(_req(d, 'bus', where)),
         encoder_counts_per_rev=_positive(
             _req(d, 'encoder_counts_per_rev', where), 'encoder_counts_per_rev'
         ),
-        silence_timeout_s=_positive(
-            _req(d, 'silence_timeout_s', where), 'wheels.silence_timeout_s'
-        ),
+        tpdo_period_ms=_tpdo_period_ms(_req(d, 'tpdo_period_ms', where), silence_timeout_s),
+        silence_timeout_s=silence_timeout_s,
         command_timeout_s=_positive(
             _req(d, 'command_timeout_s', where), 'wheels.command_timeout_s'
         ),

@@ -438,7 +438,7 @@ class CanBridgeNode(Node):
             self.core.drive_started(drive.joint, False)
         with self._sdo_lock:
             mismatches = amc_proto.run_startup(
-                self.canopen, drive, self._sdo_timeout, self.config.wheels.watchdog
+                self.canopen, drive, self.config.wheels, self._sdo_timeout
             )
         with self._lock:
             self.core.drive_started(drive.joint, not mismatches)

@@ -22,7 +22,9 @@ assumption):
   state machine follows the controlword (SDO or RPDO). Current is applied only when NMT is
   OPERATIONAL, the mode is current (4) and the drive is OPERATION_ENABLED - so the bridge's
   start-up sequence is needed, as on the robot (or pass auto_enable=True). TPDOs are sent only in
-  OPERATIONAL. Currents beyond the drive peak saturate.
+  OPERATIONAL and when the caller asks: bench/device_player.py at the timer cycle the host
+  wrote (`tpdo_period_s`), sim_krang with each of its samples (its feedback_rate_hz), so that one
+  lockstep sample is one DMU sample and one TPDO set. Currents beyond the drive peak saturate.
 - DMU: adds the configured gyro biases (the bridge removes them), optional white noise, rounds to
   the LSB and
   saturates at int16; streams by default (`streaming=False` to exercise the bridge's toggle).
@@ -137,6 +139,14 @@ class AmcDriveEmulator:
             and self.state == 'OPERATION_ENABLED'
             and self.mode == amc_proto.OP_MODE_CURRENT
         )
+
+    @property
+    def tpdo_period_s(self) -> float | None:
+        """The TPDO timer cycle the host wrote at start-up (timer 1, ms); None while it is 0, the
+        power-on value, where the timer sends nothing. The emulator sends TPDOs when its caller
+        asks (`tpdo_frames`): a caller that plays the drives in real time asks at this period."""
+        ms = self.node.sdo[amc_proto.TIMER1_CYCLE].raw
+        return ms / 1000.0 if ms else None
 
     @property
     def commanded_current_a(self) -> float:

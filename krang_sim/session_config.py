@@ -25,11 +25,12 @@ def sim_truth_file():
     return resolve_config_file(params.get('true_beta'), 'sim_true_beta.yaml')
 
 
-def session_devices_file(directory, port=None, virtual=False):
+def session_devices_file(directory, port=None, virtual=False, wheels=None):
     """Write <directory>/can_devices_session.yaml: the package's device map on private UDP ports
     (`port`, `port`+1, ... one per bus: a udp_multicast socket hears every group on its port), or
     with `virtual` on python-can's in-process `virtual` buses (a composed simulation,
-    krang_cli.composed)."""
+    krang_cli.composed). `wheels`: keys of the map's `wheels` section to change (a benchmark's
+    TPDO period, say)."""
     port = port or random.Random().randrange(20000, 60000, 16)
     base = default_devices_file()
     config = load_devices(base)
@@ -51,6 +52,9 @@ def session_devices_file(directory, port=None, virtual=False):
             for k, (name, bus) in enumerate(sorted(config.buses.items()))
         },
     }
+    if wheels:
+        with open(base) as f:
+            doc['wheels'] = {**yaml.safe_load(f)['wheels'], **wheels}
     path = Path(directory) / 'can_devices_session.yaml'
     path.parent.mkdir(parents=True, exist_ok=True)
     write_text(

@@ -11,7 +11,8 @@ of the protocol. Each drive:
   starts watching at the first heartbeat and, when none came for that long, applies the abort
   connection option 0x6007 (1 fault + EMCY 0x8130, 2 disable voltage, 3 quick stop);
 - applies the target current only in OPERATIONAL, OPERATION_ENABLED and current mode (4);
-- sends its TPDOs (position, velocity, current, statusword) at 200 Hz while OPERATIONAL.
+- sends its TPDOs (position, velocity, current, statusword) while OPERATIONAL, every timer 1
+  cycle (0x2120, ms, as the host wrote it; 0, the power-on value, sends none).
 
 SIGUSR1 puts the --fault-node drive into FAULT with an EMCY (0x2310, over-current) while its cause
 stays; SIGUSR2 removes the cause (the drive stays in FAULT until a fault reset).
@@ -35,7 +36,6 @@ import canopen
 from canopen import objectdictionary as od
 
 KP_DEFAULT, KI_DEFAULT, KS_DEFAULT = 600, 1, 20000  # docs/can.md: 60 A peak, k_i 1, 20 kHz
-TPDO_PERIOD_S = 0.005
 WATCH_PERIOD_S = 0.002
 EMCY_HEARTBEAT_LOST, EMCY_OVER_CURRENT = 0x8130, 0x2310
 
@@ -119,6 +119,8 @@ class Drive:
         self.consumer = None  # (producer id, timeout s) from 0x1016.1
         self.last_heartbeat = None  # watching starts at the first heartbeat
         self.abort_option = 1
+        self.tpdo_period_s = 0.0  # timer 1 off until the host sets its cycle
+        self.next_tpdo = 0.0
         self.node = canopen.LocalNode(node_id, dictionary(node_id, kp, k_i, k_s))
         self.node.add_write_callback(self.on_write)
         self.node.add_read_callback(self.on_read)
@@ -180,6 +182,9 @@ class Drive:
                 self.mode = value
             elif index == 0x6007:
                 self.abort_option = value
+            elif index == 0x2120:
+                self.tpdo_period_s = value / 1000.0
+                emit(node=self.id, event='tpdo timer', ms=value)
             elif index == 0x1016 and subindex == 1:
                 producer, ms = value >> 16 & 0x7F, value & 0xFFFF
                 if self.consumer is not None:
@@ -226,8 +231,12 @@ class Drive:
                 self.state = 'QUICK_STOP_ACTIVE'
             self.report('heartbeat lost')
 
-    def tpdos(self):
+    def tpdos(self, now):
+        """The TPDO set when timer 1 is due at `now`, else nothing."""
         with self.lock:
+            if not self.tpdo_period_s or now < self.next_tpdo:
+                return []
+            self.next_tpdo = max(self.next_tpdo + self.tpdo_period_s, now)
             if self.node.nmt.state != 'OPERATIONAL':
                 return []
             sw = STATUSWORD[self.state]
@@ -263,7 +272,6 @@ def main():
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     emit(event='ready')
-    next_tpdo = time.monotonic()
     try:
         while not stop.is_set():
             now = time.monotonic()
@@ -278,11 +286,9 @@ def main():
                         emit(node=drive.id, event='fault cause removed')
             for drive in drives.values():
                 drive.watch(now)
-            if now >= next_tpdo:
-                next_tpdo = max(next_tpdo + TPDO_PERIOD_S, now)
-                for drive in drives.values():
-                    for cob, data in drive.tpdos():
-                        network.send_message(cob, data)
+            for drive in drives.values():
+                for cob, data in drive.tpdos(now):
+                    network.send_message(cob, data)
             time.sleep(WATCH_PERIOD_S)
     finally:
         network.disconnect()

@@ -129,6 +129,7 @@ def test_analyse_gives_the_json_keys_first(bench):
         'left_id': 0x220,
         'ref_req': np.column_stack([t, np.arange(len(t))]),
         'ref_ans': np.column_stack([t + 0.001, np.arange(len(t))]),
+        'tpdo_t': t[::2] + 0.001,  # TPDO sets every second sample: 250 Hz
     }
     # the controller's 1 Hz reports (stamp, samples_stepped, samples_superseded): 490 steps/s,
     # 20 of them superseded; one report before the window, which must not count
@@ -142,9 +143,11 @@ def test_analyse_gives_the_json_keys_first(bench):
     assert fig['bus_rate_hz'] == pytest.approx(500.0, rel=0.01)
     assert fig['ref_p50_ms'] == pytest.approx(1.0, abs=1e-6)
     assert fig['ref_frames'] == 1981 - 600  # the reference frames of the window only
+    assert fig['tpdo_rate_hz'] == pytest.approx(250.0, rel=0.01)
     # the reference measured in a window of its own (before the nodes start)
     ref_only = bench.analyse(record, window, 500.0, reports, ref_window=(t[0], t[99]))
     assert ref_only['ref_frames'] == 100 and ref_only['p50_ms'] == fig['p50_ms']
+    assert ref_only['ref_tpdo_rate_hz'] == pytest.approx(250.0, rel=0.03)
 
 
 @pytest.mark.ros
@@ -156,7 +159,16 @@ def test_robot_run_prints_the_figures_as_json():
         ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST',
     )
     run = subprocess.run(
-        [sys.executable, str(BENCH), '--robot', '--seconds', '3', '--json'],
+        [
+            sys.executable,
+            str(BENCH),
+            '--robot',
+            '--seconds',
+            '3',
+            '--json',
+            '--tpdo-period-ms',
+            '4',
+        ],
         capture_output=True,
         text=True,
         timeout=280,
@@ -176,3 +188,8 @@ def test_robot_run_prints_the_figures_as_json():
     assert fig['configured_rate_hz'] == 500.0
     assert fig['ref_p50_ms'] > 0.0 and fig['ref_p99_ms'] >= fig['ref_p50_ms']
     assert fig['p50_ms'] > 0.0 and fig['rate_hz'] > 0.0
+    # the bench's map told the bridge 4 ms, the bridge the drives, and the player followed them
+    # (stand-in drives at the map's period beside the reference); a period skipped after a stall
+    # of the loaded machine is the only loss
+    assert fig['tpdo_period_ms'] == 4
+    assert 200.0 < fig['tpdo_rate_hz'] <= 251.0 and 200.0 < fig['ref_tpdo_rate_hz'] <= 251.0

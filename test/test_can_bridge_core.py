@@ -496,7 +496,7 @@ def test_guarding_requests_and_no_watchdog():
 
 def test_startup_configures_the_drive_watchdog_before_the_drive_starts():
     wd = CFG.wheels.watchdog
-    steps = amc_proto.startup_sequence(CFG.wheels.drive('JLWheel'), wd)
+    steps = amc_proto.startup_sequence(CFG.wheels.drive('JLWheel'), CFG.wheels)
     keys = [(s.action, s.index, s.subindex, s.value) for s in steps]
     consumer = ('write', 0x1016, 1, (wd.node_id << 16) | round(wd.timeout_s * 1000))
     abort = ('write', 0x6007, 0, wd.abort_connection_option)
@@ -505,12 +505,17 @@ def test_startup_configures_the_drive_watchdog_before_the_drive_starts():
     guarding = dataclasses.replace(wd, mechanism='guarding')
     keys = [
         (s.index, s.value)
-        for s in amc_proto.startup_sequence(CFG.wheels.drive('JLWheel'), guarding)
+        for s in amc_proto.startup_sequence(
+            CFG.wheels.drive('JLWheel'), dataclasses.replace(CFG.wheels, watchdog=guarding)
+        )
     ]
     assert (0x100C, round(wd.period_s * 1000)) in keys
     assert (0x100D, round(wd.timeout_s / wd.period_s)) in keys
     # without a watchdog the sequence is the 2018 one
-    assert amc_proto.startup_sequence(CFG.wheels.drive('JLWheel'))[-1].value == 0x0F
+    none = dataclasses.replace(CFG.wheels, watchdog=dataclasses.replace(wd, mechanism='none'))
+    steps = amc_proto.startup_sequence(CFG.wheels.drive('JLWheel'), none)
+    assert steps[-1].value == 0x0F
+    assert not {0x1016, 0x100C, 0x100D, 0x6007} & {s.index for s in steps}
 
 
 @pytest.mark.parametrize(
@@ -537,6 +542,32 @@ def test_watchdog_settings_are_validated_at_load(tmp_path, change, complaint):
     path.write_text(yaml.safe_dump(data))
     with pytest.raises(ConfigError, match=complaint):
         load_devices(path)
+
+
+@pytest.mark.parametrize(
+    'wheels, complaint',
+    [
+        ({'tpdo_period_ms': 0}, 'whole number'),
+        ({'tpdo_period_ms': 2.5}, 'whole number'),
+        ({'tpdo_period_ms': True}, 'whole number'),
+        ({'tpdo_period_ms': 20}, 'at least 3 TPDO periods'),  # 0.05 s silence timeout
+        ({'tpdo_period_ms': 10, 'silence_timeout_s': 0.025}, 'at least 3 TPDO periods'),
+        ({'tpdo_period_ms': None}, "missing key 'tpdo_period_ms'"),
+    ],
+)
+def test_tpdo_period_is_validated_at_load(tmp_path, wheels, complaint):
+    data = yaml.safe_load(CFG.path.read_text())
+    data['wheels'].update(wheels)
+    if data['wheels']['tpdo_period_ms'] is None:
+        del data['wheels']['tpdo_period_ms']
+    data['dbc_file'] = str(CFG.dbc_path)
+    path = tmp_path / 'devices.yaml'
+    path.write_text(yaml.safe_dump(data))
+    with pytest.raises(ConfigError, match=complaint):
+        load_devices(path)
+    data['wheels'].update(tpdo_period_ms=16, silence_timeout_s=0.048)  # exactly 3 periods
+    path.write_text(yaml.safe_dump(data))
+    assert load_devices(path).wheels.tpdo_period_ms == 16
 
 
 def test_on_frame_reports_each_sample_when_its_frames_are_in():

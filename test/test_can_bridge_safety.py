@@ -61,7 +61,8 @@ EFFORT_NM = 8.0
 @pytest.fixture
 def peer_map(tmp_path):
     """The shipped map (its watchdog included) on private multicast ports. Only the wheels are
-    required (no IMU or arm here), and the peer's 200 Hz TPDOs and this probe's commands get a
+    required (no IMU or arm here); the drives are told to send their TPDOs every 5 ms (the
+    peer's Python loop keeps that on a loaded machine), and they and this probe's commands get a
     0.5 s silence and command timeout, so that a loaded machine does not stop the wheels early."""
     base = load_devices()
     data = yaml.safe_load(base.path.read_text())
@@ -75,7 +76,7 @@ def peer_map(tmp_path):
         }
     data['dbc_file'] = str(base.dbc_path)
     data['imu']['required'] = data['powercube']['required'] = False
-    data['wheels'].update(silence_timeout_s=0.5, command_timeout_s=0.5)
+    data['wheels'].update(tpdo_period_ms=5, silence_timeout_s=0.5, command_timeout_s=0.5)
     path = tmp_path / 'can_devices.yaml'
     path.write_text(yaml.safe_dump(data))
     return path, load_devices(path)
@@ -273,6 +274,9 @@ def test_hung_command_loop_stops_the_beat_and_the_drives(peer_map):
     try:
         probe.command = (EFFORT_NM, EFFORT_NM)
         assert probe.spin(30.0, lambda: both_driven(peer)), peer.events[-6:]
+        # the start-up set each drive's TPDO timer to the map's period
+        timers = {e['node']: e['ms'] for e in peer.events if e.get('event') == 'tpdo timer'}
+        assert timers == dict.fromkeys(peer.ids.values(), cfg.wheels.tpdo_period_ms)
         probe.spin(0.5)
         hung_at = time.monotonic()  # the executor stops: no callback runs from here
         frames = bridge.core.counters.frames

@@ -248,9 +248,12 @@ def test_amc_malformed_frames_rejected(left):
 
 
 def test_amc_startup_sequence_enters_current_mode(cfg):
-    steps = amc.startup_sequence(cfg.wheels.drive('JLWheel'))
+    steps = amc.startup_sequence(cfg.wheels.drive('JLWheel'), cfg.wheels)
     writes = [(s.index, s.subindex, s.value) for s in steps if s.action == 'write']
     assert (0x6060, 0, 4) in writes  # op-mode current
+    # timer 1 (cycle in ms, then the TPDOs it drives) as the device map says, before the start
+    timer = writes.index((0x2120, 0, cfg.wheels.tpdo_period_ms))
+    assert writes[timer + 1] == (0x2121, 0, 0b1111)
     # RPDO current enabled at its COB-ID
     assert (0x1404, 1, 0x2E2) in writes
     assert (0x1402, 1, 0x2E0 | 1 << 31) in writes  # RPDO position disabled

@@ -124,7 +124,7 @@ class Rig:
 
 def start_drives(rig):
     for drive in rig.cfg.wheels.drives:
-        assert amc_proto.run_startup(rig.network, drive) == []
+        assert amc_proto.run_startup(rig.network, drive, rig.cfg.wheels) == []
 
 
 # -------------------------------------------------------------------------------------------------
@@ -138,8 +138,18 @@ def test_amc_startup_through_canopen_enables_current_mode():
             assert (w.nmt_state, w.state, w.mode) == ('OPERATIONAL', 'OPERATION_ENABLED', 4)
         # a bridge whose config disagrees with the drive's constants is told so
         wrong = dataclasses.replace(rig.cfg.wheels.drive('JLWheel'), peak_current_kp=500)
-        mismatches = amc_proto.run_startup(rig.network, wrong)
+        mismatches = amc_proto.run_startup(rig.network, wrong, rig.cfg.wheels)
         assert len(mismatches) == 1 and 'Kp' in mismatches[0] and '600' in mismatches[0]
+
+
+def test_amc_startup_sets_the_tpdo_timer_the_device_map_names():
+    with Rig() as rig:
+        wheels = rig.devices.wheels
+        assert all(w.tpdo_period_s is None for w in wheels.values())  # power-on: timer 1 off
+        seven = dataclasses.replace(rig.cfg.wheels, tpdo_period_ms=7)
+        for drive in seven.drives:
+            assert amc_proto.run_startup(rig.network, drive, seven) == []
+        assert [w.tpdo_period_s for w in wheels.values()] == [0.007, 0.007]
 
 
 def test_commanded_current_arrives_with_value_and_sign():

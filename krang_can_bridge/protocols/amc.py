@@ -4,8 +4,9 @@ Wire format, checked against the Krang driver (munzir/Krang-Software
 drivers/amc/{amccan,amcdrive,amciod}.c):
 
 - COB-ID = 0x200 + 7*node + offset; offsets 0/1/2 = RPDO position/velocity/current (the host
-  writes), 3/4/5/6 = TPDO position/velocity/current/statusword (the drive sends, timer-driven at 1
-  kHz, async).
+  writes), 3/4/5/6 = TPDO position/velocity/current/statusword (the drive sends, async, driven by
+  its timer 1, whose cycle in ms the host writes at start-up: the driver wrote 1000/update_freq,
+  we write wheels.tpdo_period_ms).
 - RPDO current (4 bytes): controlword 0x008F (u16 LE), target current DC2 (i16 LE), DC2 = A * 2^15
   / (Kp/10), truncated toward zero like the driver's int cast (so the current sent never exceeds
   the one asked for).
@@ -333,7 +334,7 @@ class AmcDriveCodec:
         return object_dictionary(self.drive)
 
     def startup_sequence(self) -> list[StartupStep]:
-        return startup_sequence(self.drive, self.wheels.watchdog)
+        return startup_sequence(self.drive, self.wheels)
 
 
 def _var(
@@ -543,11 +544,9 @@ def guarding_request(node_id: int) -> can.Message:
     )
 
 
-def startup_sequence(
-    drive: WheelDriveConfig, watchdog: WatchdogConfig | None = None
-) -> list[StartupStep]:
-    """amcdrive_init_drive + amcdrive_start as data: configure the PDOs and the 1 kHz timer (and
-    the drive-side `watchdog`), enter current mode.
+def startup_sequence(drive: WheelDriveConfig, wheels: WheelsConfig) -> list[StartupStep]:
+    """amcdrive_init_drive + amcdrive_start as data: configure the PDOs, the TPDO timer
+    (`wheels.tpdo_period_ms`) and the drive-side watchdog (`wheels.watchdog`), enter current mode.
 
     Only the current RPDO is enabled (position/velocity RPDOs stay disabled, as in amciod); all
     four TPDOs are enabled (amciod left the current TPDO off; we want the measured current in
@@ -587,9 +586,10 @@ def startup_sequence(
         )
     for index in list(RPDO_COMM.values()) + list(TPDO_COMM.values()):
         steps.append(StartupStep('write', index, 2, PDO_TRANS_ASYNC, 'async transmission'))
-    steps += watchdog_steps(watchdog) if watchdog is not None else []
+    steps += watchdog_steps(wheels.watchdog)
+    period = wheels.tpdo_period_ms
     steps += [
-        StartupStep('write', TIMER1_CYCLE, 0, 1, 'timer 1 = 1 ms'),
+        StartupStep('write', TIMER1_CYCLE, 0, period, f'timer 1 = {period} ms'),
         StartupStep('write', TIMER1_TPDOS, 0, TIMER1_TPDO_BITS, 'timer 1 drives TPDO 1/3/4/5'),
         StartupStep('write', CONTROLWORD, 0, CW_SHUTDOWN, 'shutdown'),
         StartupStep('write', CONTROLWORD, 0, CW_RESET_FAULT, 'reset fault'),
@@ -605,8 +605,8 @@ def startup_sequence(
 def run_startup(
     network: canopen.Network,
     drive: WheelDriveConfig,
+    wheels: WheelsConfig,
     sdo_timeout_s: float = 0.3,
-    watchdog: WatchdogConfig | None = None,
 ) -> list[str]:
     """Execute `startup_sequence` through canopen (blocking SDO transfers; run it off the ROS
     executor).
@@ -622,7 +622,7 @@ def run_startup(
     network.add_node(node)
     mismatches = []
     try:
-        for step in startup_sequence(drive, watchdog):
+        for step in startup_sequence(drive, wheels):
             if step.action == 'nmt':
                 node.nmt.send_command(step.value)
             elif step.action == 'write':
