@@ -71,7 +71,7 @@ import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from std_srvs.srv import SetBool
 
-from krang_can_bridge.config import load_devices
+from krang_can_bridge.config import ConfigError, load_devices
 from krang_can_bridge.protocols import load_dbc
 from krang_can_bridge.protocols.amc import AmcDriveCodec
 from krang_cli.node_set import params_files
@@ -650,9 +650,12 @@ def main():
         return
     if not 0.0 <= args.tpdo_phase < 1.0:
         parser.error('--tpdo-phase must be in [0, 1)')
-    fig = run_robot(
-        args.seconds, args.rate_hz, args.load, args.tpdo_period_ms, args.tpdo_phase, args.rt
-    )
+    try:
+        fig = run_robot(
+            args.seconds, args.rate_hz, args.load, args.tpdo_period_ms, args.tpdo_phase, args.rt
+        )
+    except ConfigError as exc:  # the session map with --tpdo-period-ms, checked before any start
+        parser.error(str(exc))
     print_robot(fig, args.load)
     if args.json:
         print(

@@ -260,8 +260,12 @@ def _read_yaml(path: Path, seen: tuple[Path, ...] = ()) -> tuple[dict, dict]:
     path = path.resolve()
     if path in seen:
         raise ConfigError(f'circular extends: {path}')
-    with open(path) as f:
-        data = yaml.safe_load(f) or {}
+    try:
+        with open(path) as f:
+            data = yaml.safe_load(f) or {}
+    except (OSError, yaml.YAMLError) as exc:
+        reason = ' '.join(str(exc).split())  # YAML's messages span lines
+        raise ConfigError(f'cannot read {path}: {reason}') from exc
     if not isinstance(data, dict):
         raise ConfigError(f'{path}: top level must be a mapping')
     parent = data.pop('extends', None)

@@ -73,6 +73,7 @@ from krang_can_bridge.bridge import IMU_SAMPLE, WHEEL_SAMPLE, BridgeCore, BusFra
 from krang_can_bridge.bus_io import BusReader, SendThread, receive_only
 from krang_can_bridge.config import (
     BusConfig,
+    ConfigError,
     load_devices,
     resolve_devices_file,
     robot_devices_file,
@@ -192,7 +193,11 @@ class CanBridgeNode(Node):
         super().__init__('can_bridge', **kwargs)
         self.params = params.declare(self, BridgeParams)
         p = self.params
-        self.config = load_devices(resolve_devices_file(p.devices_file))
+        devices_file = resolve_devices_file(p.devices_file)
+        try:
+            self.config = load_devices(devices_file)
+        except ConfigError as exc:  # one line, exit code 2 (run_node), before any bus is opened
+            raise params.ParameterError(f'can_bridge: devices_file {devices_file}: {exc}') from exc
         # The core's time base (IMU filter dt, silence and command timeouts) is the time of the
         # devices: wall time (monotonic) on the robot; with use_sim_time the simulator's /clock,
         # because a simulated DMU samples in simulated time. A simulator starved of CPU runs slower

@@ -353,6 +353,40 @@ def test_without_parameters_the_bridge_takes_the_robots_socketcan_map():
     assert 'can0' in lines[0] and 'sudo ip link set can0 up type can bitrate 1000000' in lines[0]
 
 
+@pytest.mark.parametrize('text', ['tpdo_period_ms: 0', 'tpdo_period_ms: [2'])
+def test_a_bad_device_map_is_one_line_naming_the_file(tmp_path, text):
+    """A refused value and a YAML syntax error alike: exit code 2 before any bus is opened."""
+    base = load_devices()
+    shipped = base.path.read_text()
+    assert 'tpdo_period_ms: 2' in shipped
+    path = tmp_path / 'bad.yaml'
+    path.write_text(
+        shipped.replace('tpdo_period_ms: 2', text).replace(
+            'dbc_file: krang_can.dbc', f'dbc_file: {base.dbc_path}'
+        )
+    )
+    proc = subprocess.run(
+        [
+            sys.executable,
+            '-m',
+            'krang_can_bridge.node',
+            '--ros-args',
+            '-p',
+            f'devices_file:={path}',
+        ],
+        capture_output=True,
+        text=True,
+        timeout=50,
+        env=dict(os.environ),
+    )
+    out = (proc.stdout + proc.stderr).strip()
+    assert proc.returncode == 2 and 'Traceback' not in out, out
+    lines = [line for line in out.splitlines() if line.strip()]
+    assert len(lines) == 1 and str(path) in lines[0], out
+    if text.endswith('0'):
+        assert 'wheels.tpdo_period_ms' in lines[0], out
+
+
 def test_the_simulated_node_set_chooses_the_simulator_map():
     """--sim and launch/sim.launch.py load sim_params.yaml, which names the multicast map; the
     robot's parameter files leave the bridge's default (the SocketCAN map) alone."""
