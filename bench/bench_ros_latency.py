@@ -38,17 +38,20 @@ stepped while a newer one waited sends no command (`samples_superseded`, printed
 too). The bus gives two cross-checks: the new RPDOs per second, and those that follow distinct
 samples by timing alone (the newest sample before each), which undercounts as soon as two
 answers fall between two samples, i.e. whenever the latency jitters around the sample period.
---rt runs the device player under SCHED_FIFO at priority 20 (it stands in for devices that have
-their own processors) and can_bridge, adrc_controller and the reference chain alike at 10, as a
-lab runs the control processes of a robot computer that does other work. With --load and without
---rt the measurement is not valid: starved, the player missed its periods and the controller
-stopped on stale data.
+Scheduling: can_bridge and adrc_controller run under SCHED_FIFO at the robot's
+`thread_priority` (config/krang_params.yaml, 40; krang_ros/realtime.py), the reference chain alike
+(a fair reference runs as the nodes run), and the device player PLAYER_PRIORITY_ABOVE higher (it
+stands in for devices that have their own processors), where permitted. --thread-priority N sets
+the nodes' and the chain's priority instead; 0 puts every process on the default scheduler (then,
+with --load, the measurement is not valid: starved, the player missed its periods and the
+controller stopped on stale data).
 
 Default (no --robot): the simulated node set's parameters (config/sim_params.yaml) on wall time,
 the robot sitting, the wheel velocity toggled every 0.5 s: the first current frame that changes
 after a toggle ends the path (in SIT the ground PD commands -10 A per rad/s).
 
-    .venv/bin/python bench/bench_ros_latency.py --robot [--seconds 20] [--load 2] [--rt] [--json]
+    .venv/bin/python bench/bench_ros_latency.py --robot [--seconds 20] [--load 2] [--json]
+        [--thread-priority N]
     .venv/bin/python bench/bench_ros_latency.py [--seconds 20]
 """
 
@@ -74,7 +77,7 @@ from std_srvs.srv import SetBool
 from krang_can_bridge.config import ConfigError, load_devices
 from krang_can_bridge.protocols import load_dbc
 from krang_can_bridge.protocols.amc import AmcDriveCodec
-from krang_cli.node_set import params_files
+from krang_cli.node_set import file_parameter, params_files
 from krang_cli.processes import NodeSet, child_setup, is_real_time
 from krang_model.robot import load_krang
 from krang_ros import names, topics
@@ -90,7 +93,7 @@ BENCH = Path(__file__).resolve().parent
 #: a stall of 0.1 s (the robot's stale timeout) or 0.5 s (the simulator's), seen on the shared
 #: 2-core box, ends the measurement in SAFE_STOP, where every command is zero; 2 s rides it out.
 CONTROLLER_OVERRIDES = {'adrc.use_disturbance_rejection': False, 'safety.stale_timeout_s': 2.0}
-PLAYER_RT_PRIORITY, NODES_RT_PRIORITY = 20, 10  # --rt: SCHED_FIFO, the devices above the nodes
+PLAYER_PRIORITY_ABOVE = 10  # SCHED_FIFO: the devices above the nodes
 MIN_PROBES = 20  # answered probes needed for percentiles by probe
 JSON_KEYS = ('p50_ms', 'p99_ms', 'rate_hz', 'configured_rate_hz', 'ref_p50_ms', 'ref_p99_ms')
 
@@ -293,14 +296,17 @@ def bring_to_balance(client, tell, timeout, dead=dict):
             client.pause(0.05)
 
 
-def run_robot(seconds, rate_hz, load, tpdo_period_ms=None, tpdo_phase=0.5, rt=False):
+def run_robot(seconds, rate_hz, load, tpdo_period_ms=None, tpdo_phase=0.5, priority=None):
     """Start the player; measure the reference chain alone for `seconds`, then the node set for
     `seconds` while the controller balances, each with `load` busy loops; return the figures of
     `analyse`. `tpdo_period_ms`: the drives' TPDO timer (default: the device map's);
-    `tpdo_phase`: where in the sample period their TPDOs come (device_player.py). `rt`:
-    SCHED_FIFO, the player at PLAYER_RT_PRIORITY, the nodes and the reference chain at
-    NODES_RT_PRIORITY."""
-    player_rt, nodes_rt = (PLAYER_RT_PRIORITY, NODES_RT_PRIORITY) if rt else (0, 0)
+    `tpdo_phase`: where in the sample period their TPDOs come (device_player.py). `priority`:
+    the nodes' and the reference chain's SCHED_FIFO priority (default: the robot's
+    thread_priority; 0: the default scheduler), the player's PLAYER_PRIORITY_ABOVE higher."""
+    if priority is None:
+        priority = int(file_parameter('can_bridge', 'thread_priority', sim=False, default=0))
+    nodes_rt = priority
+    player_rt = min(priority + PLAYER_PRIORITY_ABOVE, 99) if priority > 0 else 0
     tmp = tempfile.mkdtemp(prefix='krang_latency_')
     logs = os.path.join(tmp, 'logs')
     os.makedirs(logs)
@@ -381,15 +387,13 @@ def run_robot(seconds, rate_hz, load, tpdo_period_ms=None, tpdo_phase=0.5, rt=Fa
         procs = {
             'device player': player,
             'can_bridge': nodes.start(
-                'can_bridge', {'devices_file': devices_file}, rt_priority=nodes_rt
+                'can_bridge', {'devices_file': devices_file, 'thread_priority': nodes_rt}
             ),
             'adrc_controller': nodes.start(
                 'adrc_controller',
-                CONTROLLER_OVERRIDES | {'rate_hz': rate_hz},
-                rt_priority=nodes_rt,
+                CONTROLLER_OVERRIDES | {'rate_hz': rate_hz, 'thread_priority': nodes_rt},
             ),
         }
-        rt_applied = ', '.join(name for name, p in procs.items() if is_real_time(p.pid))
         client, context = open_session_client()
         diag = []  # the controller's (stamp, samples_stepped, samples_superseded)
 
@@ -406,6 +410,8 @@ def run_robot(seconds, rate_hz, load, tpdo_period_ms=None, tpdo_phase=0.5, rt=Fa
             bring_to_balance(client, tell, 180.0, nodes.dead)
         except SessionError as exc:
             raise SessionError(f'{exc} (logs in {logs})') from exc
+        # the nodes set their own priority once built (their thread_priority parameter)
+        rt_applied = ', '.join(name for name, p in procs.items() if is_real_time(p.pid))
         modes_before = len(client.modes)
         client.pause(1.0)  # the command noise without probes (noise_level)
         tell('probe')
@@ -437,6 +443,7 @@ def run_robot(seconds, rate_hz, load, tpdo_period_ms=None, tpdo_phase=0.5, rt=Fa
         return analyse(record, window, rate_hz, diag, ref_window) | {
             'left_balance': left_modes,
             'real_time': rt_applied,
+            'thread_priority': priority,
             'tpdo_period_ms': tpdo_period_ms,
             'tpdo_phase': tpdo_phase,
         }
@@ -467,6 +474,7 @@ def print_robot(fig, load):
         f'{fig["dmu_rate_hz"]:.1f} Hz, TPDO sets at {fig["tpdo_rate_hz"]:.1f} Hz '
         f'({fig["ref_tpdo_rate_hz"]:.1f} Hz beside the reference); SCHED_FIFO: '
         f'{fig["real_time"] or "no"}'
+        + (f' (nodes at {fig["thread_priority"]})' if fig['real_time'] else '')
     )
     print(
         f'reference (bare rclpy chain, same run): p50 {fig["ref_p50_ms"]:.2f} ms, '
@@ -634,10 +642,11 @@ def main():
         '--load', type=int, default=0, help='--robot: busy-loop processes during the measurement'
     )
     parser.add_argument(
-        '--rt',
-        action='store_true',
-        help='--robot: SCHED_FIFO for the device player (priority 20), the nodes and the '
-        'reference chain (10), where permitted',
+        '--thread-priority',
+        type=int,
+        help="--robot: the nodes' and the reference chain's SCHED_FIFO priority, the device "
+        f"player's {PLAYER_PRIORITY_ABOVE} higher (default: the robot's thread_priority, "
+        'config/krang_params.yaml; 0: every process on the default scheduler)',
     )
     parser.add_argument(
         '--json', action='store_true', help='--robot: print the figures as JSON on the last line'
@@ -650,9 +659,16 @@ def main():
         return
     if not 0.0 <= args.tpdo_phase < 1.0:
         parser.error('--tpdo-phase must be in [0, 1)')
+    if args.thread_priority is not None and not 0 <= args.thread_priority <= 99:
+        parser.error('--thread-priority must be 0 (the default scheduler) to 99')
     try:
         fig = run_robot(
-            args.seconds, args.rate_hz, args.load, args.tpdo_period_ms, args.tpdo_phase, args.rt
+            args.seconds,
+            args.rate_hz,
+            args.load,
+            args.tpdo_period_ms,
+            args.tpdo_phase,
+            args.thread_priority,
         )
     except ConfigError as exc:  # the session map with --tpdo-period-ms, checked before any start
         parser.error(str(exc))

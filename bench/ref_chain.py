@@ -6,7 +6,9 @@
     relay: republishes each message from its subscription callback, reliable, depth 10.
 
 The QoS is fixed (REF_QOS), not taken from ours: the reference stays the chain issue 11 measured
-(nothing lost), whatever our topics use.
+(nothing lost), whatever our topics use. The `can` end runs Python's switch interval at 0.5 ms,
+as can_bridge does (it too has a receive thread beside its executor): both chains get the same
+tuning, so that the ratio measures our work, not a setting.
 
 Each runs in its own process on a SingleThreadedExecutor; the device player (device_player.py)
 sends 0x7E0 and times the answer on the bus. The `can` end prints `answering` at its first answer.
@@ -17,6 +19,7 @@ sends 0x7E0 and times the answer on the bus. The `can` end prints `answering` at
 
 import argparse
 import signal
+import sys
 
 import can
 import rclpy
@@ -95,6 +98,8 @@ def main():
     args = p.parse_args()
     signal.signal(signal.SIGTERM, signal.default_int_handler)
     rclpy.init()
+    if args.role == 'can':
+        sys.setswitchinterval(0.0005)  # as can_bridge (module docstring)
     node = CanEnd(args.channel, args.port) if args.role == 'can' else Relay()
     executor = SingleThreadedExecutor()
     executor.add_node(node)

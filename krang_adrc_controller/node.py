@@ -31,7 +31,7 @@ from std_srvs.srv import SetBool, Trigger
 
 from krang_model.beta import load_beta
 from krang_model.robot import load_krang
-from krang_ros import messages, names, params, topics
+from krang_ros import messages, names, params, realtime, topics
 from krang_ros.log import Throttled
 from krang_ros.names import WHEEL_JOINTS as WHEELS
 from krang_ros.spin import Polled, run_node, take_latest, take_waiting
@@ -61,7 +61,8 @@ def describe_parameters():
         (leaf.name, leaf.kind, leaf.default, leaf.doc) for leaf in params.leaves(ControllerConfig)
     ]
     rows += [(name, kind, default, doc) for name, (kind, default, doc) in NODE_PARAMETERS.items()]
-    return [f'{name} ({kind.__name__}, {default!r}): {doc}' for name, kind, default, doc in rows]
+    own = [f'{name} ({kind.__name__}, {default!r}): {doc}' for name, kind, default, doc in rows]
+    return own + params.describe(realtime.SchedulingParams)
 
 
 #: with step_on_imu the watch timer steps once no sample came for this many control periods
@@ -82,6 +83,7 @@ class AdrcControllerNode(Node):
             for name, (_, default, doc) in NODE_PARAMETERS.items()
         }
         self.step_on_imu = bool(own['step_on_imu'])
+        realtime.declare_thread_priority(self)
         beta_file = own['initial_beta']
         beta = load_beta(beta_file, self.robot) if beta_file else self.robot.nominal_beta
         self.controller = BalanceController(self.robot, beta, self.config)
@@ -107,10 +109,10 @@ class AdrcControllerNode(Node):
         self.mode_pub = publisher(String, names.MODE, True, topics.LATCHED)
         self.converged_pub = publisher(Bool, names.BALANCE_CONVERGED, True, topics.LATCHED)
         # Every imu/data sample steps the control law (the observer sees each measurement), but
-        # only the newest one waiting sends a command: on_imu takes the queue (sensor QoS keeps 5)
-        # in one wake, so a burst of samples from the bridge costs no late commands.
+        # only the newest one waiting sends a command: on_imu takes the queue (topics.STEPPED
+        # keeps 25) in one wake, so a burst of samples from the bridge costs no late commands.
         self.imu_sub = self.create_subscription(
-            Imu, names.relative(names.IMU), self.on_imu, qos[names.IMU]
+            Imu, names.relative(names.IMU), self.on_imu, topics.STEPPED
         )
         # joint_states is read by each control step (read_joint_states), not by a callback: one
         # executor wake per sample, not two

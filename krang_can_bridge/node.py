@@ -81,7 +81,7 @@ from krang_can_bridge.config import (
 from krang_can_bridge.imu_filter import pitch_axis, tilt_direction
 from krang_can_bridge.protocols import amc as amc_proto
 from krang_can_bridge.sample_clock import SampleClock
-from krang_ros import messages, names, params, topics
+from krang_ros import messages, names, params, realtime, topics
 from krang_ros.log import Throttled
 from krang_ros.spin import run_node
 
@@ -147,7 +147,7 @@ class BridgeParams:
 
 def describe_parameters():
     """One line per parameter (for `can_bridge --help`)."""
-    return params.describe(BridgeParams)
+    return params.describe(BridgeParams) + params.describe(realtime.SchedulingParams)
 
 
 class BusOpenError(RuntimeError):
@@ -198,6 +198,7 @@ class CanBridgeNode(Node):
             self.config = load_devices(devices_file)
         except ConfigError as exc:  # one line, exit code 2 (run_node), before any bus is opened
             raise params.ParameterError(f'can_bridge: devices_file {devices_file}: {exc}') from exc
+        realtime.declare_thread_priority(self)
         # The core's time base (IMU filter dt, silence and command timeouts) is the time of the
         # devices: wall time (monotonic) on the robot; with use_sim_time the simulator's /clock,
         # because a simulated DMU samples in simulated time. A simulator starved of CPU runs slower

@@ -7,7 +7,7 @@ launch import here: the launch files import this module on a real ROS install.
 
 from dataclasses import dataclass
 
-from krang_model.config import config_path
+from krang_model.config import config_path, load_config
 
 #: The robot's own nodes, in start order (the bridge first: it owns the drives).
 ROBOT_NODES = ('can_bridge', 'adrc_controller', 'pose_server', 'com_estimator')
@@ -35,6 +35,15 @@ def params_files(sim, extra=()):
     """The parameter files every node of the set loads, in order (later files win)."""
     names = ROBOT_PARAMS + (SIM_PARAMS if sim else ())
     return tuple(str(config_path(n)) for n in names) + tuple(str(p) for p in extra)
+
+
+def file_parameter(node, name, sim, default=None):
+    """The value the set's parameter files give parameter `name` of `node` (later files win), or
+    `default` where none sets it."""
+    value = default
+    for path in params_files(sim):
+        value = load_config(path).get(node, {}).get('ros__parameters', {}).get(name, value)
+    return value
 
 
 def node_set(sim, record=False, extra_params=()):

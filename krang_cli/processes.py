@@ -8,6 +8,8 @@ import subprocess
 import sys
 import time
 
+from krang_ros.realtime import set_fifo_priority
+
 log = logging.getLogger('krang.bringup')
 
 
@@ -22,7 +24,8 @@ def child_setup(rt_priority=0):
       thread that lives as long as the nodes should: the main one);
     - with `rt_priority` > 0 it runs, and every thread it starts, under SCHED_FIFO at that
       priority (needs CAP_SYS_NICE or an rtprio limit; without it the child keeps the default
-      policy, which `is_real_time` then shows)."""
+      policy, which `is_real_time` then shows): for processes that are not our nodes (the
+      benchmarks' device player and reference chain)."""
     parent = os.getpid()
 
     def apply():
@@ -31,7 +34,7 @@ def child_setup(rt_priority=0):
             os.kill(os.getpid(), signal.SIGINT)
         if rt_priority > 0:
             try:
-                os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(rt_priority))
+                set_fifo_priority(rt_priority)
             except OSError:
                 pass
 
@@ -52,10 +55,11 @@ class NodeSet:
         self.env = dict(os.environ if env is None else env)
         self.procs = {}
 
-    def start(self, name, extra_params=None, rt_priority=0):
+    def start(self, name, extra_params=None):
         """Start node `name` with `extra_params`, in a session of its own (a Ctrl-C at the
         terminal reaches `stop`, which stops the nodes in order), stopped with this process
-        (`child_setup`) and under SCHED_FIFO at `rt_priority` if > 0 (where permitted)."""
+        (`child_setup`). A node of the control path sets its own scheduling (its
+        thread_priority parameter, krang_ros/realtime.py)."""
         cmd = [sys.executable, '-m', 'krang_ros.entry', name, '--ros-args']
         for f in self.params_files:
             cmd += ['--params-file', f]
@@ -73,7 +77,7 @@ class NodeSet:
                 stderr=subprocess.STDOUT if out else None,
                 env=self.env,
                 start_new_session=True,
-                preexec_fn=child_setup(rt_priority),
+                preexec_fn=child_setup(),
             ),
             out,
         )

@@ -15,6 +15,8 @@ import pytest
 pytest.importorskip('rclpy')
 pytest.importorskip('msgpack')  # python-can's udp_multicast needs it
 
+from krang_cli.node_set import file_parameter  # noqa: E402
+
 BENCH = Path(__file__).resolve().parents[1] / 'bench' / 'bench_ros_latency.py'
 PERIOD = 0.002
 
@@ -193,3 +195,9 @@ def test_robot_run_prints_the_figures_as_json():
     # of the loaded machine is the only loss
     assert fig['tpdo_period_ms'] == 4
     assert 200.0 < fig['tpdo_rate_hz'] <= 251.0 and 200.0 < fig['ref_tpdo_rate_hz'] <= 251.0
+    # the nodes ran at the robot's thread_priority, set by themselves (krang_ros/realtime.py)
+    assert fig['thread_priority'] == file_parameter('can_bridge', 'thread_priority', sim=False)
+    if os.geteuid() == 0:
+        assert {'can_bridge', 'adrc_controller', 'device player'} <= set(
+            fig['real_time'].split(', ')
+        ), fig['real_time']

@@ -40,9 +40,8 @@ from std_srvs.srv import Trigger  # noqa: E402
 
 from krang_can_bridge.config import default_devices_file, load_devices, resolve_devices_file  # noqa: E402
 from krang_can_bridge.node import CanBridgeNode  # noqa: E402
-from krang_cli.node_set import params_files  # noqa: E402
+from krang_cli.node_set import file_parameter  # noqa: E402
 from krang_cli.processes import NodeSet  # noqa: E402
-from krang_model.config import load_config  # noqa: E402
 from krang_model.drivetrain import drivetrain  # noqa: E402
 from krang_model.robot import load_krang  # noqa: E402
 from krang_ros import messages, names, topics  # noqa: E402
@@ -390,13 +389,7 @@ def test_a_bad_device_map_is_one_line_naming_the_file(tmp_path, text):
 def test_the_simulated_node_set_chooses_the_simulator_map():
     """--sim and launch/sim.launch.py load sim_params.yaml, which names the multicast map; the
     robot's parameter files leave the bridge's default (the SocketCAN map) alone."""
-    chosen = []
-    for sim in (False, True):
-        value = None
-        for path in params_files(sim):
-            section = load_config(path).get('can_bridge', {}).get('ros__parameters', {})
-            value = section.get('devices_file', value)
-        chosen.append(value)
+    chosen = [file_parameter('can_bridge', 'devices_file', sim) for sim in (False, True)]
     assert chosen[0] is None
     assert resolve_devices_file(chosen[1]) == default_devices_file()
     assert load_devices(resolve_devices_file(chosen[1])).buses['can3'].interface == 'udp_multicast'

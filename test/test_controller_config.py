@@ -9,6 +9,7 @@ import yaml
 from krang_adrc_controller.controller import NODE_NAME, ControllerConfig, load_controller_config
 from krang_model.config import config_path
 from krang_ros import params
+from krang_ros.realtime import SchedulingParams
 
 
 @dataclass(frozen=True)
@@ -113,8 +114,14 @@ def _controller_section(name):
     return params.nested_to_dotted(doc[NODE_NAME]['ros__parameters'] or {})
 
 
-#: the node's own parameters, not the controller's (node.py), and ROS's
-NODE_PARAMETERS = {'use_sim_time', 'step_on_imu', 'initial_beta'}
+#: the node's own parameters, not the controller's (node.py; its scheduling: realtime.py), and
+#: ROS's
+NODE_PARAMETERS = {
+    'use_sim_time',
+    'step_on_imu',
+    'initial_beta',
+    *(leaf.name for leaf in params.leaves(SchedulingParams)),
+}
 
 
 @pytest.mark.parametrize('name', ['controller.yaml', 'sim_params.yaml'])
