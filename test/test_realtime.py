@@ -173,3 +173,15 @@ def test_the_robot_configuration_runs_every_thread_of_the_control_path_under_fif
             assert set(threads.values()) == {(os.SCHED_FIFO, priority)}, (name, threads)
     finally:
         nodes.stop()
+
+
+@pytest.mark.parametrize('executable', CONTROL_PATH)
+def test_help_lists_the_thread_priority(executable):
+    proc = subprocess.run(
+        [sys.executable, '-m', 'krang_ros.entry', executable, '--help'],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert proc.returncode == 0, proc.stderr
+    assert 'thread_priority (int, 0): SCHED_FIFO priority' in proc.stdout, proc.stdout
