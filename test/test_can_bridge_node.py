@@ -191,10 +191,14 @@ def test_node_bridges_states_and_commands(devices_file):
         assert spin_until(both_zero_and_warned, 5.0), robot.devices.wheel_currents()
         assert spin_until(current_arrived, 5.0), robot.devices.wheel_currents()
 
-        joint_pub.publish(JointState(name=['JTorso'], position=[0.1]))
-        assert spin_until(lambda: abs(joints().get('JTorso', 0.0) - 0.1) < 1e-3, 5.0), (
-            joints().get('JTorso')
-        )
+        # streamed, as the pose server does: a setpoint that arrives while a device is briefly
+        # silent (a 50 ms stall of this process's emulator thread on a loaded CI machine) is
+        # dropped by design, and the next one moves the joint
+        def torso_at_target():
+            joint_pub.publish(JointState(name=['JTorso'], position=[0.1]))
+            return abs(joints().get('JTorso', 0.0) - 0.1) < 1e-3
+
+        assert spin_until(torso_at_target, 5.0), joints().get('JTorso')
 
         # the controller stops publishing: the wheel command goes stale -> zero current
         assert spin_until(
