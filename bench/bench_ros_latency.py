@@ -50,17 +50,24 @@ Default (no --robot): the simulated node set's parameters (config/sim_params.yam
 the robot sitting, the wheel velocity toggled every 0.5 s: the first current frame that changes
 after a toggle ends the path (in SIT the ground PD commands -10 A per rad/s).
 
+--trace splits each sample's latency into its segments (krang_ros/trace.py: the nodes write the
+time each sample passes each stage; joined on the sample's stamp, which the wheel command
+carries back): how long the bridge takes to receive the frame, to decode, filter and publish it,
+DDS to the controller, its step, DDS back, and the bridge's encoding and sending.
+
     .venv/bin/python bench/bench_ros_latency.py --robot [--seconds 20] [--load 2] [--json]
-        [--thread-priority N]
+        [--thread-priority N] [--trace]
     .venv/bin/python bench/bench_ros_latency.py [--seconds 20]
 """
 
 import argparse
+import glob
 import importlib
 import json
 import os
 import random
 import select
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -80,7 +87,7 @@ from krang_can_bridge.protocols.amc import AmcDriveCodec
 from krang_cli.node_set import file_parameter, params_files
 from krang_cli.processes import NodeSet, child_setup, is_real_time
 from krang_model.robot import load_krang
-from krang_ros import names, topics
+from krang_ros import names, topics, trace
 from krang_ros.session_client import SessionError, open_session_client
 from krang_sim.devices import KrangCanDevices
 from krang_sim.session_config import session_devices_file
@@ -296,13 +303,18 @@ def bring_to_balance(client, tell, timeout, dead=dict):
             client.pause(0.05)
 
 
-def run_robot(seconds, rate_hz, load, tpdo_period_ms=None, tpdo_phase=0.5, priority=None):
+def run_robot(
+    seconds, rate_hz, load, tpdo_period_ms=None, tpdo_phase=0.5, priority=None, traced=False
+):
     """Start the player; measure the reference chain alone for `seconds`, then the node set for
     `seconds` while the controller balances, each with `load` busy loops; return the figures of
     `analyse`. `tpdo_period_ms`: the drives' TPDO timer (default: the device map's);
     `tpdo_phase`: where in the sample period their TPDOs come (device_player.py). `priority`:
     the nodes' and the reference chain's SCHED_FIFO priority (default: the robot's
-    thread_priority; 0: the default scheduler), the player's PLAYER_PRIORITY_ABOVE higher."""
+    thread_priority; 0: the default scheduler), the player's PLAYER_PRIORITY_ABOVE higher.
+    `traced`: the nodes write krang_ros.trace's stage times; the figures gain `trace_p50_ms` and
+    `trace_p90_ms`, each segment's percentile. The working directory (logs, the player's record)
+    is removed after a valid run and kept, and named, otherwise."""
     if priority is None:
         priority = int(file_parameter('can_bridge', 'thread_priority', sim=False, default=0))
     nodes_rt = priority
@@ -341,7 +353,12 @@ def run_robot(seconds, rate_hz, load, tpdo_period_ms=None, tpdo_phase=0.5, prior
     )
     children = [(player, player_log)]
     busy = []
-    nodes = NodeSet(params_files(sim=False), log_dir=logs)
+    trace_prefix = os.path.join(tmp, 'trace')
+    nodes = NodeSet(
+        params_files(sim=False),
+        log_dir=logs,
+        env=os.environ | ({trace.ENV: trace_prefix} if traced else {}),
+    )
     client = context = None
 
     def tell(word):
@@ -440,13 +457,29 @@ def run_robot(seconds, rate_hz, load, tpdo_period_ms=None, tpdo_phase=0.5, prior
             _stop(proc)
             log.close()
     with np.load(record_file) as record:
-        return analyse(record, window, rate_hz, diag, ref_window) | {
+        fig = analyse(record, window, rate_hz, diag, ref_window) | {
             'left_balance': left_modes,
             'real_time': rt_applied,
             'thread_priority': priority,
             'tpdo_period_ms': tpdo_period_ms,
             'tpdo_phase': tpdo_phase,
         }
+    if traced:
+        fig |= trace_figures(glob.glob(f'{trace_prefix}.*'), window)
+    if not left_modes:
+        shutil.rmtree(tmp)
+    return fig
+
+
+def trace_figures(paths, window):
+    """p50 and p90 [ms] of each segment of krang_ros.trace over the samples in `window`."""
+    durations = trace.segments(trace.read(paths), *window)
+    if not durations['total']:
+        raise RuntimeError('--trace: no sample traced through every stage')
+    return {
+        f'trace_p{q}_ms': {k: 1e3 * float(np.percentile(v, q)) for k, v in durations.items()}
+        for q in (50, 90)
+    } | {'traced_samples': len(durations['total'])}
 
 
 def print_robot(fig, load):
@@ -481,6 +514,13 @@ def print_robot(fig, load):
         f'p99 {fig["ref_p99_ms"]:.2f} ms, {fig["ref_lost"]} of {fig["ref_frames"]} lost'
     )
     print(f'ratio to the reference: p50 {fig["p50_ratio"]:.2f}x, p99 {fig["p99_ratio"]:.2f}x')
+    if 'trace_p50_ms' in fig:
+        print(
+            f"where the time goes (--trace, {fig['traced_samples']} samples; the frame's kernel "
+            'stamp in the bridge to its current frames sent):'
+        )
+        for name, p50 in fig['trace_p50_ms'].items():
+            print(f'  {name:36s} p50 {p50:6.3f} ms  p90 {fig["trace_p90_ms"][name]:6.3f} ms')
     if fig['left_balance']:
         print(
             f'NOT VALID: the controller left BALANCE during the measurement '
@@ -585,6 +625,7 @@ def run_sim_params(seconds):
             n.stop()
         for bus in buses.values():
             bus.shutdown()
+    shutil.rmtree(tmp)
     latencies = []
     cur = np.array(currents)
     for t0, velocity in toggles:
@@ -649,6 +690,12 @@ def main():
         'config/krang_params.yaml; 0: every process on the default scheduler)',
     )
     parser.add_argument(
+        '--trace',
+        action='store_true',
+        help='--robot: the nodes record when each sample passes each stage (krang_ros/trace.py) '
+        'and the figures split the latency into its segments',
+    )
+    parser.add_argument(
         '--json', action='store_true', help='--robot: print the figures as JSON on the last line'
     )
     args = parser.parse_args()
@@ -669,6 +716,7 @@ def main():
             args.tpdo_period_ms,
             args.tpdo_phase,
             args.thread_priority,
+            args.trace,
         )
     except ConfigError as exc:  # the session map with --tpdo-period-ms, checked before any start
         parser.error(str(exc))

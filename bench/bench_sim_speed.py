@@ -10,6 +10,8 @@ Also prints the lockstep's waits and misses and the wall time per sample.
 
 import argparse
 import os
+import shutil
+import sys
 import tempfile
 import time
 
@@ -87,11 +89,16 @@ def measure(factor, seconds, rate_hz=None):
         ratio = (sim1 - sim0) / (wall1 - wall0)
         misses = int(after.get('lockstep_misses', 0)) - int(before.get('lockstep_misses', 0))
         waited = float(after.get('lockstep_wait_s', 0)) - float(before.get('lockstep_wait_s', 0))
-        return ratio, misses, waited / (wall1 - wall0), client.mode
+        result = ratio, misses, waited / (wall1 - wall0), client.mode
+    except BaseException:
+        print(f'logs in {tmp}/logs', file=sys.stderr)
+        raise
     finally:
         client.close()
         rclpy.try_shutdown(context=context)
         nodes.stop()
+    shutil.rmtree(tmp)
+    return result
 
 
 def measure_composed(seconds, rate_hz=None):
@@ -116,10 +123,14 @@ def measure_composed(seconds, rate_hz=None):
         wall0, sim0 = time.monotonic(), composed.sim_time
         while time.monotonic() - wall0 < seconds:
             composed.advance()
-        ratio = (composed.sim_time - sim0) / (time.monotonic() - wall0)
-        return ratio, client.mode
+        result = (composed.sim_time - sim0) / (time.monotonic() - wall0), client.mode
+    except BaseException:
+        print(f'logs in {tmp}/logs', file=sys.stderr)
+        raise
     finally:
         composed.close()
+    shutil.rmtree(tmp)
+    return result
 
 
 def main():

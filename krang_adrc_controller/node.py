@@ -31,7 +31,7 @@ from std_srvs.srv import SetBool, Trigger
 
 from krang_model.beta import load_beta
 from krang_model.robot import load_krang
-from krang_ros import messages, names, params, realtime, topics
+from krang_ros import messages, names, params, realtime, topics, trace
 from krang_ros.log import Throttled
 from krang_ros.names import WHEEL_JOINTS as WHEELS
 from krang_ros.spin import Polled, run_node, take_latest, take_waiting
@@ -95,6 +95,7 @@ class AdrcControllerNode(Node):
         self.answered_stamp = None  # header stamp of the last imu/data sample stepped on
         self.samples_stepped = 0  # steps on a new imu/data sample (the control rate achieved)
         self.samples_superseded = 0  # of those, stepped without a command: a newer one waited
+        self.samples_t = 0.0  # when the callback stepping the samples began (krang_ros.trace)
         self.mode = None
         self.converged = None
         qos = topics.QOS
@@ -162,6 +163,7 @@ class AdrcControllerNode(Node):
     def on_samples(self, queue):
         """Steps on each sample of `queue` in order; only the last step's command goes to the
         wheels (the others are superseded before they could act)."""
+        self.samples_t = trace.now() if trace.ON else 0.0
         self.samples_superseded += len(queue) - 1
         for k, sample in enumerate(queue):
             self.step_on_sample(sample, command=k == len(queue) - 1)
@@ -346,6 +348,8 @@ class AdrcControllerNode(Node):
                     (out.torque_left, out.torque_right),
                 )
             )
+            if trace.ON and stamp is not None:
+                trace.record('step', stamp, self.samples_t, trace.now())
         for event in out.events:
             self.get_logger().info(event)
         if out.mode != self.mode:

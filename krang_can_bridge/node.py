@@ -81,7 +81,7 @@ from krang_can_bridge.config import (
 from krang_can_bridge.imu_filter import pitch_axis, tilt_direction
 from krang_can_bridge.protocols import amc as amc_proto
 from krang_can_bridge.sample_clock import SampleClock
-from krang_ros import messages, names, params, realtime, topics
+from krang_ros import messages, names, params, realtime, topics, trace
 from krang_ros.log import Throttled
 from krang_ros.spin import run_node
 
@@ -337,6 +337,7 @@ class CanBridgeNode(Node):
     def on_received(self, bus: str, msg: can.Message) -> None:
         if self._stop.is_set():  # closing: the drives' reaction to our silence is expected
             return
+        t_in = trace.now() if trace.ON else 0.0
         with self._lock:
             now = self._frame_time()
             if now > self._newest_frame:
@@ -365,6 +366,8 @@ class CanBridgeNode(Node):
                     raise
                 return  # shut down by a signal under this thread; close() follows
             self.published[out[2]] += 1
+            if trace.ON and out[2] == names.IMU:
+                trace.record('imu_in', out[1].header.stamp, msg.timestamp, t_in, trace.now())
         if bus == self.config.wheels.bus and not msg.is_error_frame:
             # SDO responses for the start-up
             self.canopen.notify(msg.arbitration_id, msg.data, msg.timestamp)
@@ -549,11 +552,14 @@ class CanBridgeNode(Node):
     def on_wheel_effort(self, msg: JointState) -> None:
         """Sends the current frames at once (the wheels' efforts by name; anything else is one
         invalid command: zero current on both wheels)."""
+        t_in = trace.now() if trace.ON else 0.0
         efforts = messages.wheel_efforts(msg, names.WHEEL_JOINTS)
         with self._lock:
             self.core.set_wheel_effort_command(efforts, self._device_time())
             frames = self.core.wheel_command_frames(self._device_time())
         self.send(frames)
+        if trace.ON:
+            trace.record('cmd_out', msg.header.stamp, t_in, trace.now())
         self.watchdog_timer.reset()  # quiet while commands flow (it would send nothing)
         self.publish_fault()  # the watchdog's other job
 

@@ -1,6 +1,6 @@
 """bench/bench_ros_latency.py: the matching of wheel commands to sensor samples (fast, synthetic
 frame times), the device player's schedule, and a short --robot run (ros, slow) that must print
-its figures as JSON."""
+its figures as JSON (and, --trace, the segments of its latency)."""
 
 import importlib.util
 import json
@@ -170,6 +170,7 @@ def test_robot_run_prints_the_figures_as_json():
             '--json',
             '--tpdo-period-ms',
             '4',
+            '--trace',
         ],
         capture_output=True,
         text=True,
@@ -195,6 +196,13 @@ def test_robot_run_prints_the_figures_as_json():
     # of the loaded machine is the only loss
     assert fig['tpdo_period_ms'] == 4
     assert 200.0 < fig['tpdo_rate_hz'] <= 251.0 and 200.0 < fig['ref_tpdo_rate_hz'] <= 251.0
+    # --trace: the samples joined across both nodes on their stamps, each stage after the one
+    # before, and the sample's traced path (its frame in the bridge's kernel to both current
+    # frames sent) of the order of what the player measured on the bus (the first current frame)
+    trace = fig['trace_p50_ms']
+    assert fig['traced_samples'] > 500
+    assert all(v > 0.0 for v in trace.values()), trace
+    assert 0.5 * fig['p50_ms'] < trace['total'] < 2.0 * fig['p50_ms'], (trace, fig['p50_ms'])
     # the nodes ran at the robot's thread_priority, set by themselves (krang_ros/realtime.py)
     assert fig['thread_priority'] == file_parameter('can_bridge', 'thread_priority', sim=False)
     if os.geteuid() == 0:
