@@ -8,7 +8,7 @@ carries it back) and the stage's times from time.time(), the clock of the kernel
 stamps. Stages (STAGES): `imu_in` (can_bridge: the DMU frame that completed the sample in the
 kernel, its handling started, /imu/data published), `step` (adrc_controller: the callback started,
 the wheel command published), `cmd_out` (can_bridge: the command's callback started, the current
-frames sent). Off, a stage costs the test of `ON`; on, about 10 us.
+frames sent). Off, a stage costs the test of `ON`; on, about 3 us (2.5 us a line measured here).
 """
 
 from __future__ import annotations
