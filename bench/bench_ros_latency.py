@@ -67,10 +67,8 @@ import json
 import os
 import random
 import select
-import shutil
 import subprocess
 import sys
-import tempfile
 import threading
 import time
 from pathlib import Path
@@ -85,7 +83,7 @@ from krang_can_bridge.config import ConfigError, load_devices
 from krang_can_bridge.protocols import load_dbc
 from krang_can_bridge.protocols.amc import AmcDriveCodec
 from krang_cli.node_set import file_parameter, params_files
-from krang_cli.processes import NodeSet, child_setup, is_real_time
+from krang_cli.processes import NodeSet, WorkingDir, child_setup, is_real_time
 from krang_model.robot import load_krang
 from krang_ros import names, topics, trace
 from krang_ros.session_client import SessionError, open_session_client
@@ -306,6 +304,18 @@ def bring_to_balance(client, tell, timeout, dead=dict):
 def run_robot(
     seconds, rate_hz, load, tpdo_period_ms=None, tpdo_phase=0.5, priority=None, traced=False
 ):
+    """`measure_robot` in a working directory (logs, the player's record, the trace) removed
+    after a valid run and kept, and named, otherwise."""
+    with WorkingDir('krang_latency_') as work:
+        fig = measure_robot(
+            work.path, seconds, rate_hz, load, tpdo_period_ms, tpdo_phase, priority, traced
+        )
+        if fig['left_balance']:
+            work.keep('NOT VALID (the controller left BALANCE)')
+        return fig
+
+
+def measure_robot(tmp, seconds, rate_hz, load, tpdo_period_ms, tpdo_phase, priority, traced):
     """Start the player; measure the reference chain alone for `seconds`, then the node set for
     `seconds` while the controller balances, each with `load` busy loops; return the figures of
     `analyse`. `tpdo_period_ms`: the drives' TPDO timer (default: the device map's);
@@ -313,13 +323,11 @@ def run_robot(
     the nodes' and the reference chain's SCHED_FIFO priority (default: the robot's
     thread_priority; 0: the default scheduler), the player's PLAYER_PRIORITY_ABOVE higher.
     `traced`: the nodes write krang_ros.trace's stage times; the figures gain `trace_p50_ms` and
-    `trace_p90_ms`, each segment's percentile. The working directory (logs, the player's record)
-    is removed after a valid run and kept, and named, otherwise."""
+    `trace_p90_ms`, each segment's percentile. Everything is written under `tmp`."""
     if priority is None:
         priority = int(file_parameter('can_bridge', 'thread_priority', sim=False, default=0))
     nodes_rt = priority
     player_rt = min(priority + PLAYER_PRIORITY_ABOVE, 99) if priority > 0 else 0
-    tmp = tempfile.mkdtemp(prefix='krang_latency_')
     logs = os.path.join(tmp, 'logs')
     os.makedirs(logs)
     port = random.Random().randrange(20000, 60000, 16)
@@ -438,8 +446,6 @@ def run_robot(
         client.pause(seconds)
         window = (window[0], time.time())
         left_modes = sorted(set(client.modes[modes_before:]) - {'balance'})
-        if left_modes:
-            print(f'logs in {logs}', file=sys.stderr)
     finally:
         for proc in busy:
             _stop(proc)
@@ -466,8 +472,6 @@ def run_robot(
         }
     if traced:
         fig |= trace_figures(glob.glob(f'{trace_prefix}.*'), window)
-    if not left_modes:
-        shutil.rmtree(tmp)
     return fig
 
 
@@ -530,9 +534,14 @@ def print_robot(fig, load):
 
 # ---- default: the simulated node set's parameters ---------------------------------------------
 def run_sim_params(seconds):
+    """`measure_sim_params` in a working directory removed after the run (kept if it fails)."""
+    with WorkingDir('krang_latency_') as work:
+        measure_sim_params(work.path, seconds)
+
+
+def measure_sim_params(tmp, seconds):
     """The robot sitting, the wheel velocity toggled every 0.5 s (see the module docstring)."""
     robot = load_krang()
-    tmp = tempfile.mkdtemp(prefix='krang_latency_')
     devices_file = session_devices_file(tmp)
     config = load_devices(devices_file)
     joints = dict(zip(robot.pose_joints, [2.46] + [0.0] * 15))
@@ -625,7 +634,6 @@ def run_sim_params(seconds):
             n.stop()
         for bus in buses.values():
             bus.shutdown()
-    shutil.rmtree(tmp)
     latencies = []
     cur = np.array(currents)
     for t0, velocity in toggles:

@@ -10,9 +10,6 @@ Also prints the lockstep's waits and misses and the wall time per sample.
 
 import argparse
 import os
-import shutil
-import sys
-import tempfile
 import time
 
 import rclpy
@@ -22,7 +19,7 @@ from rosgraph_msgs.msg import Clock
 
 from krang_cli.composed import ComposedSimulation
 from krang_cli.node_set import params_files
-from krang_cli.processes import NodeSet
+from krang_cli.processes import NodeSet, WorkingDir
 from krang_model.config import config_path
 from krang_ros import names, topics
 from krang_ros.session_client import open_session_client
@@ -46,9 +43,9 @@ def rate_overrides(rate_hz):
     )
 
 
-def measure(factor, seconds, rate_hz=None):
-    """Simulated seconds per wall second while balancing, and sim_krang's lockstep figures."""
-    tmp = tempfile.mkdtemp(prefix='krang_sim_speed_')
+def measure(tmp, factor, seconds, rate_hz=None):
+    """Simulated seconds per wall second while balancing, and sim_krang's lockstep figures
+    (node logs under `tmp`)."""
     devices = session_devices_file(tmp)
     sim, bridge, controller = rate_overrides(rate_hz)
     nodes = NodeSet(params_files(sim=True, extra=()), log_dir=os.path.join(tmp, 'logs'))
@@ -89,22 +86,16 @@ def measure(factor, seconds, rate_hz=None):
         ratio = (sim1 - sim0) / (wall1 - wall0)
         misses = int(after.get('lockstep_misses', 0)) - int(before.get('lockstep_misses', 0))
         waited = float(after.get('lockstep_wait_s', 0)) - float(before.get('lockstep_wait_s', 0))
-        result = ratio, misses, waited / (wall1 - wall0), client.mode
-    except BaseException:
-        print(f'logs in {tmp}/logs', file=sys.stderr)
-        raise
+        return ratio, misses, waited / (wall1 - wall0), client.mode
     finally:
         client.close()
         rclpy.try_shutdown(context=context)
         nodes.stop()
-    shutil.rmtree(tmp)
-    return result
 
 
-def measure_composed(seconds, rate_hz=None):
+def measure_composed(tmp, seconds, rate_hz=None):
     """Simulated seconds per wall second while balancing, composed (no recorder, pose server and
-    estimator idle)."""
-    tmp = tempfile.mkdtemp(prefix='krang_sim_speed_')
+    estimator idle; node logs under `tmp`)."""
     devices = str(session_devices_file(tmp, virtual=True))
     sim, bridge, controller = rate_overrides(rate_hz)
     composed = ComposedSimulation(
@@ -123,14 +114,10 @@ def measure_composed(seconds, rate_hz=None):
         wall0, sim0 = time.monotonic(), composed.sim_time
         while time.monotonic() - wall0 < seconds:
             composed.advance()
-        result = (composed.sim_time - sim0) / (time.monotonic() - wall0), client.mode
-    except BaseException:
-        print(f'logs in {tmp}/logs', file=sys.stderr)
-        raise
+        ratio = (composed.sim_time - sim0) / (time.monotonic() - wall0)
+        return ratio, client.mode
     finally:
         composed.close()
-    shutil.rmtree(tmp)
-    return result
 
 
 def main():
@@ -157,7 +144,8 @@ def main():
     rate = args.rate_hz or SIM_RATE_HZ
     unpaced = None
     for factor in args.factors:
-        ratio, misses, waiting, mode = measure(factor, args.seconds, args.rate_hz)
+        with WorkingDir('krang_sim_speed_') as work:
+            ratio, misses, waiting, mode = measure(work.path, factor, args.seconds, args.rate_hz)
         unpaced = ratio if factor == 0 else unpaced
         print(
             f'processes, real_time_factor {factor:g}: {ratio:.2f}x real time while balancing at '
@@ -166,7 +154,8 @@ def main():
             f'{misses})',
             flush=True,
         )
-    ratio, mode = measure_composed(args.seconds, args.rate_hz)
+    with WorkingDir('krang_sim_speed_') as work:
+        ratio, mode = measure_composed(work.path, args.seconds, args.rate_hz)
     against = f', {ratio / unpaced:.2f}x the unpaced processes' if unpaced else ''
     print(
         f'composed: {ratio:.2f}x real time while balancing at {rate:g} Hz (mode {mode}; '

@@ -3,9 +3,11 @@
 import ctypes
 import logging
 import os
+import shutil
 import signal
 import subprocess
 import sys
+import tempfile
 import time
 
 from krang_ros.realtime import set_fifo_priority
@@ -39,6 +41,29 @@ def child_setup(rt_priority=0):
                 pass
 
     return apply
+
+
+class WorkingDir:
+    """A run's temporary directory (node logs, records): removed when the run ends normally,
+    kept and named on stderr when it fails or `keep` is called, so a failure's logs stay."""
+
+    def __init__(self, prefix):
+        self.path = tempfile.mkdtemp(prefix=prefix)
+        self.kept = False
+
+    def keep(self, why):
+        self.kept = True
+        print(f'{why}: logs and records kept in {self.path}', file=sys.stderr)
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, exc_type, exc, tb):
+        if exc_type is not None:
+            self.keep(f'{exc_type.__name__}')
+        elif not self.kept:
+            shutil.rmtree(self.path, ignore_errors=True)
+        return False
 
 
 def is_real_time(pid):
