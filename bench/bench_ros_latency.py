@@ -6,7 +6,8 @@ can_bridge and adrc_controller (real processes, DDS, udp_multicast CAN), and the
 DMU samples and the controller's rate_hz at --rate-hz (500) by parameter, plus
 CONTROLLER_OVERRIDES below. A separate process plays the
 devices (bench/device_player.py: DMU, AMC start-up and TPDOs at the timer cycle the bridge writes
-to the drives, the device map's wheels.tpdo_period_ms or --tpdo-period-ms, PowerCube modules); the
+to the drives, the device map's wheels.tpdo_period_ms or --tpdo-period-ms, their phase in the
+sample period drifting by --tpdo-drift-ppm as free-running clocks do, PowerCube modules); the
 robot sits,
 the controller is enabled and asked to stand up, the player pitches the robot up to the nominal
 balance pitch and holds it there quietly (white sensor noise, no physics), the controller goes
@@ -56,7 +57,7 @@ carries back): how long the bridge takes to receive the frame, to decode, filter
 DDS to the controller, its step, DDS back, and the bridge's encoding and sending.
 
     .venv/bin/python bench/bench_ros_latency.py --robot [--seconds 20] [--load 2] [--json]
-        [--thread-priority N] [--trace]
+        [--thread-priority N] [--trace] [--tpdo-phase F --tpdo-drift-ppm 0]
     .venv/bin/python bench/bench_ros_latency.py [--seconds 20]
 """
 
@@ -100,6 +101,10 @@ BENCH = Path(__file__).resolve().parent
 CONTROLLER_OVERRIDES = {'adrc.use_disturbance_rejection': False, 'safety.stale_timeout_s': 2.0}
 PLAYER_PRIORITY_ABOVE = 10  # SCHED_FIFO: the devices above the nodes
 MIN_PROBES = 20  # answered probes needed for percentiles by probe
+#: The drives' and the DMU's clocks are free-running crystals (50 ppm each, typically): the
+#: TPDOs' phase in the sample period drifts, and the latency depends on it (README, "Where a
+#: sample's time goes"): at 100 ppm and 2 ms a 20 s measurement sees every phase once.
+DRIFT_PPM = 100.0
 JSON_KEYS = ('p50_ms', 'p99_ms', 'rate_hz', 'configured_rate_hz', 'ref_p50_ms', 'ref_p99_ms')
 
 
@@ -175,6 +180,21 @@ def reference_latencies(req, ans, window):
     return lat, len(req) - len(lat)
 
 
+def tpdo_phases_seen(sample_t, tpdo_t, window, bins=10):
+    """The share of `bins` equal parts of the sample period in which TPDO sets were sent during
+    `window`, their phase taken from the sample before each: near 1 when the phase sweeps the
+    period (--tpdo-drift-ppm), one or two tenths when it stays put."""
+    st = np.sort(sample_t)
+    t = tpdo_t[(tpdo_t >= window[0]) & (tpdo_t <= window[1])]
+    k = np.searchsorted(st, t) - 1
+    t, k = t[k >= 1], k[k >= 1]
+    if not len(t):
+        return float('nan')
+    period = float(np.median(np.diff(st)))
+    phase = np.clip((t - st[k]) / period, 0.0, 0.999)
+    return len(np.unique((phase * bins).astype(int))) / bins
+
+
 def controller_rate(diag, window):
     """(steps on new samples, of them superseded) per second by adrc_controller's own counts
     (`samples_stepped`, `samples_superseded` in its 1 Hz diagnostics, as (stamp, stepped,
@@ -237,6 +257,7 @@ def analyse(record, window, rate_hz, diag=(), ref_window=None):
             'command_noise_dc2': noise,
             'dmu_rate_hz': int(inside.sum()) / duration,
             'tpdo_rate_hz': int(np.count_nonzero((tpdo_t >= w0) & (tpdo_t <= w1))) / duration,
+            'tpdo_phases_seen': tpdo_phases_seen(st, tpdo_t, window),
             'ref_tpdo_rate_hz': int(np.count_nonzero((tpdo_t >= r0) & (tpdo_t <= r1))) / (r1 - r0),
             'new_commands_hz': int(cmd_in.sum()) / duration,
             'ref_frames': len(ref_lat) + ref_lost,
@@ -302,24 +323,42 @@ def bring_to_balance(client, tell, timeout, dead=dict):
 
 
 def run_robot(
-    seconds, rate_hz, load, tpdo_period_ms=None, tpdo_phase=0.5, priority=None, traced=False
+    seconds,
+    rate_hz,
+    load,
+    tpdo_period_ms=None,
+    tpdo_phase=0.5,
+    priority=None,
+    traced=False,
+    tpdo_drift_ppm=0.0,
 ):
     """`measure_robot` in a working directory (logs, the player's record, the trace) removed
     after a valid run and kept, and named, otherwise."""
     with WorkingDir('krang_latency_') as work:
         fig = measure_robot(
-            work.path, seconds, rate_hz, load, tpdo_period_ms, tpdo_phase, priority, traced
+            work.path,
+            seconds,
+            rate_hz,
+            load,
+            tpdo_period_ms,
+            tpdo_phase,
+            priority,
+            traced,
+            tpdo_drift_ppm,
         )
         if fig['left_balance']:
             work.keep('NOT VALID (the controller left BALANCE)')
         return fig
 
 
-def measure_robot(tmp, seconds, rate_hz, load, tpdo_period_ms, tpdo_phase, priority, traced):
+def measure_robot(
+    tmp, seconds, rate_hz, load, tpdo_period_ms, tpdo_phase, priority, traced, tpdo_drift_ppm
+):
     """Start the player; measure the reference chain alone for `seconds`, then the node set for
     `seconds` while the controller balances, each with `load` busy loops; return the figures of
     `analyse`. `tpdo_period_ms`: the drives' TPDO timer (default: the device map's);
-    `tpdo_phase`: where in the sample period their TPDOs come (device_player.py). `priority`:
+    `tpdo_phase`: where in the sample period their TPDOs come at first, `tpdo_drift_ppm`: how
+    much slower their timer runs than the DMU's (device_player.py). `priority`:
     the nodes' and the reference chain's SCHED_FIFO priority (default: the robot's
     thread_priority; 0: the default scheduler), the player's PLAYER_PRIORITY_ABOVE higher.
     `traced`: the nodes write krang_ros.trace's stage times; the figures gain `trace_p50_ms` and
@@ -349,6 +388,8 @@ def measure_robot(tmp, seconds, rate_hz, load, tpdo_period_ms, tpdo_phase, prior
             str(rate_hz),
             '--tpdo-phase',
             str(tpdo_phase),
+            '--tpdo-drift-ppm',
+            str(tpdo_drift_ppm),
             '--out',
             record_file,
         ],
@@ -469,6 +510,7 @@ def measure_robot(tmp, seconds, rate_hz, load, tpdo_period_ms, tpdo_phase, prior
             'thread_priority': priority,
             'tpdo_period_ms': tpdo_period_ms,
             'tpdo_phase': tpdo_phase,
+            'tpdo_drift_ppm': tpdo_drift_ppm,
         }
     if traced:
         fig |= trace_figures(glob.glob(f'{trace_prefix}.*'), window)
@@ -489,7 +531,8 @@ def trace_figures(paths, window):
 def print_robot(fig, load):
     print(
         f'robot configuration, wall clock, {fig["configured_rate_hz"]:.0f} Hz configured, '
-        f'TPDOs every {fig["tpdo_period_ms"]} ms at phase {fig["tpdo_phase"]:.2f}, {load} busy '
+        f'TPDOs every {fig["tpdo_period_ms"]} ms from phase {fig["tpdo_phase"]:.2f}, '
+        f'{fig["tpdo_drift_ppm"]:g} ppm slower than the DMU, {load} busy '
         f'loop(s), {fig["seconds"]:.1f} s balancing'
     )
     print(
@@ -509,7 +552,8 @@ def print_robot(fig, load):
         f'%); on the bus {fig["new_commands_hz"]:.1f} new current commands/s, '
         f'{fig["bus_rate_hz"]:.1f}/s after distinct samples by timing alone; DMU played at '
         f'{fig["dmu_rate_hz"]:.1f} Hz, TPDO sets at {fig["tpdo_rate_hz"]:.1f} Hz '
-        f'({fig["ref_tpdo_rate_hz"]:.1f} Hz beside the reference); SCHED_FIFO: '
+        f'({fig["ref_tpdo_rate_hz"]:.1f} Hz beside the reference) in '
+        f'{10 * fig["tpdo_phases_seen"]:.0f} of 10 tenths of the sample period; SCHED_FIFO: '
         f'{fig["real_time"] or "no"}'
         + (f' (nodes at {fig["thread_priority"]})' if fig['real_time'] else '')
     )
@@ -684,8 +728,16 @@ def main():
         '--tpdo-phase',
         type=float,
         default=0.5,
-        help='--robot: the TPDO sets this fraction of a sample period after each DMU sample '
-        '(free-running drives come at any phase; 0.5 puts them where the command is due)',
+        help='--robot: the TPDO sets this fraction of a sample period after each DMU sample, '
+        'at first (free-running drives come at any phase)',
+    )
+    parser.add_argument(
+        '--tpdo-drift-ppm',
+        type=float,
+        default=DRIFT_PPM,
+        help="--robot: the drives' TPDO timer this many ppm slower than the DMU's clock, so that "
+        'their phase sweeps the sample period as free-running clocks do (100: once in 20 s at '
+        '2 ms; 0: a fixed phase)',
     )
     parser.add_argument(
         '--load', type=int, default=0, help='--robot: busy-loop processes during the measurement'
@@ -725,6 +777,7 @@ def main():
             args.tpdo_phase,
             args.thread_priority,
             args.trace,
+            args.tpdo_drift_ppm,
         )
     except ConfigError as exc:  # the session map with --tpdo-period-ms, checked before any start
         parser.error(str(exc))

@@ -264,7 +264,7 @@ class Player:
         period = 1.0 / a.rate_hz
         # (next time, period, action): DMU samples, the reference frame a quarter period later,
         # the TPDOs --tpdo-phase periods later (free-running drives land anywhere in the period),
-        # at their timer's cycle once the bridge has set it
+        # at their timer's cycle once the bridge has set it, --tpdo-drift-ppm slower
         start = time.monotonic() + 0.1
         jobs = [
             [start, period, 'dmu'],
@@ -292,7 +292,8 @@ class Player:
                     ref += 1
             else:
                 job[1] = self.tpdos(job[1])
-            job[0] = next_due(job[0], job[1], time.monotonic())
+            drift = 1.0 + a.tpdo_drift_ppm * 1e-6 if job[2] == 'tpdo' else 1.0
+            job[0] = next_due(job[0], job[1] * drift, time.monotonic())
         reader.stop()
         use = resource.getrusage(resource.RUSAGE_SELF)
         print(
@@ -341,6 +342,13 @@ def main():
         type=float,
         default=0.5,
         help='the TPDO sets this fraction of a DMU period after the samples, in [0, 1)',
+    )
+    p.add_argument(
+        '--tpdo-drift-ppm',
+        type=float,
+        default=0.0,
+        help="the drives' TPDO timer this many ppm slower than the DMU's clock (their phase "
+        'sweeps the sample period: at 100 ppm and 2 ms, once in 20 s)',
     )
     p.add_argument('--ramp-s', type=float, default=1.0)
     p.add_argument('--probe-every', type=int, default=5, help='at least 2')

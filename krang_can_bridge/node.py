@@ -18,10 +18,17 @@ loop (the executor) stops running (docs/can.md).
 Topics:
 - publishes /joint_states (sensor_msgs/JointState: body joints + JLWheel/JRWheel, URDF names; only
   joints with data; effort: the wheels' measured currents as torque at the wheel [N m], NaN for the
-  body joints) on each complete wheel sample (position, velocity and current TPDOs of both drives),
-  at most at publish_rate_hz; /imu/data (sensor_msgs/Imu, sensor-data QoS) on each DMU sample
-  (rates and accelerations of one sequence number), stamped with the sample's time;
-  /diagnostics (1 Hz);
+  body joints) for each complete wheel sample (position, velocity and current TPDOs of both
+  drives), at most at publish_rate_hz, stamped with the sample's time; /imu/data (sensor_msgs/Imu,
+  sensor-data QoS) on each DMU sample (rates and accelerations of one sequence number), stamped
+  with the sample's time; /diagnostics (1 Hz). While the DMU streams, a wheel sample waits for
+  the next DMU sample and goes out just before its /imu/data (a newer wheel sample replaces a
+  waiting one): the drives' TPDOs come at any phase of the DMU's period (free-running clocks),
+  and a /joint_states published as they completed fell between a sample and its command (one
+  process, one GIL) at most phases. The controller's step on a sample then also has the newest
+  wheel sample before it, never one newer than the sample. Once no DMU sample has come for 1.5
+  of its intervals (or the DMU runs slower than 20 Hz), wheel samples go out as they complete.
+  The DMU's bus is read first when several have frames waiting;
 - subscribes /wheel_effort_cmd (sensor_msgs/JointState: name [JLWheel, JRWheel], effort N m at the
   wheel, header.stamp = the /imu/data sample it answers; reliable) and /joint_position_cmd
   (sensor_msgs/JointState, positions by name);
@@ -94,6 +101,9 @@ def _doc(text: str) -> dict:
     return {'doc': text}
 
 
+IMU_HOLD_MAX_S = 0.05  # a DMU slower than 20 Hz holds no wheel sample back (module docstring)
+
+
 @dataclass(frozen=True)
 class BridgeParams:
     """The node's ROS parameters (krang_ros.params: descriptions, read only, checked at start)."""
@@ -109,7 +119,8 @@ class BridgeParams:
         default=500.0,
         metadata=_doc(
             'most /joint_states per second (wheel samples beyond it are skipped); 0: every wheel '
-            'sample. /imu/data: every DMU sample'
+            'sample (while the DMU streams, at most one per DMU sample, just before it). '
+            '/imu/data: every DMU sample'
         ),
     )
     amc_startup: bool = field(
@@ -253,6 +264,8 @@ class CanBridgeNode(Node):
         self._published_fault: str | None = None
         self._joint_period = 1.0 / p.publish_rate_hz if p.publish_rate_hz > 0 else 0.0
         self._joints_published_at = -math.inf
+        self._imu_at, self._imu_interval = -math.inf, math.inf  # arrivals of /imu/data samples
+        self._wheel_sample_at = None  # a wheel sample waiting for the next /imu/data
         self.published = {names.IMU: 0, names.JOINT_STATES: 0}
 
         self._log_handler = _RosLogHandler(self.get_logger())
@@ -306,8 +319,9 @@ class CanBridgeNode(Node):
         self.create_timer(0.5 * self.config.imu.stream_toggle_retry_s, self.check_imu_stream)
         self.create_timer(1.0, self.publish_diagnostics)
         # frames only once every publisher exists (a sample completed earlier ended the thread)
+        imu_first = dict(sorted(self.buses.items(), key=lambda b: b[0] != self.config.imu.bus))
         self.reader = (pump.reader if pump else BusReader)(
-            self.buses, self.on_received, self.on_bus_error
+            imu_first, self.on_received, self.on_bus_error
         )
         # the PowerCube polls and moves: off the executor, which sends the wheel currents
         # (composed, in order with everything else: the run is the same every time)
@@ -339,7 +353,7 @@ class CanBridgeNode(Node):
             return
         t_in = trace.now() if trace.ON else 0.0
         with self._lock:
-            now = self._frame_time()
+            now = arrived = self._frame_time()
             if now > self._newest_frame:
                 self._newest_frame = now
             if (
@@ -350,7 +364,17 @@ class CanBridgeNode(Node):
                 now = self._imu_sample_time(msg, now)
             fault = self.core.fault_reason
             sample = self.core.on_frame(msg, now, bus)
+            if sample == WHEEL_SAMPLE:
+                self._wheel_sample_at = None
+                if self._imu_due(arrived):  # out just before the next /imu/data (docstring)
+                    self._wheel_sample_at, sample = now, None
             out = self._sample_message(sample, now) if sample else None
+            held = None
+            if out is not None and out[2] == names.IMU:
+                self._imu_interval, self._imu_at = arrived - self._imu_at, arrived
+                if self._wheel_sample_at is not None:
+                    held = self._sample_message(WHEEL_SAMPLE, self._wheel_sample_at)
+                    self._wheel_sample_at = None
             # a drive fault this frame latched: zero current at once, not at the next command
             stop = (
                 self.core.wheel_current_frames(0.0, 0.0, self._device_time())
@@ -358,19 +382,27 @@ class CanBridgeNode(Node):
                 else []
             )
         self.send(stop)
-        if out is not None:
+        for sample_out in (held, out):
+            if sample_out is None:
+                continue
             try:
-                out[0].publish(out[1])
+                sample_out[0].publish(sample_out[1])
             except RCLError:
                 if self.context.ok():
                     raise
                 return  # shut down by a signal under this thread; close() follows
-            self.published[out[2]] += 1
-            if trace.ON and out[2] == names.IMU:
-                trace.record('imu_in', out[1].header.stamp, msg.timestamp, t_in, trace.now())
+            self.published[sample_out[2]] += 1
+        if trace.ON and out is not None and out[2] == names.IMU:
+            trace.record('imu_in', out[1].header.stamp, msg.timestamp, t_in, trace.now())
         if bus == self.config.wheels.bus and not msg.is_error_frame:
             # SDO responses for the start-up
             self.canopen.notify(msg.arbitration_id, msg.data, msg.timestamp)
+
+    def _imu_due(self, now: float) -> bool:
+        """Whether the DMU streams: its last sample came less than 1.5 of its intervals before
+        `now` (arrival times), so a wheel sample's /joint_states waits for the next one."""
+        interval = self._imu_interval
+        return interval <= IMU_HOLD_MAX_S and now - self._imu_at < 1.5 * interval
 
     def _sample_message(self, sample: str, now: float):
         """(publisher, message, topic) of the sample a frame completed at `now`, or None (a

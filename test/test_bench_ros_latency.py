@@ -120,6 +120,18 @@ def test_reference_pairs_frames_by_counter(bench):
     assert np.allclose(lat, [0.0011, 0.0012]) and lost == 1
 
 
+def test_tpdo_phases_seen_tells_a_sweeping_phase_from_a_fixed_one(bench):
+    """TPDO sets half a period after each sample: one tenth of the period; drifting by a full
+    period over the window (what --tpdo-drift-ppm does over a measurement): all ten."""
+    t = 100.0 + PERIOD * np.arange(1000)
+    window = (t[0], t[-1])
+    fixed = t + 0.5 * PERIOD
+    drifting = t + 0.5 * PERIOD + np.linspace(0.0, PERIOD, len(t), endpoint=False)
+    assert bench.tpdo_phases_seen(t, fixed, window) == pytest.approx(0.1)
+    assert bench.tpdo_phases_seen(t, drifting, window) == pytest.approx(1.0)
+    assert np.isnan(bench.tpdo_phases_seen(t, fixed, (0.0, 1.0)))  # none in the window
+
+
 def test_analyse_gives_the_json_keys_first(bench):
     t, probe, cmd_t, cmd_v = played(latency=0.0031)
     record = {
@@ -195,6 +207,7 @@ def test_robot_run_prints_the_figures_as_json():
     # (stand-in drives at the map's period beside the reference); a period skipped after a stall
     # of the loaded machine is the only loss
     assert fig['tpdo_period_ms'] == 4
+    assert fig['tpdo_drift_ppm'] == 100.0 and 0.0 < fig['tpdo_phases_seen'] <= 1.0
     assert 200.0 < fig['tpdo_rate_hz'] <= 251.0 and 200.0 < fig['ref_tpdo_rate_hz'] <= 251.0
     # --trace: the samples joined across both nodes on their stamps, each stage after the one
     # before, and the sample's traced path (its frame in the bridge's kernel to both current

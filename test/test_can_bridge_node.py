@@ -211,3 +211,97 @@ def test_node_bridges_states_and_commands(devices_file):
         probe.destroy_node()
         rclpy.shutdown(context=ctx)
         robot.close()
+
+
+@pytest.mark.timeout(60)
+def test_wheel_sample_goes_out_just_before_the_next_imu_sample(tmp_path):
+    """While the DMU streams, a complete wheel sample's /joint_states waits for the next DMU
+    sample and is published just before its /imu/data: the wheel work never lands between a
+    sample and its command (README, "Where a sample's time goes"), and the controller's step on
+    a sample always has the newest wheel sample before it. Once the DMU stops, each wheel sample
+    goes out at once. Frames are handed over by a Pump, so the order is exact."""
+    from krang_can_bridge.bus_io import Pump
+    from krang_sim.session_config import session_devices_file
+
+    cfg = load_devices(session_devices_file(tmp_path, virtual=True))
+    robot = KrangCanDevices(cfg, auto_enable_wheels=True)
+    device_buses = {b: can.Bus(**cfg.buses[b].bus_kwargs()) for b in cfg.buses_in_use()}
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx)
+    pump = Pump()
+    bridge = CanBridgeNode(
+        context=ctx,
+        pump=pump,
+        parameter_overrides=[
+            Parameter('devices_file', value=str(cfg.path)),
+            Parameter('amc_startup', value=False),
+            Parameter('publish_rate_hz', value=0.0),
+        ],
+    )
+    published = []  # (topic, wheel position or pitch rate) in the order published
+    for pub, topic in ((bridge.joint_pub, 'joints'), (bridge.imu_pub, 'imu')):
+
+        def record(msg, publish=pub.publish, topic=topic):
+            if topic == 'joints':
+                published.append((topic, dict(zip(msg.name, msg.position)).get('JLWheel')))
+            else:
+                published.append((topic, msg.angular_velocity.y))
+            publish(msg)
+
+        pub.publish = record
+
+    def send(frames):
+        for f in frames:
+            device_buses[f.bus].send(f.msg)
+        pump.pump()
+
+    def wheels(position):
+        send(
+            robot.wheel_feedback_frames(
+                {j: position for j in robot.wheels}, dict.fromkeys(robot.wheels, 0.0)
+            )
+        )
+
+    def dmu():
+        send(robot.imu_frames_from_pitch(-1.2, 0.0))
+
+    period = 0.02  # a 50 Hz DMU: a wide margin for this process's stalls (hold: 1.5 periods)
+    try:
+        for _ in range(200):  # until the IMU filter publishes (and its interval is known)
+            dmu()
+            time.sleep(period)
+            if sum(topic == 'imu' for topic, _ in published) >= 2:
+                break
+        assert [t for t, _ in published].count('imu') >= 2, published
+        published.clear()
+        dmu()
+        time.sleep(0.3 * period)
+        wheels(0.1)
+        assert [t for t, _ in published] == ['imu'], 'a wheel sample went out between samples'
+        time.sleep(0.7 * period)
+        dmu()
+        assert [t for t, _ in published[1:]] == ['joints', 'imu'], published
+        assert published[1][1] == pytest.approx(0.1, abs=1e-3)
+        # two wheel samples before one DMU sample: only the newer goes out
+        time.sleep(0.3 * period)
+        wheels(0.2)
+        wheels(0.3)
+        time.sleep(0.7 * period)
+        dmu()
+        assert [t for t, _ in published[3:]] == ['joints', 'imu'], published
+        assert published[3][1] == pytest.approx(0.3, abs=1e-3)
+        # the DMU stops: after 1.5 of its periods each wheel sample goes out at once
+        published.clear()
+        time.sleep(2.0 * period)
+        wheels(0.4)
+        wheels(0.5)
+        assert published == [
+            ('joints', pytest.approx(0.4, abs=1e-3)),
+            ('joints', pytest.approx(0.5, abs=1e-3)),
+        ]
+    finally:
+        bridge.close()
+        bridge.destroy_node()
+        rclpy.shutdown(context=ctx)
+        for bus in device_buses.values():
+            bus.shutdown()

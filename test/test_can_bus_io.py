@@ -70,6 +70,25 @@ def test_reader_serves_every_bus_while_one_is_flooded():
             bus.shutdown()
 
 
+def test_reader_serves_the_buses_in_the_order_given():
+    """When several buses have frames waiting, the first bus given is read first: can_bridge gives
+    the DMU's bus first, so a DMU frame never waits behind a wheel bus's TPDO set."""
+    port = random.Random().randrange(20000, 60000, 16)
+    for order in (('a', 'b'), ('b', 'a')):
+        rx = {'a': _bus(port), 'b': _bus(port + 1)}
+        tx = {'a': _bus(port), 'b': _bus(port + 1)}
+        try:
+            for name in ('b', 'a'):  # sent in the other order; queued before the reader starts
+                for k in range(3):
+                    tx[name].send(can.Message(arbitration_id=0x10 + k, is_extended_id=False))
+            time.sleep(0.05)
+            got = [n for n, _ in _collect({n: rx[n] for n in order})]
+            assert got == [order[0]] * 3 + [order[1]] * 3
+        finally:
+            for bus in (*rx.values(), *tx.values()):
+                bus.shutdown()
+
+
 def test_bridge_reads_every_device_frame_and_no_host_frame():
     config = load_devices(config_path('can_devices.yaml'))
     core = BridgeCore(config)
