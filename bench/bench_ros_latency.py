@@ -102,8 +102,8 @@ CONTROLLER_OVERRIDES = {'adrc.use_disturbance_rejection': False, 'safety.stale_t
 PLAYER_PRIORITY_ABOVE = 10  # SCHED_FIFO: the devices above the nodes
 MIN_PROBES = 20  # answered probes needed for percentiles by probe
 #: The drives' and the DMU's clocks are free-running crystals (50 ppm each, typically): the
-#: TPDOs' phase in the sample period drifts, and the latency depends on it (README, "Where a
-#: sample's time goes"): at 100 ppm and 2 ms a 20 s measurement sees every phase once.
+#: TPDOs' phase in the sample period drifts, and the latency depends on it (README, "Where in
+#: the period the drives send"): at 100 ppm and 2 ms a 20 s measurement sees every phase once.
 DRIFT_PPM = 100.0
 JSON_KEYS = ('p50_ms', 'p99_ms', 'rate_hz', 'configured_rate_hz', 'ref_p50_ms', 'ref_p99_ms')
 
@@ -330,7 +330,7 @@ def run_robot(
     tpdo_phase=0.5,
     priority=None,
     traced=False,
-    tpdo_drift_ppm=0.0,
+    tpdo_drift_ppm=DRIFT_PPM,
 ):
     """`measure_robot` in a working directory (logs, the player's record, the trace) removed
     after a valid run and kept, and named, otherwise."""

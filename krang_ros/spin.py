@@ -114,3 +114,14 @@ def run_ready(executor):
         if handler.exception() is not None:
             raise handler.exception()
         ran += 1
+
+
+def spin_until_shutdown(executor):
+    """executor.spin() for a thread of its own, ended by shutting its context down (rclpy raises
+    ExternalShutdownException then). Shut the context down first and join the thread before
+    executor.shutdown(): shutting the executor down under a spinning thread races rclpy's own
+    guard conditions (README, Known issues)."""
+    try:
+        executor.spin()
+    except ExternalShutdownException:
+        pass

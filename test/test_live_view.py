@@ -23,6 +23,7 @@ from krang_model import com
 from krang_model.robot import load_krang
 from krang_ros import messages, names, topics
 from krang_ros.foxglove_view import LiveView
+from krang_ros.spin import spin_until_shutdown
 from krang_ros.view_node import LiveViewNode
 
 SUBPROTOCOL = 'foxglove.sdk.v1'
@@ -125,7 +126,7 @@ def test_view_node_serves_the_robot_to_a_websocket_client():
     executor = SingleThreadedExecutor()
     executor.add_node(node)
     executor.add_node(fake)
-    spinner = threading.Thread(target=executor.spin, daemon=True)
+    spinner = threading.Thread(target=spin_until_shutdown, args=(executor,), daemon=True)
     spinner.start()
     step = np.zeros(robot.n_beta)
     step[1] = 0.3
@@ -160,11 +161,12 @@ def test_view_node_serves_the_robot_to_a_websocket_client():
     try:
         got = asyncio.run(read_session(node.port, publish, set(CHANNELS)))
     finally:
+        rclpy.try_shutdown()  # ends the spin first (krang_ros.spin.spin_until_shutdown)
+        spinner.join(5.0)
         executor.shutdown()
         node.close()
         node.destroy_node()
         fake.destroy_node()
-        rclpy.try_shutdown()
     assert json.loads(got['/mode'][-1]) == {'mode': 'BALANCE_LO'}
     learning = json.loads(got['/learning'][0])
     assert learning == {

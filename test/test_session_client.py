@@ -17,6 +17,7 @@ from std_srvs.srv import Trigger  # noqa: E402
 
 from krang_ros import names, topics  # noqa: E402
 from krang_ros.session_client import open_session_client  # noqa: E402
+from krang_ros.spin import spin_until_shutdown  # noqa: E402
 
 LATCHED_AFTER_S = 0.5  # the estimator's initial beta comes this late
 LEARNED_AFTER_S = 1.0  # the beta learned from the pose, after the next_pose call
@@ -48,7 +49,7 @@ def test_latched_beta_arriving_late_is_not_taken_for_a_learned_one():
     publish_once(LATCHED_AFTER_S, 1.0)
     executor = SingleThreadedExecutor(context=context)
     executor.add_node(node)
-    spinner = threading.Thread(target=executor.spin, daemon=True)
+    spinner = threading.Thread(target=spin_until_shutdown, args=(executor,), daemon=True)
     spinner.start()
     client, client_context = open_session_client()
     try:
@@ -61,6 +62,7 @@ def test_latched_beta_arriving_late_is_not_taken_for_a_learned_one():
     finally:
         client.close()
         rclpy.try_shutdown(context=client_context)
+        rclpy.try_shutdown(context=context)  # ends the spin first (spin_until_shutdown)
+        spinner.join(5.0)
         executor.shutdown()
         node.destroy_node()
-        rclpy.try_shutdown(context=context)
