@@ -28,7 +28,8 @@ Topics:
   process, one GIL) at most phases. The controller's step on a sample then also has the newest
   wheel sample before it, never one newer than the sample. Once no DMU sample has come for 1.5
   of its intervals (or the DMU runs slower than 20 Hz), wheel samples go out as they complete.
-  The DMU's bus is read first when several have frames waiting;
+  The DMU's bus is read first when several have frames waiting (ahead of the PowerCube nets;
+  the drives share it on Krang);
 - subscribes /wheel_effort_cmd (sensor_msgs/JointState: name [JLWheel, JRWheel], effort N m at the
   wheel, header.stamp = the /imu/data sample it answers; reliable) and /joint_position_cmd
   (sensor_msgs/JointState, positions by name);

@@ -135,6 +135,8 @@ def test_node_bridges_states_and_commands(devices_file):
     joint_pub = probe.create_publisher(JointState, '/joint_position_cmd', 10)
     ex.add_node(bridge)
     ex.add_node(probe)
+    # the receive thread serves the DMU's bus first (test_can_bus_io.py: in the order given)
+    assert next(iter(bridge.reader._by_fd.values()))[0] == cfg.imu.bus
 
     def spin_until(cond, timeout):
         end = time.monotonic() + timeout
@@ -265,7 +267,9 @@ def test_wheel_sample_goes_out_just_before_the_next_imu_sample(tmp_path):
     def dmu():
         send(robot.imu_frames_from_pitch(-1.2, 0.0))
 
-    period = 0.02  # a 50 Hz DMU: a wide margin for this process's stalls (hold: 1.5 periods)
+    # a 25 Hz DMU (held below 20 Hz: IMU_HOLD_MAX_S): a wheel sample 0.3 periods after a DMU
+    # sample is held unless this process stalls 48 ms in between
+    period = 0.04
     try:
         for _ in range(200):  # until the IMU filter publishes (and its interval is known)
             dmu()

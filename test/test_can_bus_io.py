@@ -72,7 +72,7 @@ def test_reader_serves_every_bus_while_one_is_flooded():
 
 def test_reader_serves_the_buses_in_the_order_given():
     """When several buses have frames waiting, the first bus given is read first: can_bridge gives
-    the DMU's bus first, so a DMU frame never waits behind a wheel bus's TPDO set."""
+    the DMU's bus first, so a DMU frame never waits behind the PowerCube nets' frames."""
     port = random.Random().randrange(20000, 60000, 16)
     for order in (('a', 'b'), ('b', 'a')):
         rx = {'a': _bus(port), 'b': _bus(port + 1)}
