@@ -203,6 +203,56 @@ def test_a_signal_inside_a_finalizer_still_stops_the_node(signum):
     assert time.monotonic() - start < STOP_DEADLINE_S / 2, 'it needed the stop deadline'
 
 
+SLOW_STOP_NODE = """
+import sys, threading, time, types
+from rclpy.node import Node
+from krang_ros import entry
+from krang_ros.spin import run_node
+
+class SlowStop(Node):
+    def __init__(self):
+        super().__init__('slow_stop')
+        print('spinning', flush=True)
+
+    def close(self):
+        print('closing', flush=True)
+        time.sleep(0.4)  # the bridge zeroing its currents
+        print('closed', flush=True)
+
+def exit_hook():  # like concurrent.futures' (rclpy's executor imports it)
+    print('exit hook', flush=True)
+    time.sleep(0.4)
+
+threading._register_atexit(exit_hook)
+node = types.ModuleType('slow_stop_node')
+node.describe_parameters = lambda: []
+node.main = lambda args: run_node(SlowStop, args)
+sys.modules['slow_stop_node'] = node
+entry.NODE_MODULES['slow_stop_node'] = 'slow_stop_node'
+sys.exit(entry.run('slow_stop_node', []))
+"""
+
+
+@pytest.mark.ros
+def test_signals_while_the_node_stops_do_not_interrupt_the_stop():
+    """A Ctrl-C in a terminal reaches the node and `krang bringup`, which passes it on: signals
+    keep coming while the node stops. They must not cut its close() short (the bridge zeroes its
+    currents there) or raise in Python's exit hooks, which printed a traceback in CI."""
+    proc = spinning_script(SLOW_STOP_NODE)
+    seen = []
+    for signum, stage in (
+        (signal.SIGINT, 'closing'),
+        (signal.SIGTERM, 'exit hook'),
+        (signal.SIGINT, None),
+    ):
+        proc.send_signal(signum)
+        while stage and (line := proc.stdout.readline()) and line.strip() != stage:
+            seen.append(line)
+    out = ''.join(seen) + finish(proc, 30)
+    assert 'Traceback' not in out and 'Exception ignored' not in out, out[-3000:]
+    assert proc.returncode == 0 and 'closed' in out, out[-3000:]
+
+
 @pytest.mark.ros
 @pytest.mark.parametrize('signum', [signal.SIGINT, signal.SIGTERM])
 def test_bringup_sim_without_record_exits_cleanly(signum, tmp_path):
