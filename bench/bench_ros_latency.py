@@ -4,14 +4,14 @@ can_bridge and adrc_controller (real processes, DDS, udp_multicast CAN), and the
 --robot: the robot's configuration. Wall clock, no simulator, the robot's parameter files
 (krang_cli.node_set.params_files(sim=False)) with the device map on private udp_multicast ports,
 DMU samples and the controller's rate_hz at --rate-hz (500) by parameter, plus
-CONTROLLER_OVERRIDES below. A separate process plays the
-devices (bench/device_player.py: DMU, AMC start-up and TPDOs at the timer cycle the bridge writes
-to the drives, the device map's wheels.tpdo_period_ms or --tpdo-period-ms, their phase in the
-sample period drifting by --tpdo-drift-ppm as free-running clocks do, PowerCube modules); the
-robot sits,
-the controller is enabled and asked to stand up, the player pitches the robot up to the nominal
-balance pitch and holds it there quietly (white sensor noise, no physics), the controller goes
-through STAND_UP to BALANCE by its own mode machine, and the measurement runs while it balances.
+CONTROLLER_OVERRIDES below. Two processes play the devices (bench/device_player.py --play dmu:
+the DMU; --play rest: the AMC start-up and TPDOs at the timer cycle the bridge writes to the
+drives, the device map's wheels.tpdo_period_ms or --tpdo-period-ms, their phase in the sample
+period drifting by --tpdo-drift-ppm as free-running clocks do, the PowerCube modules); the robot
+sits, the controller is enabled and asked to stand up, the players pitch the robot up to the
+nominal balance pitch and hold it there quietly (white sensor noise, no physics), the controller
+goes through STAND_UP to BALANCE by its own mode machine, and the measurement runs while it
+balances.
 In the same run, before the nodes start, the bare reference chain (bench/ref_chain.py: CAN ->
 process 1 -> topic -> process 2 -> topic -> process 1 -> CAN, SingleThreadedExecutor) is played
 at the same rate for as long, with the player playing the devices all the while (the TPDO sets
@@ -39,10 +39,14 @@ stepped while a newer one waited sends no command (`samples_superseded`, printed
 too). The bus gives two cross-checks: the new RPDOs per second, and those that follow distinct
 samples by timing alone (the newest sample before each), which undercounts as soon as two
 answers fall between two samples, i.e. whenever the latency jitters around the sample period.
+Along the path: the DMU samples the player played (it plays a period it was late for late, in
+order, as a device's transmit queue would; how many went out over a period late is printed) and
+the /imu/data samples can_bridge published (its diagnostics' count).
 Scheduling: can_bridge and adrc_controller run under SCHED_FIFO at the robot's
 `thread_priority` (config/krang_params.yaml, 40; krang_ros/realtime.py), the reference chain alike
-(a fair reference runs as the nodes run), and the device player PLAYER_PRIORITY_ABOVE higher (it
-stands in for devices that have their own processors), where permitted. --thread-priority N sets
+(a fair reference runs as the nodes run), and the device players PLAYER_PRIORITY_ABOVE higher
+(the DMU's one more), both on one CPU (players_setup; they stand in for devices that have their
+own processors), where permitted. --thread-priority N sets
 the nodes' and the chain's priority instead; 0 puts every process on the default scheduler (then,
 with --load, the measurement is not valid: starved, the player missed its periods and the
 controller stopped on stale data).
@@ -195,20 +199,21 @@ def tpdo_phases_seen(sample_t, tpdo_t, window, bins=10):
     return len(np.unique((phase * bins).astype(int))) / bins
 
 
-def controller_rate(diag, window):
-    """(steps on new samples, of them superseded) per second by adrc_controller's own counts
-    (`samples_stepped`, `samples_superseded` in its 1 Hz diagnostics, as (stamp, stepped,
-    superseded)): between the first report in the window and the last."""
-    inside = [d for d in diag if window[0] <= d[0] <= window[1]]
+def count_rates(reports, window, columns):
+    """Per second, each of `columns` counts of 1 Hz reports (stamp, count, ...): between the
+    first report in the window and the last (nan for each without two)."""
+    inside = [r for r in reports if window[0] <= r[0] <= window[1]]
     if len(inside) < 2:
-        return float('nan'), float('nan')
-    (t0, n0, s0), (t1, n1, s1) = inside[0], inside[-1]
-    return (n1 - n0) / (t1 - t0), (s1 - s0) / (t1 - t0)
+        return (float('nan'),) * columns
+    first, last = inside[0], inside[-1]
+    return tuple((last[k] - first[k]) / (last[0] - first[0]) for k in range(1, columns + 1))
 
 
-def analyse(record, window, rate_hz, diag=(), ref_window=None):
-    """Figures of one --robot run from the player's record and the controller's diagnostics
-    (see the module docstring); the reference chain's from `ref_window` (default `window`)."""
+def analyse(record, window, rate_hz, diag=(), ref_window=None, bridge_diag=()):
+    """Figures of one --robot run from the player's record, the controller's diagnostics (1 Hz
+    reports (stamp, samples_stepped, samples_superseded)) and the bridge's ((stamp, /imu/data
+    samples published)), see the module docstring; the reference chain's from `ref_window`
+    (default `window`)."""
     w0, w1 = window
     duration = w1 - w0
     left = record['cmd_id'] == int(record['left_id'])
@@ -231,7 +236,9 @@ def analyse(record, window, rate_hz, diag=(), ref_window=None):
     r0, r1 = ref_window or window
     tpdo_t = record['tpdo_t']
     ms = lambda x, q: float(1e3 * np.percentile(x, q)) if len(x) else float('nan')  # noqa: E731
-    stepped, superseded = controller_rate(diag, window)
+    late = record['sample_late'][inside]  # how late the player sent each sample
+    stepped, superseded = count_rates(diag, window, 2)
+    (published,) = count_rates(bridge_diag, window, 1)
     out = {
         'p50_ms': ms(lat, 50),
         'p99_ms': ms(lat, 99),
@@ -256,6 +263,9 @@ def analyse(record, window, rate_hz, diag=(), ref_window=None):
             'probe_response_dc2': response,
             'command_noise_dc2': noise,
             'dmu_rate_hz': int(inside.sum()) / duration,
+            'dmu_late_hz': int(np.count_nonzero(late > period)) / duration,
+            'dmu_max_late_ms': float(1e3 * late.max(initial=0.0)),
+            'bridge_imu_rate_hz': published,
             'tpdo_rate_hz': int(np.count_nonzero((tpdo_t >= w0) & (tpdo_t <= w1))) / duration,
             'tpdo_phases_seen': tpdo_phases_seen(st, tpdo_t, window),
             'ref_tpdo_rate_hz': int(np.count_nonzero((tpdo_t >= r0) & (tpdo_t <= r1))) / (r1 - r0),
@@ -351,6 +361,21 @@ def run_robot(
         return fig
 
 
+def players_setup(priority):
+    """The device players' preexec_fn: `child_setup(priority)`, on one CPU. The devices have
+    processors of their own; here the players get one of the two cores, and the DMU's, a priority
+    above the other's, is never late behind the drives' work. On both cores at once (two
+    processes above the nodes), their bursts starved the nodes: p50 1.87-2.52 ms against 1.33-1.43
+    with the drives' player below the nodes (which then played only 467-469 TPDO sets a second)."""
+    setup = child_setup(priority)
+
+    def apply():
+        setup()
+        os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})
+
+    return apply
+
+
 def measure_robot(
     tmp, seconds, rate_hz, load, tpdo_period_ms, tpdo_phase, priority, traced, tpdo_drift_ppm
 ):
@@ -374,33 +399,39 @@ def measure_robot(
         tmp, port, wheels=None if tpdo_period_ms is None else {'tpdo_period_ms': tpdo_period_ms}
     )
     tpdo_period_ms = load_devices(devices_file).wheels.tpdo_period_ms
-    record_file = os.path.join(tmp, 'record.npz')
     py = sys.executable
-    player, player_log = _start(
-        [
-            py,
-            str(BENCH / 'device_player.py'),
-            '--devices',
-            str(devices_file),
-            '--ref-port',
-            str(port + 15),
-            '--rate-hz',
-            str(rate_hz),
-            '--tpdo-phase',
-            str(tpdo_phase),
-            '--tpdo-drift-ppm',
-            str(tpdo_drift_ppm),
-            '--out',
-            record_file,
-        ],
-        logs,
-        'device_player',
-        stdin=subprocess.PIPE,
-        stdout=subprocess.PIPE,
-        text=True,
-        preexec_fn=child_setup(player_rt),
-    )
-    children = [(player, player_log)]
+    # the DMU in a process of its own (device_player.PLAYS), the other devices in another
+    records = {play: os.path.join(tmp, f'record_{play}.npz') for play in ('dmu', 'rest')}
+    children = [
+        _start(
+            [
+                py,
+                str(BENCH / 'device_player.py'),
+                '--play',
+                play,
+                '--devices',
+                str(devices_file),
+                '--ref-port',
+                str(port + 15),
+                '--rate-hz',
+                str(rate_hz),
+                '--tpdo-phase',
+                str(tpdo_phase),
+                '--tpdo-drift-ppm',
+                str(tpdo_drift_ppm),
+                '--out',
+                out,
+            ],
+            logs,
+            f'device_player_{play}',
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            text=True,
+            preexec_fn=players_setup(min(player_rt + (play == 'dmu'), 99) if player_rt else 0),
+        )
+        for play, out in records.items()
+    ]
+    players = [proc for proc, _ in children]
     busy = []
     trace_prefix = os.path.join(tmp, 'trace')
     nodes = NodeSet(
@@ -411,8 +442,10 @@ def measure_robot(
     client = context = None
 
     def tell(word):
-        player.stdin.write(word + '\n')
-        player.stdin.flush()
+        for player in players:
+            if player.poll() is None:
+                player.stdin.write(word + '\n')
+                player.stdin.flush()
 
     def loaded(n):
         return [
@@ -421,8 +454,8 @@ def measure_robot(
         ]
 
     try:
-        if player.stdout.readline().strip() != 'ready':
-            raise RuntimeError(f'device player did not start (see {logs}/device_player.log)')
+        if any(player.stdout.readline().strip() != 'ready' for player in players):
+            raise RuntimeError(f'a device player did not start (see {logs}/device_player_*.log)')
         # 1. the reference chain alone (the nodes not yet started)
         ref = [
             _start(
@@ -451,7 +484,8 @@ def measure_robot(
             _stop(proc)
         # 2. the node set, balancing
         procs = {
-            'device player': player,
+            'DMU player': players[0],
+            'device player': players[1],
             'can_bridge': nodes.start(
                 'can_bridge', {'devices_file': devices_file, 'thread_priority': nodes_rt}
             ),
@@ -462,14 +496,17 @@ def measure_robot(
         }
         client, context = open_session_client()
         diag = []  # the controller's (stamp, samples_stepped, samples_superseded)
+        bridge_diag = []  # the bridge's (stamp, /imu/data samples published)
 
         def on_diag(msg):
+            t = msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
             for status in msg.status:
                 values = {kv.key: kv.value for kv in status.values}
                 if status.name == 'adrc_controller' and 'samples_stepped' in values:
-                    t = msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
                     counts = (int(values['samples_stepped']), int(values['samples_superseded']))
                     diag.append((t, *counts))
+                elif status.name == 'can_bridge: samples published' and names.IMU in values:
+                    bridge_diag.append((t, int(values[names.IMU])))
 
         client.create_subscription(DiagnosticArray, names.DIAGNOSTICS, on_diag, 50)
         try:
@@ -493,8 +530,8 @@ def measure_robot(
         if client is not None:
             client.close()
             rclpy.try_shutdown(context=context)
-        if player.poll() is None:
-            tell('quit')
+        tell('quit')
+        for player in players:
             try:
                 player.wait(20.0)
             except subprocess.TimeoutExpired:
@@ -503,8 +540,10 @@ def measure_robot(
         for proc, log in children:
             _stop(proc)
             log.close()
-    with np.load(record_file) as record:
-        fig = analyse(record, window, rate_hz, diag, ref_window) | {
+    with np.load(records['rest']) as rest, np.load(records['dmu']) as dmu:
+        # the samples from the DMU's player, the rest from the other
+        record = dict(rest) | {k: dmu[k] for k in dmu.files if k.startswith('sample_')}
+        fig = analyse(record, window, rate_hz, diag, ref_window, bridge_diag) | {
             'left_balance': left_modes,
             'real_time': rt_applied,
             'thread_priority': priority,
@@ -551,7 +590,9 @@ def print_robot(fig, load):
         f'command), {fig["configured_rate_hz"]:.0f} Hz configured ({100 * fig["rate_ratio"]:.1f} '
         f'%); on the bus {fig["new_commands_hz"]:.1f} new current commands/s, '
         f'{fig["bus_rate_hz"]:.1f}/s after distinct samples by timing alone; DMU played at '
-        f'{fig["dmu_rate_hz"]:.1f} Hz, TPDO sets at {fig["tpdo_rate_hz"]:.1f} Hz '
+        f'{fig["dmu_rate_hz"]:.1f} Hz ({fig["dmu_late_hz"]:.1f}/s sent over a period late by '
+        f'the player, up to {fig["dmu_max_late_ms"]:.1f} ms), /imu/data published by can_bridge '
+        f'at {fig["bridge_imu_rate_hz"]:.1f} Hz, TPDO sets at {fig["tpdo_rate_hz"]:.1f} Hz '
         f'({fig["ref_tpdo_rate_hz"]:.1f} Hz beside the reference) in '
         f'{10 * fig["tpdo_phases_seen"]:.0f} of 10 tenths of the sample period; SCHED_FIFO: '
         f'{fig["real_time"] or "no"}'

@@ -15,6 +15,9 @@ own bus (--ref-port) at --rate-hz, answered by 0x7E1 with the same counter (benc
 and meanwhile the TPDO sets the drives will send once started (wheels.tpdo_period_ms of the map),
 so that the reference is measured beside the same player load and bus traffic as the nodes.
 
+--play dmu and --play rest split the devices between two processes (the benchmark's way, see
+PLAYS), each writing what it played to its own record; their periods keep their phases.
+
 Every time is the kernel's receive stamp of the frame on this process's own socket (the player
 hears its own frames too), so the figures are those of the bus. Commands on stdin, one a line:
 `stand`, `sit` (back on the caster at once), `probe` (from now on every --probe-every th sample
@@ -32,7 +35,6 @@ even when the answer comes later than the next samples (bench_ros_latency.py).
 import argparse
 import math
 import resource
-import socket
 import sys
 import threading
 import time
@@ -40,7 +42,7 @@ import time
 import can
 import numpy as np
 
-from krang_can_bridge.bus_io import BusReader, receive_only
+from krang_can_bridge.bus_io import BusReader, enlarge_receive_buffer, receive_only
 from krang_can_bridge.config import load_devices
 from krang_can_bridge.protocols import load_dbc
 from krang_can_bridge.protocols import amc as amc_proto
@@ -53,17 +55,22 @@ from krang_sim.devices import KrangCanDevices
 
 REF_REQUEST_ID, REF_ANSWER_ID = 0x7E0, 0x7E1
 REF = 'ref'  # the reference chain's bus
+#: What a player process plays (--play): its jobs. The benchmark runs the DMU in a process of its
+#: own: a Python process playing every device stalled 8-20 ms about 1.5 times a second (its jobs
+#: cost 0.2 ms of CPU each, a few a second 3-6 ms), delaying DMU samples by the drives' work, as
+#: no DMU, a device with its own processor and clock, is.
+PLAYS = {'all': ('dmu', 'ref', 'tpdo'), 'dmu': ('dmu',), 'rest': ('ref', 'tpdo')}
 SIT_PITCH = -1.7628  # on the caster in the pose below (config/sim_params.yaml)
 GYRO_NOISE_RAD_S = 0.001  # about 7 LSB of the DMU
 ACCEL_NOISE_M_S2 = 0.002
-RECEIVE_BUFFER = 4 << 20  # bytes (the kernel caps it at net.core.rmem_max)
 #: A DMU or a drive never drops a period. A frame this process sends late (descheduled on the
-#: shared cores) goes out late and in order, like a frame that waited in a device's transmit queue
-#: while the bus was busy; only a stall longer than this many periods is skipped, rather than
-#: played as a burst no device would send. Skipping every period one period late, the player
-#: played 481-497 of 500 DMU samples a second on the idle 2-core machine, and the control rate of
-#: bench_ros_latency.py measured the player, not the nodes.
-CATCH_UP_PERIODS = 5
+#: shared cores, or in a slow send: the Python player's jobs cost 0.2 ms of CPU each, and a few a
+#: second 3-6 ms) goes out late and in order, like a frame that waited in a device's transmit
+#: queue while the bus was busy; only a stall longer than this many periods (100 ms at 500 Hz) is
+#: skipped. With 5 (10 ms) the player's stalls of 8-20 ms, about 1.5 a second, cost 4-12 of the
+#: 500 samples a second (488-496 played), and the control rate of bench_ros_latency.py measured
+#: the player, not the nodes; every sample's lateness is in the record (`sample_late`).
+CATCH_UP_PERIODS = 50
 TIMER_POLL_S = 0.01  # how often the player looks whether the bridge has set the TPDO timer
 
 
@@ -91,17 +98,6 @@ def balance_pitch(robot, joints):
     q = np.array([joints[j] for j in robot.pose_joints])
     m = base_regressor(robot, q[None])[0] @ robot.nominal_beta
     return -math.atan2(-m[2], m[1])
-
-
-def enlarge_receive_buffer(bus, size=RECEIVE_BUFFER):
-    """The player hears its own frames too (8000 a second on the wheel bus at 500 Hz): with the
-    default socket buffer (about 200 KB, a few hundred frames) a stall of a few tens of ms on a
-    loaded machine would drop frames from the record."""
-    sock = socket.fromfd(bus.fileno(), socket.AF_INET, socket.SOCK_DGRAM)
-    try:
-        sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, size)
-    finally:
-        sock.close()
 
 
 class Pitch:
@@ -148,14 +144,19 @@ class Player:
         self.rpdo_ids = {
             amc_proto.AmcDriveCodec(d, config.wheels, dbc).ids[rpdo]: d.joint for d in self.drives
         }
-        self.buses = {n: can.Bus(**config.buses[n].bus_kwargs()) for n in config.buses_in_use()}
-        self.ref_bus = can.Bus(
-            interface='udp_multicast', channel=args.ref_channel, port=args.ref_port
-        )
+        self.plays = PLAYS[args.play]
+        names = [config.imu.bus] if self.plays == ('dmu',) else config.buses_in_use()
+        self.buses = {n: can.Bus(**config.buses[n].bus_kwargs()) for n in names}
         for name, bus in self.buses.items():
             receive_only(bus, self.heard_ids(name))
-        receive_only(self.ref_bus, (REF_REQUEST_ID, REF_ANSWER_ID))
-        for bus in [*self.buses.values(), self.ref_bus]:
+        if 'ref' in self.plays:
+            self.buses[REF] = can.Bus(
+                interface='udp_multicast', channel=args.ref_channel, port=args.ref_port
+            )
+            receive_only(self.buses[REF], (REF_REQUEST_ID, REF_ANSWER_ID))
+        for bus in self.buses.values():
+            # it hears its own frames too (5,000 a second): the bus_io default queue outlasts
+            # a stall of its receive thread
             enlarge_receive_buffer(bus)
         self.lock = threading.Lock()
         self.stop = threading.Event()
@@ -163,7 +164,7 @@ class Player:
         self.playing_ref = False
         self.probe_sign = -1  # probes alternate in sign, the first is positive
         self.samples = []  # (kernel time of the 0x50 frame, sequence)
-        self.sent = []  # (sequence, probe sign or 0) of every sample sent, in order
+        self.sent = []  # (sequence, probe sign or 0, seconds late) of every sample sent, in order
         self.commands = []  # (kernel time, RPDO id, DC2 raw value)
         self.tpdo_sent = []  # time.time() of each TPDO set sent (real or stand-in drives)
         self.ref = {REF_REQUEST_ID: [], REF_ANSWER_ID: []}  # (kernel time, counter)
@@ -171,10 +172,11 @@ class Player:
     # ---- receive -------------------------------------------------------------------------------
     def heard_ids(self, bus):
         """What the player reads on `bus` (the kernel drops the rest, above all the echoes of its
-        own TPDOs and replies): the host's frames to the devices, and the echo of the DMU's 0x50
-        (the sample's time on the bus)."""
-        ids = self.devices.host_ids(bus)
-        return ids | {ACCELERATIONS_ID} if bus == self.config.imu.bus else ids
+        own TPDOs and replies): the host's frames to the devices it answers, and the echo of the
+        DMU's 0x50 if it plays the DMU (the sample's time on the bus)."""
+        ids = self.devices.host_ids(bus) if 'tpdo' in self.plays else set()
+        dmu = 'dmu' in self.plays and bus == self.config.imu.bus
+        return ids | {ACCELERATIONS_ID} if dmu else ids
 
     def receive(self, name, msg):
         aid = msg.arbitration_id
@@ -217,7 +219,7 @@ class Player:
         for f in frames:
             self.buses[f.bus].send(f.msg)
 
-    def dmu_sample(self, probe_phase):
+    def dmu_sample(self, probe_phase, late):
         q, dq = self.pitch.at(time.monotonic())
         probe = 0
         kick = 0.0
@@ -230,7 +232,7 @@ class Player:
         with self.lock:
             seq = self.devices.imu.sequence
             frames = self.devices.imu_frames_from_pitch(q, dq + kick)
-        self.sent.append((seq, probe))
+        self.sent.append((seq, probe, late))
         self.send(frames)
 
     def tpdos(self, dt):
@@ -256,7 +258,7 @@ class Player:
     def run(self):
         # the sender loop must not wait out Python's 5 ms switch interval behind the receive thread
         sys.setswitchinterval(0.0005)
-        reader = BusReader(self.buses | {REF: self.ref_bus}, self.receive, self.receive_error)
+        reader = BusReader(self.buses, self.receive, self.receive_error)
         threading.Thread(target=self.commands_in, daemon=True).start()
         settle_garbage_collector()  # as the nodes: no full collection pass stalls the samples
         print('ready', flush=True)
@@ -264,13 +266,16 @@ class Player:
         period = 1.0 / a.rate_hz
         # (next time, period, action): DMU samples, the reference frame a quarter period later,
         # the TPDOs --tpdo-phase periods later (free-running drives land anywhere in the period),
-        # at their timer's cycle once the bridge has set it, --tpdo-drift-ppm slower
-        start = time.monotonic() + 0.1
+        # at their timer's cycle once the bridge has set it, --tpdo-drift-ppm slower. The DMU's
+        # periods start at a multiple of the period on CLOCK_MONOTONIC, which every process
+        # shares: players of --play dmu and rest keep these phases.
+        start = (math.floor(time.monotonic() / period) + math.ceil(0.1 / period)) * period
         jobs = [
             [start, period, 'dmu'],
             [start + 0.25 * period, period, 'ref'],
             [start + a.tpdo_phase * period, TIMER_POLL_S, 'tpdo'],
         ]
+        jobs = [j for j in jobs if j[2] in self.plays]
         k = ref = 0
         while not self.stop.is_set():
             job = min(jobs, key=lambda j: j[0])
@@ -278,11 +283,11 @@ class Player:
             if delay > 0:
                 time.sleep(delay)
             if job[2] == 'dmu':
-                self.dmu_sample(k % a.probe_every)
+                self.dmu_sample(k % a.probe_every, time.monotonic() - job[0])
                 k += 1
             elif job[2] == 'ref':
                 if self.playing_ref:
-                    self.ref_bus.send(
+                    self.buses[REF].send(
                         can.Message(
                             arbitration_id=REF_REQUEST_ID,
                             is_extended_id=False,
@@ -302,25 +307,27 @@ class Player:
             file=sys.stderr,
         )
         self.save(a.out)
-        for bus in [*self.buses.values(), self.ref_bus]:
+        for bus in self.buses.values():
             bus.shutdown()
 
     def save(self, path):
-        """The record, with each received sample frame tagged with its probe sign (samples and
-        their echoes are matched in order by sequence counter)."""
+        """The record, with each received sample frame tagged with its probe sign and how late
+        it was sent (samples and their echoes are matched in order by sequence counter)."""
         probe = np.zeros(len(self.samples), np.int8)
+        late = np.zeros(len(self.samples))
         i = 0
         for n, (_, seq) in enumerate(self.samples):
             while i < len(self.sent) and self.sent[i][0] != seq:
                 i += 1
             if i < len(self.sent):
-                probe[n] = self.sent[i][1]
+                probe[n], late[n] = self.sent[i][1:]
                 i += 1
         cmd = np.array(self.commands, float).reshape(-1, 3)
         np.savez(
             path,
             sample_t=np.array([s[0] for s in self.samples]),
             sample_probe=probe,
+            sample_late=late,
             cmd_t=cmd[:, 0],
             cmd_id=cmd[:, 1].astype(int),
             cmd_value=cmd[:, 2],
@@ -334,6 +341,13 @@ class Player:
 def main():
     p = argparse.ArgumentParser(description=__doc__.split('\n')[0])
     p.add_argument('--devices', required=True, help='device map (udp_multicast buses)')
+    p.add_argument(
+        '--play',
+        choices=PLAYS,
+        default='all',
+        help='the devices this process plays: all; the DMU; the rest (the drives, the PowerCube '
+        "modules, the reference chain's end). Its record has what it played",
+    )
     p.add_argument('--ref-channel', default='239.74.163.99')
     p.add_argument('--ref-port', type=int, required=True)
     p.add_argument('--rate-hz', type=float, default=500.0, help='DMU samples per second')

@@ -111,7 +111,7 @@ class AdrcControllerNode(Node):
         self.converged_pub = publisher(Bool, names.BALANCE_CONVERGED, True, topics.LATCHED)
         # Every imu/data sample steps the control law (the observer sees each measurement), but
         # only the newest one waiting sends a command: on_imu takes the queue (topics.STEPPED
-        # keeps 25) in one wake, so a burst of samples from the bridge costs no late commands.
+        # keeps 50) in one wake, so a burst of samples from the bridge costs no late commands.
         self.imu_sub = self.create_subscription(
             Imu, names.relative(names.IMU), self.on_imu, topics.STEPPED
         )

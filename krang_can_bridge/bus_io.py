@@ -8,7 +8,8 @@ SocketCAN through python-can's `can_filters` (CAN_RAW_FILTER), on udp_multicast 
 BPF socket filter on the id in python-can's message encoding (any frame whose encoding it does not
 recognise passes, so the filter only ever drops what it has read). `BusReader` reads all buses
 from one thread with select() instead of one python-can Notifier thread per bus, whose wake-ups
-compete for the GIL with the process's real work.
+compete for the GIL with the process's real work. `enlarge_receive_buffer` gives a bus's socket
+a receive queue that outlasts a stall of the reader.
 
 `SendThread` sends the frames no control loop waits for (the PowerCube polls and moves) from a
 thread of its own, so that the executor, which sends the wheel currents from its command callback,
@@ -31,6 +32,11 @@ from typing import Callable, Iterable, Mapping
 import can
 
 BURST = 16  # frames read from one bus before the others get their turn
+#: Receive queue asked for on every bus socket (the kernel grants twice the request, capped at
+#: twice net.core.rmem_max). The default (rmem_default, 208 KB here) holds 256 udp_multicast
+#: frames (the kernel charges a datagram about 830 bytes): 50 ms of the benchmark's 5,000 frames
+#: a second, so a reader that stalled that long lost frames, DMU samples among them.
+RECEIVE_BUFFER_BYTES = 4 << 20
 SO_ATTACH_FILTER = 26  # linux/socket.h (socket.SO_ATTACH_FILTER is not exported)
 # classic BPF opcodes (linux/filter.h)
 _LD_B_ABS, _LD_H_ABS = 0x30, 0x28
@@ -99,6 +105,23 @@ def receive_only(bus: can.BusABC, ids: Iterable[int]) -> None:
             sock.detach()
         return
     bus.set_filters([{'can_id': i, 'can_mask': 0x7FF, 'extended': False} for i in ids])
+
+
+def enlarge_receive_buffer(bus: can.BusABC, size: int = RECEIVE_BUFFER_BYTES) -> int | None:
+    """Ask for a receive queue of `size` bytes on `bus`'s socket (SocketCAN, udp_multicast);
+    the bytes granted, or None for a bus without a socket (virtual)."""
+    try:
+        fd = bus.fileno()
+    except NotImplementedError:
+        return None
+    if fd < 0:
+        return None
+    sock = socket.socket(fileno=fd)
+    try:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, size)
+        return sock.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF)
+    finally:
+        sock.detach()
 
 
 class BusReader:

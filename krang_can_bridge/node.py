@@ -6,7 +6,9 @@ passes `can_devices.yaml` in config/sim_params.yaml). A bus that cannot be opene
 with one line naming the interface (and, for SocketCAN, the `ip link` command) and exit code 1.
 One receive thread (bus_io.BusReader) feeds the frames of every bus to the core (under a lock),
 so the executor never blocks on CAN; the kernel passes it only the ids the core reads
-(BridgeCore.received_ids, bus_io.receive_only). The node is event-driven: the receive thread
+(BridgeCore.received_ids, bus_io.receive_only), and each socket's receive queue is enlarged
+(bus_io.enlarge_receive_buffer) so that a stall of the thread delays frames instead of losing
+them. The node is event-driven: the receive thread
 publishes each sample as soon as the core says its frames are in (rclpy publishers may be called
 from any thread; the message is built outside the lock), and the wheel current frames go out from
 the command callback. The PowerCube polls and moves go out from a send thread
@@ -78,7 +80,7 @@ from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
 from krang_can_bridge.bridge import IMU_SAMPLE, WHEEL_SAMPLE, BridgeCore, BusFrame
-from krang_can_bridge.bus_io import BusReader, SendThread, receive_only
+from krang_can_bridge.bus_io import BusReader, SendThread, enlarge_receive_buffer, receive_only
 from krang_can_bridge.config import (
     BusConfig,
     ConfigError,
@@ -282,8 +284,10 @@ class CanBridgeNode(Node):
                 b.shutdown()
             logging.getLogger('krang_can_bridge').removeHandler(self._log_handler)
             raise
+        queues = {}  # bus -> receive queue granted (bytes), where the bus has a socket
         for name, bus in self.buses.items():
             receive_only(bus, self.core.received_ids(name))
+            queues[name] = enlarge_receive_buffer(bus)
         self.canopen = canopen.Network(self.buses[self.config.wheels.bus])
 
         qos = topics.QOS
@@ -344,6 +348,7 @@ class CanBridgeNode(Node):
             'can_bridge on '
             + ', '.join(
                 f'{n}={self.config.buses[n].interface}:{self.config.buses[n].channel}'
+                + (f' (receive queue {queues[n] >> 10} KiB)' if queues[n] else '')
                 for n in self.buses
             )
         )

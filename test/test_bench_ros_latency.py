@@ -137,6 +137,7 @@ def test_analyse_gives_the_json_keys_first(bench):
     record = {
         'sample_t': t,
         'sample_probe': probe,
+        'sample_late': np.where(np.arange(len(t)) % 100 == 0, 0.0025, 0.0001),
         'cmd_t': cmd_t,
         'cmd_id': np.full(len(cmd_t), 0x220),
         'cmd_value': cmd_v,
@@ -148,8 +149,10 @@ def test_analyse_gives_the_json_keys_first(bench):
     # the controller's 1 Hz reports (stamp, samples_stepped, samples_superseded): 490 steps/s,
     # 20 of them superseded; one report before the window, which must not count
     reports = [(t[0] + 0.5 * k, 245 * k + (1000 if k == 0 else 0), 10 * k) for k in range(9)]
+    # the bridge's (stamp, /imu/data published): 496 a second
+    published = [(t[0] + 0.5 * k, 248 * k) for k in range(9)]
     window = (t[600], t[-20])
-    fig = bench.analyse(record, window, 500.0, reports)
+    fig = bench.analyse(record, window, 500.0, reports, bridge_diag=published)
     assert tuple(fig)[:6] == bench.JSON_KEYS
     assert fig['match'] == 'probe' and fig['p50_ms'] == pytest.approx(3.1, abs=1e-6)
     assert fig['rate_hz'] == pytest.approx(490.0, rel=1e-9)
@@ -158,6 +161,10 @@ def test_analyse_gives_the_json_keys_first(bench):
     assert fig['ref_p50_ms'] == pytest.approx(1.0, abs=1e-6)
     assert fig['ref_frames'] == 1981 - 600  # the reference frames of the window only
     assert fig['tpdo_rate_hz'] == pytest.approx(250.0, rel=0.01)
+    assert fig['bridge_imu_rate_hz'] == pytest.approx(496.0, rel=1e-9)
+    # one sample in a hundred sent 2.5 ms late, over the 2 ms period: 5 a second
+    assert fig['dmu_late_hz'] == pytest.approx(5.0, rel=0.02)
+    assert fig['dmu_max_late_ms'] == pytest.approx(2.5)
     # the reference measured in a window of its own (before the nodes start)
     ref_only = bench.analyse(record, window, 500.0, reports, ref_window=(t[0], t[99]))
     assert ref_only['ref_frames'] == 100 and ref_only['p50_ms'] == fig['p50_ms']
@@ -209,6 +216,10 @@ def test_robot_run_prints_the_figures_as_json():
     assert fig['tpdo_period_ms'] == 4
     assert fig['tpdo_drift_ppm'] == 100.0 and 0.0 < fig['tpdo_phases_seen'] <= 1.0
     assert 200.0 < fig['tpdo_rate_hz'] <= 251.0 and 200.0 < fig['ref_tpdo_rate_hz'] <= 251.0
+    # the DMU's player (a process of its own) plays every period, late ones late, and the bridge
+    # publishes a sample for each (over 3 s the 1 Hz counts are whole seconds: +-1 sample)
+    assert 495.0 < fig['dmu_rate_hz'] < 505.0
+    assert 490.0 < fig['bridge_imu_rate_hz'] < 510.0
     # --trace: the samples joined across both nodes on their stamps, each stage after the one
     # before, and the sample's traced path (its frame in the bridge's kernel to both current
     # frames sent) of the order of what the player measured on the bus (the first current frame)
@@ -219,6 +230,6 @@ def test_robot_run_prints_the_figures_as_json():
     # the nodes ran at the robot's thread_priority, set by themselves (krang_ros/realtime.py)
     assert fig['thread_priority'] == file_parameter('can_bridge', 'thread_priority', sim=False)
     if os.geteuid() == 0:
-        assert {'can_bridge', 'adrc_controller', 'device player'} <= set(
+        assert {'can_bridge', 'adrc_controller', 'DMU player', 'device player'} <= set(
             fig['real_time'].split(', ')
         ), fig['real_time']

@@ -4,12 +4,20 @@ codecs compiled from the DBC."""
 import random
 import threading
 import time
+from pathlib import Path
 
 import can
 import pytest
 
 from krang_can_bridge.bridge import BridgeCore
-from krang_can_bridge.bus_io import BusReader, Pump, SendThread, receive_only
+from krang_can_bridge.bus_io import (
+    RECEIVE_BUFFER_BYTES,
+    BusReader,
+    Pump,
+    SendThread,
+    enlarge_receive_buffer,
+    receive_only,
+)
 from krang_can_bridge.config import load_devices
 from krang_can_bridge.protocols import FrameLayout, ValueOutOfRange, load_dbc
 from krang_can_bridge.protocols import powercube as pc
@@ -45,6 +53,45 @@ def test_udp_multicast_kernel_filter_passes_only_the_ids_asked_for():
     finally:
         rx.shutdown()
         tx.shutdown()
+
+
+RMEM = ('rmem_default', 'rmem_max')
+
+
+def test_an_enlarged_receive_queue_keeps_the_frames_of_a_stalled_reader():
+    """1,000 frames (0.2 s of the benchmark's buses) sent while nobody reads: the default queue
+    keeps only a few hundred, the enlarged one all of them, in order."""
+    port = random.Random().randrange(20000, 60000, 16)
+    n = 1000
+
+    def kept(enlarge):
+        rx, tx = _bus(port), _bus(port)
+        try:
+            receive_only(rx, {0x181})  # the sender's own echo is not counted
+            if enlarge:
+                assert enlarge_receive_buffer(rx) >= RECEIVE_BUFFER_BYTES  # rmem_max permitting
+            for k in range(n):
+                tx.send(can.Message(arbitration_id=0x181, data=k.to_bytes(2, 'little')))
+            time.sleep(0.2)
+            got = []
+            while (m := rx.recv(0)) is not None:
+                got.append(int.from_bytes(m.data, 'little'))
+            return got
+        finally:
+            rx.shutdown()
+            tx.shutdown()
+
+    rmem = {k: int(Path(f'/proc/sys/net/core/{k}').read_text()) for k in RMEM}
+    if rmem['rmem_default'] <= 212992:  # the kernel's default: a few hundred frames
+        assert len(kept(False)) < n
+    if 2 * rmem['rmem_max'] < 1 << 20:
+        pytest.skip(f'net.core.rmem_max is {rmem["rmem_max"]} bytes: no queue for {n} frames')
+    assert kept(True) == list(range(n))
+    virtual = can.Bus(interface='virtual', channel='enlarge-test')
+    try:
+        assert enlarge_receive_buffer(virtual) is None  # no socket, nothing to enlarge
+    finally:
+        virtual.shutdown()
 
 
 def test_reader_serves_every_bus_while_one_is_flooded():

@@ -17,10 +17,11 @@ from sensor_msgs.msg import Imu, JointState  # noqa: E402
 from krang_adrc_controller.node import AdrcControllerNode  # noqa: E402
 from krang_ros import messages, names, topics  # noqa: E402
 
-#: a burst, and a stall of 20 samples (40 ms at 500 Hz: the sensor-data profile's 5 would drop 15)
-BURSTS = (3, 20)
+#: a burst, a stall of 20 samples (40 ms at 500 Hz: the sensor-data profile's 5 would drop 15)
+#: and one of 45 (90 ms: topics.STEPPED's former 25 would drop 20)
+BURSTS = (3, 20, 45)
 #: the probe keeps every command the controller sends (best effort, as the topic, but deeper)
-EVERY_COMMAND = QoSProfile(depth=50, reliability=ReliabilityPolicy.BEST_EFFORT)
+EVERY_COMMAND = QoSProfile(depth=100, reliability=ReliabilityPolicy.BEST_EFFORT)
 
 
 def spin_until(executor, condition, timeout=5.0):
