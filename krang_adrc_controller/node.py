@@ -148,6 +148,7 @@ class AdrcControllerNode(Node):
         )
         self.create_timer(1.0, self.publish_diagnostics)
         self.last_output = None
+        self.command = None  # the wheel command message, filled again at each step
         self.get_logger().info(
             f'balancing at {self.config.rate_hz:.0f} Hz '
             f'({"on each imu/data sample" if self.step_on_imu else "on a timer"}), stale '
@@ -165,15 +166,16 @@ class AdrcControllerNode(Node):
         wheels (the others are superseded before they could act)."""
         self.samples_t = trace.now() if trace.ON else 0.0
         self.samples_superseded += len(queue) - 1
+        now = self.now()  # the queue's arrival (one clock read: 13 us each on this machine)
         for k, sample in enumerate(queue):
-            self.step_on_sample(sample, command=k == len(queue) - 1)
+            self.step_on_sample(sample, command=k == len(queue) - 1, now=now)
 
-    def step_on_sample(self, msg, command):
+    def step_on_sample(self, msg, command, now):
         q = msg.orientation
         stamp = msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
         a = msg.linear_acceleration
         self.imu = (
-            self.now(),
+            now,
             messages.pitch_from_quaternion(q.x, q.y, q.z, q.w),
             msg.angular_velocity.y,
             stamp,
@@ -181,7 +183,7 @@ class AdrcControllerNode(Node):
         )
         if self.step_on_imu:
             self.timer.reset()
-            self.on_tick(sample_t=stamp, stamp=msg.header.stamp, command=command)
+            self.on_tick(sample_t=stamp, stamp=msg.header.stamp, command=command, now=now)
 
     def on_timer(self):
         """With step_on_imu, the watch: a step only when the newest sample is WATCH_PERIODS old,
@@ -203,20 +205,21 @@ class AdrcControllerNode(Node):
                     return
         self.on_tick()
 
-    def read_joint_states(self):
+    def read_joint_states(self, now=None):
         msg = take_latest(self.joint_sub)
         if msg is not None:
-            self.on_joint_states(msg)
+            self.on_joint_states(msg, now)
 
-    def on_joint_states(self, msg):
-        joints = messages.joints_from_state(msg, self.robot.pose_joints)
-        wheels = messages.joints_from_state(msg, WHEELS)
+    def on_joint_states(self, msg, now=None):
+        index = messages.name_index(msg)
+        joints = messages.joints_from_state(msg, self.robot.pose_joints, index)
+        wheels = messages.joints_from_state(msg, WHEELS, index)
         if joints is None or wheels is None:
             self._warn_joints('joint_states without all body joints and wheels; ignored')
             return
-        rates = messages.velocities_from_state(msg, WHEELS)
+        rates = messages.velocities_from_state(msg, WHEELS, index)
         self.joint_state = (
-            self.now(),
+            self.now() if now is None else now,
             joints,
             wheels,
             rates if rates is not None else np.zeros(2),
@@ -240,9 +243,9 @@ class AdrcControllerNode(Node):
             self.get_logger().info('drive fault cleared by the bridge; recover to power the loop')
         self.controller.set_drive_fault(msg.data)
 
-    def sensors_stale(self):
-        self.read_joint_states()
-        now = self.now()
+    def sensors_stale(self, now=None):
+        now = self.now() if now is None else now
+        self.read_joint_states(now)
         # now == 0: on use_sim_time before the first /clock (its discovery can lag the data topics
         # by seconds under load): every age would read 0, and the first /clock would make them all
         # stale.
@@ -288,13 +291,14 @@ class AdrcControllerNode(Node):
     def on_recover(self, request, response):
         return self.answer(response, self.fresh(self.controller.recover), 'recover')
 
-    def on_tick(self, sample_t=None, stamp=None, command=True):
+    def on_tick(self, sample_t=None, stamp=None, command=True, now=None):
         """One control step. `sample_t`: the time of the IMU sample that triggered it (its header
         stamp, the sample's time at the bridge), so the ESO integrates over the samples' own
         spacing; `stamp`: that header stamp, which the wheel command carries back; `command`:
-        publish the wheel command (not for a sample a newer one already supersedes)."""
-        now = self.now()
-        stale = self.sensors_stale()
+        publish the wheel command (not for a sample a newer one already supersedes); `now`: this
+        node's clock, if the caller has read it."""
+        now = self.now() if now is None else now
+        stale = self.sensors_stale(now)
         if sample_t is None:
             sample_t = now
         if (
@@ -341,13 +345,13 @@ class AdrcControllerNode(Node):
             self.answered_stamp = stamp
             self.samples_stepped += 1
         if command:
-            self.effort_pub.publish(
-                messages.wheel_effort(
-                    self.answered_stamp or self.get_clock().now().to_msg(),
-                    WHEELS,
-                    (out.torque_left, out.torque_right),
-                )
+            self.command = messages.wheel_effort(
+                self.answered_stamp or self.get_clock().now().to_msg(),
+                WHEELS,
+                (out.torque_left, out.torque_right),
+                self.command,
             )
+            self.effort_pub.publish(self.command)
             if trace.ON and stamp is not None:
                 trace.record('step', stamp, self.samples_t, trace.now())
         for event in out.events:

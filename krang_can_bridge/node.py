@@ -270,6 +270,9 @@ class CanBridgeNode(Node):
         self._imu_at, self._imu_interval = -math.inf, math.inf  # arrivals of /imu/data samples
         self._wheel_sample_at = None  # a wheel sample waiting for the next /imu/data
         self.published = {names.IMU: 0, names.JOINT_STATES: 0}
+        # the sample messages, filled again for each sample by the receive thread (the only one
+        # that builds and publishes them; publishing copies): 30-40 us less per message
+        self._imu_msg = self._joint_msg = None
 
         self._log_handler = _RosLogHandler(self.get_logger())
         logging.getLogger('krang_can_bridge').addHandler(self._log_handler)
@@ -424,8 +427,8 @@ class CanBridgeNode(Node):
         if not joints.names:
             return None
         self._joints_published_at = now
-        msg = messages.joint_state(
-            self._stamp(now), joints.names, joints.positions, joints.velocities
+        self._joint_msg = msg = messages.joint_state(
+            self._stamp(now), joints.names, joints.positions, joints.velocities, self._joint_msg
         )
         msg.effort = joints.efforts
         return self.joint_pub, msg, names.JOINT_STATES
@@ -645,14 +648,16 @@ class CanBridgeNode(Node):
         mount = self.config.imu.mount_angle_rad
         e, d = pitch_axis(mount), tilt_direction(mount)
         w, f = imu.rates, imu.specific_force
-        return messages.imu(
+        self._imu_msg = messages.imu(
             stamp,
             self.config.imu.frame_id,
             imu.pitch,
             imu.pitch_variance,
             (-float(d @ w), imu.pitch_rate, w[2]),
             (-float(d @ f), float(e @ f), f[2]),
+            self._imu_msg,
         )
+        return self._imu_msg
 
     def publish_diagnostics(self) -> None:
         with self._lock:

@@ -19,13 +19,16 @@ LEVEL_NAMES = ('ok', 'warn', 'error', 'stale')  # by DiagnosticStatus level numb
 UNOBSERVED_VARIANCE = 1e6  # REP-145: a large variance for an orientation axis not measured
 
 
-def joint_state(stamp, names, positions, velocities=None):
-    msg = JointState()
+def joint_state(stamp, names, positions, velocities=None, out=None):
+    """A JointState; `out`: one this built, filled again instead of building one (see
+    wheel_effort); its effort is left to the caller."""
+    msg = JointState() if out is None else out
     msg.header.stamp = stamp
-    msg.name = list(names)
+    names = list(names)
+    if out is None or msg.name != names:
+        msg.name = names
     msg.position = [float(v) for v in positions]
-    if velocities is not None:
-        msg.velocity = [float(v) for v in velocities]
+    msg.velocity = [] if velocities is None else [float(v) for v in velocities]
     return msg
 
 
@@ -39,12 +42,15 @@ def stamp_seconds(stamp):
     return stamp.sec + stamp.nanosec * 1e-9
 
 
-def wheel_effort(stamp, names, efforts):
+def wheel_effort(stamp, names, efforts, out=None):
     """The wheel command (/wheel_effort_cmd): efforts [N m] by joint name, stamped with the
-    sample it answers (the convention of effort-commanded joints)."""
-    msg = JointState()
+    sample it answers (the convention of effort-commanded joints). `out`: a command this built
+    for the same `names`, filled again instead of building one (a JointState costs about 30 us
+    to build here; publishing copies the message, so a publisher may reuse it)."""
+    msg = JointState() if out is None else out
     msg.header.stamp = stamp
-    msg.name = list(names)
+    if out is None:
+        msg.name = list(names)
     msg.effort = [float(v) for v in efforts]
     return msg
 
@@ -60,22 +66,33 @@ def wheel_efforts(msg, names):
     return [msg.effort[index[n]] for n in names]
 
 
-def joints_from_state(msg, names):
+def name_index(msg):
+    """Each name's position in a JointState (give it to the readers below to read one message
+    several times without indexing it again)."""
+    return {n: i for i, n in enumerate(msg.name)}
+
+
+def joints_from_state(msg, names, index=None):
     """Positions of `names` (in that order) from a JointState; None if any is missing or not
     finite."""
-    index = {n: i for i, n in enumerate(msg.name)}
-    if any(n not in index or index[n] >= len(msg.position) for n in names):
-        return None
-    values = np.array([msg.position[index[n]] for n in names], dtype=float)
-    return values if np.all(np.isfinite(values)) else None
+    return _values(msg.position, names, name_index(msg) if index is None else index)
 
 
-def velocities_from_state(msg, names):
-    index = {n: i for i, n in enumerate(msg.name)}
+def velocities_from_state(msg, names, index=None):
+    """Velocities of `names`, as joints_from_state; None also unless every joint has one."""
     if len(msg.velocity) != len(msg.name):
         return None
-    values = np.array([msg.velocity[index[n]] for n in names if n in index], dtype=float)
-    return values if values.size == len(names) and np.all(np.isfinite(values)) else None
+    return _values(msg.velocity, names, name_index(msg) if index is None else index)
+
+
+def _values(column, names, index):
+    """column[index[n]] for each of `names` as a float array; None if one is missing or not
+    finite. `column` is read once (a message's field is a property)."""
+    try:
+        values = np.array([column[index[n]] for n in names], dtype=float)
+    except (KeyError, IndexError):
+        return None
+    return values if np.all(np.isfinite(values)) else None
 
 
 def labelled_array(values, labels, label='beta'):
@@ -125,24 +142,28 @@ def pitch_from_specific_force(x, y, z, gravity, tol=0.05):
     return math.atan2(-x, z)
 
 
-def imu(stamp, frame_id, pitch, pitch_variance, angular_velocity, linear_acceleration):
+def imu(stamp, frame_id, pitch, pitch_variance, angular_velocity, linear_acceleration, out=None):
     """sensor_msgs/Imu of a pitch-only orientation (pitch_quaternion); roll and yaw are not
-    observed, so their variances are UNOBSERVED_VARIANCE. Vectors are (x, y, z)."""
-    m = Imu()
+    observed, so their variances are UNOBSERVED_VARIANCE. Vectors are (x, y, z). `out`: one this
+    built for the same `frame_id`, filled again instead of building one (see wheel_effort)."""
+    m = Imu() if out is None else out
     m.header.stamp = stamp
-    m.header.frame_id = frame_id
     m.orientation.x, m.orientation.y, m.orientation.z, m.orientation.w = pitch_quaternion(pitch)
-    m.orientation_covariance = [
-        UNOBSERVED_VARIANCE,
-        0.0,
-        0.0,
-        0.0,
-        float(pitch_variance),
-        0.0,
-        0.0,
-        0.0,
-        UNOBSERVED_VARIANCE,
-    ]
+    if out is None:
+        m.header.frame_id = frame_id
+        m.orientation_covariance = [
+            UNOBSERVED_VARIANCE,
+            0.0,
+            0.0,
+            0.0,
+            float(pitch_variance),
+            0.0,
+            0.0,
+            0.0,
+            UNOBSERVED_VARIANCE,
+        ]
+    else:
+        m.orientation_covariance[4] = float(pitch_variance)
     w, f = angular_velocity, linear_acceleration
     m.angular_velocity.x, m.angular_velocity.y, m.angular_velocity.z = (float(v) for v in w)
     m.linear_acceleration.x, m.linear_acceleration.y, m.linear_acceleration.z = (
