@@ -56,9 +56,9 @@ from krang_sim.devices import KrangCanDevices
 REF_REQUEST_ID, REF_ANSWER_ID = 0x7E0, 0x7E1
 REF = 'ref'  # the reference chain's bus
 #: What a player process plays (--play): its jobs. The benchmark runs the DMU in a process of its
-#: own: a Python process playing every device stalled 8-20 ms about 1.5 times a second (its jobs
-#: cost 0.2 ms of CPU each, a few a second 3-6 ms), delaying DMU samples by the drives' work, as
-#: no DMU, a device with its own processor and clock, is.
+#: own: one Python process playing every device delayed the DMU's samples behind the drives' work
+#: (its jobs cost 0.2 ms of CPU each, a few a second 3-6 ms; it was 8-20 ms late about 1.5 times
+#: a second), which a DMU, a device with its own processor and clock, never is.
 PLAYS = {'all': ('dmu', 'ref', 'tpdo'), 'dmu': ('dmu',), 'rest': ('ref', 'tpdo')}
 SIT_PITCH = -1.7628  # on the caster in the pose below (config/sim_params.yaml)
 GYRO_NOISE_RAD_S = 0.001  # about 7 LSB of the DMU
@@ -155,8 +155,7 @@ class Player:
             )
             receive_only(self.buses[REF], (REF_REQUEST_ID, REF_ANSWER_ID))
         for bus in self.buses.values():
-            # it hears its own frames too (5,000 a second): the bus_io default queue outlasts
-            # a stall of its receive thread
+            # it hears its own frames too: the bus_io queue outlasts a stall of its receive thread
             enlarge_receive_buffer(bus)
         self.lock = threading.Lock()
         self.stop = threading.Event()

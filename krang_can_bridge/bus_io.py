@@ -35,7 +35,8 @@ BURST = 16  # frames read from one bus before the others get their turn
 #: Receive queue asked for on every bus socket (the kernel grants twice the request, capped at
 #: twice net.core.rmem_max). The default (rmem_default, 208 KB here) holds 256 udp_multicast
 #: frames (the kernel charges a datagram about 830 bytes): 50 ms of the benchmark's 5,000 frames
-#: a second, so a reader that stalled that long lost frames, DMU samples among them.
+#: a second, so a reader that stalled that long lost frames: DMU samples, and it could as well
+#: have been a drive's EMCY.
 RECEIVE_BUFFER_BYTES = 4 << 20
 SO_ATTACH_FILTER = 26  # linux/socket.h (socket.SO_ATTACH_FILTER is not exported)
 # classic BPF opcodes (linux/filter.h)

@@ -420,7 +420,8 @@ class CanBridgeNode(Node):
             imu = self.core.imu_state(now)
             if imu is None:
                 return None
-            return self.imu_pub, self._imu_message(imu, self._stamp(imu.stamp)), names.IMU
+            self._imu_msg = self._imu_message(imu, self._stamp(imu.stamp), self._imu_msg)
+            return self.imu_pub, self._imu_msg, names.IMU
         if sample != WHEEL_SAMPLE or now - self._joints_published_at < 0.999 * self._joint_period:
             return None
         joints = self.core.joint_state(now)
@@ -642,22 +643,22 @@ class CanBridgeNode(Node):
         self.send(frames)
 
     # ---- state out ------------------------------------------------------------------------------
-    def _imu_message(self, imu, stamp) -> Imu:
+    def _imu_message(self, imu, stamp, out=None) -> Imu:
         """The DMU's rates and specific force turned by the mount angle into x forward, y left,
-        z up (at zero pitch); the pitch rate is the filtered one."""
+        z up (at zero pitch); the pitch rate is the filtered one. `out`: an Imu to fill again
+        (messages.imu)."""
         mount = self.config.imu.mount_angle_rad
         e, d = pitch_axis(mount), tilt_direction(mount)
         w, f = imu.rates, imu.specific_force
-        self._imu_msg = messages.imu(
+        return messages.imu(
             stamp,
             self.config.imu.frame_id,
             imu.pitch,
             imu.pitch_variance,
             (-float(d @ w), imu.pitch_rate, w[2]),
             (-float(d @ f), float(e @ f), f[2]),
-            self._imu_msg,
+            out,
         )
-        return self._imu_msg
 
     def publish_diagnostics(self) -> None:
         with self._lock:
