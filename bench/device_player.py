@@ -1,4 +1,4 @@
-"""The robot's CAN devices in a process of their own, for `bench_ros_latency.py --robot`.
+"""The robot's CAN devices in two processes of their own, for `bench_ros_latency.py --robot`.
 
 It plays the buses of a device map (udp_multicast, e.g. krang_sim.session_config's private ports)
 with the emulators of krang_sim/devices.py, which speak through the bridge's own codecs: the DMU
@@ -15,8 +15,9 @@ own bus (--ref-port) at --rate-hz, answered by 0x7E1 with the same counter (benc
 and meanwhile the TPDO sets the drives will send once started (wheels.tpdo_period_ms of the map),
 so that the reference is measured beside the same player load and bus traffic as the nodes.
 
---play dmu and --play rest split the devices between two processes (the benchmark's way, see
-PLAYS), each writing what it played to its own record; their periods keep their phases.
+Each process plays part of them (--play, see PLAYS): `dmu` the DMU, `rest` the drives, the
+PowerCube modules and the reference chain's end. Each writes what it played to its own record,
+and their periods keep their phases.
 
 Every time is the kernel's receive stamp of the frame on this process's own socket (the player
 hears its own frames too), so the figures are those of the bus. Commands on stdin, one a line:
@@ -59,7 +60,7 @@ REF = 'ref'  # the reference chain's bus
 #: own: one Python process playing every device delayed the DMU's samples behind the drives' work
 #: (its jobs cost 0.2 ms of CPU each, a few a second 3-6 ms; it was 8-20 ms late about 1.5 times
 #: a second), which a DMU, a device with its own processor and clock, never is.
-PLAYS = {'all': ('dmu', 'ref', 'tpdo'), 'dmu': ('dmu',), 'rest': ('ref', 'tpdo')}
+PLAYS = {'dmu': ('dmu',), 'rest': ('ref', 'tpdo')}
 SIT_PITCH = -1.7628  # on the caster in the pose below (config/sim_params.yaml)
 GYRO_NOISE_RAD_S = 0.001  # about 7 LSB of the DMU
 ACCEL_NOISE_M_S2 = 0.002
@@ -343,9 +344,9 @@ def main():
     p.add_argument(
         '--play',
         choices=PLAYS,
-        default='all',
-        help='the devices this process plays: all; the DMU; the rest (the drives, the PowerCube '
-        "modules, the reference chain's end). Its record has what it played",
+        required=True,
+        help='the devices this process plays: the DMU, or the rest (the drives, the PowerCube '
+        "modules, the reference chain's end); its record has what it played",
     )
     p.add_argument('--ref-channel', default='239.74.163.99')
     p.add_argument('--ref-port', type=int, required=True)
