@@ -110,23 +110,30 @@ def test_sigint_at_random_moments_of_the_start(tmp_path):
         busy.kill()
 
 
+def run_as_node(name, main):
+    """Script lines that register `main` (an expression: a function of the node's arguments) as
+    the node executable `name` and run it through krang_ros.entry, as `krang` runs a node."""
+    return f"""
+node = types.ModuleType('{name}')
+node.describe_parameters = lambda: []
+node.main = {main}
+sys.modules['{name}'] = node
+entry.NODE_MODULES['{name}'] = '{name}'
+sys.exit(entry.run('{name}', []))
+"""
+
+
 HANGING_NODE = """
 import sys, time, types
 from krang_ros import entry
-node = types.ModuleType('hanging_node')
-node.describe_parameters = lambda: []
 def main(args):
     try:
         print('spinning', flush=True)
         time.sleep(600)
     finally:
         time.sleep(600)  # a clean stop that never ends
-node.main = main
-sys.modules['hanging_node'] = node
-entry.NODE_MODULES['hanging_node'] = 'hanging_node'
 entry.STOP_DEADLINE_S = 1.0
-sys.exit(entry.run('hanging_node', []))
-"""
+""" + run_as_node('hanging_node', 'main')
 
 
 def spinning_script(script):
@@ -177,14 +184,7 @@ class Churn(Node):
 
     def close(self):
         print('closed', flush=True)
-
-node = types.ModuleType('churn_node')
-node.describe_parameters = lambda: []
-node.main = lambda args: run_node(Churn, args)
-sys.modules['churn_node'] = node
-entry.NODE_MODULES['churn_node'] = 'churn_node'
-sys.exit(entry.run('churn_node', []))
-"""
+""" + run_as_node('churn_node', 'lambda args: run_node(Churn, args)')
 
 
 @pytest.mark.ros
@@ -224,13 +224,7 @@ def exit_hook():  # like concurrent.futures' (rclpy's executor imports it)
     time.sleep(0.4)
 
 threading._register_atexit(exit_hook)
-node = types.ModuleType('slow_stop_node')
-node.describe_parameters = lambda: []
-node.main = lambda args: run_node(SlowStop, args)
-sys.modules['slow_stop_node'] = node
-entry.NODE_MODULES['slow_stop_node'] = 'slow_stop_node'
-sys.exit(entry.run('slow_stop_node', []))
-"""
+""" + run_as_node('slow_stop_node', 'lambda args: run_node(SlowStop, args)')
 
 
 @pytest.mark.ros
