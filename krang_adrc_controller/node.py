@@ -8,8 +8,10 @@ the timer fired just before the bridge's next sample arrived and so used a sampl
 watches: if no sample has driven the loop for three periods it steps anyway, so stale data still
 end in a safe stop; each sample restarts it, so it costs no executor wake (about 0.2 ms of CPU
 here, a tenth of a 500 Hz period) while samples flow. /joint_states is read by each step, not by
-a callback of its own, for the same reason. If either input is older than `stale_timeout_s`,
-the controller is told the data are stale and commands zero torque (safe stop) until recovered.
+a callback of its own, for the same reason. Both are taken as their serialized bytes and read by
+krang_ros.wire, and the wheel command goes out as bytes: rclpy's message objects cost 50-70 us
+each here. If either input is older than `stale_timeout_s`, the controller is told the data are
+stale and commands zero torque (safe stop) until recovered.
 
 The operator's controls are node-private services (README, "Running on the robot"): ~/enable
 (SetBool), ~/stand_up, ~/sit_down, ~/halt, ~/recover (Trigger). Each answers at once, accepted or
@@ -31,7 +33,7 @@ from std_srvs.srv import SetBool, Trigger
 
 from krang_model.beta import load_beta
 from krang_model.robot import load_krang
-from krang_ros import messages, names, params, realtime, topics, trace
+from krang_ros import messages, names, params, realtime, topics, trace, wire
 from krang_ros.log import Throttled
 from krang_ros.names import WHEEL_JOINTS as WHEELS
 from krang_ros.spin import Polled, run_node, take_latest, take_waiting
@@ -90,6 +92,8 @@ class AdrcControllerNode(Node):
         self.imu = None
         self.joint_state = None
         self._warn_joints = Throttled(self.get_logger().warning, 5.0)
+        self._warn_imu = Throttled(self.get_logger().warning, 5.0)
+        self._joint_names, self._joint_index = None, None  # of the last joint_states read
         self.target = None
         self.motion = JointMotion()  # the joints move (measured), from /joint_states positions
         self.answered_stamp = None  # header stamp of the last imu/data sample stepped on
@@ -112,8 +116,9 @@ class AdrcControllerNode(Node):
         # Every imu/data sample steps the control law (the observer sees each measurement), but
         # only the newest one waiting sends a command: on_imu takes the queue (topics.STEPPED
         # keeps 50) in one wake, so a burst of samples from the bridge costs no late commands.
+        # The control path's messages are taken and published as bytes (krang_ros.wire).
         self.imu_sub = self.create_subscription(
-            Imu, names.relative(names.IMU), self.on_imu, topics.STEPPED
+            Imu, names.relative(names.IMU), self.on_imu, topics.STEPPED, raw=True
         )
         # joint_states is read by each control step (read_joint_states), not by a callback: one
         # executor wake per sample, not two
@@ -123,6 +128,7 @@ class AdrcControllerNode(Node):
             self.on_joint_states,
             topics.LATEST,
             callback_group=Polled(),
+            raw=True,
         )
         self.create_subscription(
             Float64MultiArray, names.relative(names.BETA), self.on_beta, qos[names.BETA]
@@ -148,7 +154,6 @@ class AdrcControllerNode(Node):
         )
         self.create_timer(1.0, self.publish_diagnostics)
         self.last_output = None
-        self.command = None  # the wheel command message, filled again at each step
         self.get_logger().info(
             f'balancing at {self.config.rate_hz:.0f} Hz '
             f'({"on each imu/data sample" if self.step_on_imu else "on a timer"}), stale '
@@ -158,32 +163,39 @@ class AdrcControllerNode(Node):
     def now(self):
         return self.get_clock().now().nanoseconds * 1e-9
 
-    def on_imu(self, msg):
-        self.on_samples([msg, *take_waiting(self.imu_sub)])
+    def on_imu(self, raw):
+        self.on_samples([raw, *take_waiting(self.imu_sub)])
 
     def on_samples(self, queue):
-        """Steps on each sample of `queue` in order; only the last step's command goes to the
-        wheels (the others are superseded before they could act)."""
+        """Steps on each sample of `queue` (serialized /imu/data messages) in order; only the last
+        step's command goes to the wheels (the others are superseded before they could act). A
+        message that is not an Imu is skipped: no step on it (the stale timeout still guards)."""
         self.samples_t = trace.now() if trace.ON else 0.0
         self.samples_superseded += len(queue) - 1
         now = self.now()  # the queue's arrival (one clock read: 13 us each on this machine)
-        for k, sample in enumerate(queue):
+        for k, raw in enumerate(queue):
+            try:
+                sample = wire.read_imu(raw)
+            except wire.WireError as err:
+                self._warn_imu(f'{names.IMU}: {err}; skipped')
+                continue
             self.step_on_sample(sample, command=k == len(queue) - 1, now=now)
 
-    def step_on_sample(self, msg, command, now):
-        q = msg.orientation
-        stamp = msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
-        a = msg.linear_acceleration
+    def step_on_sample(self, sample, command, now):
+        """One imu/data sample (a wire.ImuSample) in; a step if step_on_imu."""
+        stamp = sample.stamp
+        t = stamp.sec + stamp.nanosec * 1e-9
+        a = sample.linear_acceleration
         self.imu = (
             now,
-            messages.pitch_from_quaternion(q.x, q.y, q.z, q.w),
-            msg.angular_velocity.y,
-            stamp,
-            messages.pitch_from_specific_force(a.x, a.y, a.z, self.controller.drive.gravity),
+            messages.pitch_from_quaternion(*sample.orientation),
+            sample.angular_velocity[1],
+            t,
+            messages.pitch_from_specific_force(*a, self.controller.drive.gravity),
         )
         if self.step_on_imu:
             self.timer.reset()
-            self.on_tick(sample_t=stamp, stamp=msg.header.stamp, command=command, now=now)
+            self.on_tick(sample_t=t, stamp=stamp, command=command, now=now)
 
     def on_timer(self):
         """With step_on_imu, the watch: a step only when the newest sample is WATCH_PERIODS old,
@@ -206,12 +218,19 @@ class AdrcControllerNode(Node):
         self.on_tick()
 
     def read_joint_states(self, now=None):
-        msg = take_latest(self.joint_sub)
-        if msg is not None:
-            self.on_joint_states(msg, now)
+        raw = take_latest(self.joint_sub)
+        if raw is not None:
+            self.on_joint_states(raw, now)
 
-    def on_joint_states(self, msg, now=None):
-        index = messages.name_index(msg)
+    def on_joint_states(self, raw, now=None):
+        try:
+            msg = wire.read_joint_state(raw)
+        except wire.WireError as err:
+            self._warn_joints(f'{names.JOINT_STATES}: {err}; ignored')
+            return
+        if msg.name != self._joint_names:  # the bridge's names, the same in every message
+            self._joint_names, self._joint_index = msg.name, messages.name_index(msg)
+        index = self._joint_index
         joints = messages.joints_from_state(msg, self.robot.pose_joints, index)
         wheels = messages.joints_from_state(msg, WHEELS, index)
         if joints is None or wheels is None:
@@ -345,13 +364,13 @@ class AdrcControllerNode(Node):
             self.answered_stamp = stamp
             self.samples_stepped += 1
         if command:
-            self.command = messages.wheel_effort(
-                self.answered_stamp or self.get_clock().now().to_msg(),
-                WHEELS,
-                (out.torque_left, out.torque_right),
-                self.command,
+            self.effort_pub.publish(
+                messages.wheel_effort(
+                    self.answered_stamp or self.get_clock().now().to_msg(),
+                    WHEELS,
+                    (out.torque_left, out.torque_right),
+                )
             )
-            self.effort_pub.publish(self.command)
             if trace.ON and stamp is not None:
                 trace.record('step', stamp, self.samples_t, trace.now())
         for event in out.events:

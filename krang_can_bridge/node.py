@@ -8,10 +8,11 @@ One receive thread (bus_io.BusReader) feeds the frames of every bus to the core 
 so the executor never blocks on CAN; the kernel passes it only the ids the core reads
 (BridgeCore.received_ids, bus_io.receive_only), and each socket's receive queue is enlarged
 (bus_io.enlarge_receive_buffer) so that a stall of the thread delays frames instead of losing
-them. The node is event-driven: the receive thread
-publishes each sample as soon as the core says its frames are in (rclpy publishers may be called
-from any thread; the message is built outside the lock), and the wheel current frames go out from
-the command callback. The PowerCube polls and moves go out from a send thread
+them. The node is event-driven: the receive thread publishes each sample as soon as the core
+says its frames are in (rclpy publishers may be called from any thread; the message is published
+outside the lock), and the wheel current frames go out from the command callback. The control
+path's messages (/imu/data, /joint_states, the wheel command) are written and read as their
+serialized bytes (krang_ros.wire). The PowerCube polls and moves go out from a send thread
 (bus_io.SendThread), so that the executor is free for the next command while they are sent. The
 AMC start-up and the recovery (blocking SDO transfers through canopen) run in their own threads,
 and so does the drive-side watchdog's heartbeat, which the core withholds when the wheel command
@@ -25,7 +26,8 @@ Topics:
   sensor-data QoS) on each DMU sample (rates and accelerations of one sequence number), stamped
   with the sample's time; /diagnostics (1 Hz). While the DMU streams, a wheel sample waits for
   the next DMU sample and goes out just before its /imu/data (a newer wheel sample replaces a
-  waiting one): the drives' TPDOs come at any phase of the DMU's period (free-running clocks),
+  waiting one; its message is built as it completes, so the DMU sample pays only its
+  publication): the drives' TPDOs come at any phase of the DMU's period (free-running clocks),
   and a /joint_states published as they completed fell between a sample and its command (one
   process, one GIL) at most phases. The controller's step on a sample then also has the newest
   wheel sample before it, never one newer than the sample. Once no DMU sample has come for 1.5
@@ -62,6 +64,7 @@ wall time.
 
 from __future__ import annotations
 
+import functools
 import logging
 import math
 import sys
@@ -91,7 +94,7 @@ from krang_can_bridge.config import (
 from krang_can_bridge.imu_filter import pitch_axis, tilt_direction
 from krang_can_bridge.protocols import amc as amc_proto
 from krang_can_bridge.sample_clock import SampleClock
-from krang_ros import messages, names, params, realtime, topics, trace
+from krang_ros import messages, names, params, realtime, topics, trace, wire
 from krang_ros.log import Throttled
 from krang_ros.spin import run_node
 
@@ -102,6 +105,20 @@ CAN_BITRATE = 1000000  # every Krang net runs at 1 Mbit/s (docs/can.md)
 
 def _doc(text: str) -> dict:
     return {'doc': text}
+
+
+@functools.lru_cache(maxsize=4)
+def _sensor_axes(mount_angle_rad: float) -> tuple[tuple[float, ...], tuple[float, ...]]:
+    """The pitch axis and the tilt direction in sensor coordinates, as floats (per sample, the
+    dot products below cost a tenth of numpy's on three elements)."""
+    return (
+        tuple(map(float, pitch_axis(mount_angle_rad))),
+        tuple(map(float, tilt_direction(mount_angle_rad))),
+    )
+
+
+def _dot(a, b) -> float:
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
 
 
 IMU_HOLD_MAX_S = 0.05  # a DMU slower than 20 Hz holds no wheel sample back (module docstring)
@@ -268,11 +285,8 @@ class CanBridgeNode(Node):
         self._joint_period = 1.0 / p.publish_rate_hz if p.publish_rate_hz > 0 else 0.0
         self._joints_published_at = -math.inf
         self._imu_at, self._imu_interval = -math.inf, math.inf  # arrivals of /imu/data samples
-        self._wheel_sample_at = None  # a wheel sample waiting for the next /imu/data
+        self._held_joints = None  # a wheel sample's /joint_states waiting for the next /imu/data
         self.published = {names.IMU: 0, names.JOINT_STATES: 0}
-        # the sample messages, filled again for each sample by the receive thread (the only one
-        # that builds and publishes them; publishing copies): 30-40 us less per message
-        self._imu_msg = self._joint_msg = None
 
         self._log_handler = _RosLogHandler(self.get_logger())
         logging.getLogger('krang_can_bridge').addHandler(self._log_handler)
@@ -306,11 +320,12 @@ class CanBridgeNode(Node):
         )
         self.publish_fault()
         self.create_service(Trigger, '~/recover', self.on_recover)
-        self.create_subscription(
+        self.create_subscription(  # as bytes: the control path (krang_ros.wire)
             JointState,
             names.relative(names.WHEEL_EFFORT_CMD),
             self.on_wheel_effort,
             qos[names.WHEEL_EFFORT_CMD],
+            raw=True,
         )
         self.create_subscription(
             JointState,
@@ -373,17 +388,18 @@ class CanBridgeNode(Node):
                 now = self._imu_sample_time(msg, now)
             fault = self.core.fault_reason
             sample = self.core.on_frame(msg, now, bus)
-            if sample == WHEEL_SAMPLE:
-                self._wheel_sample_at = None
-                if self._imu_due(arrived):  # out just before the next /imu/data (docstring)
-                    self._wheel_sample_at, sample = now, None
-            out = self._sample_message(sample, now) if sample else None
-            held = None
-            if out is not None and out[2] == names.IMU:
-                self._imu_interval, self._imu_at = arrived - self._imu_at, arrived
-                if self._wheel_sample_at is not None:
-                    held = self._sample_message(WHEEL_SAMPLE, self._wheel_sample_at)
-                    self._wheel_sample_at = None
+            out = held = None
+            if sample == IMU_SAMPLE:
+                out = self._imu_out(now)
+                if out is not None:
+                    self._imu_interval, self._imu_at = arrived - self._imu_at, arrived
+                    held, self._held_joints = self._released(self._held_joints), None
+            elif sample == WHEEL_SAMPLE:
+                joints = self._joints_out(now)
+                if not self._imu_due(arrived):  # out now; so is one held for a silent DMU
+                    out, self._held_joints = self._released(joints or self._held_joints), None
+                elif joints is not None:  # out just before the next /imu/data (docstring)
+                    self._held_joints = joints
             # a drive fault this frame latched: zero current at once, not at the next command
             stop = (
                 self.core.wheel_current_frames(0.0, 0.0, self._device_time())
@@ -402,9 +418,12 @@ class CanBridgeNode(Node):
                 return  # shut down by a signal under this thread; close() follows
             self.published[sample_out[2]] += 1
         if trace.ON and out is not None and out[2] == names.IMU:
-            trace.record('imu_in', out[1].header.stamp, msg.timestamp, t_in, trace.now())
-        if bus == self.config.wheels.bus and not msg.is_error_frame:
-            # SDO responses for the start-up
+            trace.record('imu_in', out[3], msg.timestamp, t_in, trace.now())
+        if (
+            bus == self.config.wheels.bus
+            and not msg.is_error_frame
+            and msg.arbitration_id in self.canopen.subscribers  # SDO responses, for the start-up
+        ):
             self.canopen.notify(msg.arbitration_id, msg.data, msg.timestamp)
 
     def _imu_due(self, now: float) -> bool:
@@ -413,26 +432,35 @@ class CanBridgeNode(Node):
         interval = self._imu_interval
         return interval <= IMU_HOLD_MAX_S and now - self._imu_at < 1.5 * interval
 
-    def _sample_message(self, sample: str, now: float):
-        """(publisher, message, topic) of the sample a frame completed at `now`, or None (a
-        /joint_states sample beyond publish_rate_hz, a silent device); called under the lock."""
-        if sample == IMU_SAMPLE:
-            imu = self.core.imu_state(now)
-            if imu is None:
-                return None
-            self._imu_msg = self._imu_message(imu, self._stamp(imu.stamp), self._imu_msg)
-            return self.imu_pub, self._imu_msg, names.IMU
-        if sample != WHEEL_SAMPLE or now - self._joints_published_at < 0.999 * self._joint_period:
+    def _imu_out(self, now: float):
+        """(publisher, message as CDR bytes, topic, stamp) of the DMU sample a frame completed at
+        `now`, or None while the filter has no estimate; called under the lock."""
+        imu = self.core.imu_state(now)
+        if imu is None:
+            return None
+        stamp = self._stamp(imu.stamp)
+        return self.imu_pub, self._imu_message(imu, stamp), names.IMU, stamp
+
+    def _joints_out(self, now: float):
+        """As _imu_out, of the wheel sample completed at `now`, and its time; None beyond
+        publish_rate_hz (counted from the last one released) or with no joint known. Built as the
+        sample completes, so that a held one costs the next /imu/data only its publication."""
+        if now - self._joints_published_at < 0.999 * self._joint_period:
             return None
         joints = self.core.joint_state(now)
         if not joints.names:
             return None
-        self._joints_published_at = now
-        self._joint_msg = msg = messages.joint_state(
-            self._stamp(now), joints.names, joints.positions, joints.velocities, self._joint_msg
+        stamp = self._stamp(now)
+        msg = wire.joint_state_bytes(
+            stamp, joints.names, joints.positions, joints.velocities, joints.efforts
         )
-        msg.effort = joints.efforts
-        return self.joint_pub, msg, names.JOINT_STATES
+        return self.joint_pub, msg, names.JOINT_STATES, stamp, now
+
+    def _released(self, joints):
+        """`joints` (from _joints_out, or None) on its way out: the publish rate counts from it."""
+        if joints is not None:
+            self._joints_published_at = joints[4]
+        return joints
 
     def _stamp(self, t: float):
         return messages.stamp(t + self._stamp_offset)
@@ -591,17 +619,22 @@ class CanBridgeNode(Node):
             time.sleep(0.01)
 
     # ---- commands -------------------------------------------------------------------------------
-    def on_wheel_effort(self, msg: JointState) -> None:
-        """Sends the current frames at once (the wheels' efforts by name; anything else is one
-        invalid command: zero current on both wheels)."""
+    def on_wheel_effort(self, raw: bytes) -> None:
+        """Sends the current frames at once (the wheels' efforts by name; anything else, bytes
+        that are not a JointState included, is one invalid command: zero current on both
+        wheels)."""
         t_in = trace.now() if trace.ON else 0.0
-        efforts = messages.wheel_efforts(msg, names.WHEEL_JOINTS)
+        try:
+            msg = wire.read_joint_state(raw)
+        except wire.WireError:
+            msg = None
+        efforts = None if msg is None else messages.wheel_efforts(msg, names.WHEEL_JOINTS)
         with self._lock:
             self.core.set_wheel_effort_command(efforts, self._device_time())
             frames = self.core.wheel_command_frames(self._device_time())
         self.send(frames)
-        if trace.ON:
-            trace.record('cmd_out', msg.header.stamp, t_in, trace.now())
+        if trace.ON and msg is not None:
+            trace.record('cmd_out', msg.stamp, t_in, trace.now())
         self.watchdog_timer.reset()  # quiet while commands flow (it would send nothing)
         self.publish_fault()  # the watchdog's other job
 
@@ -643,21 +676,19 @@ class CanBridgeNode(Node):
         self.send(frames)
 
     # ---- state out ------------------------------------------------------------------------------
-    def _imu_message(self, imu, stamp, out=None) -> Imu:
-        """The DMU's rates and specific force turned by the mount angle into x forward, y left,
-        z up (at zero pitch); the pitch rate is the filtered one. `out`: an Imu to fill again
-        (messages.imu)."""
-        mount = self.config.imu.mount_angle_rad
-        e, d = pitch_axis(mount), tilt_direction(mount)
+    def _imu_message(self, imu, stamp) -> bytes:
+        """The /imu/data message (CDR bytes, messages.imu): the DMU's rates and specific force
+        turned by the mount angle into x forward, y left, z up (at zero pitch); the pitch rate is
+        the filtered one."""
+        e, d = _sensor_axes(self.config.imu.mount_angle_rad)
         w, f = imu.rates, imu.specific_force
         return messages.imu(
             stamp,
             self.config.imu.frame_id,
             imu.pitch,
             imu.pitch_variance,
-            (-float(d @ w), imu.pitch_rate, w[2]),
-            (-float(d @ f), float(e @ f), f[2]),
-            out,
+            (-_dot(d, w), imu.pitch_rate, w[2]),
+            (-_dot(d, f), _dot(e, f), f[2]),
         )
 
     def publish_diagnostics(self) -> None:

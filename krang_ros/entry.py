@@ -74,13 +74,15 @@ _unwinding = False  # _exit_quietly raised its SystemExit
 
 
 def interrupt(signum, frame):
-    """SIGINT for a command that runs a session in its own process (`krang demo`): Python's
-    KeyboardInterrupt, and STOP_REQUESTED for the session loop (krang_ros.session_client), which
-    stops on it where the KeyboardInterrupt was lost in a finalizer (a Ctrl-C of the demo once
-    ran the session to its end)."""
-    STOP_REQUESTED.set()
-    if not _in_finalizer(frame):
+    """SIGINT for a command that runs a session in its own process (`krang demo`). The first sets
+    STOP_REQUESTED only, and the session loop (krang_ros.session_client) stops at its next step,
+    between two calls into rclpy: a KeyboardInterrupt raised wherever the signal lands can leave
+    a library mid-call (rclpy turned one inside a message's conversion into a RuntimeError
+    traceback; a demo once hung in its close after one, and in a finalizer one is lost). A second
+    Ctrl-C raises KeyboardInterrupt at once, outside a finalizer."""
+    if STOP_REQUESTED.is_set() and not _in_finalizer(frame):
         raise KeyboardInterrupt
+    STOP_REQUESTED.set()
 
 
 def _in_finalizer(frame):

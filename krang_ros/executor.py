@@ -16,6 +16,7 @@ executor. rclpy's EventsExecutor would be cheaper still, but in rclpy 7.1.6 its 
 answered and it ignored SIGTERM (README, "The online loop over ROS and CAN").
 """
 
+import inspect
 import threading
 import time
 from contextlib import ExitStack
@@ -29,6 +30,7 @@ from rclpy.executors import (
     TimeoutException,
 )
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
+from rclpy.subscription import Subscription
 from rclpy.task import Task
 from rclpy.timer import Timer
 from rclpy.utilities import timeout_sec_to_nsec
@@ -139,8 +141,11 @@ class StaticSingleThreadedExecutor(SingleThreadedExecutor):
 
     def _make_handler(self, entity, node, take_from_wait_list):
         """rclpy's handler without its guard triggers: they only made the executor rebuild its wait
-        set to put the entity back, and the kept wait set never left it out."""
+        set to put the entity back, and the kept wait set never left it out. A subscription or
+        timer whose callback is a plain function is run at once (_DirectCall)."""
         entity._executor_event = True
+        if take_from_wait_list in _DIRECT:
+            return _DirectCall(self, entity, take_from_wait_list)
 
         async def handler():
             if self._is_shutdown or not entity.callback_group.beginning_execution(entity):
@@ -159,6 +164,77 @@ class StaticSingleThreadedExecutor(SingleThreadedExecutor):
         with self._tasks_lock:
             self._tasks.append((task, entity, node))
         return task
+
+
+class _DirectCall:
+    """What _make_handler returns for a subscription or timer whose callback is a plain function:
+    the Task interface the executor's callers use (call it, then exception() and result()), with
+    the work done in the call itself. rclpy wraps every callback in a Task and a coroutine
+    (about 10 us a wake here); only a coroutine callback needs them."""
+
+    __slots__ = ('_executor', '_entity', '_run', '_exception')
+
+    def __init__(self, executor, entity, run):
+        self._executor, self._entity, self._run = executor, entity, run
+        self._exception = None
+
+    def __call__(self):
+        executor, entity = self._executor, self._entity
+        if executor._is_shutdown or not entity.callback_group.beginning_execution(entity):
+            entity._executor_event = False
+            return
+        try:
+            with executor._work_tracker:
+                self._run(entity)
+        except Exception as exc:  # noqa: BLE001 - raised by spin_once, as a Task's would be
+            self._exception = exc
+        finally:
+            entity._executor_event = False
+            entity.callback_group.ending_execution(entity)
+
+    def exception(self):
+        return self._exception
+
+    def result(self):
+        if self._exception is not None:
+            raise self._exception
+
+    def done(self):
+        return True
+
+    def cancelled(self):
+        return False
+
+
+def _run_subscription(sub):
+    """Take one message and call the callback with it (rclpy's _take_subscription and
+    _execute, as a plain call)."""
+    try:
+        with sub.handle:
+            taken = sub.handle.take_message(sub.msg_type, sub.raw)
+    except InvalidHandle:  # destroyed since the wait
+        return
+    sub._executor_event = False
+    if taken is None:
+        return
+    if sub._callback_type is Subscription.CallbackType.MessageOnly:
+        sub.callback(taken[0])
+    else:
+        sub.callback(*taken)
+
+
+def _run_timer(timer):
+    """Mark the timer called and call its callback (rclpy's _take_timer and _execute)."""
+    try:
+        with timer.handle:
+            timer.handle.call_timer()
+    except InvalidHandle:
+        return
+    timer._executor_event = False
+    timer.callback()
+
+
+_DIRECT = (_run_subscription, _run_timer)
 
 
 class _WaitPlan:
@@ -185,7 +261,10 @@ class _WaitPlan:
                         continue
                     handles[kind].append(entity.handle)
                     setattr(counts, count, getattr(counts, count) + 1)
-                    rank = (len(self._rank), entity, node, getattr(executor, take))
+                    run = getattr(executor, take)
+                    if kind in _DIRECT_KINDS and not inspect.iscoroutinefunction(entity.callback):
+                        run = _DIRECT_KINDS[kind]
+                    rank = (len(self._rank), entity, node, run)
                     self._rank[kind, entity.handle.pointer] = rank
                     if kind == 'guard_condition':
                         self.node_guards.append(entity)
@@ -265,6 +344,9 @@ _KINDS = {
     'client': ('clients', '_take_client', 'num_clients'),
     'service': ('services', '_take_service', 'num_services'),
 }
+
+
+_DIRECT_KINDS = {'subscription': _run_subscription, 'timer': _run_timer}
 
 
 def _may_run(entity):

@@ -5,8 +5,10 @@ import math
 import numpy as np
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-from sensor_msgs.msg import Imu, JointState
+from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray, MultiArrayDimension
+
+from . import wire
 
 
 LEVEL = {
@@ -19,16 +21,14 @@ LEVEL_NAMES = ('ok', 'warn', 'error', 'stale')  # by DiagnosticStatus level numb
 UNOBSERVED_VARIANCE = 1e6  # REP-145: a large variance for an orientation axis not measured
 
 
-def joint_state(stamp, names, positions, velocities=None, out=None):
-    """A JointState; `out`: one this built, filled again instead of building one (see
-    wheel_effort); its effort is left to the caller."""
-    msg = JointState() if out is None else out
+def joint_state(stamp, names, positions, velocities=None):
+    """A JointState (its effort is left to the caller)."""
+    msg = JointState()
     msg.header.stamp = stamp
-    names = list(names)
-    if out is None or msg.name != names:
-        msg.name = names
+    msg.name = list(names)
     msg.position = [float(v) for v in positions]
-    msg.velocity = [] if velocities is None else [float(v) for v in velocities]
+    if velocities is not None:
+        msg.velocity = [float(v) for v in velocities]
     return msg
 
 
@@ -42,22 +42,17 @@ def stamp_seconds(stamp):
     return stamp.sec + stamp.nanosec * 1e-9
 
 
-def wheel_effort(stamp, names, efforts, out=None):
-    """The wheel command (/wheel_effort_cmd): efforts [N m] by joint name, stamped with the
-    sample it answers (the convention of effort-commanded joints). `out`: a command this built
-    for the same `names`, filled again instead of building one (a JointState costs about 30 us
-    to build here; publishing copies the message, so a publisher may reuse it)."""
-    msg = JointState() if out is None else out
-    msg.header.stamp = stamp
-    if out is None:
-        msg.name = list(names)
-    msg.effort = [float(v) for v in efforts]
-    return msg
+def wheel_effort(stamp, names, efforts):
+    """The wheel command (/wheel_effort_cmd) as CDR bytes (krang_ros.wire; publish them as they
+    are): a JointState of efforts [N m] by joint name, stamped with the sample it answers (the
+    convention of effort-commanded joints)."""
+    return wire.joint_state_bytes(stamp, names, effort=[float(v) for v in efforts])
 
 
 def wheel_efforts(msg, names):
-    """The efforts of `names` (in that order) from a wheel command, or None unless each name
-    appears once with an effort (the values are not checked: the bridge core judges them)."""
+    """The efforts of `names` (in that order) from a wheel command (a JointState or a
+    wire.JointStateSample), or None unless each name appears once with an effort (the values are
+    not checked: the bridge core judges them)."""
     if len(msg.effort) != len(msg.name) or len(set(msg.name)) != len(msg.name):
         return None
     index = {n: i for i, n in enumerate(msg.name)}
@@ -67,8 +62,8 @@ def wheel_efforts(msg, names):
 
 
 def name_index(msg):
-    """Each name's position in a JointState (give it to the readers below to read one message
-    several times without indexing it again)."""
+    """Each name's position in a JointState or wire.JointStateSample (give it to the readers
+    below to read one message several times without indexing it again)."""
     return {n: i for i, n in enumerate(msg.name)}
 
 
@@ -87,12 +82,13 @@ def velocities_from_state(msg, names, index=None):
 
 def _values(column, names, index):
     """column[index[n]] for each of `names` as a float array; None if one is missing or not
-    finite. `column` is read once (a message's field is a property)."""
+    finite. `column` is read once (a message's field is a property); checked in Python, which
+    costs less than numpy on a few values."""
     try:
-        values = np.array([column[index[n]] for n in names], dtype=float)
+        values = [float(column[index[n]]) for n in names]
     except (KeyError, IndexError):
         return None
-    return values if np.all(np.isfinite(values)) else None
+    return np.array(values) if all(map(math.isfinite, values)) else None
 
 
 def labelled_array(values, labels, label='beta'):
@@ -142,34 +138,26 @@ def pitch_from_specific_force(x, y, z, gravity, tol=0.05):
     return math.atan2(-x, z)
 
 
-def imu(stamp, frame_id, pitch, pitch_variance, angular_velocity, linear_acceleration, out=None):
-    """sensor_msgs/Imu of a pitch-only orientation (pitch_quaternion); roll and yaw are not
-    observed, so their variances are UNOBSERVED_VARIANCE. Vectors are (x, y, z). `out`: one this
-    built for the same `frame_id`, filled again instead of building one (see wheel_effort)."""
-    m = Imu() if out is None else out
-    m.header.stamp = stamp
-    m.orientation.x, m.orientation.y, m.orientation.z, m.orientation.w = pitch_quaternion(pitch)
-    if out is None:
-        m.header.frame_id = frame_id
-        m.orientation_covariance = [
-            UNOBSERVED_VARIANCE,
-            0.0,
-            0.0,
-            0.0,
-            float(pitch_variance),
-            0.0,
-            0.0,
-            0.0,
-            UNOBSERVED_VARIANCE,
-        ]
-    else:
-        m.orientation_covariance[4] = float(pitch_variance)
-    w, f = angular_velocity, linear_acceleration
-    m.angular_velocity.x, m.angular_velocity.y, m.angular_velocity.z = (float(v) for v in w)
-    m.linear_acceleration.x, m.linear_acceleration.y, m.linear_acceleration.z = (
-        float(v) for v in f
+def imu(stamp, frame_id, pitch, pitch_variance, angular_velocity, linear_acceleration):
+    """sensor_msgs/Imu of a pitch-only orientation (pitch_quaternion) as CDR bytes
+    (krang_ros.wire; publish them as they are); roll and yaw are not observed, so their variances
+    are UNOBSERVED_VARIANCE; the rates' and accelerations' covariances are all zero ("unknown",
+    as sensor_msgs/Imu defines). Vectors are (x, y, z)."""
+    orientation_covariance = (UNOBSERVED_VARIANCE, 0.0, 0.0, 0.0, float(pitch_variance))
+    orientation_covariance += (0.0, 0.0, 0.0, UNOBSERVED_VARIANCE)
+    return wire.imu_bytes(
+        stamp,
+        frame_id,
+        pitch_quaternion(pitch),
+        orientation_covariance,
+        [float(v) for v in angular_velocity],
+        _ZERO_COVARIANCE,
+        [float(v) for v in linear_acceleration],
+        _ZERO_COVARIANCE,
     )
-    return m
+
+
+_ZERO_COVARIANCE = (0.0,) * 9
 
 
 def diagnostic_status(name, level, message, values=None, hardware_id=''):

@@ -78,7 +78,7 @@ class SessionClient(Node):
             self._step()
 
     def _step(self):
-        if STOP_REQUESTED.is_set():  # a Ctrl-C whose KeyboardInterrupt a finalizer swallowed
+        if STOP_REQUESTED.is_set():  # Ctrl-C (krang_ros.entry.interrupt): stop between steps
             raise KeyboardInterrupt
         self.advance()
 

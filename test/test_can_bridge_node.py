@@ -27,7 +27,7 @@ from krang_can_bridge.config import load_devices  # noqa: E402
 from krang_can_bridge.node import CanBridgeNode  # noqa: E402
 from krang_model.drivetrain import drivetrain  # noqa: E402
 from krang_model.robot import load_krang  # noqa: E402
-from krang_ros import messages, names, topics  # noqa: E402
+from krang_ros import messages, names, topics, wire  # noqa: E402
 from krang_sim.devices import KrangCanDevices  # noqa: E402
 
 
@@ -193,6 +193,14 @@ def test_node_bridges_states_and_commands(devices_file):
         assert spin_until(both_zero_and_warned, 5.0), robot.devices.wheel_currents()
         assert spin_until(current_arrived, 5.0), robot.devices.wheel_currents()
 
+        # bytes that are not a JointState (a command cut short): both wheels stop as well
+        def cut_short_stops_both():
+            effort_pub.publish(wheel_command([8.0, 8.0])[:40])
+            return robot.devices.wheel_currents() == {'JLWheel': 0.0, 'JRWheel': 0.0}
+
+        assert spin_until(cut_short_stops_both, 5.0), robot.devices.wheel_currents()
+        assert spin_until(current_arrived, 5.0), robot.devices.wheel_currents()
+
         # streamed, as the pose server does: a setpoint that arrives while a device is briefly
         # silent (a 50 ms stall of this process's emulator thread on a loaded CI machine) is
         # dropped by design, and the next one moves the joint
@@ -243,12 +251,13 @@ def test_wheel_sample_goes_out_just_before_the_next_imu_sample(tmp_path):
     published = []  # (topic, wheel position or pitch rate) in the order published
     for pub, topic in ((bridge.joint_pub, 'joints'), (bridge.imu_pub, 'imu')):
 
-        def record(msg, publish=pub.publish, topic=topic):
+        def record(raw, publish=pub.publish, topic=topic):
             if topic == 'joints':
+                msg = wire.read_joint_state(raw)
                 published.append((topic, dict(zip(msg.name, msg.position)).get('JLWheel')))
             else:
-                published.append((topic, msg.angular_velocity.y))
-            publish(msg)
+                published.append((topic, wire.read_imu(raw).angular_velocity[1]))
+            publish(raw)
 
         pub.publish = record
 

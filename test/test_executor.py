@@ -255,3 +255,39 @@ def test_a_timeout_with_nothing_ready(context):
     assert time.monotonic() - start >= 0.1
     executor.shutdown()
     node.destroy_node()
+
+
+@pytest.mark.parametrize('name', sorted(EXECUTORS))
+def test_a_callbacks_error_comes_out_of_spin_once_and_an_async_callback_runs(name, context):
+    """Ours runs a plain subscription or timer callback directly, without rclpy's Task: an
+    exception in one still comes out of spin_once as under rclpy's executor, and an async
+    callback still runs as a coroutine."""
+    executor = EXECUTORS[name](context=context)
+    node = rclpy.create_node('errors', context=context)
+    got = []
+
+    def fails(msg):
+        raise ValueError(f'bad {msg.data}')
+
+    async def later(msg):
+        got.append(msg.data)
+
+    node.create_subscription(Int32, 'errors_plain', fails, 10)
+    node.create_subscription(Int32, 'errors_async', later, 10)
+    node.create_timer(0.01, lambda: got.append('tick'))
+    plain = node.create_publisher(Int32, 'errors_plain', 10)
+    coroutine = node.create_publisher(Int32, 'errors_async', 10)
+    executor.add_node(node)
+    try:
+        plain.publish(Int32(data=7))
+        with pytest.raises(ValueError, match='bad 7'):
+            for _ in range(100):
+                executor.spin_once(timeout_sec=0.05)
+        coroutine.publish(Int32(data=8))
+        deadline = time.monotonic() + 5.0
+        while not (8 in got and 'tick' in got) and time.monotonic() < deadline:
+            executor.spin_once(timeout_sec=0.05)
+        assert 8 in got and 'tick' in got, got
+    finally:
+        executor.shutdown()
+        node.destroy_node()

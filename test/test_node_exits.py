@@ -367,3 +367,18 @@ def test_ctrl_c_stops_the_composed_demo_with_a_report(tmp_path):
     from krang_bag.reader import bag_info
 
     assert bag_info(tmp_path / 'session.mcap').topics['/clock'].message_count > 0
+
+
+def test_the_demos_first_ctrl_c_waits_for_the_next_step_and_a_second_one_does_not():
+    """krang_ros.entry.interrupt: the first SIGINT only asks the session loop to stop (no
+    KeyboardInterrupt inside whatever call it lands in); a second raises at once."""
+    from krang_ros import entry
+
+    entry.STOP_REQUESTED.clear()
+    try:
+        entry.interrupt(signal.SIGINT, sys._getframe())
+        assert entry.STOP_REQUESTED.is_set()
+        with pytest.raises(KeyboardInterrupt):
+            entry.interrupt(signal.SIGINT, sys._getframe())
+    finally:
+        entry.STOP_REQUESTED.clear()

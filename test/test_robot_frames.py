@@ -12,6 +12,8 @@ import pytest
 import rclpy
 from builtin_interfaces.msg import Time
 from rclpy.executors import SingleThreadedExecutor
+from rclpy.serialization import deserialize_message
+from sensor_msgs.msg import Imu
 from std_msgs.msg import String
 
 from krang_can_bridge.imu_filter import sensor_vectors
@@ -103,7 +105,7 @@ def test_accelerometer_sees_gravity_of_the_published_orientation(q_base):
     sample = SimpleNamespace(
         rates=rates, specific_force=force, pitch=q_base, pitch_variance=1e-6, pitch_rate=0.0
     )
-    msg = CanBridgeNode._imu_message(fake, sample, Time())
+    msg = deserialize_message(CanBridgeNode._imu_message(fake, sample, Time()), Imu)
     o, a = msg.orientation, msg.linear_acceleration
     expected = matrix_from_quaternion(o.x, o.y, o.z, o.w).T @ np.array([0.0, 0.0, G])
     np.testing.assert_allclose([a.x, a.y, a.z], expected, atol=1e-9)
