@@ -169,17 +169,19 @@ class AdrcControllerNode(Node):
     def on_samples(self, queue):
         """Steps on each sample of `queue` (serialized /imu/data messages) in order; only the last
         step's command goes to the wheels (the others are superseded before they could act). A
-        message that is not an Imu is skipped: no step on it (the stale timeout still guards)."""
+        message that is not an Imu is skipped: no step on it (the stale timeout still guards), and
+        the newest valid sample before it sends the command."""
         self.samples_t = trace.now() if trace.ON else 0.0
-        self.samples_superseded += len(queue) - 1
-        now = self.now()  # the queue's arrival (one clock read: 13 us each on this machine)
-        for k, raw in enumerate(queue):
+        samples = []
+        for raw in queue:
             try:
-                sample = wire.read_imu(raw)
+                samples.append(wire.read_imu(raw))
             except wire.WireError as err:
                 self._warn_imu(f'{names.IMU}: {err}; skipped')
-                continue
-            self.step_on_sample(sample, command=k == len(queue) - 1, now=now)
+        self.samples_superseded += max(len(samples) - 1, 0)
+        now = self.now()  # the queue's arrival (one clock read: 13 us each on this machine)
+        for k, sample in enumerate(samples):
+            self.step_on_sample(sample, command=k == len(samples) - 1, now=now)
 
     def step_on_sample(self, sample, command, now):
         """One imu/data sample (a wire.ImuSample) in; a step if step_on_imu."""

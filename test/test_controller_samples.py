@@ -105,3 +105,19 @@ def test_the_watch_timer_steps_on_a_waiting_sample_rather_than_repeat_the_last(r
     assert rig.controller.samples_stepped == 2
     assert spin_until(rig.probe_exec, lambda: rig.answers(newer) == 1)
     assert rig.answers(first) == 1
+
+
+def test_a_malformed_message_last_in_a_burst_leaves_the_command_to_the_newest_valid_sample(rig):
+    """Bytes on imu/data that are not an Imu are skipped, not stepped on; they neither take the
+    command from the valid samples before them nor count as a superseded sample."""
+    start = rig.controller.samples_stepped
+    stamps = [2000.0 + 0.002 * k for k in range(3)]
+    for t in stamps:
+        rig.sample(t)
+    rig.imu_pub.publish(b'\x00\x01\x00\x00' + b'\x07' * 12)  # cut short
+    time.sleep(0.2)
+    assert spin_until(rig.control_exec, lambda: rig.controller.samples_stepped > start)
+    assert rig.controller.samples_stepped - start == 3
+    assert rig.controller.samples_superseded == 2
+    assert spin_until(rig.probe_exec, lambda: rig.answers(stamps[-1]) == 1)
+    assert [rig.answers(t) for t in stamps[:-1]] == [0, 0]
