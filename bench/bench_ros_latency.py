@@ -31,7 +31,9 @@ RPDO after a sample frame) is printed too: it cannot tell an answer later than t
 that sample's own, so it reads short when the latency nears the sample period. An RPDO that repeats
 the drive's previous payload is the bridge's periodic refresh, not an answer (the noise makes every
 answer differ). Times are kernel receive stamps on the player's socket: the bus as the devices
-see it.
+see it. The p50 is also given by where the drives' next TPDO set came after the sample (fifths
+of the period, `p50_by_next_tpdo_ms`, the reference's alike): the phase sweeps the period, and the
+latency depends on it (README, "Which phase costs what").
 
 The control rate (`rate_hz`) is the controller's own count of steps on new samples
 (`samples_stepped` in its diagnostics) per second of its clock across the window; a sample
@@ -69,6 +71,7 @@ import argparse
 import glob
 import importlib
 import json
+import math
 import os
 import random
 import select
@@ -109,6 +112,7 @@ MIN_PROBES = 20  # answered probes needed for percentiles by probe
 #: TPDOs' phase in the sample period drifts, and the latency depends on it (README, "Where in
 #: the period the drives send"): at 100 ppm and 2 ms a 20 s measurement sees every phase once.
 DRIFT_PPM = 100.0
+TPDO_PARTS = 5  # p50_by_next_tpdo: the sample period in fifths (0.4 ms at 500 Hz)
 JSON_KEYS = ('p50_ms', 'p99_ms', 'rate_hz', 'configured_rate_hz', 'ref_p50_ms', 'ref_p99_ms')
 
 
@@ -135,7 +139,8 @@ def timing_match(sample_t, cmd_t):
 
 
 def probe_match(sample_t, probe, cmd_t, cmd_v):
-    """Latencies of the probe samples [s] and the probes' response (DC2 units).
+    """Latencies of the answered probe samples [s], the probes' response (DC2 units) and the
+    times of those samples.
 
     `probe`: per sample, the probe's sign (+1, -1; 0 = not a probe). For each probe: baseline =
     the last new command before it, changes = (command - baseline) * sign up to the probe after
@@ -145,7 +150,7 @@ def probe_match(sample_t, probe, cmd_t, cmd_v):
     command whose change exceeds half the response."""
     idx = np.flatnonzero(probe)
     if len(idx) < 3:
-        return np.array([]), 0.0
+        return np.array([]), 0.0, np.array([])
     starts, signs = sample_t[idx], probe[idx].astype(float)
     spacing = float(np.median(np.diff(starts)))
     ends = np.append(starts[2:], starts[-2:] + 2.0 * spacing)
@@ -156,15 +161,16 @@ def probe_match(sample_t, probe, cmd_t, cmd_v):
         if b >= 0 and hi > b + 1:
             windows.append((t0, cmd_t[b + 1 : hi], sign * (cmd_v[b + 1 : hi] - cmd_v[b])))
     if not windows:
-        return np.array([]), 0.0
+        return np.array([]), 0.0, np.array([])
     largest = np.array([d.max() for _, _, d in windows])
     response = float(np.median(np.sort(largest)[len(largest) // 2 :]))
-    latencies = []
+    latencies, times = [], []
     for t0, ts, d in windows:
         hit = np.flatnonzero(d > 0.5 * response)
         if hit.size and response > 0:
             latencies.append(ts[hit[0]] - t0)
-    return np.array(latencies), response
+            times.append(t0)
+    return np.array(latencies), response, np.array(times)
 
 
 def noise_level(cmd_t, cmd_v, before, seconds=1.0):
@@ -175,13 +181,33 @@ def noise_level(cmd_t, cmd_v, before, seconds=1.0):
 
 
 def reference_latencies(req, ans, window):
-    """(latencies [s] of the reference frames sent in the window, number of them unanswered)."""
+    """(latencies [s] of the reference frames sent in the window, number of them unanswered,
+    times of the answered ones)."""
     req = req[(req[:, 0] >= window[0]) & (req[:, 0] <= window[1])]
     answers = {}
     for t, n in ans:
         answers.setdefault(int(n), t)
-    lat = np.array([answers[int(n)] - t for t, n in req if int(n) in answers])
-    return lat, len(req) - len(lat)
+    answered = np.array([(t, answers[int(n)] - t) for t, n in req if int(n) in answers])
+    answered = answered.reshape(-1, 2)
+    return answered[:, 1], len(req) - len(answered), answered[:, 0]
+
+
+def p50_by_next_tpdo(times, latencies, tpdo_t, period, parts=TPDO_PARTS):
+    """The median latency [ms] of the samples at `times` by when the drives' next TPDO set came
+    after each: one value per `parts`-th of the sample period (the first: within a fifth of a
+    period after the sample), nan where none; a sample whose next set came more than a period
+    later (a set sent late) is in none. The TPDO sets' phase sweeps the period
+    (--tpdo-drift-ppm); where they collide with a sample's path through the nodes shows here."""
+    tpdo_t = np.sort(tpdo_t)
+    k = np.searchsorted(tpdo_t, times, side='right')
+    ok = k < len(tpdo_t)
+    after = (tpdo_t[k[ok]] - times[ok]) / period
+    latencies = np.asarray(latencies)[ok]
+    part = np.floor(after * parts).astype(int)
+    return [
+        float(1e3 * np.median(latencies[part == i])) if np.any(part == i) else float('nan')
+        for i in range(parts)
+    ]
 
 
 def tpdo_phases_seen(sample_t, tpdo_t, window, bins=10):
@@ -223,13 +249,13 @@ def analyse(record, window, rate_hz, diag=(), ref_window=None, bridge_diag=()):
     period = 1.0 / rate_hz
     in_cmd = (cmd_t >= w0) & (cmd_t <= w1 + 10 * period)
     t_lat, answered = timing_match(st[inside], cmd_t[in_cmd])
-    p_lat, response = probe_match(st[inside], probe[inside], cmd_t, cmd_v)
+    p_lat, response, p_t = probe_match(st[inside], probe[inside], cmd_t, cmd_v)
     noise = noise_level(cmd_t, cmd_v, st[probe != 0][0]) if probe.any() else float('inf')
     probes = int(np.count_nonzero(probe[inside]))
     # a probe's answer must stand well above the command noise to carry its identity
     by_probe = len(p_lat) >= MIN_PROBES and abs(response) > 5.0 * noise
     lat = p_lat if by_probe else t_lat
-    ref_lat, ref_lost = reference_latencies(
+    ref_lat, ref_lost, ref_t = reference_latencies(
         record['ref_req'], record['ref_ans'], ref_window or window
     )
     cmd_in = (cmd_t >= w0) & (cmd_t <= w1)
@@ -268,6 +294,12 @@ def analyse(record, window, rate_hz, diag=(), ref_window=None, bridge_diag=()):
             'bridge_imu_rate_hz': published,
             'tpdo_rate_hz': int(np.count_nonzero((tpdo_t >= w0) & (tpdo_t <= w1))) / duration,
             'tpdo_phases_seen': tpdo_phases_seen(st, tpdo_t, window),
+            'p50_by_next_tpdo_ms': (
+                p50_by_next_tpdo(p_t, p_lat, tpdo_t, period)
+                if by_probe  # else the probes carry no identity (the JSON's `match`)
+                else [math.nan] * TPDO_PARTS
+            ),
+            'ref_p50_by_next_tpdo_ms': p50_by_next_tpdo(ref_t, ref_lat, tpdo_t, period),
             'ref_tpdo_rate_hz': int(np.count_nonzero((tpdo_t >= r0) & (tpdo_t <= r1))) / (r1 - r0),
             'new_commands_hz': int(cmd_in.sum()) / duration,
             'ref_frames': len(ref_lat) + ref_lost,
@@ -603,6 +635,15 @@ def print_robot(fig, load):
         f'p99 {fig["ref_p99_ms"]:.2f} ms, {fig["ref_lost"]} of {fig["ref_frames"]} lost'
     )
     print(f'ratio to the reference: p50 {fig["p50_ratio"]:.2f}x, p99 {fig["p99_ratio"]:.2f}x')
+    ours, ref = fig['p50_by_next_tpdo_ms'], fig['ref_p50_by_next_tpdo_ms']
+    part = 1e3 / fig['configured_rate_hz'] / len(ours)
+    print(
+        "p50 by when the drives' next TPDO set came after the sample (reference's in brackets): "
+        + ', '.join(
+            f'{k * part:.1f}-{(k + 1) * part:.1f} ms after: {a:.2f} ({b:.2f})'
+            for k, (a, b) in enumerate(zip(ours, ref))
+        )
+    )
     if 'trace_p50_ms' in fig:
         print(
             f"where the time goes (--trace, {fig['traced_samples']} samples; the frame's kernel "

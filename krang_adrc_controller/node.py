@@ -6,12 +6,13 @@ Stepping on the sample removes the phase lag between two free-running loops at t
 the timer fired just before the bridge's next sample arrived and so used a sample one period old
 (measured over DDS at 100 Hz: median 10 ms, p90 25 ms of extra sample age). The timer then only
 watches: if no sample has driven the loop for three periods it steps anyway, so stale data still
-end in a safe stop; each sample restarts it, so it costs no executor wake (about 0.2 ms of CPU
-here, a tenth of a 500 Hz period) while samples flow. /joint_states is read by each step, not by
-a callback of its own, for the same reason. Both are taken as their serialized bytes and read by
-krang_ros.wire, and the wheel command goes out as bytes: rclpy's message objects cost 50-70 us
-each here. If either input is older than `stale_timeout_s`, the controller is told the data are
-stale and commands zero torque (safe stop) until recovered.
+end in a safe stop; each sample restarts it, so its callback never runs while samples flow
+(rcl's reset still wakes the executor once, with nothing to run; letting the timer fire instead
+measured the same). /joint_states is read by each step, not by a callback of its own: one
+executor wake per sample. Both are taken as their serialized bytes and read by krang_ros.wire,
+and the wheel command goes out as bytes: rclpy's message objects cost 50-70 us each here. If
+either input is older than `stale_timeout_s`, the controller is told the data are stale and
+commands zero torque (safe stop) until recovered.
 
 The operator's controls are node-private services (README, "Running on the robot"): ~/enable
 (SetBool), ~/stand_up, ~/sit_down, ~/halt, ~/recover (Trigger). Each answers at once, accepted or

@@ -52,8 +52,9 @@ observed: their orientation variances are set to 1e6.
 
 Wheel currents go out from each command; a watchdog timer at wheels.command_rate_hz sends zero
 current once commands stop or motion is not allowed, and never repeats a command in force
-(BridgeCore.wheel_watchdog_frames). Each command restarts that timer, so it costs no executor
-wake (about 0.2 ms of CPU here) while commands flow. A command older than
+(BridgeCore.wheel_watchdog_frames). Each command restarts that timer, so its callback never runs
+while commands flow (rcl's reset still wakes the executor once, with nothing to run; letting the
+timer fire instead measured the same). A command older than
 wheels.command_timeout_s, a malformed one, a silent device, or an AMC start-up not (yet) done or
 whose drive constants disagree with the config gives zero current (see BridgeCore).
 

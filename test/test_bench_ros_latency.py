@@ -97,9 +97,10 @@ def test_timing_reads_short_when_the_answer_comes_after_the_next_sample(bench):
 def test_probes_carry_the_sample_identity(bench):
     t, probe, cmd_t, cmd_v = played(latency=0.0031)
     ct, cv = bench.new_commands(cmd_t, cmd_v)
-    lat, response = bench.probe_match(t, probe, ct, cv)
+    lat, response, at = bench.probe_match(t, probe, ct, cv)
     assert response == pytest.approx(0.75 * 900.0, abs=50.0)  # from the last compensation
     assert len(lat) == np.count_nonzero(probe) and np.allclose(lat, 0.0031)
+    assert np.array_equal(at, t[probe != 0])  # each latency with its probe's sample
     assert bench.noise_level(ct, cv, t[probe != 0][0]) == pytest.approx(10.0, rel=0.3)
 
 
@@ -109,15 +110,33 @@ def test_dropped_probe_samples_are_not_answered(bench):
     lost = np.flatnonzero(probe > 0)  # the positive probes never answered
     keep[lost] = keep[lost + len(t)] = False
     ct, cv = bench.new_commands(cmd_t[keep], cmd_v[keep])
-    lat, _ = bench.probe_match(t, probe, ct, cv)
+    lat, _, at = bench.probe_match(t, probe, ct, cv)
     assert len(lat) == np.count_nonzero(probe) - len(lost) and np.allclose(lat, 0.0025)
+    assert np.array_equal(at, t[probe < 0])  # the negative probes, the only ones answered
 
 
 def test_reference_pairs_frames_by_counter(bench):
     req = np.array([[1.0, 7], [1.002, 8], [1.004, 9], [5.0, 10]])
     ans = np.array([[1.0011, 7], [1.0052, 9]])
-    lat, lost = bench.reference_latencies(req, ans, (0.5, 2.0))
-    assert np.allclose(lat, [0.0011, 0.0012]) and lost == 1
+    lat, lost, at = bench.reference_latencies(req, ans, (0.5, 2.0))
+    assert np.allclose(lat, [0.0011, 0.0012]) and lost == 1 and list(at) == [1.0, 1.004]
+    lat, lost, at = bench.reference_latencies(req, ans, (3.0, 6.0))  # none answered
+    assert len(lat) == len(at) == 0 and lost == 1
+
+
+def test_p50_by_next_tpdo_places_each_sample_by_the_tpdo_set_after_it(bench):
+    """TPDO sets drifting through the whole period; a sample whose next set comes 0.4-0.8 ms
+    after it (the second fifth of 2 ms) waits 0.5 ms more: the medians per part are the latencies
+    set for it, placed by the drift alone."""
+    t = 100.0 + PERIOD * np.arange(5000)
+    tpdo = t + PERIOD * np.linspace(1.0, 0.0, len(t), endpoint=False)  # next set: 1 -> 0 periods
+    after = tpdo - t
+    lat = np.where((after >= 0.0004) & (after < 0.0008), 0.0015, 0.0010)
+    parts = bench.p50_by_next_tpdo(t, lat, tpdo, PERIOD)
+    assert parts == pytest.approx([1.0, 1.5, 1.0, 1.0, 1.0])
+    # a sample after the last set has no next one: left out; a part without samples is nan
+    parts = bench.p50_by_next_tpdo(t[:10], lat[:10], tpdo[:5], PERIOD)
+    assert np.isnan(parts[0]) and not np.isnan(parts[-1])
 
 
 def test_tpdo_phases_seen_tells_a_sweeping_phase_from_a_fixed_one(bench):
@@ -215,6 +234,7 @@ def test_robot_run_prints_the_figures_as_json():
     # of the loaded machine is the only loss
     assert fig['tpdo_period_ms'] == 4
     assert fig['tpdo_drift_ppm'] == 100.0 and 0.0 < fig['tpdo_phases_seen'] <= 1.0
+    assert len(fig['p50_by_next_tpdo_ms']) == len(fig['ref_p50_by_next_tpdo_ms']) == 5
     assert 200.0 < fig['tpdo_rate_hz'] <= 251.0 and 200.0 < fig['ref_tpdo_rate_hz'] <= 251.0
     # the DMU's player (a process of its own) plays every period, late ones late, and the bridge
     # publishes a sample for each (over 3 s the 1 Hz counts are whole seconds: +-1 sample)
