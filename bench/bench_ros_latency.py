@@ -7,7 +7,8 @@ DMU samples and the controller's rate_hz at --rate-hz (500) by parameter, plus
 CONTROLLER_OVERRIDES below. Two processes play the devices (bench/device_player.py --play dmu:
 the DMU; --play rest: the AMC start-up and TPDOs at the timer cycle the bridge writes to the
 drives, the device map's wheels.tpdo_period_ms or --tpdo-period-ms, their phase in the sample
-period drifting by --tpdo-drift-ppm as free-running clocks do, the PowerCube modules); the robot
+period drifting by --tpdo-drift-ppm as free-running clocks do, the PowerCube modules), their
+periodic frames spaced as a bus at --bus-bitrate (1 Mbit/s, Krang's) carries them; the robot
 sits, the controller is enabled and asked to stand up, the players pitch the robot up to the
 nominal balance pitch and hold it there quietly (white sensor noise, no physics), the controller
 goes through STAND_UP to BALANCE by its own mode machine, and the measurement runs while it
@@ -63,7 +64,7 @@ carries back): how long the bridge takes to receive the frame, to decode, filter
 DDS to the controller, its step, DDS back, and the bridge's encoding and sending.
 
     .venv/bin/python bench/bench_ros_latency.py --robot [--seconds 20] [--load 2] [--json]
-        [--thread-priority N] [--trace] [--tpdo-phase F --tpdo-drift-ppm 0]
+        [--thread-priority N] [--trace] [--tpdo-phase F --tpdo-drift-ppm 0] [--bus-bitrate 0]
     .venv/bin/python bench/bench_ros_latency.py [--seconds 20]
 """
 
@@ -112,6 +113,10 @@ MIN_PROBES = 20  # answered probes needed for percentiles by probe
 #: TPDOs' phase in the sample period drifts, and the latency depends on it (README, "Where in
 #: the period the drives send"): at 100 ppm and 2 ms a 20 s measurement sees every phase once.
 DRIFT_PPM = 100.0
+#: Krang's CAN nets (docs/can.md): the players space their frames by their time on this wire
+#: (device_player.Wire); in one burst, the drives' eight TPDO frames came faster than any bus
+#: carries them and starved the bridge's other threads (README, "Which phase costs what").
+BUS_BITRATE = 1e6
 TPDO_PARTS = 5  # p50_by_next_tpdo: the sample period in fifths (0.4 ms at 500 Hz)
 JSON_KEYS = ('p50_ms', 'p99_ms', 'rate_hz', 'configured_rate_hz', 'ref_p50_ms', 'ref_p99_ms')
 
@@ -373,6 +378,7 @@ def run_robot(
     priority=None,
     traced=False,
     tpdo_drift_ppm=DRIFT_PPM,
+    bitrate=BUS_BITRATE,
 ):
     """`measure_robot` in a working directory (logs, the player's record, the trace) removed
     after a valid run and kept, and named, otherwise."""
@@ -387,6 +393,7 @@ def run_robot(
             priority,
             traced,
             tpdo_drift_ppm,
+            bitrate,
         )
         if fig['left_balance']:
             work.keep('NOT VALID (the controller left BALANCE)')
@@ -409,13 +416,23 @@ def players_setup(priority):
 
 
 def measure_robot(
-    tmp, seconds, rate_hz, load, tpdo_period_ms, tpdo_phase, priority, traced, tpdo_drift_ppm
+    tmp,
+    seconds,
+    rate_hz,
+    load,
+    tpdo_period_ms,
+    tpdo_phase,
+    priority,
+    traced,
+    tpdo_drift_ppm,
+    bitrate=BUS_BITRATE,
 ):
     """Start the player; measure the reference chain alone for `seconds`, then the node set for
     `seconds` while the controller balances, each with `load` busy loops; return the figures of
     `analyse`. `tpdo_period_ms`: the drives' TPDO timer (default: the device map's);
     `tpdo_phase`: where in the sample period their TPDOs come at first, `tpdo_drift_ppm`: how
-    much slower their timer runs than the DMU's (device_player.py). `priority`:
+    much slower their timer runs than the DMU's, `bitrate`: the buses' bit rate, which spaces the
+    players' frames (device_player.py). `priority`:
     the nodes' and the reference chain's SCHED_FIFO priority (default: the robot's
     thread_priority; 0: the default scheduler), the player's PLAYER_PRIORITY_ABOVE higher.
     `traced`: the nodes write krang_ros.trace's stage times; the figures gain `trace_p50_ms` and
@@ -451,6 +468,8 @@ def measure_robot(
                 str(tpdo_phase),
                 '--tpdo-drift-ppm',
                 str(tpdo_drift_ppm),
+                '--bitrate',
+                str(bitrate),
                 '--out',
                 out,
             ],
@@ -582,6 +601,7 @@ def measure_robot(
             'tpdo_period_ms': tpdo_period_ms,
             'tpdo_phase': tpdo_phase,
             'tpdo_drift_ppm': tpdo_drift_ppm,
+            'bus_bitrate': bitrate,
         }
     if traced:
         fig |= trace_figures(glob.glob(f'{trace_prefix}.*'), window)
@@ -603,7 +623,8 @@ def print_robot(fig, load):
     print(
         f'robot configuration, wall clock, {fig["configured_rate_hz"]:.0f} Hz configured, '
         f'TPDOs every {fig["tpdo_period_ms"]} ms from phase {fig["tpdo_phase"]:.2f}, '
-        f'{fig["tpdo_drift_ppm"]:g} ppm slower than the DMU, {load} busy '
+        f'{fig["tpdo_drift_ppm"]:g} ppm slower than the DMU, frames spaced at '
+        f'{fig["bus_bitrate"] / 1e6:g} Mbit/s, {load} busy '
         f'loop(s), {fig["seconds"]:.1f} s balancing'
     )
     print(
@@ -822,6 +843,13 @@ def main():
         '2 ms; 0: a fixed phase)',
     )
     parser.add_argument(
+        '--bus-bitrate',
+        type=float,
+        default=BUS_BITRATE,
+        help="--robot: the CAN buses' bit rate, at which the device players space their "
+        'periodic frames as the wire does (0: in bursts, as a udp_multicast socket takes them)',
+    )
+    parser.add_argument(
         '--load', type=int, default=0, help='--robot: busy-loop processes during the measurement'
     )
     parser.add_argument(
@@ -860,6 +888,7 @@ def main():
             args.thread_priority,
             args.trace,
             args.tpdo_drift_ppm,
+            args.bus_bitrate,
         )
     except ConfigError as exc:  # the session map with --tpdo-period-ms, checked before any start
         parser.error(str(exc))

@@ -44,8 +44,9 @@ def rate_overrides(rate_hz):
 
 
 def measure(tmp, factor, seconds, rate_hz=None):
-    """Simulated seconds per wall second while balancing, and sim_krang's lockstep figures
-    (node logs under `tmp`)."""
+    """Simulated seconds per wall second while balancing, and sim_krang's figures: lockstep
+    misses, seconds waiting for the answer per wall second, real-time slips (paced, each a stall
+    of more than its max_lag_s that the simulated time gave up) (node logs under `tmp`)."""
     devices = session_devices_file(tmp)
     sim, bridge, controller = rate_overrides(rate_hz)
     nodes = NodeSet(params_files(sim=True, extra=()), log_dir=os.path.join(tmp, 'logs'))
@@ -86,7 +87,8 @@ def measure(tmp, factor, seconds, rate_hz=None):
         ratio = (sim1 - sim0) / (wall1 - wall0)
         misses = int(after.get('lockstep_misses', 0)) - int(before.get('lockstep_misses', 0))
         waited = float(after.get('lockstep_wait_s', 0)) - float(before.get('lockstep_wait_s', 0))
-        return ratio, misses, waited / (wall1 - wall0), client.mode
+        slips = int(after.get('real_time_slips', 0)) - int(before.get('real_time_slips', 0))
+        return ratio, misses, waited / (wall1 - wall0), slips, client.mode
     finally:
         client.close()
         rclpy.try_shutdown(context=context)
@@ -145,13 +147,15 @@ def main():
     unpaced = None
     for factor in args.factors:
         with WorkingDir('krang_sim_speed_') as work:
-            ratio, misses, waiting, mode = measure(work.path, factor, args.seconds, args.rate_hz)
+            ratio, misses, waiting, slips, mode = measure(
+                work.path, factor, args.seconds, args.rate_hz
+            )
         unpaced = ratio if factor == 0 else unpaced
         print(
             f'processes, real_time_factor {factor:g}: {ratio:.2f}x real time while balancing at '
             f'{rate:g} Hz (mode {mode}; {1e3 / (ratio * rate):.2f} ms wall per sample, of which '
             f'{1e3 * waiting / (ratio * rate):.2f} ms waiting for the answer; lockstep misses '
-            f'{misses})',
+            f'{misses}' + (f', real-time slips {slips})' if factor > 0 else ')'),
             flush=True,
         )
     with WorkingDir('krang_sim_speed_') as work:

@@ -19,6 +19,14 @@ Each process plays part of them (--play, see PLAYS): `dmu` the DMU, `rest` the d
 PowerCube modules and the reference chain's end. Each writes what it played to its own record,
 and their periods keep their phases.
 
+A CAN bus carries one frame at a time: at --bitrate (Krang's nets run at 1 Mbit/s, docs/can.md) the
+two drives' TPDO sets, eight frames, take 0.66 ms of the wire (a DMU sample 0.22 ms), and a frame
+cannot start before the one ahead of it has ended. The player's periodic frames (the DMU's samples,
+the TPDO sets) keep that spacing (Wire), where a udp_multicast socket would carry them in one burst
+no bus can; its replies (SDO, PowerCube) go at once. The spacing is each frame's length without
+stuff bits (which add up to a fifth), so the player's frames come no later than the bus would carry
+them; frames of the other process and of the host are not serialised with them.
+
 Every time is the kernel's receive stamp of the frame on this process's own socket (the player
 hears its own frames too), so the figures are those of the bus. Commands on stdin, one a line:
 `stand`, `sit` (back on the caster at once), `probe` (from now on every --probe-every th sample
@@ -34,6 +42,8 @@ even when the answer comes later than the next samples (bench_ros_latency.py).
 """
 
 import argparse
+import heapq
+import itertools
 import math
 import resource
 import sys
@@ -84,6 +94,40 @@ def next_due(due, period, now):
     if behind > CATCH_UP_PERIODS * period:
         due += math.ceil(behind / period) * period
     return due
+
+
+def frame_bits(msg):
+    """Bits a CAN 2.0 data frame occupies on the wire, without stuff bits: start of frame,
+    identifier (11 or 29 bits with SRR and IDE), control, data, CRC, acknowledgement, end of
+    frame and the 3-bit interframe space."""
+    return (67 if msg.is_extended_id else 47) + 8 * len(msg.data)
+
+
+class Wire:
+    """The buses' serialisation: each bus carries one frame at a time, at `bitrate` bits a second
+    (0: no spacing). `add` schedules frames in order; `due` says when the next one may go, and
+    `take` hands over those whose time has come."""
+
+    def __init__(self, bitrate):
+        self.bit_s = 1.0 / bitrate if bitrate else 0.0
+        self.free = {}  # bus name -> when the frame on it ends
+        self.queue = []  # heap of (start, order, frame)
+        self.order = itertools.count()
+
+    def add(self, frames, now):
+        for f in frames:
+            start = max(now, self.free.get(f.bus, now))
+            self.free[f.bus] = start + frame_bits(f.msg) * self.bit_s
+            heapq.heappush(self.queue, (start, next(self.order), f))
+
+    def due(self):
+        return self.queue[0][0] if self.queue else math.inf
+
+    def take(self, now):
+        out = []
+        while self.queue and self.queue[0][0] <= now:
+            out.append(heapq.heappop(self.queue)[2])
+        return out
 
 
 def bench_pose():
@@ -158,6 +202,7 @@ class Player:
         for bus in self.buses.values():
             # it hears its own frames too: the bus_io queue outlasts a stall of its receive thread
             enlarge_receive_buffer(bus)
+        self.wire = Wire(args.bitrate)
         self.lock = threading.Lock()
         self.stop = threading.Event()
         self.probing = False
@@ -216,7 +261,14 @@ class Player:
 
     # ---- send ----------------------------------------------------------------------------------
     def send(self, frames):
-        for f in frames:
+        """Queue periodic frames on the wire and send those whose time has come (the first at
+        once if its bus is free); the loop sends the rest when they are due."""
+        now = time.monotonic()
+        self.wire.add(frames, now)
+        self.send_due(now)
+
+    def send_due(self, now):
+        for f in self.wire.take(now):
             self.buses[f.bus].send(f.msg)
 
     def dmu_sample(self, probe_phase, late):
@@ -279,9 +331,13 @@ class Player:
         k = ref = 0
         while not self.stop.is_set():
             job = min(jobs, key=lambda j: j[0])
-            delay = job[0] - time.monotonic()
+            delay = min(job[0], self.wire.due()) - time.monotonic()
             if delay > 0:
                 time.sleep(delay)
+            now = time.monotonic()
+            self.send_due(now)
+            if job[0] > now:
+                continue
             if job[2] == 'dmu':
                 self.dmu_sample(k % a.probe_every, time.monotonic() - job[0])
                 k += 1
@@ -363,6 +419,13 @@ def main():
         default=0.0,
         help="the drives' TPDO timer this many ppm slower than the DMU's clock (their phase "
         'sweeps the sample period: at 100 ppm and 2 ms, once in 20 s)',
+    )
+    p.add_argument(
+        '--bitrate',
+        type=float,
+        required=True,
+        help="the buses' bit rate (bench_ros_latency.BUS_BITRATE): the periodic frames are "
+        'spaced by their time on the wire (Wire; 0: sent in bursts)',
     )
     p.add_argument('--ramp-s', type=float, default=1.0)
     p.add_argument('--probe-every', type=int, default=5, help='at least 2')

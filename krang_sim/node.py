@@ -3,13 +3,14 @@
 A physics thread steps `KrangSim` at `physics_rate_hz` and paces itself at `real_time_factor` times
 wall time (1 = real time, 0 = as fast as the CPU allows). When the CPU cannot keep up it falls
 behind by at most `max_lag_s` and then slows down, instead of catching up in bursts the controller
-cannot see. The device emulators of devices.py answer the bridge on the buses of the device map:
-AMC drives (current commands in, TPDO feedback out), the DMU IMU and the PowerCube modules, which
-move the body joints at their speed limits. With `publish_clock` the node publishes /clock (at
-`clock_rate_hz`, right after the sensor frames of that step), so nodes running with use_sim_time
-follow the simulated time whether it runs faster or slower than real time: `krang demo` runs the
-node set that way, because a simulator starved of CPU slows down. Ground truth for evaluation goes
-to /sim_krang/ground_truth (every 0.1 s of simulated time).
+cannot see (under lockstep, below, it sees a catch-up sample by sample: config/sim_params.yaml
+allows it more). The device emulators of devices.py answer the bridge on the buses of the device
+map: AMC drives (current commands in, TPDO feedback out), the DMU IMU and the PowerCube modules,
+which move the body joints at their speed limits. With `publish_clock` the node publishes /clock
+(at `clock_rate_hz`, right after the sensor frames of that step), so nodes running with
+use_sim_time follow the simulated time whether it runs faster or slower than real time: `krang
+demo` runs the node set that way, because a simulator starved of CPU slows down. Ground truth for
+evaluation goes to /sim_krang/ground_truth (every 0.1 s of simulated time).
 
 Lockstep (`lockstep`): after each sensor sample the physics waits until the wheel current frames
 that answer it are on the bus (an RPDO from every drive, applied to the emulated drives before the

@@ -9,6 +9,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import can
 import numpy as np
 import pytest
 
@@ -16,6 +17,7 @@ pytest.importorskip('rclpy')
 pytest.importorskip('msgpack')  # python-can's udp_multicast needs it
 
 from krang_cli.node_set import file_parameter  # noqa: E402
+from krang_sim.devices import BusFrame  # noqa: E402
 
 BENCH = Path(__file__).resolve().parents[1] / 'bench' / 'bench_ros_latency.py'
 PERIOD = 0.002
@@ -59,6 +61,36 @@ def test_the_player_plays_late_periods_in_order_and_skips_only_a_long_stall(play
     assert play(n - 0.5) == 100  # all played, the late ones in a burst
     assert play(n + 3.5) < 100  # a long stall: the periods it missed are skipped
     assert player.next_due(0.0, PERIOD, (n + 3.5) * PERIOD) > (n + 3.5) * PERIOD
+
+
+def test_the_wire_carries_one_frame_at_a_time_per_bus(player):
+    """At 1 Mbit/s an 8-byte standard frame occupies 111 bit times (47 + 64; CAN 2.0A without
+    stuff bits) and an extended one 131: a set of frames on one bus goes out that far apart, a
+    frame on another bus at once, a frame after the bus went idle at once, and at bit rate 0 all
+    at once."""
+
+    def frame(bus, n=8, extended=False):
+        return BusFrame(
+            bus, can.Message(arbitration_id=0x181, data=bytes(n), is_extended_id=extended)
+        )
+
+    assert player.frame_bits(frame('a').msg) == 111
+    assert player.frame_bits(frame('a', 2, extended=True).msg) == 67 + 16
+    wire = player.Wire(1e6)
+    a1, a2, a3, b1 = frame('a'), frame('a', 4), frame('a', 0, extended=True), frame('b')
+    wire.add([a1, a2, a3, b1], now=10.0)
+    assert wire.take(10.0) == [a1, b1]
+    assert wire.due() == pytest.approx(10.0 + 111e-6)
+    assert wire.take(10.0 + 110e-6) == []
+    assert wire.take(10.0 + 112e-6) == [a2]
+    assert wire.due() == pytest.approx(10.0 + 111e-6 + 79e-6)
+    assert wire.take(11.0) == [a3]
+    assert wire.due() == float('inf')
+    wire.add([a1], now=12.0)  # the bus has been free since 10.000257
+    assert wire.take(12.0) == [a1]
+    burst = player.Wire(0)
+    burst.add([a1, a2, a3], now=1.0)
+    assert burst.take(1.0) == [a1, a2, a3]
 
 
 def played(n=2000, latency=0.003, probe_every=5, response=900.0, noise=10.0, seed=1):
@@ -234,6 +266,7 @@ def test_robot_run_prints_the_figures_as_json():
     # of the loaded machine is the only loss
     assert fig['tpdo_period_ms'] == 4
     assert fig['tpdo_drift_ppm'] == 100.0 and 0.0 < fig['tpdo_phases_seen'] <= 1.0
+    assert fig['bus_bitrate'] == 1e6  # the players' frames spaced as Krang's nets carry them
     assert len(fig['p50_by_next_tpdo_ms']) == len(fig['ref_p50_by_next_tpdo_ms']) == 5
     assert 200.0 < fig['tpdo_rate_hz'] <= 251.0 and 200.0 < fig['ref_tpdo_rate_hz'] <= 251.0
     # the DMU's player (a process of its own) plays every period, late ones late, and the bridge
