@@ -369,32 +369,11 @@ def bring_to_balance(client, tell, timeout, dead=dict):
             client.pause(0.05)
 
 
-def run_robot(
-    seconds,
-    rate_hz,
-    load,
-    tpdo_period_ms=None,
-    tpdo_phase=0.5,
-    priority=None,
-    traced=False,
-    tpdo_drift_ppm=DRIFT_PPM,
-    bitrate=BUS_BITRATE,
-):
-    """`measure_robot` in a working directory (logs, the player's record, the trace) removed
-    after a valid run and kept, and named, otherwise."""
+def run_robot(seconds, rate_hz, load, **options):
+    """`measure_robot` (`options`: its keywords) in a working directory (logs, the player's
+    record, the trace) removed after a valid run and kept, and named, otherwise."""
     with WorkingDir('krang_latency_') as work:
-        fig = measure_robot(
-            work.path,
-            seconds,
-            rate_hz,
-            load,
-            tpdo_period_ms,
-            tpdo_phase,
-            priority,
-            traced,
-            tpdo_drift_ppm,
-            bitrate,
-        )
+        fig = measure_robot(work.path, seconds, rate_hz, load, **options)
         if fig['left_balance']:
             work.keep('NOT VALID (the controller left BALANCE)')
         return fig
@@ -420,11 +399,11 @@ def measure_robot(
     seconds,
     rate_hz,
     load,
-    tpdo_period_ms,
-    tpdo_phase,
-    priority,
-    traced,
-    tpdo_drift_ppm,
+    tpdo_period_ms=None,
+    tpdo_phase=0.5,
+    priority=None,
+    traced=False,
+    tpdo_drift_ppm=DRIFT_PPM,
     bitrate=BUS_BITRATE,
 ):
     """Start the player; measure the reference chain alone for `seconds`, then the node set for
@@ -620,11 +599,12 @@ def trace_figures(paths, window):
 
 
 def print_robot(fig, load):
+    bitrate = fig['bus_bitrate']
+    frames = f'frames spaced at {bitrate / 1e6:g} Mbit/s' if bitrate else 'frames in bursts'
     print(
         f'robot configuration, wall clock, {fig["configured_rate_hz"]:.0f} Hz configured, '
         f'TPDOs every {fig["tpdo_period_ms"]} ms from phase {fig["tpdo_phase"]:.2f}, '
-        f'{fig["tpdo_drift_ppm"]:g} ppm slower than the DMU, frames spaced at '
-        f'{fig["bus_bitrate"] / 1e6:g} Mbit/s, {load} busy '
+        f'{fig["tpdo_drift_ppm"]:g} ppm slower than the DMU, {frames}, {load} busy '
         f'loop(s), {fig["seconds"]:.1f} s balancing'
     )
     print(
@@ -883,12 +863,12 @@ def main():
             args.seconds,
             args.rate_hz,
             args.load,
-            args.tpdo_period_ms,
-            args.tpdo_phase,
-            args.thread_priority,
-            args.trace,
-            args.tpdo_drift_ppm,
-            args.bus_bitrate,
+            tpdo_period_ms=args.tpdo_period_ms,
+            tpdo_phase=args.tpdo_phase,
+            priority=args.thread_priority,
+            traced=args.trace,
+            tpdo_drift_ppm=args.tpdo_drift_ppm,
+            bitrate=args.bus_bitrate,
         )
     except ConfigError as exc:  # the session map with --tpdo-period-ms, checked before any start
         parser.error(str(exc))
