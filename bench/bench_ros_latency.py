@@ -114,8 +114,8 @@ MIN_PROBES = 20  # answered probes needed for percentiles by probe
 #: the period the drives send"): at 100 ppm and 2 ms a 20 s measurement sees every phase once.
 DRIFT_PPM = 100.0
 #: Krang's CAN nets (docs/can.md): the players space their frames by their time on this wire
-#: (device_player.Wire); in one burst, the drives' eight TPDO frames came faster than any bus
-#: carries them and starved the bridge's other threads (README, "Which phase costs what").
+#: (device_player.Wire); in one burst the drives' eight TPDO frames came twice as fast as any bus
+#: carries them, and the bridge read them in one stretch (README, "The bus's pace").
 BUS_BITRATE = 1e6
 TPDO_PARTS = 5  # p50_by_next_tpdo: the sample period in fifths (0.4 ms at 500 Hz)
 JSON_KEYS = ('p50_ms', 'p99_ms', 'rate_hz', 'configured_rate_hz', 'ref_p50_ms', 'ref_p99_ms')
