@@ -117,7 +117,7 @@ def main(argv=None):
 
 
 def validate(seed):
-    from krang_discrepancy.effects import nominal_drive
+    from krang_model.effects import nominal_drive
     from krang_discrepancy.nominal import NominalModel
     from krang_discrepancy.replay import Replay, ReplayConfig
     from krang_discrepancy.synthetic import simulate_record

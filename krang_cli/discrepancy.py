@@ -37,7 +37,7 @@ complete (baseline + new effects), so it can be the next baseline.
 Effects in the library: imu_pitch_bias (rad), floor_slope (rad), wheel_radius (m), payload (kg on
 lGripper / rGripper), wheel_viscous_friction (N m s), wheel_coulomb_friction (N m per wheel),
 torque_constant (N m/A), actuation_delay (s), encoder_offset (rad, JWaist). Add your own with
---effects-module (see krang_discrepancy/effects.py).
+--effects-module (see krang_model/effects.py).
 
 Outputs: DIR/report.md with figures (locate_*.png, naming_evidence.png, gap_*.png),
 DIR/extended_model.yaml, DIR/result.json. The gap is the RMS prediction error of the four signals
@@ -184,7 +184,7 @@ def run(args):
     from krang_discrepancy.nominal import NominalModel
     from krang_discrepancy.phases import PHASES
     from krang_discrepancy.replay import ReplayConfig
-    from krang_discrepancy.effects import load_effects_module, register_optional_effects
+    from krang_model.effects import load_effects_module, register_optional_effects
     from krang_discrepancy.naming import NamingConfig
     from krang_discrepancy.report import run_discrepancy
     from krang_cli.common import print_json

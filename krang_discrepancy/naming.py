@@ -48,7 +48,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .replay import Replay, gap_metrics
-from .effects import Effect, ModelTerms, apply_effects, library
+from krang_model.effects import Effect, ModelTerms, apply_effects, library
 from .verdict import SITTING_TOL, sitting_offset
 
 

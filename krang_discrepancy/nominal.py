@@ -12,7 +12,7 @@ from krang_model.config import config_path
 from krang_model.drivetrain import drivetrain
 from krang_model.robot import load_krang
 
-from .effects import ModelTerms
+from krang_model.effects import ModelTerms
 
 
 @dataclass

@@ -30,7 +30,7 @@ from krang_model.drivetrain import stack
 from krang_model.kinematics import body_placements
 from krang_model.wip import WipBody, WipDynamics, point_mass_beta, reduce_placements
 
-from .effects import ModelTerms
+from krang_model.effects import ModelTerms
 from .nominal import NominalModel
 from .phases import PHASES, label_phases
 from .record import CHANNELS, Record

@@ -33,7 +33,7 @@ from .nominal import NominalModel
 from .phases import PHASES
 from .record import CHANNEL_UNITS, CHANNELS, resample
 from .replay import Replay, ReplayConfig, gap_metrics
-from .effects import ModelTerms, apply_effects, get_effect, library
+from krang_model.effects import ModelTerms, apply_effects, get_effect, library
 from .locate import PHASE_COLOURS, locate, plot_location, shade_phases
 from .naming import (
     NamingConfig,

@@ -280,17 +280,3 @@ class KrangSim:
             wheel_current_left=self.applied_current[0],
             wheel_current_right=self.applied_current[1],
         )
-
-
-def perturbed_beta(robot, seed, mass_fraction=0.05, com_shift_m=0.03):
-    """A physically plausible 'true' robot near the nominal one: masses within a few per cent,
-    local CoMs moved by up to a few centimetres, total mass kept; wheels stay centred on their
-    axle."""
-    rng = np.random.default_rng(seed)
-    b = robot.nominal_beta.reshape(-1, 4).copy()
-    masses = b[:, 0] * (1.0 + rng.uniform(-mass_fraction, mass_fraction, len(b)))
-    masses *= robot.nominal_mass / masses.sum()
-    coms = np.divide(b[:, 1:], b[:, :1], out=np.zeros_like(b[:, 1:]), where=b[:, :1] != 0)
-    coms += rng.uniform(-com_shift_m, com_shift_m, coms.shape)
-    coms[robot.wheel_body_ids] = 0.0
-    return np.column_stack([masses, masses[:, None] * coms]).ravel()

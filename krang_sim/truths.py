@@ -1,7 +1,7 @@
 """Hidden true robots for tests and demos: plausible perturbations of the nominal mass model whose
 forward CoM error (as `krang demo` measures it) lies in a chosen range.
 
-The recipe is the demo truth's (config/sim_demo_true_beta.yaml, `physics.perturbed_beta`): masses
+The recipe is the demo truth's (config/sim_demo_true_beta.yaml, `perturbed_beta`): masses
 scaled within +-mass_fraction, then rescaled so the total mass is kept; every body's local CoM
 moved by up to com_shift_m per axis; wheel CoMs centred on the axle. A draw is kept only if the
 nominal model's forward CoM error against it (krang_model.com.com_error over the demo's held-out
@@ -16,7 +16,20 @@ import numpy as np
 from krang_bag.session_report import held_out_configurations
 from krang_model.com import com_error
 
-from .physics import perturbed_beta
+
+
+def perturbed_beta(robot, seed, mass_fraction=0.05, com_shift_m=0.03):
+    """A physically plausible 'true' robot near the nominal one: masses within a few per cent,
+    local CoMs moved by up to a few centimetres, total mass kept; wheels stay centred on their
+    axle."""
+    rng = np.random.default_rng(seed)
+    b = robot.nominal_beta.reshape(-1, 4).copy()
+    masses = b[:, 0] * (1.0 + rng.uniform(-mass_fraction, mass_fraction, len(b)))
+    masses *= robot.nominal_mass / masses.sum()
+    coms = np.divide(b[:, 1:], b[:, :1], out=np.zeros_like(b[:, 1:]), where=b[:, :1] != 0)
+    coms += rng.uniform(-com_shift_m, com_shift_m, coms.shape)
+    coms[robot.wheel_body_ids] = 0.0
+    return np.column_stack([masses, masses[:, None] * coms]).ravel()
 
 
 @dataclass(frozen=True)

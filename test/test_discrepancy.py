@@ -23,7 +23,7 @@ import math
 import numpy as np
 import pytest
 
-from krang_discrepancy import effects as fx
+from krang_model import effects as fx
 from krang_discrepancy.loaders import load_bag_record, load_csv_record, save_bag
 from krang_discrepancy.locate import locate
 from krang_discrepancy.naming import Fit, NamingConfig, gaps, name_effects

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import yaml
 
-from krang_discrepancy import effects as fx
+from krang_model import effects as fx
 from krang_discrepancy.naming import _compare, scan_grid, start_value
 from krang_discrepancy.replay import ReplayConfig
 from krang_discrepancy.report import load_extended_model, run_discrepancy

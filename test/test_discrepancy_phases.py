@@ -13,7 +13,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from krang_discrepancy import effects as fx
+from krang_model import effects as fx
 from krang_discrepancy.naming import name_effects
 from krang_discrepancy.nominal import NominalModel
 from krang_discrepancy.replay import Replay, ReplayConfig

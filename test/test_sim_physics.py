@@ -8,7 +8,8 @@ import pytest
 from krang_model.com import balance_pitch
 from krang_model.drivetrain import drivetrain
 from krang_model.robot import load_krang
-from krang_sim.physics import KrangSim, SimConfig, SimEffects, SensorNoise, perturbed_beta
+from krang_sim.physics import KrangSim, SimConfig, SimEffects, SensorNoise
+from krang_sim.truths import perturbed_beta
 
 POSE = np.array(
     [

@@ -32,7 +32,7 @@ Subclass ``Effect`` (or instantiate it) and register it; ``krang discrepancy --e
 my_effects`` (a module path or a .py file) imports your module before the run, so the decorator
 runs::
 
-    from krang_discrepancy.effects import Effect, register_effect
+    from krang_model.effects import Effect, register_effect
 
     # a term the model has no field for: an additive generalised force (N m) on the
     # wheel equation and on the pitch equation, evaluated on arrays of the predicted state
