@@ -1,6 +1,7 @@
 """Pose CSV files: q_base plus the body joints in pose order (columns of the hardware CSV)."""
 
 import csv
+import math
 from pathlib import Path
 
 import numpy as np
@@ -14,6 +15,8 @@ class PoseFileError(ValueError):
 
 def load_poses(path, robot_columns, limits=None):
     """(q_base (N,), joints (N, J), rows as dicts) from a pose CSV; extra columns are ignored.
+
+    q_base is the base's pitch, an angle: a value outside [-pi, pi] is a corrupt file.
 
     `limits` = (lower, upper) of the joints: a pose outside them is an error, not a silent
     extrapolation of the model to a configuration the robot cannot take."""
@@ -42,6 +45,13 @@ def load_poses(path, robot_columns, limits=None):
     bad = ~np.all(np.isfinite(table), axis=1)
     if bad.any():
         raise PoseFileError(f'{path}: NaN/inf in rows {np.flatnonzero(bad)[:10].tolist()}')
+    pitch_out = np.abs(table[:, 0]) > math.pi
+    if pitch_out.any():
+        i = int(np.flatnonzero(pitch_out)[0])
+        raise PoseFileError(
+            f'{path}: line {i + 2}: q_base = {table[i, 0]:.6g} rad is not a pitch (outside '
+            f'[-pi, pi]; {int(pitch_out.sum())} rows)'
+        )
     if limits is not None:
         _check_limits(path, table[:, 1:], needed[1:], *limits)
     return table[:, 0], table[:, 1:], rows

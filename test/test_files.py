@@ -121,6 +121,21 @@ def test_pose_outside_the_joint_limits(tmp_path, robot):
     load_poses(path, KRANG_POSE_COLUMNS)  # without limits the file itself is fine
 
 
+def test_pose_whose_pitch_is_no_angle_is_refused_by_the_cli(tmp_path, capsys, robot):
+    rows = np.zeros((3, 17))
+    rows[:, 0] = -1.5
+    rows[2, 0] = 1e308
+    path = pose_csv(tmp_path, rows)
+    with pytest.raises(PoseFileError, match=r'line 4: q_base = 1e\+308 rad is not a pitch'):
+        load_poses(path, KRANG_POSE_COLUMNS)
+    beta = save_beta(tmp_path / 'b.yaml', robot.nominal_beta, robot)
+    code = krang(['evaluate', '--beta', str(beta), '--poses', str(path)])
+    err = capsys.readouterr()
+    lines = err.err.strip().splitlines()
+    assert code != 0 and len(lines) == 1 and str(path) in lines[0] and 'q_base' in lines[0]
+    assert 'Traceback' not in err.err and err.out == ''  # no partial output
+
+
 def test_negative_row_is_refused(tmp_path, robot):
     path = save_beta(tmp_path / 'b.txt', robot.nominal_beta, robot)
     with pytest.raises(BetaFileError, match='--row -1 out of range'):
