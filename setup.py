@@ -36,6 +36,7 @@ setup(
         'tqdm',
         'matplotlib',
         'foxglove-sdk',  # krang view: the live Foxglove WebSocket server
+        'mujoco>=4.0',  # the full-body plant (krang_sim.mujoco_plant: MjSpec, pid actuators)
     ],
     extras_require={
         'test': [

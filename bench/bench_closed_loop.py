@@ -15,8 +15,10 @@ from krang_adrc_controller.controller import load_controller_config
 from krang_model.beta import load_beta
 from krang_model.config import config_path
 from krang_model.robot import load_krang
-from krang_sim.closed_loop import TABLE2_POSE, ClosedLoop, FastKrangSim, run_balance, shifted_beta
-from krang_sim.physics import KrangSim
+from krang_sim.closed_loop import ClosedLoop
+from krang_sim.reduced_plant import ReducedPlant
+from krang_sim.scenarios import TABLE2_POSE, run_balance, shifted_beta
+from krang_sim.sensors import SensorModel
 
 
 def best(fn, repeat):
@@ -82,7 +84,7 @@ def main(argv=None):
     # 4. per-step costs
     n = 20000
     ctl = loop.controller
-    samples = [loop.sim.control_sample() for _ in range(n)]
+    samples = [loop.control_sample() for _ in range(n)]
     t_start = samples[-1].t
     for k, s in enumerate(samples):
         s.t = t_start + (k + 1) * ctl.h
@@ -108,22 +110,27 @@ def main(argv=None):
     w = best(run_adrc, args.repeat)
     print(f'  ADRC law alone (AdrcController.update): {w / n * 1e6:6.2f} us')
 
-    sim = FastKrangSim(robot, tb, TABLE2_POSE)
-    ref = KrangSim(robot, tb, TABLE2_POSE)
+    plant = ReducedPlant(robot, tb, TABLE2_POSE)
+    plant.step()  # at rest where reduced: the hot path from here
+    sensors = SensorModel(robot)
     m = 20000
-    w_fast = best(lambda: [sim.step(2) for _ in range(m)], args.repeat)
-    w_ref = best(lambda: [ref.step(2) for _ in range(m)], 1)
+    w_fast = best(lambda: [plant.step(2) for _ in range(m)], args.repeat)
+
+    def full_steps():
+        for _ in range(m):
+            plant._step_one()
+            plant._step_one()
+
+    w_ref = best(full_steps, 1)
     print(
-        f'  physics, 2 steps per control period: FastKrangSim {w_fast / m * 1e6:6.2f} us, '
-        f'KrangSim '
-        f'{w_ref / m * 1e6:6.2f} us ({w_ref / w_fast:.1f}x)'
+        f'  physics, 2 steps per control period: ReducedPlant.step {w_fast / m * 1e6:6.2f} us, '
+        f'the full step {w_ref / m * 1e6:6.2f} us ({w_ref / w_fast:.1f}x)'
     )
-    w_s = best(lambda: [sim.control_sample() for _ in range(m)], args.repeat)
-    w_r = best(lambda: [ref.sensors() for _ in range(m)], 1)
+    w_s = best(lambda: [sensors.control_sample(plant) for _ in range(m)], args.repeat)
+    w_r = best(lambda: [sensors.sample(plant.motion()) for _ in range(m)], 1)
     print(
-        f'  sensors: control_sample {w_s / m * 1e6:6.2f} us, KrangSim.sensors '
-        f'{w_r / m * 1e6:6.2f} us '
-        f'({w_r / w_s:.1f}x)'
+        f'  sensors: SensorModel.control_sample {w_s / m * 1e6:6.2f} us, every device (sample of '
+        f'motion) {w_r / m * 1e6:6.2f} us ({w_r / w_s:.1f}x)'
     )
     # redesign on a pose or beta change
     k0 = time.perf_counter()

@@ -1,8 +1,9 @@
 """Time a full `krang discrepancy` run on a 60 s record and the share of each stage.
 
-The record is simulated (KrangSim + ADRC, sit -> stand -> balance with pose changes and a current
-excitation; a hidden floor slope of 0.02 rad); its generation is timed separately and is not part
-of the workflow. The workflow runs as the CLI would, with the whole library, plots and report.
+The record is simulated (synthetic.simulate_record on the closed loop: ADRC, sit -> stand ->
+balance with pose changes and a current excitation; a hidden floor slope of 0.02 rad); its
+generation is timed separately and is not part of the workflow. The workflow runs as the CLI
+would, with the whole library, plots and report.
 
     .venv/bin/python bench/bench_discrepancy.py [--seconds 60] [--stride 0.05] [--no-plots] [--csv
     FILE]
@@ -67,7 +68,6 @@ def main(argv=None):
     from krang_discrepancy.replay import ReplayConfig
     from krang_discrepancy.synthetic import simulate_record
     from krang_discrepancy.report import run_discrepancy
-    from krang_sim.physics import SimEffects
 
     t0 = time.perf_counter()
     if args.csv:
@@ -75,9 +75,7 @@ def main(argv=None):
         cfg = ReplayConfig(stride_s=args.stride)
         what = f'hardware log {Path(args.csv).name}'
     else:
-        rec = simulate_record(
-            SimEffects(floor_slope_rad=0.02), seconds=args.seconds, seed=args.seed
-        )
+        rec = simulate_record({'floor_slope': 0.02}, seconds=args.seconds, seed=args.seed)
         cfg = ReplayConfig(stride_s=args.stride, pose_delay_s=0.01)
         what = 'simulated record, hidden floor_slope 0.02 rad'
     gen = time.perf_counter() - t0
@@ -122,24 +120,19 @@ def validate(seed):
     from krang_discrepancy.replay import Replay, ReplayConfig
     from krang_discrepancy.synthetic import simulate_record
     from krang_discrepancy.naming import gaps, name_effects
-    from krang_sim.physics import SimEffects
 
     cases = [
-        ('none', SimEffects(), None),
-        ('imu_pitch_bias', SimEffects(imu_pitch_bias_rad=0.02), 0.02),
-        ('floor_slope', SimEffects(floor_slope_rad=0.02), 0.02),
-        ('wheel_radius', SimEffects(wheel_radius_m=0.25), 0.25),
-        ('payload', SimEffects(payload_kg=5.0), 5.0),
-        ('wheel_viscous_friction', SimEffects(wheel_viscous_Nm_s=2.0), 2.0),
-        ('wheel_coulomb_friction', SimEffects(wheel_coulomb_Nm=2.0), 2.0),
-        (
-            'torque_constant',
-            SimEffects(torque_constant_scale=0.8),
-            0.8 * nominal_drive().torque_constant,
-        ),
-        ('actuation_delay', SimEffects(actuation_delay_s=0.02), 0.02),
-        ('encoder_offset', SimEffects(encoder_offset_rad=0.05), 0.05),
-        ('rolling_resistance', SimEffects(drive_extra={'ground_viscous': 4.0}), 4.0),
+        ('none', None, None),
+        ('imu_pitch_bias', {'imu_pitch_bias': 0.02}, 0.02),
+        ('floor_slope', {'floor_slope': 0.02}, 0.02),
+        ('wheel_radius', {'wheel_radius': 0.25}, 0.25),
+        ('payload', {'payload@lGripper': 5.0}, 5.0),
+        ('wheel_viscous_friction', {'wheel_viscous_friction': 2.0}, 2.0),
+        ('wheel_coulomb_friction', {'wheel_coulomb_friction': 2.0}, 2.0),
+        ('torque_constant', {'torque_constant': 0.8}, 0.8 * nominal_drive().torque_constant),
+        ('actuation_delay', {'actuation_delay': 0.02}, 0.02),
+        ('encoder_offset', {'encoder_offset@JWaist': 0.05}, 0.05),
+        ('rolling_resistance', {'rolling_resistance': 4.0}, 4.0),
     ]
     model = NominalModel.default()
     print(
@@ -186,7 +179,8 @@ def hidden_case(case, seconds=22.0):
     from krang_discrepancy.replay import ReplayConfig
     from krang_discrepancy.report import run_discrepancy
     from krang_discrepancy.synthetic import Unmodelled, simulate_record
-    from krang_sim.physics import SensorNoise, SimEffects
+    from krang_model.effects import library
+    from krang_sim.sensors import SensorNoise
 
     cid, fx, um, seed, noise_k, truth, equivalents = case
     base = SensorNoise()
@@ -197,7 +191,7 @@ def hidden_case(case, seconds=22.0):
         joint_std_rad=base.joint_std_rad * noise_k,
     )
     rec = simulate_record(
-        SimEffects(**fx),
+        fx,
         seed=seed,
         seconds=seconds,
         hold_s=2.0,
@@ -224,7 +218,9 @@ def hidden_case(case, seconds=22.0):
         )
         right = answer in expected
     checks = []
-    for name, true in truth.items():
+    for name, parameter in truth.items():
+        # the suite states parameters (a torque constant's scale); the report gives values
+        true = next(e for e in library() if e.name == name).display(parameter)[0]
         if name in named:
             e = named[name]
             err = e['value'] - true
@@ -303,22 +299,14 @@ def gap_null(n, first_seed, design):
     from dataclasses import replace
 
     import numpy as np
-    from krang_adrc_controller.controller import ControllerConfig
     from krang_discrepancy.nominal import NominalModel
     from krang_discrepancy.replay import Replay, ReplayConfig
-    from krang_discrepancy.synthetic import simulate_record
+    from krang_discrepancy.synthetic import record_controller_config, simulate_record
     from krang_discrepancy.verdict import MAX_OWN_GAP, SITTING_TOL, gap_test, sitting_offset
-    from krang_sim.physics import SensorNoise
+    from krang_sim.sensors import SensorNoise
 
     model = NominalModel.default()
-    at_30hz = ControllerConfig().override(
-        {
-            'balance_point.enabled': False,
-            'modes.stand_error_min_rad': -0.30944,  # as simulate_record's own default
-            'rate_hz': 30.0,
-            'detector.rate_hz': 30.0,
-        }
-    )
+    at_30hz = record_controller_config({'rate_hz': 30.0, 'detector.rate_hz': 30.0})
     base = SensorNoise()
     gaps, sits = [], []
     for i in range(n):

@@ -31,11 +31,14 @@ from krang_can_bridge.config import load_devices
 from krang_can_bridge.imu_filter import ImuPitchEstimator, pitch_axis, sensor_vectors
 from krang_model.beta import load_beta
 from krang_model.config import config_path
+from krang_model.drivetrain import drivetrain
 from krang_model.robot import load_krang
-from krang_sim.closed_loop import TABLE2_POSE, ClosedLoop
+from krang_sim.closed_loop import ClosedLoop
+from krang_sim.scenarios import TABLE2_POSE
+from krang_sim.sensors import SensorModel, device_scales
 
 DT = 0.005  # sim_krang's DMU sample period
-RATE_LSB, ACCEL_LSB = math.radians(0.008), 0.0003 * 9.80665
+RATE_LSB, ACCEL_LSB = device_scales().gyro_lsb_rad_s, device_scales().accel_lsb_m_s2  # the DBC's
 BIAS = 0.01  # rad/s, the unannounced gyro-bias step
 STEP_AT = 10.0  # s
 SETTLE = 120.0  # s after the step where the "steady" error is read
@@ -71,7 +74,8 @@ def sitting(imu):
     n = int((STEP_AT + SETTLE) / DT) + 1
     t = np.arange(n) * DT
     bias = np.where(t >= STEP_AT, BIAS, 0.0)
-    err, b = feed(imu, np.full(n, -1.76), np.zeros(n), np.zeros(n), bias)
+    sitting_pitch = drivetrain(load_krang()).caster_pitch
+    err, b = feed(imu, np.full(n, sitting_pitch), np.zeros(n), np.zeros(n), bias)
     after = t >= STEP_AT
     reached = np.nonzero(after & (b >= (1 - math.exp(-1)) * BIAS))[0]
     tau = t[reached[0]] - STEP_AT if len(reached) else math.inf
@@ -87,17 +91,19 @@ def balancing_trajectory(seconds=100.0, amplitude=0.1, freq=0.1, move_from=20.0)
     robot = load_krang()
     beta = load_beta(config_path('sim_true_beta.yaml'), robot)
     loop = ClosedLoop(robot, beta, beta, TABLE2_POSE, seed=0)
-    ctl, sim = loop.controller, loop.sim
+    ctl, plant = loop.controller, loop.plant
+    dmu = SensorModel(robot)  # what the DMU is given of the motion (no misalignment)
     rows, x0 = [], None
     loop.run(1.0)
-    while sim.t < seconds:
-        if not ctl.enabled and sim.t >= 2.0:
+    while plant.t < seconds:
+        if not ctl.enabled and plant.t >= 2.0:
             ctl.set_enabled(True)
         loop.run(loop.h)
-        if sim.t > move_from and ctl.mode.value == 'balance':
+        if plant.t > move_from and ctl.mode.value == 'balance':
             x0 = ctl.x_ref if x0 is None else x0
-            ctl.x_ref = x0 + amplitude * math.sin(2 * math.pi * freq * (sim.t - move_from))
-        rows.append((sim.t, sim.state[1], sim.state[3], sim.axle_acceleration))
+            ctl.x_ref = x0 + amplitude * math.sin(2 * math.pi * freq * (plant.t - move_from))
+        pitch, rate, forward, _ = dmu.dmu_inputs(plant.motion())
+        rows.append((plant.t, pitch, rate, forward))
     if ctl.mode.value != 'balance':
         raise RuntimeError('the closed loop did not balance')
     t, pitch, rate, accel = np.array(rows).T

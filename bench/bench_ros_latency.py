@@ -16,9 +16,8 @@ balances.
 In the same run, before the nodes start, the bare reference chain (bench/ref_chain.py: CAN ->
 process 1 -> topic -> process 2 -> topic -> process 1 -> CAN, SingleThreadedExecutor) is played
 at the same rate for as long, with the player playing the devices all the while (the TPDO sets
-too, from stand-in drives, as the drives are not started yet: before, the reference ran beside a
-player sending a ninth of the frames): each chain runs alone beside the same player, as issue 11
-measured the reference. Run together, each chain's CPU
+too, from stand-in drives, as the drives are not started yet): each chain runs alone beside the
+same player. Run together, each chain's CPU
 was the other's load (on 2 cores the reference takes half a core), a load the robot does not
 have. --load N adds N busy-loop processes during both measurements.
 
@@ -34,7 +33,7 @@ the drive's previous payload is the bridge's periodic refresh, not an answer (th
 answer differ). Times are kernel receive stamps on the player's socket: the bus as the devices
 see it. The p50 is also given by where the drives' next TPDO set came after the sample (fifths
 of the period, `p50_by_next_tpdo_ms`, the reference's alike): the phase sweeps the period, and the
-latency depends on it (README, "Which phase costs what").
+latency depends on it (docs/performance.md, the control path's tables).
 
 The control rate (`rate_hz`) is the controller's own count of steps on new samples
 (`samples_stepped` in its diagnostics) per second of its clock across the window; a sample
@@ -56,7 +55,8 @@ controller stopped on stale data).
 
 Default (no --robot): the simulated node set's parameters (config/sim_params.yaml) on wall time,
 the robot sitting, the wheel velocity toggled every 0.5 s: the first current frame that changes
-after a toggle ends the path (in SIT the ground PD commands -10 A per rad/s).
+after a toggle ends the path (in SIT the ground PD commands -10 A per rad/s; ros_latency_sim.py).
+The figures are computed by ros_latency_analysis.py.
 
 --trace splits each sample's latency into its segments (krang_ros/trace.py: the nodes write the
 time each sample passes each stage; joined on the sample's stamp, which the wheel command
@@ -70,34 +70,32 @@ DDS to the controller, its step, DDS back, and the bridge's encoding and sending
 
 import argparse
 import glob
-import importlib
 import json
-import math
 import os
 import random
 import select
 import subprocess
 import sys
-import threading
 import time
 from pathlib import Path
 
-import can
 import numpy as np
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from std_srvs.srv import SetBool
 
-from krang_can_bridge.config import ConfigError, load_devices
-from krang_can_bridge.protocols import load_dbc
-from krang_can_bridge.protocols.amc import AmcDriveCodec
+from krang_can_bridge.config import CAN_BITRATE, ConfigError, load_devices
 from krang_cli.node_set import file_parameter, params_files
 from krang_cli.processes import NodeSet, WorkingDir, child_setup, is_real_time
-from krang_model.robot import load_krang
-from krang_ros import names, topics, trace
+from krang_core import names
+from krang_ros import trace
 from krang_ros.session_client import SessionError, open_session_client
-from krang_sim.devices import KrangCanDevices
 from krang_sim.session_config import session_devices_file
+from ros_latency_analysis import (
+    JSON_KEYS,
+    analyse,
+)
+from ros_latency_sim import run_sim_params
 
 BENCH = Path(__file__).resolve().parent
 #: The controller's parameters that differ from the robot's here. Without physics a command has
@@ -108,211 +106,14 @@ BENCH = Path(__file__).resolve().parent
 #: 2-core box, ends the measurement in SAFE_STOP, where every command is zero; 2 s rides it out.
 CONTROLLER_OVERRIDES = {'adrc.use_disturbance_rejection': False, 'safety.stale_timeout_s': 2.0}
 PLAYER_PRIORITY_ABOVE = 10  # SCHED_FIFO: the devices above the nodes
-MIN_PROBES = 20  # answered probes needed for percentiles by probe
 #: The drives' and the DMU's clocks are free-running crystals (50 ppm each, typically): the
-#: TPDOs' phase in the sample period drifts, and the latency depends on it (README, "Where in
-#: the period the drives send"): at 100 ppm and 2 ms a 20 s measurement sees every phase once.
+#: TPDOs' phase in the sample period drifts, and the latency depends on it (docs/architecture.md,
+#: "The latency benchmark"): at 100 ppm and 2 ms a 20 s measurement sees every phase once.
 DRIFT_PPM = 100.0
-#: Krang's CAN nets (docs/can.md): the players space their frames by their time on this wire
+#: Krang's CAN nets: the players space their frames by their time on this wire
 #: (device_player.Wire); in one burst the drives' eight TPDO frames came twice as fast as any bus
-#: carries them, and the bridge read them in one stretch (README, "The bus's pace").
-BUS_BITRATE = 1e6
-TPDO_PARTS = 5  # p50_by_next_tpdo: the sample period in fifths (0.4 ms at 500 Hz)
-JSON_KEYS = ('p50_ms', 'p99_ms', 'rate_hz', 'configured_rate_hz', 'ref_p50_ms', 'ref_p99_ms')
-
-
-# ---- analysis (plain numpy) ---------------------------------------------------------------------
-def new_commands(t, value):
-    """The RPDOs of one drive that carry a new current (a repeat of the previous payload is the
-    bridge's periodic refresh); sorted by time."""
-    order = np.argsort(t, kind='stable')
-    t, value = np.asarray(t, float)[order], np.asarray(value, float)[order]
-    keep = np.ones(len(t), bool)
-    keep[1:] = value[1:] != value[:-1]
-    return t[keep], value[keep]
-
-
-def timing_match(sample_t, cmd_t):
-    """Each command answers the newest sample before it; a sample's latency is its first such
-    command. Returns (latencies of the answered samples [s], number of distinct samples answered).
-    """
-    idx = np.searchsorted(sample_t, cmd_t, side='right') - 1
-    ok = idx >= 0
-    idx, ct = idx[ok], cmd_t[ok]
-    first = np.unique(idx, return_index=True)[1]
-    return ct[first] - sample_t[idx[first]], len(first)
-
-
-def probe_match(sample_t, probe, cmd_t, cmd_v):
-    """Latencies of the answered probe samples [s], the probes' response (DC2 units) and the
-    times of those samples.
-
-    `probe`: per sample, the probe's sign (+1, -1; 0 = not a probe). For each probe: baseline =
-    the last new command before it, changes = (command - baseline) * sign up to the probe after
-    next (the next one moves the other way, so no command before that one's answer is confused
-    with this one's). The response is the median of the larger half of the probes' largest
-    changes (the probes whose sample reached the controller). A probe's answer is the first
-    command whose change exceeds half the response."""
-    idx = np.flatnonzero(probe)
-    if len(idx) < 3:
-        return np.array([]), 0.0, np.array([])
-    starts, signs = sample_t[idx], probe[idx].astype(float)
-    spacing = float(np.median(np.diff(starts)))
-    ends = np.append(starts[2:], starts[-2:] + 2.0 * spacing)
-    base_idx = np.searchsorted(cmd_t, starts, side='right') - 1
-    windows = []
-    for t0, t1, sign, b in zip(starts, ends, signs, base_idx):
-        hi = np.searchsorted(cmd_t, t1, side='right')
-        if b >= 0 and hi > b + 1:
-            windows.append((t0, cmd_t[b + 1 : hi], sign * (cmd_v[b + 1 : hi] - cmd_v[b])))
-    if not windows:
-        return np.array([]), 0.0, np.array([])
-    largest = np.array([d.max() for _, _, d in windows])
-    response = float(np.median(np.sort(largest)[len(largest) // 2 :]))
-    latencies, times = [], []
-    for t0, ts, d in windows:
-        hit = np.flatnonzero(d > 0.5 * response)
-        if hit.size and response > 0:
-            latencies.append(ts[hit[0]] - t0)
-            times.append(t0)
-    return np.array(latencies), response, np.array(times)
-
-
-def noise_level(cmd_t, cmd_v, before, seconds=1.0):
-    """Robust standard deviation of the new commands in the `seconds` before `before` (the first
-    probe), DC2 units."""
-    v = cmd_v[(cmd_t >= before - seconds) & (cmd_t < before)]
-    return 1.4826 * float(np.median(np.abs(v - np.median(v)))) if len(v) else float('inf')
-
-
-def reference_latencies(req, ans, window):
-    """(latencies [s] of the reference frames sent in the window, number of them unanswered,
-    times of the answered ones)."""
-    req = req[(req[:, 0] >= window[0]) & (req[:, 0] <= window[1])]
-    answers = {}
-    for t, n in ans:
-        answers.setdefault(int(n), t)
-    answered = np.array([(t, answers[int(n)] - t) for t, n in req if int(n) in answers])
-    answered = answered.reshape(-1, 2)
-    return answered[:, 1], len(req) - len(answered), answered[:, 0]
-
-
-def p50_by_next_tpdo(times, latencies, tpdo_t, period, parts=TPDO_PARTS):
-    """The median latency [ms] of the samples at `times` by when the drives' next TPDO set came
-    after each: one value per `parts`-th of the sample period (the first: within a fifth of a
-    period after the sample), nan where none; a sample whose next set came more than a period
-    later (a set sent late) is in none. The TPDO sets' phase sweeps the period
-    (--tpdo-drift-ppm); where they collide with a sample's path through the nodes shows here."""
-    tpdo_t = np.sort(tpdo_t)
-    k = np.searchsorted(tpdo_t, times, side='right')
-    ok = k < len(tpdo_t)
-    after = (tpdo_t[k[ok]] - times[ok]) / period
-    latencies = np.asarray(latencies)[ok]
-    part = np.floor(after * parts).astype(int)
-    return [
-        float(1e3 * np.median(latencies[part == i])) if np.any(part == i) else float('nan')
-        for i in range(parts)
-    ]
-
-
-def tpdo_phases_seen(sample_t, tpdo_t, window, bins=10):
-    """The share of `bins` equal parts of the sample period in which TPDO sets were sent during
-    `window`, their phase taken from the sample before each: near 1 when the phase sweeps the
-    period (--tpdo-drift-ppm), one or two tenths when it stays put."""
-    st = np.sort(sample_t)
-    t = tpdo_t[(tpdo_t >= window[0]) & (tpdo_t <= window[1])]
-    k = np.searchsorted(st, t) - 1
-    t, k = t[k >= 1], k[k >= 1]
-    if not len(t):
-        return float('nan')
-    period = float(np.median(np.diff(st)))
-    phase = np.clip((t - st[k]) / period, 0.0, 0.999)
-    return len(np.unique((phase * bins).astype(int))) / bins
-
-
-def count_rates(reports, window, columns):
-    """Per second, each of `columns` counts of 1 Hz reports (stamp, count, ...): between the
-    first report in the window and the last (nan for each without two)."""
-    inside = [r for r in reports if window[0] <= r[0] <= window[1]]
-    if len(inside) < 2:
-        return (float('nan'),) * columns
-    first, last = inside[0], inside[-1]
-    return tuple((last[k] - first[k]) / (last[0] - first[0]) for k in range(1, columns + 1))
-
-
-def analyse(record, window, rate_hz, diag=(), ref_window=None, bridge_diag=()):
-    """Figures of one --robot run from the player's record, the controller's diagnostics (1 Hz
-    reports (stamp, samples_stepped, samples_superseded)) and the bridge's ((stamp, /imu/data
-    samples published)), see the module docstring; the reference chain's from `ref_window`
-    (default `window`)."""
-    w0, w1 = window
-    duration = w1 - w0
-    left = record['cmd_id'] == int(record['left_id'])
-    cmd_t, cmd_v = new_commands(record['cmd_t'][left], record['cmd_value'][left])
-    st, probe = record['sample_t'], record['sample_probe']
-    inside = (st >= w0) & (st <= w1)
-    period = 1.0 / rate_hz
-    in_cmd = (cmd_t >= w0) & (cmd_t <= w1 + 10 * period)
-    t_lat, answered = timing_match(st[inside], cmd_t[in_cmd])
-    p_lat, response, p_t = probe_match(st[inside], probe[inside], cmd_t, cmd_v)
-    noise = noise_level(cmd_t, cmd_v, st[probe != 0][0]) if probe.any() else float('inf')
-    probes = int(np.count_nonzero(probe[inside]))
-    # a probe's answer must stand well above the command noise to carry its identity
-    by_probe = len(p_lat) >= MIN_PROBES and abs(response) > 5.0 * noise
-    lat = p_lat if by_probe else t_lat
-    ref_lat, ref_lost, ref_t = reference_latencies(
-        record['ref_req'], record['ref_ans'], ref_window or window
-    )
-    cmd_in = (cmd_t >= w0) & (cmd_t <= w1)
-    r0, r1 = ref_window or window
-    tpdo_t = record['tpdo_t']
-    ms = lambda x, q: float(1e3 * np.percentile(x, q)) if len(x) else float('nan')  # noqa: E731
-    late = record['sample_late'][inside]  # how late the player sent each sample
-    stepped, superseded = count_rates(diag, window, 2)
-    (published,) = count_rates(bridge_diag, window, 1)
-    out = {
-        'p50_ms': ms(lat, 50),
-        'p99_ms': ms(lat, 99),
-        'rate_hz': stepped,
-        'configured_rate_hz': rate_hz,
-        'ref_p50_ms': ms(ref_lat, 50),
-        'ref_p99_ms': ms(ref_lat, 99),
-    }
-    out.update(
-        {
-            'p50_ratio': out['p50_ms'] / out['ref_p50_ms'],
-            'p99_ratio': out['p99_ms'] / out['ref_p99_ms'],
-            'rate_ratio': out['rate_hz'] / rate_hz,
-            'bus_rate_hz': answered / duration,
-            'superseded_hz': superseded,
-            'match': 'probe' if by_probe else 'timing',
-            'timing_p50_ms': ms(t_lat, 50),
-            'timing_p99_ms': ms(t_lat, 99),
-            'max_ms': float(1e3 * lat.max()) if len(lat) else float('nan'),
-            'probes': probes,
-            'probes_answered': len(p_lat),
-            'probe_response_dc2': response,
-            'command_noise_dc2': noise,
-            'dmu_rate_hz': int(inside.sum()) / duration,
-            'dmu_late_hz': int(np.count_nonzero(late > period)) / duration,
-            'dmu_max_late_ms': float(1e3 * late.max(initial=0.0)),
-            'bridge_imu_rate_hz': published,
-            'tpdo_rate_hz': int(np.count_nonzero((tpdo_t >= w0) & (tpdo_t <= w1))) / duration,
-            'tpdo_phases_seen': tpdo_phases_seen(st, tpdo_t, window),
-            'p50_by_next_tpdo_ms': (
-                p50_by_next_tpdo(p_t, p_lat, tpdo_t, period)
-                if by_probe  # else the probes carry no identity (the JSON's `match`)
-                else [math.nan] * TPDO_PARTS
-            ),
-            'ref_p50_by_next_tpdo_ms': p50_by_next_tpdo(ref_t, ref_lat, tpdo_t, period),
-            'ref_tpdo_rate_hz': int(np.count_nonzero((tpdo_t >= r0) & (tpdo_t <= r1))) / (r1 - r0),
-            'new_commands_hz': int(cmd_in.sum()) / duration,
-            'ref_frames': len(ref_lat) + ref_lost,
-            'ref_lost': ref_lost,
-            'seconds': duration,
-        }
-    )
-    return out
+#: carries them, and the bridge read them in one stretch.
+BUS_BITRATE = float(CAN_BITRATE)
 
 
 # ---- --robot: the run ---------------------------------------------------------------------------
@@ -657,134 +458,6 @@ def print_robot(fig, load):
             f'NOT VALID: the controller left BALANCE during the measurement '
             f'({", ".join(fig["left_balance"])}): the figures mix in its zero commands'
         )
-
-
-# ---- default: the simulated node set's parameters ---------------------------------------------
-def run_sim_params(seconds):
-    """`measure_sim_params` in a working directory removed after the run (kept if it fails)."""
-    with WorkingDir('krang_latency_') as work:
-        measure_sim_params(work.path, seconds)
-
-
-def measure_sim_params(tmp, seconds):
-    """The robot sitting, the wheel velocity toggled every 0.5 s (see the module docstring)."""
-    robot = load_krang()
-    devices_file = session_devices_file(tmp)
-    config = load_devices(devices_file)
-    joints = dict(zip(robot.pose_joints, [2.46] + [0.0] * 15))
-    devices = KrangCanDevices(config, initial_joint_positions=joints)
-    left = config.wheels.drive('JLWheel')
-    codec = AmcDriveCodec(left, config.wheels, load_dbc(config.dbc_path))
-    buses = {name: can.Bus(**config.buses[name].bus_kwargs()) for name in config.buses_in_use()}
-    lock = threading.Lock()
-    currents = []  # (time, amps) of the left current RPDO frames
-
-    class Devices(can.Listener):
-        def __init__(self, name):
-            self.name = name
-
-        def on_message_received(self, msg):
-            now = time.perf_counter()
-            if msg.arbitration_id in codec.command_ids:
-                try:
-                    currents.append((now, codec.decode_current_command(msg)[1]))
-                except Exception:  # noqa: BLE001 - not the current RPDO
-                    pass
-            with lock:
-                replies = devices.on_frame(self.name, msg)
-            for reply in replies:
-                buses[reply.bus].send(reply.msg)
-
-    notifiers = [can.Notifier(bus, [Devices(name)], timeout=0.05) for name, bus in buses.items()]
-
-    # the simulated node set's parameters, but on wall time: this benchmark plays the robot, with
-    # no /clock
-    nodes = NodeSet(params_files(True, []), log_dir=os.path.join(tmp, 'logs'))
-    nodes.start('can_bridge', {'devices_file': devices_file, 'use_sim_time': False})
-    nodes.start('adrc_controller', {'modes.auto_stand': False, 'use_sim_time': False})
-    toggles = []
-    efforts = []
-    stop = threading.Event()
-
-    def robot_loop():
-        velocity, next_toggle = 0.0, time.perf_counter() + 3.0
-        while not stop.is_set():
-            now = time.perf_counter()
-            if now >= next_toggle:
-                velocity = 1.0 if velocity <= 0 else -1.0
-                toggles.append((now, velocity))
-                next_toggle = now + 0.5
-            with lock:
-                devices.step(0.005)
-                frames = devices.wheel_feedback_frames(
-                    {'JLWheel': 1.76, 'JRWheel': 1.76}, {'JLWheel': velocity, 'JRWheel': velocity}
-                )
-                frames += devices.imu_frames_from_pitch(-1.763, 0.0)
-            for f in frames:
-                buses[f.bus].send(f.msg)
-            time.sleep(max(0.0, 0.005 - (time.perf_counter() - now)))
-
-    thread = threading.Thread(target=robot_loop, daemon=True)
-    thread.start()
-    client, context = open_session_client()
-    try:
-        deadline = time.monotonic() + 60.0
-        while not client.call(
-            client.enable,
-            SetBool.Request(data=True),
-            timeout=max(1.0, deadline - time.monotonic()),
-        ).success:
-            if time.monotonic() > deadline:
-                raise SessionError('adrc_controller did not accept enable')
-            client.pause(1.0)
-        # whatever message type the wheel command has (it carries the sample's stamp or not)
-        client.spin_until(
-            lambda: names.WHEEL_EFFORT_CMD in dict(client.get_topic_names_and_types()),
-            10.0,
-            names.WHEEL_EFFORT_CMD,
-        )
-        kind = dict(client.get_topic_names_and_types())[names.WHEEL_EFFORT_CMD][0]
-        package, _, name = kind.split('/')
-        client.create_subscription(
-            getattr(importlib.import_module(f'{package}.msg'), name),
-            names.WHEEL_EFFORT_CMD,
-            lambda m: efforts.append(time.perf_counter()),
-            topics.QOS[names.WHEEL_EFFORT_CMD],
-        )
-        client.pause(seconds)
-    finally:
-        stop.set()
-        client.close()
-        rclpy.try_shutdown(context=context)
-        nodes.stop()
-        for n in notifiers:
-            n.stop()
-        for bus in buses.values():
-            bus.shutdown()
-    latencies = []
-    cur = np.array(currents)
-    for t0, velocity in toggles:
-        after = cur[cur[:, 0] > t0] if len(cur) else cur
-        before = cur[cur[:, 0] <= t0]
-        if not len(after) or not len(before):
-            continue
-        changed = np.flatnonzero(np.abs(after[:, 1] - before[-1, 1]) > 3.0)
-        if changed.size and after[changed[0], 0] - t0 < 0.5:
-            latencies.append(after[changed[0], 0] - t0)
-    eff = np.array(efforts)
-    window = eff[eff > eff[0] + 2.0] if len(eff) else eff
-    rate = (len(window) - 1) / (window[-1] - window[0]) if len(window) > 1 else float('nan')
-    lat = 1000 * np.array(latencies)
-    print(
-        f'sensor frame -> wheel command frame over {len(lat)} steps: '
-        f'p50 {np.percentile(lat, 50):.1f} ms, p99 {np.percentile(lat, 99):.1f} ms, '
-        f'max {lat.max():.1f} ms'
-    )
-    print(
-        f'control rate achieved: {rate:.1f} Hz /wheel_effort_cmd (configured: see '
-        f'config/sim_params.yaml); {len(toggles) - len(lat)} of {len(toggles)} steps not seen '
-        f'within 0.5 s'
-    )
 
 
 def main():

@@ -21,7 +21,8 @@ from krang_cli.composed import ComposedSimulation
 from krang_cli.node_set import params_files
 from krang_cli.processes import NodeSet, WorkingDir
 from krang_model.config import config_path
-from krang_ros import names, topics
+from krang_core import names
+from krang_ros import topics
 from krang_ros.session_client import open_session_client
 from krang_ros.spin import Polled, take_latest
 from krang_sim.session_config import session_devices_file

@@ -20,7 +20,8 @@ from rclpy.serialization import deserialize_message
 from sensor_msgs.msg import Imu, JointState
 
 from krang_model.robot import load_krang
-from krang_ros import messages, names, topics, wire
+from krang_core import names
+from krang_ros import messages, topics, wire
 from krang_ros.spin import take_latest
 
 

@@ -5,8 +5,8 @@ with the emulators of krang_sim/devices.py, which speak through the bridge's own
 streams samples (0x40 rates + 0x50 accelerations, sequence counters) at --rate-hz, the AMC drives
 answer the bridge's start-up SDOs and send their TPDOs at the timer cycle the bridge wrote to them
 (wheels.tpdo_period_ms of the bridge's device map; none before), the PowerCube modules answer
-the polls. There is no physics: the robot sits on its caster (pitch -1.7628 rad in the pose
-below) and, on the command `stand`, pitches up to the nominal model's balance pitch in --ramp-s
+the polls. There is no physics: the robot sits on its caster (the drive train's caster pitch)
+and, on the command `stand`, pitches up to the nominal model's balance pitch in --ramp-s
 (a cosine ramp, the wheels rolling back so that the axle stays put), then holds it, with white
 gyro and accelerometer noise so that every sample gives a different wheel command.
 
@@ -58,8 +58,9 @@ from krang_can_bridge.config import load_devices
 from krang_can_bridge.protocols import load_dbc
 from krang_can_bridge.protocols import amc as amc_proto
 from krang_can_bridge.protocols.dmu_imu import ACCELERATIONS_ID
-from krang_model.com import base_regressor
+from krang_model.com import balance_pitch
 from krang_model.config import load_config
+from krang_model.drivetrain import drivetrain
 from krang_model.robot import load_krang
 from krang_ros.entry import settle_garbage_collector
 from krang_sim.devices import KrangCanDevices
@@ -71,7 +72,6 @@ REF = 'ref'  # the reference chain's bus
 #: (its jobs cost 0.2 ms of CPU each, a few a second 3-6 ms; it was 8-20 ms late about 1.5 times
 #: a second), which a DMU, a device with its own processor and clock, never is.
 PLAYS = {'dmu': ('dmu',), 'rest': ('ref', 'tpdo')}
-SIT_PITCH = -1.7628  # on the caster in the pose below (config/sim_params.yaml)
 GYRO_NOISE_RAD_S = 0.001  # about 7 LSB of the DMU
 ACCEL_NOISE_M_S2 = 0.002
 #: A DMU or a drive never drops a period. A frame this process sends late (descheduled on the
@@ -137,14 +137,6 @@ def bench_pose():
     return robot, dict(zip(robot.pose_joints, pose))
 
 
-def balance_pitch(robot, joints):
-    """IMU pitch that puts the nominal model's CoM over the axle (the controller's theta = 0,
-    krang_adrc_controller/controller.py)."""
-    q = np.array([joints[j] for j in robot.pose_joints])
-    m = base_regressor(robot, q[None])[0] @ robot.nominal_beta
-    return -math.atan2(-m[2], m[1])
-
-
 class Pitch:
     """The played pitch trajectory: sitting, then a cosine ramp to `target` over `ramp_s`."""
 
@@ -182,7 +174,11 @@ class Player:
         # enabled twins send the same TPDO sets at the device map's period instead, so that both
         # chains are measured beside the same player load and the same frames on the buses.
         self.stand_in = KrangCanDevices(config, auto_enable_wheels=True)
-        self.pitch = Pitch(SIT_PITCH, balance_pitch(self.robot, joints), args.ramp_s)
+        # sitting on the caster, then up to where the nominal model's CoM is over the axle
+        self.sit_pitch = drivetrain(self.robot).caster_contact_pitch
+        q = np.array([[joints[j] for j in self.robot.pose_joints]])
+        stand_pitch = float(balance_pitch(self.robot, q, self.robot.nominal_beta)[0])
+        self.pitch = Pitch(self.sit_pitch, stand_pitch, args.ramp_s)
         dbc = load_dbc(config.dbc_path)
         rpdo = amc_proto.RPDO_CURRENT
         self.drives = config.wheels.drives
@@ -292,7 +288,7 @@ class Player:
         wrote to the drives; before it has, the map's period while the reference plays (the
         stand-in drives), else TIMER_POLL_S."""
         q, dq = self.pitch.at(time.monotonic())
-        wheel = SIT_PITCH - q  # the axle stays put while the body pitches
+        wheel = self.sit_pitch - q  # the axle stays put while the body pitches
         with self.lock:
             self.devices.step(dt)
             periods = {w.tpdo_period_s for w in self.devices.wheels.values()} - {None}

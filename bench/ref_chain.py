@@ -5,7 +5,7 @@
            (as /imu/data); its subscription callback sends 0x7E1 [counter] back on the bus.
     relay: republishes each message from its subscription callback, reliable, depth 10.
 
-The QoS is fixed (REF_QOS), not taken from ours: the reference stays the chain issue 11 measured
+The QoS is fixed (REF_QOS), not taken from ours: the reference stays the same chain
 (nothing lost), whatever our topics use. The `can` end runs Python's switch interval at 0.5 ms,
 as can_bridge does (it too has a receive thread beside its executor): both chains get the same
 tuning, so that the ratio measures our work, not a setting.

@@ -1,6 +1,8 @@
 """The balancing controller as one object: sit -> stand up -> balance (ADRC on LQR(q)), safe stop,
 and the balanced-pose detector. Pure Python, no rclpy; used by the offline closed loop
-(``krang_sim.closed_loop``) and by the ROS node.
+(``krang_sim.closed_loop``) and by the ROS node. Its inputs and outputs are in ``samples``, the
+operator's requests in ``requests.OperatorRequests`` and the model of the held pose in
+``design.PoseDesign`` (mixins of ``BalanceController``).
 
 One ``step(sample)`` per control period, in stages:
 
@@ -47,21 +49,20 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from krang_model.com import base_regressor
 from krang_model.config import config_path
 from krang_model.drivetrain import drivetrain
-from krang_model.wip import linearize, reduce_pose
-from krang_ros import params
+from krang_core import params
 
 from .adrc import AdrcConfig, AdrcController
-from .balance_point import BalancePointObserver, ObserverConfig
+from .balance_point import ObserverConfig
+from .design import PoseDesign
 from .detector import BalancedPoint, BalancedPoseDetector, DetectorConfig
 from .lqr import GainCache, LqrConfig, LqrDesigner
 from .modes import Mode, ModeInputs, ModeMachine, ModesConfig, SafetyConfig
+from .requests import OperatorRequests
+from .samples import ControlOutput, ControlSample
 
 NODE_NAME = 'adrc_controller'
-#: ESO bandwidth of the balance-point observer when the ADRC runs the authors' gains, rad/s
-BALANCE_POINT_OMEGA_O = 20.0
 
 
 # ----------------------------------------------------------------------------- configuration
@@ -70,7 +71,7 @@ BALANCE_POINT_OMEGA_O = 20.0
 @dataclass(frozen=True)
 class ControllerConfig:
     """Every parameter of the controller, one group per module; the defaults are the shipped
-    values. As ROS parameters the names are dotted (``adrc.eso.omega_o``, krang_ros/params.py);
+    values. As ROS parameters the names are dotted (``adrc.eso.omega_o``, krang_core/params.py);
     config/controller.yaml and config/sim_params.yaml hold only what differs."""
 
     rate_hz: float = field(
@@ -119,104 +120,10 @@ def load_controller_config(path=None, overrides: dict | None = None) -> Controll
     return params.build(ControllerConfig, values)
 
 
-# ----------------------------------------------------------------------------- samples / outputs
-
-
-@dataclass(slots=True)
-class ControlSample:
-    """One synchronised sensor sample. Angles rad, rates rad/s, t in s (sensor clock)."""
-
-    t: float
-    q_base: float  # IMU pitch (krang_model/README.md convention)
-    pitch_rate: float
-    wheel_left: float  # wheel encoder angles relative to the body (rad, wheel side)
-    wheel_right: float
-    wheel_left_rate: float
-    wheel_right_rate: float
-    joints: np.ndarray  # body joints, pose order
-    joints_moving: bool = False  # measured: the joints move now (not: a move is commanded)
-    move_pending: bool = False  # the pose server's target is not reached yet (paused or not)
-    # the accelerometer's pitch (messages.pitch_from_specific_force): gravity's direction, true
-    # at rest and free of the gyro's drift; the detector averages it (NaN: not measured)
-    gravity_pitch: float = math.nan
-
-
-class JointMotion:
-    """Whether the joints move, measured from their positions: the largest change over at least
-    `window_s` above `speed_rad_s` times the time elapsed. A window, not one sample: the pose
-    server streams targets at 20 Hz and the joints stop briefly between them, and a per-sample
-    difference would be mostly encoder noise."""
-
-    def __init__(self, speed_rad_s: float = 0.02, window_s: float = 0.1):
-        self.speed = float(speed_rad_s)
-        self.window = float(window_s)
-        self._ref = None  # (t, joints) at the start of the current window
-        self.moving = False
-
-    def update(self, t: float, joints) -> bool:
-        joints = np.asarray(joints, float)
-        if self._ref is None or t < self._ref[0]:
-            self._ref = (t, joints.copy())
-            return self.moving
-        elapsed = t - self._ref[0]
-        if elapsed >= self.window:
-            self.moving = bool(np.max(np.abs(joints - self._ref[1])) > self.speed * elapsed)
-            self._ref = (t, joints.copy())
-        return self.moving
-
-
-@dataclass(slots=True)
-class ControlOutput:
-    mode: str
-    torque_left: float  # N m at the wheel
-    torque_right: float
-    current_left: float  # A at the motor (positive drives x forward)
-    current_right: float
-    balanced_point: BalancedPoint | None
-    theta: float  # CoM angle from vertical with the estimated beta (rad)
-    x: float  # ground-referenced wheel position r (mean encoders + q_base), m
-    f_hat_x: float
-    f_hat_theta: float
-    events: list = field(default_factory=list)
-    dtheta: float = 0.0  # rad/s (IMU rate)
-    dx: float = 0.0  # m/s
-    x_ref: float = 0.0  # m, the position reference of STAND_UP/BALANCE
-    psi: float = 0.0  # wheel radians
-    saturated: bool = False
-    balance_trim: float = 0.0  # rad, the balance-point observer's delta_hat (0 when it is off)
-    balance_converged: bool = False  # BALANCE with a settled balance estimate (see step)
-
-
-@dataclass(frozen=True)
-class Reply:
-    """The answer to an operator's request: accepted or not, and why."""
-
-    ok: bool
-    message: str
-
-
-def sample_from_sensors(
-    sensors, joints_moving: bool = False, move_pending: bool = False
-) -> ControlSample:
-    """ControlSample from a ``krang_sim.physics.Sensors`` reading."""
-    return ControlSample(
-        sensors.t,
-        sensors.q_base,
-        sensors.pitch_rate,
-        sensors.wheel_left,
-        sensors.wheel_right,
-        sensors.wheel_left_rate,
-        sensors.wheel_right_rate,
-        sensors.joints,
-        joints_moving,
-        move_pending,
-    )
-
-
 # ----------------------------------------------------------------------------- the controller
 
 
-class BalanceController:
+class BalanceController(OperatorRequests, PoseDesign):
     """See the module docstring. ``robot`` from ``krang_model.robot.load_krang()``."""
 
     def __init__(self, robot, beta, config: ControllerConfig | None = None):
@@ -310,249 +217,6 @@ class BalanceController:
         self._beta_version += 1
         if self._pose is not None:
             self._redesign(self._pose)
-
-    def set_enabled(self, enabled: bool, stand: bool | None = None) -> None:
-        """Offline sessions' switch, never refused: False -> SAFE_STOP (zero torque) from the next
-        step; True -> leave SAFE_STOP to SIT (needs fresh data) and stand up if ``stand`` (default
-        ``modes.auto_stand``). Also clears a request_stop() and a drive fault. The operator's
-        checked controls are request_enable / request_stand / request_sit / request_stop /
-        recover."""
-        self.enabled = bool(enabled)
-        if self.enabled:
-            self._auto_stand = self.config.modes.auto_stand if stand is None else bool(stand)
-            self._stand_once = False
-            self._fault = None
-            self._stop_requested = False
-            self._sit_requested = False
-            self._reset_pending = True
-            self._refused = False
-        self._requests()
-
-    # The operator's controls (the node's services). Each answers at once: a Reply accepted or
-    # refused with the reason; a long one (stand, sit) only starts, the mode reports its progress.
-    def request_enable(self, enabled: bool) -> 'Reply':
-        """True: from SAFE_STOP power the loop in SIT without standing up (= recover()); False:
-        zero current (SAFE_STOP) from SIT, refused while the robot is off its caster."""
-        mode = self.mode
-        if enabled:
-            if mode is Mode.SAFE_STOP:
-                return self.recover()
-            return Reply(True, f'already enabled (mode {mode.value})')
-        if mode is Mode.SAFE_STOP:
-            return Reply(True, 'already disabled (safe_stop, zero current)')
-        if mode is not Mode.SIT:
-            return Reply(
-                False,
-                f'refused: the robot is in {mode.value}, off its caster; use sit_down or halt',
-            )
-        self.set_enabled(False)
-        return Reply(True, 'disabled: zero current (safe_stop)')
-
-    def request_stand(self) -> 'Reply':
-        """SIT -> STAND_UP, if the CoM-angle error of the latest sample is in the stand window."""
-        mode = self.mode
-        if mode is not Mode.SIT:
-            return Reply(False, f'refused: {self._not_sitting(mode)}')
-        out = self.last_output
-        if out is None:
-            return Reply(False, 'refused: no sensor sample yet')
-        if self._stand_once:
-            return Reply(False, 'refused: stand_up already requested')
-        why = self.modes.stand_refusal(out.theta)
-        if why is not None:
-            return Reply(False, f'refused: {why}')
-        self._stand_once = True
-        self._sit_requested = False
-        self._refused = False
-        return Reply(True, 'started: standing up (the mode topic reports stand_up, then balance)')
-
-    def _not_sitting(self, mode: Mode) -> str:
-        return {
-            Mode.SAFE_STOP: self._stopped_why(),
-            Mode.STAND_UP: 'already standing up',
-            Mode.BALANCE: 'already balancing',
-            Mode.SIT_DOWN: 'sitting down; stand_up once the mode is sit',
-        }[mode]
-
-    def _stopped_why(self) -> str:
-        if self._fault:
-            return (
-                f'in safe_stop with a drive fault ({self._fault}); call /can_bridge/recover, '
-                'then recover'
-            )
-        return 'in safe_stop (zero current); call recover first'
-
-    def request_sit(self) -> 'Reply':
-        """Sit down on the caster (STAND_UP/BALANCE -> SIT_DOWN -> SIT, then the ground PD holds
-        with near-zero current), if the waist allows it (modes.py). auto_stand is suspended until
-        set_enabled(True)."""
-        mode = self.mode
-        if mode is Mode.SAFE_STOP:
-            return Reply(False, f'refused: {self._stopped_why()}')
-        if mode is Mode.SIT or mode is Mode.SIT_DOWN:
-            return Reply(
-                False, 'refused: already ' + ('sitting' if mode is Mode.SIT else 'sitting down')
-            )
-        if self._sit_requested:
-            return Reply(False, 'refused: sit_down already requested')
-        why = self.modes.sit_refusal(self._waist, self.theta_on_caster())
-        if why is not None:
-            return Reply(False, f'refused: {why}')
-        self._sit_requested = True
-        self._requests()
-        return Reply(True, 'started: sitting down (the mode topic reports sit_down, then sit)')
-
-    def theta_on_caster(self) -> float | None:
-        """The CoM angle (rad, whole robot) the current pose would have resting on the caster: the
-        model's offset less the balance-point trim; None before the first design."""
-        if self._pose is None:
-            return None
-        trim = self.last_output.balance_trim if self.last_output is not None else 0.0
-        return self.drive.caster_pitch + self._offset - trim
-
-    def request_stop(self, reason: str = 'stop requested') -> 'Reply':
-        """Latched stop: SAFE_STOP (zero torque) from the next step until recover() (or
-        set_enabled(True)). Never refused."""
-        if self.mode is Mode.SAFE_STOP and (self._stop_requested or not self.enabled):
-            return Reply(True, 'already in safe_stop (zero current)')
-        self._stop_requested = True
-        self._stop_reason = reason
-        self._requests()
-        return Reply(True, f'halted: zero current ({reason})')
-
-    def recover(self) -> 'Reply':
-        """SAFE_STOP -> SIT, powered and not standing; refused while a drive fault is latched."""
-        if self.mode is not Mode.SAFE_STOP:
-            return Reply(False, f'refused: not in safe_stop (mode {self.mode.value})')
-        if self._fault:
-            return Reply(
-                False, f'refused: drive fault ({self._fault}); call /can_bridge/recover first'
-            )
-        self.set_enabled(True, stand=False)
-        return Reply(True, 'recovering: safe_stop -> sit (powered, on the caster)')
-
-    def set_drive_fault(self, reason: str) -> None:
-        """The bridge's latched drive fault: non-empty -> SAFE_STOP with that reason, and recover()
-        is refused until it is cleared ('')."""
-        if reason:
-            if reason != self._fault:
-                self.request_stop(f'drive fault: {reason}')
-            self._fault = reason
-        else:
-            self._fault = None
-
-    @property
-    def drive_fault(self) -> str | None:
-        return self._fault
-
-    def _requests(self) -> None:
-        """After any request: can the mode machine be skipped in BALANCE (nothing pending, no fall
-        check)?"""
-        self._steady = (
-            self.enabled
-            and not self._stop_requested
-            and not self._sit_requested
-            and not self._reset_pending
-            and self.modes.fall_angle is None
-        )
-
-    def expected_rest_offset(self) -> float:
-        """x - x_ref (m) where ADRC/LQR come to rest for a CoM-angle error of 1 rad:
-        -F_th0/F_x0."""
-        d = self._design
-        return -d['F_theta'][0] / d['F_x'][0]
-
-    # ------------------------------------------------------------------ design
-    def _body(self, pose, beta):
-        memo = self._body_memo
-        if memo is not None and memo[0] is pose and memo[1] == self._beta_version:
-            return memo[2]
-        body = reduce_pose(self.robot, pose, beta)
-        self._body_memo = (pose, self._beta_version, body)
-        return body
-
-    def _linearize(self, pose, beta):
-        return linearize(self._body(pose, beta), self.drive)
-
-    def _offset_for(self, joints) -> float:
-        m = base_regressor(self.robot, np.asarray(joints, float)[None])[0] @ self._beta
-        return math.atan2(-m[2], m[1])
-
-    def _redesign(self, pose) -> None:
-        """Full update for a (new) reference pose: offset, LQR(q), ADRC gains."""
-        pose = np.array(pose, dtype=float)
-        same_pose = self._pose is not None and np.array_equal(pose, self._pose)
-        self._pose = pose
-        body = self._body(pose, self._beta)
-        self._shift_offset(body.com_offset_full, same_pose)
-        d = self.gains.design(pose, self._beta)
-        self._design = d
-        self.redesigns += 1
-        cfg = self.config
-        if self.adrc is None:
-            self.adrc = AdrcController.from_design(
-                d, self.drive, sample_period_s=self.h, config=cfg.adrc
-            )
-            if cfg.balance_point.enabled:
-                self.balance_point = BalancePointObserver(
-                    self.h, cfg.adrc.eso.omega_o or BALANCE_POINT_OMEGA_O, cfg.balance_point
-                )
-            self._balance_point_active = (
-                self.balance_point is not None and cfg.adrc.use_disturbance_rejection
-            )
-        else:
-            self.adrc.set_gains(d['F_x'], d['F_theta'], d['b_x'], d['b_theta'])
-        if self.balance_point is not None:
-            self.balance_point.set_model(d['A'], d['B'])
-
-    def _shift_offset(self, offset: float, same_pose: bool = False) -> None:
-        """New theta offset. The theta-ESO's estimate moves with it (bumpless): a model change is
-        a step in the measured theta that no motion caused, and must not read as an acceleration.
-        With the balance-point observer the ADRC sees theta - delta_hat: it moves by what delta_hat
-        does not take."""
-        delta = offset - self._offset
-        self._offset = offset
-        if not delta:
-            return
-        step = delta
-        if self.balance_point is not None:
-            before = self.balance_point.delta
-            self.balance_point.shift(delta, same_pose)
-            if self.adrc.use_disturbance_rejection:
-                step -= self.balance_point.delta - before
-        if self.adrc is not None:
-            self.adrc.shift_theta(step)
-
-    def set_disturbance_rejection(self, enabled: bool) -> None:
-        """ADRC (True) or plain LQR (False) in BALANCE."""
-        self.config = self.config.override({'adrc.use_disturbance_rejection': bool(enabled)})
-        if self.adrc is not None:
-            self.adrc.set_disturbance_rejection(enabled)
-        self._balance_point_active = self.balance_point is not None and bool(enabled)
-
-    def _track_pose(self, t, joints, moving) -> None:
-        if self._pose is None:
-            self._redesign(joints)
-            return
-        if moving:
-            if not self._moving:
-                self._moving = True
-                self._t_offset = self._t_gain = -math.inf
-            if t - self._t_gain >= self.config.lqr.gain_update_period_s:
-                self._t_gain = self._t_offset = t
-                self._redesign(joints)
-            elif t - self._t_offset >= self.config.lqr.pose_update_period_s:
-                self._t_offset = t
-                self._shift_offset(self._offset_for(joints))
-            return
-        if self._moving:
-            self._moving = False
-            self._t_still = t
-            self._redesign(joints)
-            return
-        # settled: called every pose_check_period_s by step()
-        if float(np.max(np.abs(joints - self._pose))) > self.config.lqr.pose_tol_rad:
-            self._redesign(joints)
 
     # ------------------------------------------------------------------ the loop
     def step(

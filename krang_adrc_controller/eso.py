@@ -8,8 +8,8 @@ reproduces that scheme so the instability can be shown (spectral radius 1.96 at 
 
 This module offers two discretisations that are stable at every sample period h > 0:
 
-* ``'current'`` (default): the discrete "current" ESO of Miklosovic, Radke & Gao (ACC 2006),
-  notes/identification.md §5. Predict with the exact ZOH model of the chain of integrators, then
+* ``'current'`` (default): the discrete "current" ESO of Miklosovic, Radke & Gao (ACC 2006).
+  Predict with the exact ZOH model of the chain of integrators, then
   correct with the measurement of the same instant::
 
       z- = Ad z[k-1] + Bd u[k-1];   z[k] = z- + L (y[k] - z-[0])

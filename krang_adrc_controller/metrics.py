@@ -16,7 +16,8 @@ positively with wheel speed and acceleration); x_wheel_rad / dx_wheel_rad_s = gr
 wheel angle and speed (encoders + IMU pitch); dtheta_rad_s = IMU pitch rate; dpsi = (right -
 left) / 2 wheel speed.
 
-The authors' definitions (krang_data/README.md "The Table II metrics"), reproduced exactly:
+The authors' definitions (the data kit's README.md, "The Table II metrics"; the kit is
+../shared/krang_data or $KRANG_DATA), reproduced exactly:
   * s = 20-sample centred moving average of the left current, s[k] = mean(i[k-9 .. k+10])
     (zero-padded at the ends, np.convolve style). This alignment reproduces the kit's table; the
     other centring, mean(i[k-10 .. k+9]), moves Max Power by ~1.4 W (beta16) and misses it.

@@ -190,6 +190,10 @@ class Mode(enum.Enum):
     SAFE_STOP = 'safe_stop'
 
 
+#: the modes as numbers, for logs and numeric columns (a safe stop below zero)
+MODE_CODES = {'safe_stop': -1, 'sit': 0, 'stand_up': 1, 'balance': 2, 'sit_down': 3}
+
+
 @dataclass
 class ModeInputs:
     """One loop's inputs. Angles in rad, rates in rad/s, times in s (any monotonic clock)."""

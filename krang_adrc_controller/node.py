@@ -34,12 +34,16 @@ from std_srvs.srv import SetBool, Trigger
 
 from krang_model.beta import load_beta
 from krang_model.robot import load_krang
-from krang_ros import messages, names, params, realtime, topics, trace, wire
-from krang_ros.log import Throttled
-from krang_ros.names import WHEEL_JOINTS as WHEELS
+from krang_core import names, params
+from krang_core.log import Throttled
+from krang_core.names import WHEEL_JOINTS as WHEELS
+from krang_core.pitch import pitch_from_quaternion, pitch_from_specific_force
+from krang_ros import messages, realtime, topics, trace, wire
+from krang_ros.params import declare
 from krang_ros.spin import Polled, run_node, take_latest, take_waiting
 
-from .controller import BalanceController, ControllerConfig, ControlSample, JointMotion, Reply
+from .controller import BalanceController, ControllerConfig
+from .samples import ControlSample, JointMotion, Reply
 
 #: the node's own parameters besides ControllerConfig's: name -> (type, default, description)
 NODE_PARAMETERS = {
@@ -77,7 +81,7 @@ class AdrcControllerNode(Node):
         super().__init__('adrc_controller', **kwargs)
         self.robot = load_krang()
         # every ControllerConfig leaf is a dotted ROS parameter (adrc.eso.omega_o; controller.yaml)
-        self.config = params.declare(self, ControllerConfig)
+        self.config = declare(self, ControllerConfig)
         self.stale_timeout = self.config.safety.stale_timeout_s
         own = {
             name: self.declare_parameter(
@@ -191,10 +195,10 @@ class AdrcControllerNode(Node):
         a = sample.linear_acceleration
         self.imu = (
             now,
-            messages.pitch_from_quaternion(*sample.orientation),
+            pitch_from_quaternion(*sample.orientation),
             sample.angular_velocity[1],
             t,
-            messages.pitch_from_specific_force(*a, self.controller.drive.gravity),
+            pitch_from_specific_force(*a, self.controller.drive.gravity),
         )
         if self.step_on_imu:
             self.timer.reset()
@@ -392,7 +396,7 @@ class AdrcControllerNode(Node):
             msg = messages.joint_state(
                 self.get_clock().now().to_msg(), joint_names, list(point.joints) + [point.q_base]
             )
-            # effort[i]: the standard error of position[i], rad (README, topic table)
+            # effort[i]: the standard error of position[i], rad (docs/interfaces.md)
             msg.effort = [float(v) for v in point.joints_se] + [float(point.q_base_se)]
             self.pose_pub.publish(msg)
             self.get_logger().info(

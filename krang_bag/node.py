@@ -39,8 +39,9 @@ from krang_bag.recording import (
     resolve_output_path,
 )
 from krang_bag.writer import BagWriter, OfferedQos
-from krang_ros import params
+from krang_core import params
 from krang_ros.executor import StaticSingleThreadedExecutor
+from krang_ros.params import declare
 
 NODE_NAME = 'mcap_recorder'
 
@@ -101,7 +102,7 @@ class McapRecorder(Node):
     def __init__(self, **kwargs):
         super().__init__(NODE_NAME, **kwargs)
 
-        cfg = params.declare(self, RecorderConfig)
+        cfg = declare(self, RecorderConfig)
         self.include, self.exclude = list(cfg.topics), list(cfg.exclude)
         self.include_hidden, self.queue_depth = cfg.include_hidden, cfg.queue_depth
         chunk_size, compression, poll_period_s = cfg.chunk_size, cfg.compression, cfg.poll_period_s

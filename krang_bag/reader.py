@@ -1,9 +1,8 @@
 """Read MCAP bags back into typed messages, plus the array helpers the analysis tools use.
 
-Messages become the same rclpy classes the nodes use (rclpy deserialization) when the type is
-installed and its hash matches the one recorded; otherwise they are decoded from the schema
-embedded in the bag by mcap_ros2, so old or foreign bags stay readable. Both kinds have the same
-field names.
+Messages are decoded from the schema embedded in the bag by mcap_ros2, so no ROS package is
+needed and old or foreign bags read the same as ours. They have the fields of the ROS message
+types (arrays as lists, a `byte` as its number).
 
 Times are MCAP log times: when the recorder received the message, in ns of the recorder's clock
 (sim time if it ran with use_sim_time). The helpers return them in seconds.
@@ -12,7 +11,6 @@ Times are MCAP log times: when the recorder received the message, in ns of the r
 from __future__ import annotations
 
 import contextlib
-import importlib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Iterable, Iterator, NamedTuple
@@ -21,9 +19,9 @@ import numpy as np
 import yaml
 from mcap.exceptions import McapError
 from mcap.reader import make_reader
+from mcap_ros2.decoder import DecoderFactory
 
-from krang_bag import schemas
-from krang_ros.names import JOINT_STATES
+from krang_core.names import JOINT_STATES
 
 RECOVER_HINT = 'it was probably never finished (recorder killed?); try `krang bag recover {path}`'
 
@@ -118,10 +116,11 @@ def _channel_type_hash(channel) -> str:
 
 
 class _Decoders:
-    """One decode function per channel: rclpy when installed and hash-identical, else mcap_ros2."""
+    """One decode function per channel, from its schema (mcap_ros2)."""
 
     def __init__(self):
         self._by_channel: dict[int, Callable[[bytes], object]] = {}
+        self._factory = DecoderFactory()
 
     def decode(self, schema, channel, data: bytes):
         decode = self._by_channel.get(channel.id)
@@ -129,36 +128,16 @@ class _Decoders:
             decode = self._by_channel[channel.id] = self._make(schema, channel)
         return decode(data)
 
-    @staticmethod
-    def _make(schema, channel) -> Callable[[bytes], object]:
+    def _make(self, schema, channel) -> Callable[[bytes], object]:
         if schema is None or channel.message_encoding != 'cdr':
             raise BagError(
                 f'{channel.topic}: cannot decode {channel.message_encoding!r} messages '
                 'without a schema'
             )
-        rclpy_class = _installed_class(schema.name, _channel_type_hash(channel))
-        if rclpy_class is not None:
-            from rclpy.serialization import deserialize_message
-
-            return lambda data: deserialize_message(data, rclpy_class)
-        from mcap_ros2.decoder import DecoderFactory
-
-        decode = DecoderFactory().decoder_for('cdr', schema)
+        decode = self._factory.decoder_for('cdr', schema)
         if decode is None:
             raise BagError(f'{channel.topic}: no decoder for schema encoding {schema.encoding!r}')
         return decode
-
-
-def _installed_class(type_name: str, recorded_hash: str):
-    """The rclpy class of a type, only if installed and (when the bag says) the same definition."""
-    try:
-        package, interface, name = schemas.split_type_name(type_name)
-        cls = getattr(importlib.import_module(f'{package}.{interface}'), name)
-        if recorded_hash and recorded_hash != schemas.type_hash(type_name):
-            return None
-        return cls
-    except (ImportError, AttributeError, ValueError, LookupError):
-        return None
 
 
 def _iter_records(path, topics: Iterable[str] | str | None):

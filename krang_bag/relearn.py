@@ -5,7 +5,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from krang_com_estimator.online import OnlineLearner, pitch_standard_error
-from krang_ros.names import BALANCED_POSE as BALANCED_POSE_TOPIC, BASE_PITCH, BETA as BETA_TOPIC
+from krang_core.names import BALANCED_POSE as BALANCED_POSE_TOPIC, BASE_PITCH, BETA as BETA_TOPIC
 
 from .reader import iter_messages
 

@@ -10,7 +10,7 @@ from matplotlib.ticker import MaxNLocator
 
 from krang_model.com import com_error, lateral_com_error
 from krang_model.files import save_figure
-from krang_ros.names import BALANCED_POSE, BETA, DIAGNOSTICS, POSE_TARGET, WHEEL_EFFORT_CMD
+from krang_core.names import BALANCED_POSE, BETA, DIAGNOSTICS, POSE_TARGET, WHEEL_EFFORT_CMD
 
 from .reader import iter_messages, read_float_arrays, read_joint_states
 

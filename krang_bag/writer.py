@@ -139,6 +139,8 @@ class BagWriter:
             self._file.close()
             raise
         self._schema_ids: dict[str, int] = {}
+        self._definitions: dict[str, str] = {}  # type -> the message definition in its schema
+        self._encoders: dict = {}  # type -> CDR encoder (write_message)
         self._channels: dict[str, _Channel] = {}
         self.closed = False
 
@@ -183,6 +185,7 @@ class BagWriter:
             return known.channel_id
         if type_name not in self._schema_ids:
             text = definition if definition is not None else schemas.message_definition(type_name)
+            self._definitions[type_name] = text
             self._schema_ids[type_name] = self._writer.register_schema(
                 name=type_name, encoding=schemas.SCHEMA_ENCODING, data=text.encode('utf-8')
             )
@@ -229,14 +232,26 @@ class BagWriter:
         log_time_ns: int,
         publish_time_ns: int | None = None,
         offered_qos=None,
+        type_name: str | None = None,
     ) -> None:
-        """Serialize an rclpy message and write it, adding its topic on first use (offline
-        tools)."""
-        from rclpy.serialization import serialize_message
-
+        """Encode a message and write it, adding its topic on first use (offline tools). `msg` is a
+        generated message object or a dict of its fields (nested dicts; missing fields take their
+        defaults, as in a fresh message); a dict's topic needs `type_name` on first use. Encoded
+        from the type's definition by mcap_ros2, so no ROS package is imported."""
         if topic not in self._channels:
-            self.add_topic(topic, schemas.type_name_of(msg), offered_qos=offered_qos)
-        self.write(topic, serialize_message(msg), log_time_ns, publish_time_ns)
+            self.add_topic(topic, type_name or schemas.type_name_of(msg), offered_qos=offered_qos)
+        encode = self._encoder(self._channels[topic].type_name)
+        self.write(topic, encode(_plain(msg)), log_time_ns, publish_time_ns)
+
+    def _encoder(self, type_name: str):
+        encode = self._encoders.get(type_name)
+        if encode is None:
+            # mcap_ros2's schema-driven CDR encoder (the one its own writer uses)
+            from mcap_ros2._dynamic import serialize_dynamic
+
+            text = self._definitions[type_name]
+            encode = self._encoders[type_name] = serialize_dynamic(type_name, text)[type_name]
+        return encode
 
     def flush(self) -> None:
         """Hand completed chunks to the OS, so a later SIGKILL cannot take them with it."""
@@ -258,3 +273,20 @@ class BagWriter:
     def _check_open(self) -> None:
         if self.closed:
             raise ValueError(f'bag {self.path} is already closed')
+
+
+def _plain(value):
+    """A message as the plain values mcap_ros2's encoder takes: nested dicts of its fields, lists
+    for its arrays (numpy and array.array included), a `byte` field's bytes as its number."""
+    fields = getattr(value, 'get_fields_and_field_types', None)
+    if fields is not None:
+        return {name: _plain(getattr(value, name)) for name in fields()}
+    if isinstance(value, dict):
+        return {name: _plain(v) for name, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_plain(v) for v in value]
+    if isinstance(value, bytes) and len(value) == 1:
+        return value[0]
+    if not isinstance(value, (bytes, str)) and hasattr(value, 'tolist'):
+        return value.tolist()
+    return value

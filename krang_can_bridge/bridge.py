@@ -30,6 +30,9 @@ Safety rules, all enforced here so the ROS shell cannot get them wrong:
   is stale or motion is not allowed (`wheel_watchdog_frames`, within `WATCHDOG_QUIET_PERIODS`
   refresh periods); it never repeats a command in force.
 
+The commands are made by commands.CommandFrames, the reports by diagnostics.BridgeDiagnostics,
+both mixins of BridgeCore; the types it takes and gives are in snapshots.
+
 `on_frame` returns which sample a frame completed (`IMU_SAMPLE`: the DMU's rates and
 accelerations of one sequence number; `WHEEL_SAMPLE`: position, velocity and current of every
 drive since the last one), so the node publishes each sample as soon as its frames are in.
@@ -43,134 +46,38 @@ from __future__ import annotations
 import logging
 import math
 import time
-from dataclasses import dataclass, field
-from typing import Callable, Mapping, NamedTuple
+from typing import Callable
 
 import can
-import numpy as np
 
-from krang_can_bridge.config import BodyJointConfig, CanDevicesConfig, PowerCubeModuleConfig
+from krang_can_bridge.commands import CommandFrames
+from krang_can_bridge.config import CanDevicesConfig
+from krang_can_bridge.diagnostics import BridgeDiagnostics
 from krang_can_bridge.imu_filter import ImuPitchEstimator, PitchEstimate
 from krang_can_bridge.protocols import ProtocolError, load_dbc
 from krang_can_bridge.protocols import amc as amc_proto
 from krang_can_bridge.protocols import powercube as pc
 from krang_can_bridge.protocols.dmu_imu import DmuAccelerations, DmuCodec, DmuRates
-from krang_ros.names import BRIDGE_RECOVER
+from krang_can_bridge.snapshots import (
+    IMU_SAMPLE,
+    WHEEL_SAMPLE,
+    WHEEL_SAMPLE_KINDS,
+    BusFrame,
+    Counters,
+    Device,
+    ImuSnapshot,
+    JointStateSnapshot,
+    ModuleState,
+    WheelState,
+)
 
 logger = logging.getLogger('krang_can_bridge')
 
-OK, WARN, ERROR, STALE = 0, 1, 2, 3  # diagnostic_msgs/DiagnosticStatus levels
 NMT_ID = 0x000
 EMCY_BASE, SDO_RESPONSE_BASE, SDO_REQUEST_BASE, HEARTBEAT_BASE = 0x080, 0x580, 0x600, 0x700
-REJECTION_WARN_S = 10.0  # /diagnostics WARNs this long after a rejected command
-# The watchdog timer sends only when no current frame went out for this many refresh periods
-# (1 / wheels.command_rate_hz): commands that flow at least that often are never doubled.
-WATCHDOG_QUIET_PERIODS = 2.0
-IMU_SAMPLE, WHEEL_SAMPLE = 'imu', 'wheels'  # what on_frame completed
-WHEEL_SAMPLE_KINDS = frozenset({'position', 'velocity', 'current'})
 
 
-class BusFrame(NamedTuple):
-    bus: str
-    msg: can.Message
-
-
-class JointStateSnapshot(NamedTuple):
-    """Joints with known values only (URDF names; body joints first, then wheels). efforts: the
-    wheels' measured currents as torque at the wheel [N m] (krang_model.drivetrain), NaN for the
-    body joints (not measured)."""
-
-    names: list[str]
-    positions: list[float]
-    velocities: list[float]
-    efforts: list[float]
-
-
-class ImuSnapshot(NamedTuple):
-    pitch: float  # q_base [rad], hardware convention
-    pitch_rate: float  # filtered dq_base [rad/s]
-    rates: tuple[float, float, float]  # bias-corrected, sensor axes [rad/s]
-    specific_force: tuple[float, float, float]  # sensor axes [m/s^2]
-    ready: bool
-    pitch_variance: float
-    stamp: float
-
-
-class DiagnosticReport(NamedTuple):
-    name: str
-    level: int
-    message: str
-    values: dict
-
-
-@dataclass
-class _Device:
-    name: str
-    required: bool
-    timeout_s: float
-    last_seen: float | None = None
-    malformed: int = 0
-
-    def silent(self, now: float) -> bool:
-        return self.last_seen is None or now - self.last_seen > self.timeout_s
-
-
-@dataclass
-class _ModuleState:
-    joint: BodyJointConfig
-    module: PowerCubeModuleConfig
-    device: _Device
-    position: float | None = None  # module coordinates
-    velocity: float | None = None
-    short_state: int | None = None
-
-
-@dataclass
-class _WheelState:
-    codec: amc_proto.AmcDriveCodec
-    device: _Device
-    position: float | None = None
-    velocity: float | None = None
-    current: float | None = None
-    statusword: int | None = None  # the leading bytes of any TPDO (diagnostics)
-    # The statusword TPDO alone (mapped to 0x6041 by the driver; that the other TPDOs lead with it
-    # is our reading, so no fault decision rests on them)
-    drive_status: int | None = None
-    drive_status_at: float | None = None
-    emcy: str | None = None
-    started: bool = False  # the node's start-up (or recovery) sequence enabled this drive
-    armed: bool = False  # started and seen OPERATION_ENABLED: leaving it is a fault
-    fresh: set = field(default_factory=set)  # TPDO kinds received since the last wheel sample
-
-
-@dataclass
-class _Counters:
-    frames: int = 0
-    malformed: int = 0
-    unknown: int = 0
-    echoes: int = 0
-    canopen: int = 0
-    rejected_commands: int = 0
-    clamped_commands: int = 0
-    error_frames: dict = field(default_factory=dict)
-    last_malformed: str = ''
-    last_unknown: str = ''
-    last_rejection: str = ''
-    last_rejection_at: float | None = None
-    drive_faults: int = 0
-
-
-def _float32_within(value: float, lower: float, upper: float) -> float:
-    """`value` clamped to [lower, upper] such that its float32 rounding also stays inside."""
-    v = np.float32(min(upper, max(lower, value)))
-    if float(v) > upper:
-        v = np.nextafter(v, np.float32(-np.inf))
-    if float(v) < lower:
-        v = np.nextafter(v, np.float32(np.inf))
-    return float(v)
-
-
-class BridgeCore:
+class BridgeCore(CommandFrames, BridgeDiagnostics):
     """State and command logic of the CAN bridge (see the module docstring)."""
 
     def __init__(
@@ -183,20 +90,20 @@ class BridgeCore:
         self.clock = clock
         dbc = load_dbc(config.dbc_path)
         self.dmu = DmuCodec(dbc)
-        self.counters = _Counters()
+        self.counters = Counters()
         self._started_at = clock()
         self._log_times: dict[str, float] = {}
         self._inhibits: dict[str, str] = {}
 
         w = config.wheels
-        self._wheels: dict[str, _WheelState] = {}
-        self._wheel_by_id: dict[int, _WheelState] = {}
+        self._wheels: dict[str, WheelState] = {}
+        self._wheel_by_id: dict[int, WheelState] = {}
         self._wheel_echo_ids: set[int] = set()
         self._canopen_ids: set[int] = set()
         for drive in w.drives:
             codec = amc_proto.AmcDriveCodec(drive, w, dbc)
-            state = _WheelState(
-                codec, _Device(f'amc/{drive.joint}', w.required, w.silence_timeout_s)
+            state = WheelState(
+                codec, Device(f'amc/{drive.joint}', w.required, w.silence_timeout_s)
             )
             self._wheels[drive.joint] = state
             for fid in codec.feedback_ids:
@@ -213,7 +120,7 @@ class BridgeCore:
         self._wheel_sent_at: float | None = None
         self._fault = ''
 
-        self._imu_device = _Device('imu', config.imu.required, config.imu.silence_timeout_s)
+        self._imu_device = Device('imu', config.imu.required, config.imu.silence_timeout_s)
         # the filter steps by the DMU's sequence counter (imu_filter.ImuPitchEstimator)
         self._imu_estimator = ImuPitchEstimator(config.imu, imu_sample_period_s)
         self._imu_rates: DmuRates | None = None
@@ -223,15 +130,15 @@ class BridgeCore:
 
         pcfg = config.powercube
         self._poll_frames: list[BusFrame] | None = None
-        self._modules: dict[tuple[str, int], _ModuleState] = {}
+        self._modules: dict[tuple[str, int], ModuleState] = {}
         for joint in pcfg.joints:
             for m in joint.modules:
-                dev = _Device(
+                dev = Device(
                     f'powercube/{joint.joint}/{m.bus}:{m.module_id}',
                     pcfg.required,
                     pcfg.silence_timeout_s,
                 )
-                self._modules[(m.bus, m.module_id)] = _ModuleState(joint, m, dev)
+                self._modules[(m.bus, m.module_id)] = ModuleState(joint, m, dev)
 
     # ---- helpers --------------------------------------------------------------------------------
     def _now(self, now: float | None) -> float:
@@ -247,7 +154,7 @@ class BridgeCore:
             logger.log(level, text)
 
     @property
-    def devices(self) -> list[_Device]:
+    def devices(self) -> list[Device]:
         return (
             [s.device for s in self._wheels.values()]
             + [self._imu_device]
@@ -326,7 +233,7 @@ class BridgeCore:
             return True
         return pc.is_host_frame(aid)
 
-    def _on_wheel(self, state: _WheelState, msg: can.Message, now: float) -> str | None:
+    def _on_wheel(self, state: WheelState, msg: can.Message, now: float) -> str | None:
         try:
             reading = state.codec.decode(msg)
         except ProtocolError:
@@ -350,7 +257,7 @@ class BridgeCore:
             return WHEEL_SAMPLE
         return None
 
-    def _on_emcy(self, state: _WheelState, msg: can.Message) -> None:
+    def _on_emcy(self, state: WheelState, msg: can.Message) -> None:
         """An EMCY latches a drive fault unless its error code is 0 (DS301 "error reset")."""
         data = bytes(msg.data)
         state.emcy = data.hex()
@@ -362,7 +269,7 @@ class BridgeCore:
         text = f'0x{code:04X}' if code is not None else f'malformed ({data.hex()})'
         self._latch_fault(f'{joint}: EMCY {text}, data {data.hex()}')
 
-    def _check_drive_state(self, state: _WheelState) -> None:
+    def _check_drive_state(self, state: WheelState) -> None:
         joint, sw = state.codec.drive.joint, state.drive_status
         name = amc_proto.drive_state(sw)
         if name == 'FAULT':
@@ -457,7 +364,7 @@ class BridgeCore:
         )
         return IMU_SAMPLE
 
-    def _on_module(self, state: _ModuleState, msg: can.Message, now: float) -> None:
+    def _on_module(self, state: ModuleState, msg: can.Message, now: float) -> None:
         try:
             reply = pc.decode_reply(msg)
         except ProtocolError:
@@ -486,6 +393,11 @@ class BridgeCore:
         else:
             self._inhibits[key] = reason
 
+    @property
+    def inhibits(self) -> dict[str, str]:
+        """The reasons set by `inhibit`, by key."""
+        return dict(self._inhibits)
+
     def motion_allowed(self, now: float | None = None) -> bool:
         now = self._now(now)
         if self._fault or self._inhibits:
@@ -497,254 +409,6 @@ class BridgeCore:
         ):
             return False
         return True
-
-    # ---- wheel commands -------------------------------------------------------------------------
-    def wheel_current_limit_a(self, joint: str) -> float:
-        """The drive train's current limit, or the drive's peak if lower."""
-        return min(
-            self.config.wheels.drivetrain.current_limit,
-            self._wheels[joint].codec.drive.peak_current_a,
-        )
-
-    def _reject(self, reason: str, now: float) -> None:
-        c = self.counters
-        c.rejected_commands += 1
-        c.last_rejection, c.last_rejection_at = reason, now
-        self._log(f'reject:{reason.split(":")[0]}', f'rejected command: {reason}')
-
-    def _wheel_efforts(self, efforts, now: float) -> tuple[float, ...] | None:
-        """The efforts as floats if they are one valid command (one finite value per wheel), else
-        None with the rejection recorded."""
-        joints = self.config.wheel_joint_names
-        try:
-            values = list(efforts)
-        except TypeError:
-            values = None
-        if values is None or len(values) != len(joints):
-            n = 'no sequence' if values is None else f'{len(values)} values'
-            self._reject(f'wheels: need [{", ".join(joints)}], got {n} -> 0 A on both', now)
-            return None
-        out = []
-        for joint, v in zip(joints, values):
-            try:
-                x = float(v)
-            except (TypeError, ValueError, OverflowError):
-                x = math.nan
-            if not math.isfinite(x):
-                self._reject(f'wheels: {joint} effort {v!r} is not finite -> 0 A on both', now)
-                return None
-            out.append(x)
-        return tuple(out)
-
-    def wheel_current_frames(
-        self, effort_left_Nm: float, effort_right_Nm: float, now: float | None = None
-    ) -> list[BusFrame]:
-        """RPDO current frames for efforts at the wheels [N m], clamped; zero current on both when
-        motion is not allowed or either effort is invalid."""
-        now = self._now(now)
-        efforts = self._wheel_efforts((effort_left_Nm, effort_right_Nm), now)
-        allowed = efforts is not None and self.motion_allowed(now)
-        frames = []
-        for joint, effort in zip(self.config.wheel_joint_names, efforts or (0.0, 0.0)):
-            amps = 0.0
-            if allowed:
-                requested = self.config.wheels.effort_to_current(effort)
-                limit = self.wheel_current_limit_a(joint)
-                amps = min(limit, max(-limit, requested))
-                if amps != requested:
-                    self.counters.clamped_commands += 1
-                    self._log(
-                        f'clamp{joint}',
-                        f'{joint}: {requested:.2f} A clamped to {amps:.2f} A',
-                        logging.INFO,
-                    )
-            frames.append(
-                BusFrame(
-                    self.config.wheels.bus, self._wheels[joint].codec.encode_current_command(amps)
-                )
-            )
-        return frames
-
-    def set_wheel_effort_command(self, efforts, now: float | None = None) -> None:
-        """Remember the latest effort command [left, right] N m (sent by `wheel_command_frames`
-        while it is fresh); an invalid one is rejected and replaced by zero on both wheels."""
-        now = self._now(now)
-        valid = self._wheel_efforts(efforts, now)
-        left, right = valid if valid is not None else (0.0, 0.0)
-        self._wheel_command = (left, right, now)
-
-    def wheel_command_frames(self, now: float | None = None) -> list[BusFrame]:
-        """The current frames of the latest command if younger than command_timeout_s, else zero
-        current (sent on each command, and by `wheel_watchdog_frames`)."""
-        now = self._now(now)
-        self._command_loop_at = self._wheel_sent_at = now
-        cmd = self._wheel_command
-        if cmd is None or now - cmd[2] > self.config.wheels.command_timeout_s:
-            return self.wheel_current_frames(0.0, 0.0, now)
-        return self.wheel_current_frames(cmd[0], cmd[1], now)
-
-    def wheel_watchdog_frames(self, now: float | None = None) -> list[BusFrame]:
-        """The wheel command loop's timer: zero current once the latest command is stale (older
-        than command_timeout_s) or motion is not allowed, repeated every WATCHDOG_QUIET_PERIODS
-        refresh periods; [] otherwise. A command in force is never repeated: its frames went out
-        with it, the drive holds that current, and a repeat would only be a frame that answers
-        no sample (in lockstep simulation sim_krang would take it for the controller's answer
-        and run on while the controller is late). Either way the loop counts as running, which
-        keeps the drives' watchdog fed."""
-        now = self._now(now)
-        self._command_loop_at = now
-        quiet = WATCHDOG_QUIET_PERIODS / self.config.wheels.command_rate_hz
-        if self._wheel_sent_at is not None and now - self._wheel_sent_at < quiet:
-            return []
-        cmd = self._wheel_command
-        in_force = (
-            cmd is not None
-            and now - cmd[2] <= self.config.wheels.command_timeout_s
-            and self.motion_allowed(now)
-        )
-        return [] if in_force else self.wheel_command_frames(now)
-
-    # ---- joint commands -------------------------------------------------------------------------
-    def _module_target(
-        self, joint: BodyJointConfig, module: PowerCubeModuleConfig, q: float
-    ) -> float:
-        lower, upper = joint.module_limits(module)
-        return _float32_within(module.sign * q, lower, upper)
-
-    def joint_position_frames(
-        self, targets: Mapping[str, float], now: float | None = None
-    ) -> list[BusFrame]:
-        """FRAMP moves to joint targets [rad] (URDF names), clamped; [] when motion is not allowed.
-
-        Each commanded module gets TARGET_VEL and TARGET_ACC (the module type's limits) then
-        SET_MOTION FRAMP, like pcio_group_setpos. Unknown names (e.g. the wheels) and non-finite
-        targets are skipped and logged.
-        """
-        now = self._now(now)
-        if not self.motion_allowed(now):
-            if targets:
-                self._log(
-                    'joints_blocked', 'joint command dropped: motion not allowed (silent device)'
-                )
-            return []
-        frames = []
-        for name, q in targets.items():
-            try:
-                joint = self.config.powercube.joint(name)
-            except KeyError:
-                self._log(
-                    f'unknown{name}',
-                    f'joint command for unknown joint {name!r} ignored',
-                    logging.INFO,
-                    10.0,
-                )
-                continue
-            try:
-                q = float(q)
-            except (TypeError, ValueError):
-                q = math.nan
-            if not math.isfinite(q):
-                self._reject(f'{name}: non-finite target {q!r} -> no motion', now)
-                continue
-            if joint.clamp(q) != q:
-                self.counters.clamped_commands += 1
-                self._log(
-                    f'clamp{name}',
-                    f'{name}: target {q:.4f} clamped to [{joint.lower}, {joint.upper}]',
-                    logging.INFO,
-                )
-            vel = _float32_within(joint.max_velocity_rad_s, 0.0, joint.max_velocity_rad_s)
-            acc = _float32_within(
-                joint.max_acceleration_rad_s2, 0.0, joint.max_acceleration_rad_s2
-            )
-            for m in joint.modules:
-                frames += [
-                    BusFrame(m.bus, pc.set_param(m.module_id, pc.TARGET_VEL, vel)),
-                    BusFrame(m.bus, pc.set_param(m.module_id, pc.TARGET_ACC, acc)),
-                    BusFrame(
-                        m.bus,
-                        pc.set_motion(m.module_id, pc.FRAMP_ACK, self._module_target(joint, m, q)),
-                    ),
-                ]
-        return frames
-
-    def watchdog_frames(self, now: float | None = None) -> list[BusFrame]:
-        """The frames the drives' watchdog consumes (the bridge's heartbeat, or a guarding request
-        per drive), or [] when the wheel command loop has not run within alive_timeout_s: a beat
-        proves the control path is alive, not just that this process is."""
-        now = self._now(now)
-        wd, bus = self.config.wheels.watchdog, self.config.wheels.bus
-        if (
-            wd.mechanism == 'none'
-            or self._command_loop_at is None
-            or now - self._command_loop_at > wd.alive_timeout_s
-        ):
-            return []
-        if wd.mechanism == 'heartbeat':
-            return [BusFrame(bus, amc_proto.heartbeat_frame(wd))]
-        return [
-            BusFrame(bus, amc_proto.guarding_request(d.node_id)) for d in self.config.wheels.drives
-        ]
-
-    def poll_frames(self) -> list[BusFrame]:
-        """GET_PARAM ACT_FPOS and ACT_FVEL for every module (modules only speak when asked); the
-        same frames every time, encoded once."""
-        if self._poll_frames is None:
-            self._poll_frames = [
-                BusFrame(bus, pc.get_param(module_id, param))
-                for bus, module_id in self._modules
-                for param in (pc.ACT_FPOS, pc.ACT_FVEL)
-            ]
-        return list(self._poll_frames)
-
-    def startup_frames(self) -> list[BusFrame]:
-        """PowerCube start-up: RESET (clears HALT), soft limits MIN/MAX_FPOS in module coordinates
-        (as the robot's init script set them), TARGET_VEL/TARGET_ACC. The AMC start-up needs SDO
-        replies: see amc.run_startup."""
-        frames = []
-        for st in self._modules.values():
-            lower, upper = st.joint.module_limits(st.module)
-            b, i = st.module.bus, st.module.module_id
-            frames += [
-                BusFrame(b, pc.simple_command(i, pc.RESET)),
-                BusFrame(b, pc.set_param(i, pc.MIN_FPOS, _float32_within(lower, lower, upper))),
-                BusFrame(b, pc.set_param(i, pc.MAX_FPOS, _float32_within(upper, lower, upper))),
-                BusFrame(
-                    b,
-                    pc.set_param(
-                        i,
-                        pc.TARGET_VEL,
-                        _float32_within(
-                            st.joint.max_velocity_rad_s, 0.0, st.joint.max_velocity_rad_s
-                        ),
-                    ),
-                ),
-                BusFrame(
-                    b,
-                    pc.set_param(
-                        i,
-                        pc.TARGET_ACC,
-                        _float32_within(
-                            st.joint.max_acceleration_rad_s2, 0.0, st.joint.max_acceleration_rad_s2
-                        ),
-                    ),
-                ),
-            ]
-        return frames
-
-    def imu_stream_frames(self, now: float | None = None) -> list[BusFrame]:
-        """The DMU stream toggle, only after the IMU has been silent for stream_toggle_retry_s (it
-        is a toggle: sending it to a streaming DMU would stop it)."""
-        now = self._now(now)
-        quiet_since = max(
-            self._started_at,
-            self._imu_device.last_seen if self._imu_device.last_seen is not None else -math.inf,
-            self._last_stream_toggle if self._last_stream_toggle is not None else -math.inf,
-        )
-        if now - quiet_since < self.config.imu.stream_toggle_retry_s:
-            return []
-        self._last_stream_toggle = now
-        return [BusFrame(self.config.imu.bus, self.dmu.stream_toggle())]
 
     # ---- state ----------------------------------------------------------------------------------
     # A silent device's last reading is left out of the state, not republished under a fresh stamp:
@@ -779,175 +443,9 @@ class BridgeCore:
             )
         return JointStateSnapshot(names, pos, vel, eff)
 
-    def wheel_state(self, joint: str) -> _WheelState:
+    def wheel_state(self, joint: str) -> WheelState:
         return self._wheels[joint]
 
     def imu_state(self, now: float | None = None) -> ImuSnapshot | None:
         """The filtered IMU, or None while the DMU is silent."""
         return None if self._imu_device.silent(self._now(now)) else self._imu_snapshot
-
-    # ---- diagnostics ----------------------------------------------------------------------------
-    def diagnostics(self, now: float | None = None) -> list[DiagnosticReport]:
-        now = self._now(now)
-        c = self.counters
-        silent = [d for d in self.devices if d.silent(now)]
-        allowed = self.motion_allowed(now)
-        fault = (
-            [f'drive fault latched: {self._fault} (call {BRIDGE_RECOVER})'] if self._fault else []
-        )
-        reports = [
-            DiagnosticReport(
-                'can_bridge: motion',
-                OK if allowed else ERROR,
-                'motion allowed'
-                if allowed
-                else 'motion disabled (zero wheel current, no joint motion): '
-                + (
-                    '; '.join(
-                        fault
-                        + list(self._inhibits.values())
-                        + [f'{d.name} silent' for d in silent if d.required]
-                    )
-                    or 'IMU filter not initialised'
-                ),
-                {
-                    'silent_devices': ', '.join(d.name for d in silent),
-                    'inhibits': '; '.join(self._inhibits.values()),
-                    'drive_fault': self._fault,
-                    'drive_faults_latched': str(c.drive_faults),
-                },
-            )
-        ]
-        recent = c.last_rejection_at is not None and now - c.last_rejection_at <= REJECTION_WARN_S
-        reports.append(
-            DiagnosticReport(
-                'can_bridge: commands',
-                WARN if recent else OK,
-                (
-                    f'{c.rejected_commands} rejected commands, last: {c.last_rejection}'
-                    if recent
-                    else f'{c.rejected_commands} rejected commands, none in the last '
-                    f'{REJECTION_WARN_S:.0f} s'
-                    if c.rejected_commands
-                    else 'no rejected commands'
-                ),
-                {
-                    'rejected_commands': str(c.rejected_commands),
-                    'last_rejection': c.last_rejection,
-                    'last_rejection_age_s': ''
-                    if c.last_rejection_at is None
-                    else f'{now - c.last_rejection_at:.3f}',
-                    'clamped_commands': str(c.clamped_commands),
-                },
-            )
-        )
-        reports.append(
-            DiagnosticReport(
-                'can_bridge: frames',
-                WARN if c.malformed or c.unknown else OK,
-                f'{c.malformed} malformed, {c.unknown} unknown of {c.frames}',
-                {
-                    'frames': str(c.frames),
-                    'malformed': str(c.malformed),
-                    'unknown': str(c.unknown),
-                    'echoes': str(c.echoes),
-                    'canopen': str(c.canopen),
-                    'last_malformed': c.last_malformed,
-                    'last_unknown': c.last_unknown,
-                },
-            )
-        )
-        wd = self.config.wheels.watchdog
-        beating = (
-            wd.mechanism != 'none'
-            and self._command_loop_at is not None
-            and now - self._command_loop_at <= wd.alive_timeout_s
-        )
-        reports.append(
-            DiagnosticReport(
-                'can_bridge: drive watchdog',
-                OK if beating or wd.mechanism == 'none' else WARN,
-                'off (mechanism none): the drives hold their last current if the bridge dies'
-                if wd.mechanism == 'none'
-                else f'{wd.mechanism} every {wd.period_ms} ms, drives stop {wd.timeout_ms} ms '
-                f'after '
-                'the last' + ('' if beating else ': WITHHELD, wheel command loop quiet'),
-                {
-                    'mechanism': wd.mechanism,
-                    'node_id': str(wd.node_id),
-                    'abort_connection_option': str(wd.abort_connection_option),
-                },
-            )
-        )
-        for bus in self.config.buses_in_use():
-            n = c.error_frames.get(bus, 0)
-            reports.append(
-                DiagnosticReport(
-                    f'can_bridge: bus {bus}',
-                    WARN if n else OK,
-                    f'{n} error frames',
-                    {'error_frames': str(n)},
-                )
-            )
-        for joint, w in self._wheels.items():
-            state = amc_proto.drive_state(w.statusword) if w.statusword is not None else 'unknown'
-            level = (
-                STALE
-                if w.device.silent(now)
-                else OK
-                if state == 'OPERATION_ENABLED'
-                else ERROR
-                if state == 'FAULT'
-                else WARN
-            )
-            reports.append(
-                DiagnosticReport(
-                    f'can_bridge: {w.device.name}',
-                    level,
-                    f'drive {state}',
-                    {
-                        'position_rad': str(w.position),
-                        'velocity_rad_s': str(w.velocity),
-                        'current_a': str(w.current),
-                        'emcy': str(w.emcy),
-                        'malformed': str(w.device.malformed),
-                    },
-                )
-            )
-        imu = self._imu_snapshot
-        level = (
-            STALE
-            if self._imu_device.silent(now)
-            else (OK if imu is not None and imu.ready else WARN)
-        )
-        reports.append(
-            DiagnosticReport(
-                'can_bridge: imu',
-                level,
-                'silent' if level == STALE else ('ok' if level == OK else 'initialising'),
-                {
-                    'pitch_rad': str(imu.pitch if imu else None),
-                    'malformed': str(self._imu_device.malformed),
-                },
-            )
-        )
-        for st in self._modules.values():
-            not_ok = st.short_state is not None and st.short_state & pc.SHORT_NOT_OK
-            level = STALE if st.device.silent(now) else (WARN if not_ok else OK)
-            reports.append(
-                DiagnosticReport(
-                    f'can_bridge: {st.device.name}',
-                    level,
-                    'silent'
-                    if level == STALE
-                    else (
-                        'module reports NOT_OK (error, not homed or halted)' if not_ok else 'ok'
-                    ),
-                    {
-                        'position': str(st.position),
-                        'short_state': str(st.short_state),
-                        'malformed': str(st.device.malformed),
-                    },
-                )
-            )
-        return reports

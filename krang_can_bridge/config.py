@@ -25,6 +25,7 @@ from krang_model.robot import load_krang
 DEVICES_FILE_NAME = 'can_devices.yaml'  # the simulated robot (udp_multicast)
 ROBOT_DEVICES_FILE_NAME = 'can_devices_robot.yaml'  # the robot (SocketCAN): bridge default
 WATCHDOG_MECHANISMS = ('heartbeat', 'guarding', 'none')
+CAN_BITRATE = 1_000_000  # every Krang net runs at 1 Mbit/s (docs/can.md)
 
 
 class ConfigError(ValueError):

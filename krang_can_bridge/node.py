@@ -1,22 +1,24 @@
-"""can_bridge: the thin rclpy shell around krang_can_bridge.bridge.BridgeCore.
+"""can_bridge: the thin rclpy shell around krang_can_bridge.runtime.BridgeRuntime (the time base,
+the receive path, the held wheel sample, the drives' start-up and recovery, all tested without
+ROS), which drives krang_can_bridge.bridge.BridgeCore. The node declares the parameters, opens the
+buses and wires the runtime to topics, a service and timers.
 
 Buses come from the device map (parameter `devices_file`, default the robot's SocketCAN map
 config/can_devices_robot.yaml; a bare file name is looked up in config/, so the simulated node set
 passes `can_devices.yaml` in config/sim_params.yaml). A bus that cannot be opened ends the node
 with one line naming the interface (and, for SocketCAN, the `ip link` command) and exit code 1.
-One receive thread (bus_io.BusReader) feeds the frames of every bus to the core (under a lock),
-so the executor never blocks on CAN; the kernel passes it only the ids the core reads
+One receive thread (bus_io.BusReader) feeds the frames of every bus to the runtime, so the
+executor never blocks on CAN; the kernel passes it only the ids the core reads
 (BridgeCore.received_ids, bus_io.receive_only), and each socket's receive queue is enlarged
 (bus_io.enlarge_receive_buffer) so that a stall of the thread delays frames instead of losing
 them. The node is event-driven: the receive thread publishes each sample as soon as the core
-says its frames are in (rclpy publishers may be called from any thread; the message is published
-outside the lock), and the wheel current frames go out from the command callback. The control
-path's messages (/imu/data, /joint_states, the wheel command) are written and read as their
-serialized bytes (krang_ros.wire). The PowerCube polls and moves go out from a send thread
-(bus_io.SendThread), so that the executor is free for the next command while they are sent. The
-AMC start-up and the recovery (blocking SDO transfers through canopen) run in their own threads,
-and so does the drive-side watchdog's heartbeat, which the core withholds when the wheel command
-loop (the executor) stops running (docs/can.md).
+says its frames are in (rclpy publishers may be called from any thread), and the wheel current
+frames go out from the command callback. The control path's messages (/imu/data, /joint_states,
+the wheel command) are written and read as their serialized bytes (krang_ros.wire). The PowerCube
+polls and moves go out from a send thread (bus_io.SendThread). The AMC start-up and the recovery
+(blocking SDO transfers through canopen) run in their own threads, and so does the drive-side
+watchdog's heartbeat, which the core withholds when the wheel command loop (the executor) stops
+running (docs/can.md).
 
 Topics:
 - publishes /joint_states (sensor_msgs/JointState: body joints + JLWheel/JRWheel, URDF names; only
@@ -65,16 +67,12 @@ wall time.
 
 from __future__ import annotations
 
-import functools
 import logging
 import math
 import sys
-import threading
-import time
 from dataclasses import dataclass, field
 
 import can
-import canopen
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from rclpy._rclpy_pybind11 import RCLError
@@ -83,46 +81,27 @@ from sensor_msgs.msg import Imu, JointState
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
-from krang_can_bridge.bridge import IMU_SAMPLE, WHEEL_SAMPLE, BridgeCore, BusFrame
-from krang_can_bridge.bus_io import BusReader, SendThread, enlarge_receive_buffer, receive_only
+from krang_can_bridge.bus_io import enlarge_receive_buffer, receive_only
 from krang_can_bridge.config import (
+    CAN_BITRATE,
     BusConfig,
     ConfigError,
     load_devices,
     resolve_devices_file,
     robot_devices_file,
 )
-from krang_can_bridge.imu_filter import pitch_axis, tilt_direction
-from krang_can_bridge.protocols import amc as amc_proto
-from krang_can_bridge.sample_clock import SampleClock
-from krang_ros import messages, names, params, realtime, topics, trace, wire
-from krang_ros.log import Throttled
+from krang_can_bridge.runtime import BridgeRuntime, TimeBase, imu_vectors
+from krang_core import names, params
+from krang_core.log import Throttled
+from krang_ros import messages, realtime, topics, trace, wire
+from krang_ros.params import declare
 from krang_ros.spin import run_node
 
-SIM_TIME_SLACK_S = 0.025  # with use_sim_time: checks run at most this far past the newest frame
 HARDWARE_ID = 'krang_can'
-CAN_BITRATE = 1000000  # every Krang net runs at 1 Mbit/s (docs/can.md)
 
 
 def _doc(text: str) -> dict:
     return {'doc': text}
-
-
-@functools.lru_cache(maxsize=4)
-def _sensor_axes(mount_angle_rad: float) -> tuple[tuple[float, ...], tuple[float, ...]]:
-    """The pitch axis and the tilt direction in sensor coordinates, as floats (per sample, the
-    dot products below cost a tenth of numpy's on three elements)."""
-    return (
-        tuple(map(float, pitch_axis(mount_angle_rad))),
-        tuple(map(float, tilt_direction(mount_angle_rad))),
-    )
-
-
-def _dot(a, b) -> float:
-    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
-
-
-IMU_HOLD_MAX_S = 0.05  # a DMU slower than 20 Hz holds no wheel sample back (module docstring)
 
 
 @dataclass(frozen=True)
@@ -223,96 +202,65 @@ class CanBridgeNode(Node):
         """`pump` (a bus_io.Pump): composed in one process, its frames handed over by the
         composition (krang_cli.composed) instead of a receive thread."""
         super().__init__('can_bridge', **kwargs)
-        self.params = params.declare(self, BridgeParams)
-        p = self.params
-        devices_file = resolve_devices_file(p.devices_file)
+        self.params = params_ = declare(self, BridgeParams)
+        devices_file = resolve_devices_file(params_.devices_file)
         try:
             self.config = load_devices(devices_file)
         except ConfigError as exc:  # one line, exit code 2 (run_node), before any bus is opened
             raise params.ParameterError(f'can_bridge: devices_file {devices_file}: {exc}') from exc
         realtime.declare_thread_priority(self)
-        # The core's time base (IMU filter dt, silence and command timeouts) is the time of the
-        # devices: wall time (monotonic) on the robot; with use_sim_time the simulator's /clock,
-        # because a simulated DMU samples in simulated time. A simulator starved of CPU runs slower
-        # than the wall clock (sim_krang slips, max_lag_s): integrating its gyro over wall-clock
-        # gaps overstated every pitch change by the slow-down (0.57x real time measured under load:
-        # +0.10 rad IMU error within 0.5 s of the stand-up), and the gyro-dominant filter
-        # (accelerometer time constant ~80 s) never took it back. /clock reaches this process on
-        # another path (DDS, the executor) than the frames (UDP, the receive thread): after a
-        # stall of the process the executor could take a /clock 50+ ms ahead of frames still queued
-        # in the sockets, and the next wheel refresh found every device "silent" and sent zero
-        # current (seen as 0 A on both wheels during a pose move, and a fall). So received frames
-        # are stamped with /clock, but the checks (silence, command age) run at most
-        # SIM_TIME_SLACK_S past the newest frame stamped: a device silent while others talk is
-        # still caught, and when the simulator stops, its /clock stops too.
-        if self.get_parameter('use_sim_time').value:
-            clock = self.get_clock()
-            self._frame_time = lambda: clock.now().nanoseconds * 1e-9
-            self._newest_frame = self._frame_time()
-            self._device_time = lambda: min(
-                self._frame_time(), self._newest_frame + SIM_TIME_SLACK_S
-            )
-        else:
-            self._frame_time = self._device_time = time.monotonic
-            self._newest_frame = self._frame_time()
-        # Stamps: the device time as ROS time (wall time on the robot, by one offset fixed at
-        # start so the spacing of the samples stays the devices'; /clock with use_sim_time)
-        self._stamp_offset = (
-            0.0 if self.get_parameter('use_sim_time').value else time.time() - time.monotonic()
-        )
-        self.core = BridgeCore(
-            self.config, clock=self._device_time, imu_sample_period_s=p.imu_sample_period_s
-        )
-        # imu_sample_period_s > 0: DMU samples are timed by their sequence counter
-        # (sample_clock.py); kept within 0.04 s of the clock, inside the IMU's 0.05 s silence
-        # timeout
-        period = p.imu_sample_period_s
-        self._imu_clock = SampleClock(period, lag_max_s=0.04) if period > 0 else None
-        self._lock = threading.Lock()
         # The receive thread runs in bursts (a TPDO set, a DMU sample): a wheel command waiting in
         # the executor for the GIL could wait out Python's 5 ms switch interval; 0.5 ms bounds it.
         sys.setswitchinterval(min(sys.getswitchinterval(), 0.0005))
-        self._send_timeout = p.send_timeout_s
-        self._stop = threading.Event()
-        self._send_errors: dict[str, int] = {}
-        self._warn_send = Throttled(self.get_logger().warning, 1.0)
         self._warn_joint_cmd = Throttled(self.get_logger().warning, 1.0)
-        self._receive_errors: dict[str, str] = {}
-        self._startup_status: dict[str, str] = {}
-        self._sdo_lock = threading.Lock()  # one SDO user at a time: start-up or recover
-        self._sdo_timeout = p.sdo_timeout_s
-        self._recover_timeout = p.recover_timeout_s
-        self._published_fault: str | None = None
-        self._joint_period = 1.0 / p.publish_rate_hz if p.publish_rate_hz > 0 else 0.0
-        self._joints_published_at = -math.inf
-        self._imu_at, self._imu_interval = -math.inf, math.inf  # arrivals of /imu/data samples
-        self._held_joints = None  # a wheel sample's /joint_states waiting for the next /imu/data
-        self.published = {names.IMU: 0, names.JOINT_STATES: 0}
-
         self._log_handler = _RosLogHandler(self.get_logger())
         logging.getLogger('krang_can_bridge').addHandler(self._log_handler)
         logging.getLogger('krang_can_bridge').setLevel(logging.INFO)
 
-        self.buses: dict[str, can.BusABC] = {}
+        buses: dict[str, can.BusABC] = {}
         try:
             for name in self.config.buses_in_use():
-                self.buses[name] = open_bus(self.config.buses[name])
+                buses[name] = open_bus(self.config.buses[name])
         except BusOpenError:
-            for b in self.buses.values():
+            for b in buses.values():
                 b.shutdown()
             logging.getLogger('krang_can_bridge').removeHandler(self._log_handler)
             raise
+        clock = self.get_clock()
+        sim_clock = (
+            (lambda: clock.now().nanoseconds * 1e-9)
+            if self.get_parameter('use_sim_time').value
+            else None
+        )
+        self.runtime = BridgeRuntime(
+            self.config,
+            buses,
+            publish=self._publish,
+            stamp=messages.stamp,
+            encode_imu=self._imu_message,
+            encode_joints=lambda j, stamp: wire.joint_state_bytes(
+                stamp, j.names, j.positions, j.velocities, j.efforts
+            ),
+            time_base=TimeBase(sim_clock),
+            publish_rate_hz=params_.publish_rate_hz,
+            imu_sample_period_s=params_.imu_sample_period_s,
+            send_timeout_s=params_.send_timeout_s,
+            sdo_timeout_s=params_.sdo_timeout_s,
+            recover_timeout_s=params_.recover_timeout_s,
+            amc_startup=params_.amc_startup,
+        )
+        self.core = self.runtime.core
         queues = {}  # bus -> receive queue granted (bytes), where the bus has a socket
-        for name, bus in self.buses.items():
+        for name, bus in buses.items():
             receive_only(bus, self.core.received_ids(name))
             queues[name] = enlarge_receive_buffer(bus)
-        self.canopen = canopen.Network(self.buses[self.config.wheels.bus])
 
         qos = topics.QOS
         self.joint_pub = self.create_publisher(
             JointState, names.relative(names.JOINT_STATES), qos[names.JOINT_STATES]
         )
         self.imu_pub = self.create_publisher(Imu, names.relative(names.IMU), qos[names.IMU])
+        self._sample_pubs = {names.JOINT_STATES: self.joint_pub, names.IMU: self.imu_pub}
         self.diag_pub = self.create_publisher(
             DiagnosticArray, names.relative(names.DIAGNOSTICS), qos[names.DIAGNOSTICS]
         )
@@ -339,285 +287,81 @@ class CanBridgeNode(Node):
         self.watchdog_timer = self.create_timer(
             1.0 / self.config.wheels.command_rate_hz, self.wheel_watchdog
         )
-        self.create_timer(1.0 / self.config.powercube.poll_rate_hz, self.poll_modules)
-        self.create_timer(0.5 * self.config.imu.stream_toggle_retry_s, self.check_imu_stream)
+        self.create_timer(1.0 / self.config.powercube.poll_rate_hz, self.runtime.poll_modules)
+        self.create_timer(
+            0.5 * self.config.imu.stream_toggle_retry_s, self.runtime.check_imu_stream
+        )
         self.create_timer(1.0, self.publish_diagnostics)
         # frames only once every publisher exists (a sample completed earlier ended the thread)
-        imu_first = dict(sorted(self.buses.items(), key=lambda b: b[0] != self.config.imu.bus))
-        self.reader = (pump.reader if pump else BusReader)(
-            imu_first, self.on_received, self.on_bus_error
-        )
-        # the PowerCube polls and moves: off the executor, which sends the wheel currents
-        # (composed, in order with everything else: the run is the same every time)
-        self.sender = None if pump else SendThread(self.send, self.on_send_error)
-
-        for drive in self.config.wheels.drives:
-            self._startup_status[drive.joint] = 'pending'
-            if p.amc_startup:
-                self.core.inhibit(
-                    f'startup/{drive.joint}', f'{drive.joint}: AMC start-up not done'
-                )
-        self._startup_thread = threading.Thread(
-            target=self._startup_worker, args=(p.amc_startup, p.startup_retry_s), daemon=True
-        )
-        self._startup_thread.start()
-        self._watchdog_thread = threading.Thread(target=self._watchdog_worker, daemon=True)
-        self._watchdog_thread.start()
+        self.runtime.start(params_.startup_retry_s, pump=pump, on_frame=self.on_received)
         self.get_logger().info(
             'can_bridge on '
             + ', '.join(
                 f'{n}={self.config.buses[n].interface}:{self.config.buses[n].channel}'
                 + (f' (receive queue {queues[n] >> 10} KiB)' if queues[n] else '')
-                for n in self.buses
+                for n in buses
             )
         )
 
-    # ---- CAN I/O --------------------------------------------------------------------------------
-    def on_received(self, bus: str, msg: can.Message) -> None:
-        if self._stop.is_set():  # closing: the drives' reaction to our silence is expected
-            return
-        t_in = trace.now() if trace.ON else 0.0
-        with self._lock:
-            now = arrived = self._frame_time()
-            if now > self._newest_frame:
-                self._newest_frame = now
-            if (
-                self._imu_clock
-                and bus == self.config.imu.bus
-                and msg.arbitration_id in self.core.dmu.feedback_ids
-            ):
-                now = self._imu_sample_time(msg, now)
-            fault = self.core.fault_reason
-            sample = self.core.on_frame(msg, now, bus)
-            out = held = None
-            if sample == IMU_SAMPLE:
-                out = self._imu_out(now)
-                if out is not None:
-                    self._imu_interval, self._imu_at = arrived - self._imu_at, arrived
-                    held, self._held_joints = self._released(self._held_joints), None
-            elif sample == WHEEL_SAMPLE:
-                joints = self._joints_out(now)
-                if not self._imu_due(arrived):  # out now; so is one held for a silent DMU
-                    out, self._held_joints = self._released(joints or self._held_joints), None
-                elif joints is not None:  # out just before the next /imu/data (docstring)
-                    self._held_joints = joints
-            # a drive fault this frame latched: zero current at once, not at the next command
-            stop = (
-                self.core.wheel_current_frames(0.0, 0.0, self._device_time())
-                if self.core.fault_reason and not fault
-                else []
-            )
-        self.send(stop)
-        for sample_out in (held, out):
-            if sample_out is None:
-                continue
-            try:
-                sample_out[0].publish(sample_out[1])
-            except RCLError:
-                if self.context.ok():
-                    raise
-                return  # shut down by a signal under this thread; close() follows
-            self.published[sample_out[2]] += 1
-        if trace.ON and out is not None and out[2] == names.IMU:
-            trace.record('imu_in', out[3], msg.timestamp, t_in, trace.now())
-        if (
-            bus == self.config.wheels.bus
-            and not msg.is_error_frame
-            and msg.arbitration_id in self.canopen.subscribers  # SDO responses, for the start-up
-        ):
-            self.canopen.notify(msg.arbitration_id, msg.data, msg.timestamp)
+    @property
+    def buses(self) -> dict[str, can.BusABC]:
+        return self.runtime.buses
 
-    def _imu_due(self, now: float) -> bool:
-        """Whether the DMU streams: its last sample came less than 1.5 of its intervals before
-        `now` (arrival times), so a wheel sample's /joint_states waits for the next one."""
-        interval = self._imu_interval
-        return interval <= IMU_HOLD_MAX_S and now - self._imu_at < 1.5 * interval
-
-    def _imu_out(self, now: float):
-        """(publisher, message as CDR bytes, topic, stamp) of the DMU sample a frame completed at
-        `now`, or None while the filter has no estimate; called under the lock."""
-        imu = self.core.imu_state(now)
-        if imu is None:
-            return None
-        stamp = self._stamp(imu.stamp)
-        return self.imu_pub, self._imu_message(imu, stamp), names.IMU, stamp
-
-    def _joints_out(self, now: float):
-        """As _imu_out, of the wheel sample completed at `now`, and its time; None beyond
-        publish_rate_hz (counted from the last one released) or with no joint known. Built as the
-        sample completes, so that a held one costs the next /imu/data only its publication."""
-        if now - self._joints_published_at < 0.999 * self._joint_period:
-            return None
-        joints = self.core.joint_state(now)
-        if not joints.names:
-            return None
-        stamp = self._stamp(now)
-        msg = wire.joint_state_bytes(
-            stamp, joints.names, joints.positions, joints.velocities, joints.efforts
-        )
-        return self.joint_pub, msg, names.JOINT_STATES, stamp, now
-
-    def _released(self, joints):
-        """`joints` (from _joints_out, or None) on its way out: the publish rate counts from it."""
-        if joints is not None:
-            self._joints_published_at = joints[4]
-        return joints
-
-    def _stamp(self, t: float):
-        return messages.stamp(t + self._stamp_offset)
-
-    def _imu_sample_time(self, msg: can.Message, now: float) -> float:
-        """Time of a DMU frame from its sequence counter (see imu_sample_period_s); `now` if
-        undecodable."""
-        try:
-            seq = self.core.dmu.decode(msg).sequence
-        except Exception:  # noqa: BLE001 - the core counts the malformed frame
-            return now
-        return self._imu_clock.time_of(seq, now)
-
-    def on_bus_error(self, bus: str, exc: Exception) -> None:
-        self._receive_errors[bus] = f'{type(exc).__name__}: {exc}'
-        self.get_logger().error(f'CAN receive on {bus} stopped: {exc}')
-
-    def send_later(self, frames: list[BusFrame], key=None) -> None:
-        """Frames no control loop waits for: sent by the send thread, a newer batch of the same
-        `key` replacing one still waiting (see bus_io.SendThread)."""
-        if self.sender is None:
-            self.send(frames)
-        else:
-            self.sender.put(frames, key)
-
-    def on_send_error(self, exc: Exception) -> None:
-        if not self._stop.is_set():
-            self.get_logger().error(f'CAN send thread: {type(exc).__name__}: {exc}')
-
-    def send(self, frames: list[BusFrame]) -> None:
-        for bus, msg in frames:
-            try:
-                self.buses[bus].send(msg, timeout=self._send_timeout)
-            except can.CanError as exc:
-                self._send_errors[bus] = self._send_errors.get(bus, 0) + 1
-                self._warn_send(f'send on {bus} failed: {exc}')
-
-    def _watchdog_worker(self) -> None:
-        """Send the drives' watchdog frames every period; the core withholds them when the wheel
-        command loop is quiet, and a hung core (lock held) stops them too."""
-        period = self.config.wheels.watchdog.period_s
-        if self.config.wheels.watchdog.mechanism == 'none':
-            return
-        due = time.monotonic()
-        while not self._stop.wait(max(0.0, due - time.monotonic())):
-            due = max(due + period, time.monotonic())
-            with self._lock:
-                frames = self.core.watchdog_frames(self._device_time())
-            self.send(frames)
-
-    def _enable_drive(self, drive) -> list[str]:
-        """The start-up sequence (fault reset, watchdog, enable) of one drive; its mismatches."""
-        with self._lock:
-            self.core.drive_started(drive.joint, False)
-        with self._sdo_lock:
-            mismatches = amc_proto.run_startup(
-                self.canopen, drive, self.config.wheels, self._sdo_timeout
-            )
-        with self._lock:
-            self.core.drive_started(drive.joint, not mismatches)
-        return mismatches
-
-    def _startup_worker(self, amc_startup: bool, retry_s: float) -> None:
-        with self._lock:
-            frames = self.core.startup_frames()
-        self.send(frames)
-        if not amc_startup:
-            return
-        for drive in self.config.wheels.drives:
-            key = f'startup/{drive.joint}'
-            while not self._stop.is_set():
-                try:
-                    mismatches = self._enable_drive(drive)
-                except Exception as exc:  # noqa: BLE001 - SDO timeout/abort or bus error: retry
-                    self._startup_status[drive.joint] = f'failed: {type(exc).__name__}: {exc}'
-                    self.get_logger().warning(
-                        f'{drive.joint} start-up failed ({exc}); retrying',
-                        throttle_duration_sec=10.0,
-                    )
-                    self._stop.wait(retry_s)
-                    continue
-                with self._lock:
-                    if mismatches:
-                        self._startup_status[drive.joint] = 'constants mismatch: ' + '; '.join(
-                            mismatches
-                        )
-                        self.core.inhibit(key, '; '.join(mismatches))
-                        self.get_logger().error(self._startup_status[drive.joint])
-                    else:
-                        self._startup_status[drive.joint] = 'enabled'
-                        self.core.inhibit(key, None)
-                break
+    @property
+    def published(self) -> dict[str, int]:
+        return self.runtime.published
 
     @property
     def startup_status(self) -> dict[str, str]:
-        """Each drive's start-up: 'pending', 'enabled', 'failed: ...' or 'constants
-        mismatch: ...'."""
-        return dict(self._startup_status)
+        return self.runtime.startup_status
+
+    # ---- CAN I/O --------------------------------------------------------------------------------
+    def on_received(self, bus: str, msg: can.Message) -> None:
+        t_in = trace.now() if trace.ON else 0.0
+        imu = self.runtime.on_received(bus, msg)
+        if trace.ON and imu is not None:
+            trace.record('imu_in', imu.stamp, msg.timestamp, t_in, trace.now())
+
+    def _publish(self, topic: str, message) -> bool:
+        """A sample from the receive thread (rclpy publishers may be called from any thread);
+        False once a signal shut the context down under the thread (close() follows)."""
+        try:
+            self._sample_pubs[topic].publish(message)
+        except RCLError:
+            if self.context.ok():
+                raise
+            return False
+        return True
+
+    def _imu_message(self, imu, stamp) -> bytes:
+        """The /imu/data message (CDR bytes, messages.imu)."""
+        angular_velocity, linear_acceleration = imu_vectors(imu, self.config.imu.mount_angle_rad)
+        return messages.imu(
+            stamp,
+            self.config.imu.frame_id,
+            imu.pitch,
+            imu.pitch_variance,
+            angular_velocity,
+            linear_acceleration,
+        )
 
     # ---- drive faults ---------------------------------------------------------------------------
     def publish_fault(self) -> None:
         """The latched drive fault on DRIVE_FAULT, whenever it changes ('' once at start-up)."""
-        with self._lock:
-            reason = self.core.fault_reason
-        if reason != self._published_fault:
-            self._published_fault = reason
+        reason = self.runtime.fault_changed()
+        if reason is not None:
             self.fault_pub.publish(String(data=reason))
 
     def on_recover(self, request, response):
-        """Runs the recovery in a thread and, until it ends, keeps the wheel command loop going
-        (zero current while latched), so the drives' watchdog goes on seeing a live bridge. The
-        other callbacks wait (rclpy's executor would starve them while a coroutine awaits a
-        thread's result)."""
-        result = []
-        worker = threading.Thread(target=lambda: result.append(self._recover()), daemon=True)
-        worker.start()
-        period = 1.0 / self.config.wheels.command_rate_hz
-        while worker.is_alive():
-            self.send_wheel_commands()
-            worker.join(period)
-        response.success, response.message = result[0] if result else (False, 'recover failed')
+        """The recovery (BridgeRuntime.recover_keeping_alive). The other callbacks wait (rclpy's
+        executor would starve them while a coroutine awaits a thread's result)."""
+        response.success, response.message = self.runtime.recover_keeping_alive()
         if response.success:
             self.get_logger().info(f'recover: {response.message}')
         else:
             self.get_logger().warning(f'recover: {response.message}')
         self.publish_fault()
         return response
-
-    def _recover(self) -> tuple[bool, str]:
-        """DS402 fault reset and enable sequence on every drive, then unlatch if all report
-        OPERATION_ENABLED (BridgeCore.recover_status)."""
-        with self._lock:
-            reason = self.core.fault_reason
-        if not reason:
-            return True, 'no drive fault latched'
-        for drive in self.config.wheels.drives:
-            try:
-                mismatches = self._enable_drive(drive)
-            except Exception as exc:  # noqa: BLE001 - SDO timeout/abort or bus error
-                return False, (
-                    f'{drive.joint}: fault reset and enable failed '
-                    f'({type(exc).__name__}: {exc}); fault still latched: {reason}'
-                )
-            if mismatches:
-                return False, '; '.join(mismatches)
-        since = self._frame_time()
-        deadline = time.monotonic() + self._recover_timeout
-        while True:
-            with self._lock:
-                ok, why = self.core.recover_status(since)
-                if ok:
-                    self.core.clear_fault()
-                    return True, f'recovered from: {reason}'
-            if ok is False or time.monotonic() > deadline:
-                return False, f'refused: {why}; fault still latched: {reason}'
-            time.sleep(0.01)
 
     # ---- commands -------------------------------------------------------------------------------
     def on_wheel_effort(self, raw: bytes) -> None:
@@ -630,10 +374,7 @@ class CanBridgeNode(Node):
         except wire.WireError:
             msg = None
         efforts = None if msg is None else messages.wheel_efforts(msg, names.WHEEL_JOINTS)
-        with self._lock:
-            self.core.set_wheel_effort_command(efforts, self._device_time())
-            frames = self.core.wheel_command_frames(self._device_time())
-        self.send(frames)
+        self.runtime.wheel_effort(efforts)
         if trace.ON and msg is not None:
             trace.record('cmd_out', msg.stamp, t_in, trace.now())
         self.watchdog_timer.reset()  # quiet while commands flow (it would send nothing)
@@ -645,109 +386,26 @@ class CanBridgeNode(Node):
                 f'{names.JOINT_POSITION_CMD}: name and position lengths differ; ignored'
             )
             return
-        with self._lock:
-            frames = self.core.joint_position_frames(
-                dict(zip(msg.name, msg.position)), self._device_time()
-            )
-        # a newer target for the same modules replaces one not yet sent
-        self.send_later(frames, ('move', *sorted({(f.bus, f.msg.arbitration_id) for f in frames})))
-
-    def send_wheel_commands(self) -> None:
-        with self._lock:
-            frames = self.core.wheel_command_frames(self._device_time())
-        self.send(frames)
-        self.publish_fault()
+        self.runtime.joint_positions(dict(zip(msg.name, msg.position)))
 
     def wheel_watchdog(self) -> None:
-        with self._lock:
-            frames = self.core.wheel_watchdog_frames(self._device_time())
-        self.send(frames)
+        self.runtime.wheel_watchdog()
         self.publish_fault()
 
-    def poll_modules(self) -> None:
-        with self._lock:
-            frames = self.core.poll_frames()
-        self.send_later(frames, 'poll')
-
-    def check_imu_stream(self) -> None:
-        with self._lock:
-            frames = self.core.imu_stream_frames(self._device_time())
-        if frames:
-            self.get_logger().info('DMU silent: sending the stream toggle')
-        self.send(frames)
-
     # ---- state out ------------------------------------------------------------------------------
-    def _imu_message(self, imu, stamp) -> bytes:
-        """The /imu/data message (CDR bytes, messages.imu): the DMU's rates and specific force
-        turned by the mount angle into x forward, y left, z up (at zero pitch); the pitch rate is
-        the filtered one."""
-        e, d = _sensor_axes(self.config.imu.mount_angle_rad)
-        w, f = imu.rates, imu.specific_force
-        return messages.imu(
-            stamp,
-            self.config.imu.frame_id,
-            imu.pitch,
-            imu.pitch_variance,
-            (-_dot(d, w), imu.pitch_rate, w[2]),
-            (-_dot(d, f), _dot(e, f), f[2]),
-        )
-
     def publish_diagnostics(self) -> None:
-        with self._lock:
-            reports = self.core.diagnostics(self._device_time())
         statuses = [
             messages.diagnostic_status(
                 r.name, messages.LEVEL_NAMES[r.level], r.message, r.values, HARDWARE_ID
             )
-            for r in reports
+            for r in self.runtime.diagnostics()
         ]
-        for bus in self.buses:
-            sent_err, recv_err = self._send_errors.get(bus, 0), self._receive_errors.get(bus)
-            if sent_err or recv_err:
-                statuses.append(
-                    messages.diagnostic_status(
-                        f'can_bridge: bus {bus} I/O',
-                        'error' if recv_err else 'warn',
-                        recv_err or f'{sent_err} send errors',
-                        {'send_errors': sent_err, 'receive_error': recv_err},
-                        HARDWARE_ID,
-                    )
-                )
-        statuses.append(
-            messages.diagnostic_status(
-                'can_bridge: samples published',
-                'ok',
-                ', '.join(f'{n} {topic}' for topic, n in self.published.items()),
-                {topic: str(n) for topic, n in self.published.items()},
-                HARDWARE_ID,
-            )
-        )
-        for joint, status in self._startup_status.items():
-            statuses.append(
-                messages.diagnostic_status(
-                    f'can_bridge: amc/{joint} start-up',
-                    'ok' if status == 'enabled' else 'warn',
-                    status,
-                    hardware_id=HARDWARE_ID,
-                )
-            )
         self.diag_pub.publish(messages.diagnostic_array(self.get_clock().now().to_msg(), statuses))
 
     # ---- shutdown -------------------------------------------------------------------------------
     def close(self) -> None:
         """Zero the wheel currents, stop the threads, release the buses."""
-        self._stop.set()
-        try:
-            with self._lock:
-                frames = self.core.wheel_current_frames(0.0, 0.0, self._device_time())
-            self.send(frames)
-        except Exception:  # noqa: BLE001 - best effort on the way out
-            pass
-        self.reader.stop()
-        if self.sender is not None:
-            self.sender.stop()
-        for b in self.buses.values():
-            b.shutdown()
+        self.runtime.close()
         logging.getLogger('krang_can_bridge').removeHandler(self._log_handler)
 
 

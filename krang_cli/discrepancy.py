@@ -26,8 +26,9 @@ Steps:
               fitted to the residual on held-out blocks: if they still predict it, or (with
               --baseline) the model stays more than 2x its own typical error off, the answer is
               "unexplained" with the residual's signature, never a wrong name or "none";
-  5. extend   write DIR/extended_model.yaml (the effects, their values and the matching
-              krang_sim.physics.SimEffects arguments), re-simulate with it, report the gap.
+  5. extend   write DIR/extended_model.yaml (the effects of krang_model.effects and their
+              values: what `krang experiment table2 --extended-model` simulates), re-simulate
+              every window with it, report the gap.
 
 With --baseline EXTENDED_MODEL.yaml the new data are judged against the robot as earlier runs
 corrected it: the gap is in units of that model's typical error on its own data, the effects named
@@ -127,7 +128,8 @@ def register(subparsers):
         default=0.0,
         metavar='S',
         help='the body pose follows the measured joints S seconds later (joint-state latency; '
-        'KrangSim updates a moving pose every 20 ms, i.e. 0.01 s on average; default 0)',
+        'the simulated plant updates a moving pose every 20 ms, i.e. 0.01 s on average; '
+        'default 0)',
     )
     p.add_argument(
         '--rate',

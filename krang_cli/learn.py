@@ -4,7 +4,7 @@ import math
 
 import numpy as np
 
-from krang_com_estimator import estimators as est
+import krang_com_estimator as est
 from krang_model.beta import load_beta, save_beta
 from krang_model.com import x_com
 from krang_model.poses import load_poses
@@ -32,7 +32,7 @@ def register(subparsers):
             'and CoM-inside-the-link bounds enforced (batch); map-online = the same MAP, '
             'recursive, in file '
             "order (the com_estimator node's update); estimators registered by plug-ins are "
-            'offered too (krang_com_estimator.estimators.register_estimator). Reports the k-fold '
+            'offered too (krang_com_estimator.register_estimator). Reports the k-fold '
             "cross-validated |x_com| on held-out records, and how far each body's CoM and mass "
             'moved from beta0.'
         ),

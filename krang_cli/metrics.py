@@ -8,7 +8,8 @@ DESCRIPTION = """\
 Compute the five Table II figures of one balancing log (a kit CSV from
 krang_data/balancing_runs/, or one of our MCAP bags), in two definitions.
 
-Paper definitions (exactly as the authors' analysis, quirks kept; krang_data/README.md):
+Paper definitions (exactly as the authors' analysis, quirks kept; the data kit's README.md,
+../shared/krang_data or $KRANG_DATA):
   motion start = first sample where the 20-sample centred moving average of the LEFT commanded
   current exceeds 1 A in magnitude; the window is the next 55 s.
   max_position_m        0.27 x the largest smoothed left current (a current in A times 0.27,

@@ -1,8 +1,8 @@
 """The node set, described once.
 
-`krang bringup` starts it as processes and `launch/*.launch.py` turn it into `ros2 launch` actions,
-so the two can never start different executables or load different parameter files. No rclpy or
-launch import here: the launch files import this module on a real ROS install.
+`krang bringup` starts it as processes and `launch/*.launch.py` turn it into `ros2 launch` actions
+(krang_ros.launch_set), so the two can never start different executables or load different
+parameter files. No ROS import here.
 """
 
 from dataclasses import dataclass
@@ -52,26 +52,3 @@ def node_set(sim, record=False, extra_params=()):
     files = params_files(sim, extra_params)
     names = ((RECORDER,) if record else ()) + ((SIM_NODE,) if sim else ()) + ROBOT_NODES
     return tuple(NodeSpec(name, files) for name in names)
-
-
-def launch_description(sim):
-    """The set as a `ros2 launch` LaunchDescription (launch/robot.launch.py, launch/sim.launch.py).
-
-    launch and launch_ros are imported here, not at the top, because they exist only on a full ROS
-    install; `krang bringup` runs without them."""
-    from launch import LaunchDescription
-    from launch_ros.actions import Node
-
-    return LaunchDescription(
-        [
-            Node(
-                package='krang_com',
-                executable=spec.executable,
-                name=spec.executable,
-                parameters=list(spec.params_files),
-                output='screen',
-                emulate_tty=True,
-            )
-            for spec in node_set(sim)
-        ]
-    )

@@ -154,7 +154,7 @@ def run_pool(args):
 def run_filter(args):
     from tqdm import tqdm
 
-    from krang_com_estimator import estimators as est
+    import krang_com_estimator as est
     from krang_model.com import phi
     from krang_model.poses import load_poses, save_poses
     from krang_model.robot import KRANG_POSE_COLUMNS, load_krang

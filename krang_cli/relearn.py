@@ -3,7 +3,7 @@
 import numpy as np
 
 from krang_bag.relearn import relearn
-from krang_com_estimator.estimators import estimator_names
+from krang_com_estimator import estimator_names
 from krang_model.beta import load_beta, save_beta
 from krang_model.robot import load_krang
 

@@ -17,10 +17,12 @@ from std_srvs.srv import Trigger
 
 from krang_model.beta import load_beta, save_beta
 from krang_model.robot import load_krang
-from krang_ros import messages, names, params, topics
+from krang_core import names, params
+from krang_ros import messages, topics
+from krang_ros.params import declare
 from krang_ros.spin import run_node
 
-from .estimators import estimator_names
+from .registry import estimator_names
 from .online import OnlineLearner, pitch_standard_error
 
 
@@ -31,7 +33,7 @@ class EstimatorParams:
     method: str = field(
         default='map-online',
         metadata={
-            'doc': 'estimator of the registry (krang_com_estimator.estimators): '
+            'doc': 'estimator of the registry (krang_com_estimator.registry): '
             + ' | '.join(estimator_names())
         },
     )
@@ -58,7 +60,7 @@ class ComEstimatorNode(Node):
     def __init__(self, **kwargs):
         super().__init__('com_estimator', **kwargs)
         self.robot = load_krang()
-        cfg = params.declare(self, EstimatorParams)
+        cfg = declare(self, EstimatorParams)
         method, beta_file, self.output = cfg.method, cfg.initial_beta, Path(cfg.output)
         beta0 = load_beta(beta_file, self.robot) if beta_file else self.robot.nominal_beta
         self.learner = OnlineLearner(self.robot, beta0, method)

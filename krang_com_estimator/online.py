@@ -1,15 +1,16 @@
 """One balanced pose in, one beta out: the glue shared by the com_estimator node and `krang
 relearn`, so that replaying a bag runs exactly the computation the robot ran. `method` is any name
-of the estimator registry (estimators.make_estimator)."""
+of the estimator registry (krang_com_estimator.make_estimator)."""
 
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from krang_model.com import com_frame0
-from krang_ros.names import BASE_PITCH
+from krang_core.names import BASE_PITCH
 
-from .estimators import NoiseModel, make_estimator
+from .registry import make_estimator
+from .rows import NoiseModel
 
 
 @dataclass

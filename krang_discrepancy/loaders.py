@@ -14,10 +14,11 @@ import numpy as np
 
 from krang_adrc_controller.metrics import read_log_columns
 from krang_bag.reader import iter_messages, read_float_arrays, read_joint_states
+from krang_bag.writer import BagWriter, OfferedQos
 from krang_model.drivetrain import drivetrain
 from krang_model.robot import load_krang
-from krang_ros.messages import pitch_from_quaternion, pitch_quaternion
-from krang_ros.names import WHEEL_JOINTS
+from krang_core.names import IMU, JOINT_STATES, WHEEL_EFFORT_CMD, WHEEL_JOINTS
+from krang_core.pitch import pitch_from_quaternion, pitch_quaternion
 
 from .record import Record, resample, uniform_clock
 
@@ -91,9 +92,9 @@ def load_bag_record(
     path,
     rate_hz=None,
     *,
-    joint_topic='/joint_states',
-    imu_topic='/imu/data',
-    effort_topic='/wheel_effort_cmd',
+    joint_topic=JOINT_STATES,
+    imu_topic=IMU,
+    effort_topic=WHEEL_EFFORT_CMD,
 ) -> Record:
     """One of our MCAP bags (from `krang demo` / `mcap_recorder`).
 
@@ -165,10 +166,6 @@ def save_bag(rec: Record, path, rate_hz: float | None = None) -> Path:
     /imu/data (pitch quaternion about +y, pitch rate in angular_velocity.y) on the measurement
     clock (or resampled to `rate_hz`), /wheel_effort_cmd ([left, right] N m) at the command times.
     Times start at 1.7e9 s (an arbitrary wall-clock epoch)."""
-    # the ROS message packages (and the writer built on them) load only when a bag is written
-    from sensor_msgs.msg import Imu, JointState
-    from krang_bag.writer import BagWriter, OfferedQos
-
     robot = load_krang()
     t0_ns = 1_700_000_000 * 10**9
     grid = rec.t if not rate_hz else np.arange(rec.t[0], rec.t[-1] + 1e-12, 1.0 / rate_hz)
@@ -184,31 +181,27 @@ def save_bag(rec: Record, path, rate_hz: float | None = None) -> Path:
     events.sort()
     path = Path(path)
     with BagWriter(path) as bag:
-        bag.add_topic('/joint_states', 'sensor_msgs/msg/JointState')
-        bag.add_topic('/imu/data', 'sensor_msgs/msg/Imu', offered_qos=[OfferedQos.sensor_data()])
-        bag.add_topic('/wheel_effort_cmd', 'sensor_msgs/msg/JointState')
+        bag.add_topic(JOINT_STATES, 'sensor_msgs/msg/JointState')
+        bag.add_topic(IMU, 'sensor_msgs/msg/Imu', offered_qos=[OfferedQos.sensor_data()])
+        bag.add_topic(WHEEL_EFFORT_CMD, 'sensor_msgs/msg/JointState')
         for tt, kind, k in events:
             ns = t0_ns + int(round(tt * 1e9))
             if kind == 0:
-                js = JointState()
-                js.name = names
-                js.position = [float(v) for v in joints[k]] + [float(wheel[k])] * 2
-                js.velocity = [0.0] * len(robot.pose_joints) + [float(wrate[k])] * 2
-                bag.write_message('/joint_states', js, ns)
-                imu = Imu()
+                js = {
+                    'name': names,
+                    'position': [float(v) for v in joints[k]] + [float(wheel[k])] * 2,
+                    'velocity': [0.0] * len(robot.pose_joints) + [float(wrate[k])] * 2,
+                }
+                bag.write_message(JOINT_STATES, js, ns)
                 x, y, z, w = pitch_quaternion(float(q[k]))
-                imu.orientation.x, imu.orientation.y, imu.orientation.z, imu.orientation.w = (
-                    x,
-                    y,
-                    z,
-                    w,
-                )
-                imu.angular_velocity.y = float(rate[k])
-                bag.write_message('/imu/data', imu, ns)
+                imu = {
+                    'orientation': {'x': x, 'y': y, 'z': z, 'w': w},
+                    'angular_velocity': {'y': float(rate[k])},
+                }
+                bag.write_message(IMU, imu, ns)
             else:
-                cmd = JointState(name=list(WHEEL_JOINTS))
-                cmd.effort = [float(v) for v in rec.cmd_torque[k]]
-                bag.write_message('/wheel_effort_cmd', cmd, ns)
+                cmd = {'name': list(WHEEL_JOINTS), 'effort': [float(v) for v in rec.cmd_torque[k]]}
+                bag.write_message(WHEEL_EFFORT_CMD, cmd, ns)
     return path
 
 

@@ -52,7 +52,7 @@ class Location:
     summary: list = field(default_factory=list)  # plain-language findings
 
 
-def _acf(x, max_lag):
+def autocorrelation(x, max_lag):
     x = x - x.mean()
     den = float(x @ x)
     if den <= 0 or x.size < 3:
@@ -82,7 +82,7 @@ def locate(replay: Replay, terms=None, max_lag_s: float = 5.0) -> Location:
             m = replay.win_record == ri
             x = res[m, -1, c]
             if x.size > 3:
-                acc += x.size * _acf(x, max_lag)
+                acc += x.size * autocorrelation(x, max_lag)
                 wsum += x.size
         a = acc / max(wsum, 1)
         acf[name] = (np.arange(max_lag + 1) * stride, a)

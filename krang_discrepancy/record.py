@@ -3,7 +3,7 @@
 ``Record``: one run on a uniform measurement clock (base pitch, pitch rate, wheel encoder angle and
 rate relative to the body, body joints) plus the commanded wheel torques at their own times (a
 zero-order hold: what the drives were asked for, in N m at the wheels). loaders.py makes records
-from files, synthetic.py from the simulator.
+from files, synthetic.py from sessions of the simulated robot.
 
 Alignment
     Measured channels are linearly resampled to one uniform clock (the median sample period of the
@@ -19,6 +19,8 @@ import math
 from dataclasses import dataclass, field, replace
 
 import numpy as np
+
+from krang_model.drivetrain import HeldCommand
 
 CHANNELS = ('q_base', 'pitch_rate', 'wheel', 'wheel_rate')
 CHANNEL_UNITS = ('rad', 'rad/s', 'rad', 'rad/s')
@@ -87,10 +89,9 @@ class Record:
         return self.wheel + self.q_base
 
     def command_at(self, t):
-        """Commanded wheel torques (len(t), 2) at times t (zero-order hold)."""
-        i = np.searchsorted(self.cmd_t, np.asarray(t, float), side='right') - 1
-        out = np.where(i[:, None] >= 0, self.cmd_torque[np.clip(i, 0, None)], 0.0)
-        return out
+        """Commanded wheel torques (len(t), 2) at times t, held as the drives hold them
+        (``krang_model.drivetrain.HeldCommand``)."""
+        return HeldCommand(self.cmd_t, np.reshape(self.cmd_torque, (-1, 2))).applied(t)
 
     def total_torque_at(self, t):
         lim = self.torque_limit

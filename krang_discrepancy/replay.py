@@ -12,10 +12,12 @@ Why short horizons (multiple shooting) and not one long rollout
     compares the predicted signals with the measured ones along the horizon. Errors cannot compound
     across windows; a missing effect shows up as a systematic prediction error.
 
-The model is ``krang_model.wip.WipDynamics`` itself (its semi-implicit Euler step), evaluated on
-numpy arrays: all windows and all parameter sets of a fit step at once. Poses are reduced with
-``krang_model.wip.reduce_placements`` and payloads added with ``point_mass_beta``, as the simulator
-does.
+The model is ``krang_model.wip.WipDynamics`` itself (its step, ``step_pitch``), evaluated on numpy
+arrays: all windows and all parameter sets of a fit step at once. The effects are those of
+``krang_model.effects`` (``ModelTerms``); the commands reach the model as the drives apply them
+(``krang_model.drivetrain.HeldCommand``: held, delayed by the actuation delay). Poses are reduced
+with ``krang_model.wip.reduce_placements`` and payloads added with ``point_mass_beta``, as the
+plant does.
 """
 
 from __future__ import annotations
@@ -26,11 +28,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from krang_model.drivetrain import stack
+from krang_model.drivetrain import HeldCommand, stack
+from krang_model.effects import ModelTerms
 from krang_model.kinematics import body_placements
 from krang_model.wip import WipBody, WipDynamics, point_mass_beta, reduce_placements
 
-from krang_model.effects import ModelTerms
 from .nominal import NominalModel
 from .phases import PHASES, label_phases
 from .record import CHANNELS, Record
@@ -57,10 +59,8 @@ class _Rec:
     labels: np.ndarray
     tb: np.ndarray  # body-table times
     jb: np.ndarray  # body-table joints (K, 16)
-    ct: np.ndarray  # command breakpoints
-    cu: np.ndarray  # total clamped torque after each breakpoint
-    cc: np.ndarray  # cumulative integral at breakpoints
-    lr: np.ndarray  # (M, 2) per-wheel commands at the breakpoints (for other clamps)
+    ct: np.ndarray  # (M,) command times
+    lr: np.ndarray  # (M, 2) per-wheel commanded torques (N m)
 
 
 class Replay:
@@ -120,18 +120,9 @@ class Replay:
             phase.append(ph)
             inits.append(sig[ks])
             meas.append(np.stack([sig[ks + e] for e in eval_off], axis=1))
-            # commands: total clamped torque as a step function and its running integral
-            lim = rec.torque_limit
-            ct = rec.cmd_t
-            lr = rec.cmd_torque if ct.size else np.zeros((0, 2))
-            ct = np.concatenate(
-                [[ct[0] - 1e6 if ct.size else rec.t[0] - 1e6], ct, [rec.t[-1] + 1e6]]
-            )
-            lr = np.concatenate([np.zeros((1, 2)), lr, lr[-1:] if lr.size else np.zeros((1, 2))])
-            cu = np.clip(lr, -lim, lim).sum(axis=1)
-            cc = np.concatenate([[0.0], np.cumsum(cu[:-1] * np.diff(ct))])
             tb, jb = self._body_samples(rec)
-            self._recs.append(_Rec(rec, labels, tb, jb, ct, cu, cc, lr))
+            lr = rec.cmd_torque if rec.cmd_t.size else np.zeros((0, 2))
+            self._recs.append(_Rec(rec, labels, tb, jb, rec.cmd_t, lr))
         self.win_k = np.concatenate(starts)
         self.win_t = np.concatenate(t_start)
         self.win_record = np.concatenate(rec_id)
@@ -144,6 +135,7 @@ class Replay:
         self._body_cache = {}
         self._reduce_cache = {}
         self._torque_cache = {}
+        self._held_cache = {}
         self.select(phases)
         self.scales = None
         self.timing = {}
@@ -271,10 +263,21 @@ class Replay:
         _lru_put(self._body_cache, key, out, 24)
         return out
 
+    def _held_torque(self, ri: int, lim: float) -> HeldCommand:
+        """Record ri's commanded total wheel torque as the drives apply it, the per-wheel commands
+        clamped at `lim` (N m) (cached per clamp)."""
+        key = (ri, lim)
+        hit = self._held_cache.get(key)
+        if hit is None:
+            r = self._recs[ri]
+            hit = HeldCommand(r.ct, np.clip(r.lr, -lim, lim).sum(axis=1))
+            self._held_cache[key] = hit
+        return hit
+
     def _torque_arrays(self, delay: float, current_limit: float):
-        """Average commanded total torque over each sub-step, delayed by `delay` (S, J), the
-        per-wheel commands clamped at the record's torque limit or at `current_limit` (A) of the
-        nominal motors, whichever is lower."""
+        """Average applied total torque over each sub-step (S, J): the commands delayed by
+        `delay` (``HeldCommand``), the per-wheel commands clamped at the record's torque limit or
+        at `current_limit` (A) of the nominal motors, whichever is lower."""
         key = (delay, current_limit)
         hit = _lru_get(self._torque_cache, key)
         if hit is not None:
@@ -285,15 +288,8 @@ class Replay:
             sel = self.win_record == ri
             if not np.any(sel):
                 continue
-            cu, cc = r.cu, r.cc
-            lim = current_limit * k_motor
-            if lim < r.record.torque_limit:
-                cu = np.clip(r.lr, -lim, lim).sum(axis=1)
-                cc = np.concatenate([[0.0], np.cumsum(cu[:-1] * np.diff(r.ct))])
-            # exact integral of the step function: C(t) = cc[i] + cu[i] (t - ct[i])
-            tt = self.sub_t[sel] - delay
-            i = np.clip(np.searchsorted(r.ct, tt, side='right') - 1, 0, r.ct.size - 1)
-            c = cc[i] + cu[i] * (tt - r.ct[i])
+            lim = min(current_limit * k_motor, r.record.torque_limit)
+            c = self._held_torque(ri, lim).integral(self.sub_t[sel], delay)
             tq[sel] = np.diff(c, axis=1) / self._h
         _lru_put(self._torque_cache, key, tq, 12)
         return tq
@@ -394,12 +390,7 @@ class Replay:
                         a1, a2 = fn(st)
                         f_phi[p] += a1
                         f_qbase[p] += a2
-            ddphi, ddqb = dyn.pitch_accelerations(qb, dphi, dqb, tau, f_phi, f_qbase)
-            # WipDynamics.step's semi-implicit Euler, on the pitch plane
-            dphi = dphi + h * ddphi
-            dqb = dqb + h * ddqb
-            phi = phi + h * dphi
-            qb = qb + h * dqb
+            phi, qb, dphi, dqb = dyn.step_pitch(phi, qb, dphi, dqb, tau, h, f_phi, f_qbase)
             if trajectory:
                 traj[:, :, j + 1] = np.stack([qb + bias, dqb, phi - qb, dphi - dqb], axis=-1)
             e = e_index.get(j + 1)

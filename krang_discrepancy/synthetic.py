@@ -1,10 +1,11 @@
-"""Synthetic records: the simulated Krang under the ADRC controller, with hidden effects.
+"""Synthetic records: what a session of the simulated Krang logs, with hidden effects.
 
-``simulate_record`` makes a record with ``KrangSim`` and the ADRC ``BalanceController`` (sit ->
-stand up -> balance, pose changes, a current excitation), with hidden ``SimEffects``; the record
-it returns carries no trace of those effects. ``Unmodelled`` adds effects outside the discrepancy
-library (and outside ``SimEffects``), made around the simulator, to test the ``unexplained``
-answer.
+``simulate_record`` is a scenario on the one closed loop (``krang_sim.closed_loop.ClosedLoop``):
+the plant with hidden effects (``krang_model.effects``: effect values, or ``ModelTerms``) under
+the ADRC ``BalanceController`` with the nominal model; sit -> stand up -> balance, pose changes, a
+current excitation, optionally sit down. The record it returns is what the session logged and
+carries no trace of the effects. ``Unmodelled`` adds effects outside the library, made around the
+loop (its sample and command hooks), to test the ``unexplained`` answer.
 """
 
 from __future__ import annotations
@@ -14,13 +15,16 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from krang_adrc_controller.controller import BalanceController, ControllerConfig
+from krang_adrc_controller.controller import ControllerConfig
+from krang_adrc_controller.modes import MODE_CODES
 from krang_model.beta import load_beta
 from krang_model.config import config_path
+from krang_model.drivetrain import drivetrain
+from krang_model.effects import EncoderOffset, ModelTerms, model_terms
 from krang_model.robot import load_krang
-from krang_sim.closed_loop import TABLE2_POSE, FastKrangSim
-from krang_sim.physics import SensorNoise, SimConfig, SimEffects, payload_beta
-from krang_model.wip import WipDynamics, reduce_pose
+from krang_model.wip import point_mass_beta
+from krang_sim.closed_loop import ClosedLoop
+from krang_sim.scenarios import TABLE2_POSE
 
 from .record import Record, resample
 
@@ -34,6 +38,26 @@ DEFAULT_POSE_PROGRAMME = (
     {},
 )
 
+#: how much further back (rad) than the hardware's the records' stand window reaches: a hidden
+#: floor slope or larger wheels tilt the sitting robot back with the caster geometry, and the
+#: hardware's -12 deg window (the Table II pose sits at -11.2 deg) would refuse to stand on a
+#: 0.02 rad slope
+STAND_WINDOW_EXTRA_RAD = 0.1
+
+
+def record_controller_config(overrides: dict | None = None) -> ControllerConfig:
+    """The controller the synthetic records are made with: the dataclass defaults, not
+    config/controller.yaml (test data must not change when the deployed controller is retuned);
+    the paper's law as on the hardware runs (no balance-point observer); the stand window
+    ``STAND_WINDOW_EXTRA_RAD`` wider; then `overrides` (dotted names)."""
+    base = ControllerConfig()
+    values = {
+        'balance_point.enabled': False,
+        'modes.stand_error_min_rad': base.modes.stand_error_min_rad - STAND_WINDOW_EXTRA_RAD,
+    }
+    values.update(overrides or {})
+    return base.override(values)
+
 
 @dataclass(frozen=True)
 class Unmodelled:
@@ -46,6 +70,105 @@ class Unmodelled:
     def current(self, i: float) -> float:
         d = self.drive_deadband_a
         return i if d <= 0 else math.copysign(max(abs(i) - d, 0.0), i)
+
+
+class _Session:
+    """The operator and the logger of ``simulate_record``, as the closed loop's hooks: enable
+    after 1 s, the pose programme once balanced, the current excitation, the sit-down, the
+    unmodelled effects; every control step logged."""
+
+    def __init__(
+        self,
+        loop,
+        truth,
+        pose0,
+        steps,
+        *,
+        programme,
+        hold_s,
+        excitation_a,
+        seconds,
+        sit_down,
+        unmodelled,
+        seed,
+    ):
+        self.loop, self.truth, self.pose0 = loop, truth, pose0
+        self.prog = [dict(p) for p in programme]
+        self.hold_s, self.excitation_a, self.seconds = hold_s, excitation_a, seconds
+        self.sit_down, self.um = sit_down, unmodelled
+        self.rng = np.random.default_rng(seed + 7919)
+        self.k = 0
+        self.exc, self.exc_until = 0.0, 0.0
+        self.t_balance = None
+        self.next_pose_t = math.inf
+        self.sat_down = False
+        self.grow_next = 0.0
+        self.log = {k: np.empty(steps) for k in ('t', 'q', 'r', 'w', 'wr', 'il', 'ir', 'mode')}
+        self.joints = np.empty((steps, len(pose0)))
+
+    def before_control(self, s):
+        """The sample hook: the growing payload, the operator's enable, the gyro scale."""
+        loop, um = self.loop, self.um
+        plant, ctl = loop.plant, loop.controller
+        if um.payload_growth_kg_s and plant.t >= self.grow_next:  # re-reduce the heavier body
+            kg = um.payload_growth_kg_s * plant.t
+            plant.set_true_beta(
+                point_mass_beta(loop.robot, self.truth, 'lGripper', (0.0, 0.0, 0.10), kg)
+            )
+            self.grow_next = plant.t + 0.1
+        if self.k * ctl.h >= 1.0 and not ctl.enabled and not self.sat_down:
+            ctl.set_enabled(True)
+        if um.gyro_scale:
+            s = replace(s, pitch_rate=s.pitch_rate * (1.0 + um.gyro_scale))
+        return s
+
+    def after_control(self, t, s, out, currents):
+        """The command hook: pose moves, sit-down, excitation, deadband; the step's log."""
+        loop, robot = self.loop, self.loop.robot
+        plant, ctl = loop.plant, loop.controller
+        if out.mode == 'balance' and self.t_balance is None:
+            self.t_balance = t
+            self.next_pose_t = t + 1.5
+        if t >= self.next_pose_t and not self.sat_down:
+            if self.prog:
+                delta = self.prog.pop(0)
+                target = self.pose0.copy()
+                for jn, v in delta.items():
+                    target[robot.pose_joints.index(jn)] += v
+                plant.command_joints(target)
+                self.next_pose_t = (
+                    t
+                    + self.hold_s
+                    + float(np.max(np.abs(target - plant.joints) / robot.velocity_limit))
+                )
+            else:
+                self.next_pose_t = math.inf
+        if (
+            self.sit_down
+            and not self.sat_down
+            and t >= self.seconds - 6.0
+            and out.mode == 'balance'
+        ):
+            if not plant.joints_moving and np.allclose(plant.joint_targets, self.pose0):
+                ctl.request_sit()
+                self.sat_down = True
+            elif not np.allclose(plant.joint_targets, self.pose0):
+                plant.command_joints(self.pose0)
+        il, ir = currents
+        if out.mode == 'balance' and self.excitation_a:
+            if t >= self.exc_until:
+                self.exc = self.excitation_a * self.rng.choice([-1.0, 1.0])
+                self.exc_until = t + self.rng.uniform(0.1, 0.5)
+            il, ir = il + self.exc, ir + self.exc
+        log, k = self.log, self.k
+        log['t'][k], log['q'][k], log['r'][k] = s.t, s.q_base, s.pitch_rate
+        log['w'][k] = 0.5 * (s.wheel_left + s.wheel_right)
+        log['wr'][k] = 0.5 * (s.wheel_left_rate + s.wheel_right_rate)
+        log['il'][k], log['ir'][k] = il, ir
+        log['mode'][k] = MODE_CODES.get(out.mode, -2)
+        self.joints[k] = s.joints
+        self.k = k + 1
+        return self.um.current(il), self.um.current(ir)
 
 
 def simulate_record(
@@ -64,102 +187,67 @@ def simulate_record(
     true_beta=None,
     name: str = 'sim',
     unmodelled: Unmodelled | None = None,
+    plant: str = 'reduced',
 ) -> Record:
-    """A measured-looking record from the simulated Krang (krang_sim.physics) under the ADRC
-    BalanceController with the NOMINAL model, with hidden ``effects`` (a SimEffects) in the plant.
+    """A measured-looking record of a session on the closed loop, with hidden ``effects`` in the
+    plant: effect values (``{'torque_constant': 0.9}``, see ``krang_model.effects.model_terms``)
+    or the true robot's ``ModelTerms``. The controller is the BalanceController with the NOMINAL
+    model (``record_controller_config``, or `controller_config`).
 
     Sequence: sit on the caster for 1 s, enable (stand up, then balance), after 1.5 s of balance go
     through ``programme`` (pose changes, each held ``hold_s``), with a random +-``excitation_a`` A
     telegraph added to both wheel currents while balancing; if ``sit_down`` (default: records of
     20 s or more) return to the start pose and sit down for the last part. The record logs what the
-    controller and the hardware would: the noisy sensor samples at the controller rate (or
-    ``log_rate_hz``) and the commanded currents (controller output + excitation) as wheel torques,
-    every control step. Nothing in the record says which effect was hidden. ``unmodelled``: effects
-    outside the library (drive deadband, gyro scale factor, growing payload)."""
+    controller and the hardware would: the noisy sensor samples (``noise``: the sensors'
+    ``krang_sim.sensors.SensorNoise``) at the controller rate (or ``log_rate_hz``) and the
+    commanded currents (controller output + excitation) as wheel torques, every control step.
+    Nothing in the record says which effect was hidden. ``unmodelled``: effects outside the
+    library (drive deadband, gyro scale factor, growing payload). ``plant``: a registered plant."""
     robot = load_krang()
     beta = load_beta(config_path('sim_true_beta.yaml'), robot)
     truth = beta if true_beta is None else np.asarray(true_beta, float)
     pose0 = np.array(TABLE2_POSE if start_pose is None else start_pose, float)
-    sim = FastKrangSim(
+    terms = (
+        effects
+        if isinstance(effects, ModelTerms)
+        else model_terms(effects or {}, ModelTerms.nominal(drivetrain(robot)))
+    )
+    loop = ClosedLoop(
         robot,
         truth,
+        beta,
         pose0,
-        config=SimConfig(effects=effects or SimEffects(), noise=noise or SensorNoise(), seed=seed),
+        controller_config=controller_config or record_controller_config(),
+        plant=plant,
+        terms=terms,
+        noise=noise,
+        seed=seed,
+        log_rate_hz=0.0,
     )
-    # the dataclass defaults, not config/controller.yaml: test data must not change when the
-    # deployed controller is retuned. The paper's law, as on the hardware runs (no balance-point
-    # observer). The stand window reaches 0.1 rad further back than the hardware's: a hidden
-    # floor slope or larger wheels tilt the sitting robot back with the caster geometry, and the
-    # -12 deg window (the Table II pose sits at -11.2 deg) would refuse to stand on a 0.02 rad
-    # slope; the records of the nominal plant are unchanged (they stand at once either way).
-    paper_law = ControllerConfig().override(
-        {'balance_point.enabled': False, 'modes.stand_error_min_rad': -0.30944}
-    )
-    ctl = BalanceController(robot, beta, controller_config or paper_law)
-    n_sub = int(round(ctl.h / sim.config.dt))
-    rng = np.random.default_rng(seed + 7919)
-    k_motor = ctl.k_motor
-    sit_down = seconds >= 20.0 if sit_down is None else sit_down
-    steps = int(round(seconds / ctl.h))
-    log = {k: np.empty(steps) for k in ('t', 'q', 'r', 'w', 'wr', 'il', 'ir', 'mode')}
-    joints = np.empty((steps, len(pose0)))
-    exc, exc_until = 0.0, 0.0
-    t_balance = None
-    prog = [dict(p) for p in programme]
-    next_pose_t = math.inf
-    sat_down = False
-    modes = {'safe_stop': -1, 'sit': 0, 'stand_up': 1, 'balance': 2, 'sit_down': 3}
     um = unmodelled or Unmodelled()
-    grow_next = 0.0
-    for k in range(steps):
-        if um.payload_growth_kg_s and sim.t >= grow_next:  # re-reduce the heavier body
-            grow = SimEffects(payload_kg=um.payload_growth_kg_s * sim.t)
-            sim.true_beta = payload_beta(robot, truth, grow)
-            sim.dynamics = WipDynamics(reduce_pose(robot, sim.joints, sim.true_beta), sim.drive)
-            grow_next = sim.t + 0.1
-        if k * ctl.h >= 1.0 and not ctl.enabled and not sat_down:
-            ctl.set_enabled(True)
-        s = sim.control_sample()
-        if um.gyro_scale:
-            s = replace(s, pitch_rate=s.pitch_rate * (1.0 + um.gyro_scale))
-        out = ctl.step(s, now=sim.t)
-        t = sim.t
-        if out.mode == 'balance' and t_balance is None:
-            t_balance = t
-            next_pose_t = t + 1.5
-        if t >= next_pose_t and not sat_down:
-            if prog:
-                delta = prog.pop(0)
-                target = pose0.copy()
-                for jn, v in delta.items():
-                    target[robot.pose_joints.index(jn)] += v
-                sim.command_joints(target)
-                next_pose_t = (
-                    t + hold_s + float(np.max(np.abs(target - sim.joints) / robot.velocity_limit))
-                )
-            else:
-                next_pose_t = math.inf
-        if sit_down and not sat_down and t >= seconds - 6.0 and out.mode == 'balance':
-            if not sim.joints_moving and np.allclose(sim.joint_targets, pose0):
-                ctl.request_sit()
-                sat_down = True
-            elif not np.allclose(sim.joint_targets, pose0):
-                sim.command_joints(pose0)
-        il, ir = out.current_left, out.current_right
-        if out.mode == 'balance' and excitation_a:
-            if t >= exc_until:
-                exc = excitation_a * rng.choice([-1.0, 1.0])
-                exc_until = t + rng.uniform(0.1, 0.5)
-            il, ir = il + exc, ir + exc
-        sim.command_currents(um.current(il), um.current(ir))
-        log['t'][k], log['q'][k], log['r'][k] = s.t, s.q_base, s.pitch_rate
-        log['w'][k] = 0.5 * (s.wheel_left + s.wheel_right)
-        log['wr'][k] = 0.5 * (s.wheel_left_rate + s.wheel_right_rate)
-        log['il'][k], log['ir'][k] = il, ir
-        log['mode'][k] = modes.get(out.mode, -2)
-        joints[k] = s.joints
-        sim.step(n_sub)
+    if um.payload_growth_kg_s and not hasattr(loop.plant, 'set_true_beta'):
+        raise ValueError(f'a growing payload needs a plant with set_true_beta, not {plant!r}')
+    ctl = loop.controller
+    steps = int(round(seconds / ctl.h))
+    session = _Session(
+        loop,
+        truth,
+        pose0,
+        steps,
+        programme=programme,
+        hold_s=hold_s,
+        excitation_a=excitation_a,
+        seconds=seconds,
+        sit_down=seconds >= 20.0 if sit_down is None else sit_down,
+        unmodelled=um,
+        seed=seed,
+    )
+    loop.sample_hook = session.before_control
+    loop.command_hook = session.after_control
+    loop.run(seconds)
+    log, joints = session.log, session.joints
     t = log['t']
+    k_motor = ctl.k_motor
     cmd = np.column_stack([log['il'], log['ir']]) * k_motor
     if log_rate_hz:
         grid = np.arange(t[0], t[-1] + 1e-12, 1.0 / log_rate_hz)
@@ -195,45 +283,46 @@ def simulate_record(
             'mode_t': t.copy(),
             'seconds': seconds,
             'seed': seed,
-            'stood_up_s': t_balance,
+            'stood_up_s': session.t_balance,
         },
     )
 
 
 # ------------------------------------------------------------------------- validation suite
-# (case id, SimEffects kwargs, Unmodelled kwargs, seed, noise factor, {expected effect name:
-# true value in the reported unit}, other acceptable answers). Expected 'none' for no effect and
-# 'unexplained' for effects outside the library, unless a physically equivalent library effect is
-# listed as acceptable. Values are checked against `truth`; the workflow is told none of this.
-_KT = 0.0847
+# (case id, hidden effects {key: parameter value}, Unmodelled kwargs, seed, noise factor,
+# {expected effect name: true parameter value}, other acceptable answers). Expected 'none' for no
+# effect and 'unexplained' for effects outside the library, unless a physically equivalent library
+# effect is listed as acceptable. The true values are in the effects' parameter units (a torque
+# constant as the scale true/nominal; ``Effect.display`` gives the reported value); the workflow is
+# told none of this.
 VALIDATION_SUITE = (
     ('none seed 11', {}, {}, 11, 1.0, {}, ()),
     ('none seed 12', {}, {}, 12, 1.0, {}, ()),
     ('none seed 13, noise x2', {}, {}, 13, 2.0, {}, ()),
     ('none seed 14, noise x0.5', {}, {}, 14, 0.5, {}, ()),
-    ('small floor_slope', {'floor_slope_rad': 0.003}, {}, 21, 1.0, {'floor_slope': 0.003}, ()),
+    ('small floor_slope', {'floor_slope': 0.003}, {}, 21, 1.0, {'floor_slope': 0.003}, ()),
     (
         'small imu_pitch_bias',
-        {'imu_pitch_bias_rad': 0.004},
+        {'imu_pitch_bias': 0.004},
         {},
         22,
         1.0,
         {'imu_pitch_bias': 0.004},
         (),
     ),
-    ('small payload', {'payload_kg': 1.0}, {}, 23, 1.0, {'payload': 1.0}, ()),
+    ('small payload', {'payload@lGripper': 1.0}, {}, 23, 1.0, {'payload': 1.0}, ()),
     (
         'small torque_constant',
-        {'torque_constant_scale': 0.95},
+        {'torque_constant': 0.95},
         {},
         24,
         1.0,
-        {'torque_constant': 0.95 * _KT},
+        {'torque_constant': 0.95},
         (),
     ),
     (
         'small actuation_delay',
-        {'actuation_delay_s': 0.008},
+        {'actuation_delay': 0.008},
         {},
         25,
         1.0,
@@ -242,17 +331,17 @@ VALIDATION_SUITE = (
     ),
     (
         'small wheel_coulomb_friction',
-        {'wheel_coulomb_Nm': 0.8},
+        {'wheel_coulomb_friction': 0.8},
         {},
         26,
         1.0,
         {'wheel_coulomb_friction': 0.8},
         (),
     ),
-    ('small wheel_radius', {'wheel_radius_m': 0.258}, {}, 27, 1.0, {'wheel_radius': 0.258}, ()),
+    ('small wheel_radius', {'wheel_radius': 0.258}, {}, 27, 1.0, {'wheel_radius': 0.258}, ()),
     (
         'small encoder_offset',
-        {'encoder_offset_rad': 0.012},
+        {'encoder_offset@JWaist': 0.012},
         {},
         28,
         1.0,
@@ -261,7 +350,7 @@ VALIDATION_SUITE = (
     ),
     (
         'small rolling_resistance',
-        {'drive_extra': {'ground_viscous': 1.0}},
+        {'rolling_resistance': 1.0},
         {},
         29,
         1.0,
@@ -270,16 +359,16 @@ VALIDATION_SUITE = (
     ),
     (
         'pair torque_constant + wheel_radius',
-        {'torque_constant_scale': 0.85, 'wheel_radius_m': 0.25},
+        {'torque_constant': 0.85, 'wheel_radius': 0.25},
         {},
         31,
         1.0,
-        {'torque_constant': 0.85 * _KT, 'wheel_radius': 0.25},
+        {'torque_constant': 0.85, 'wheel_radius': 0.25},
         (),
     ),
     (
         'pair floor_slope + actuation_delay',
-        {'floor_slope_rad': 0.015, 'actuation_delay_s': 0.02},
+        {'floor_slope': 0.015, 'actuation_delay': 0.02},
         {},
         32,
         1.0,
@@ -288,7 +377,7 @@ VALIDATION_SUITE = (
     ),
     (
         'pair payload + wheel_coulomb_friction',
-        {'payload_kg': 5.0, 'wheel_coulomb_Nm': 2.0},
+        {'payload@lGripper': 5.0, 'wheel_coulomb_friction': 2.0},
         {},
         33,
         1.0,
@@ -297,7 +386,7 @@ VALIDATION_SUITE = (
     ),
     (
         'pair viscous + imu_pitch_bias',
-        {'wheel_viscous_Nm_s': 2.0, 'imu_pitch_bias_rad': 0.02},
+        {'wheel_viscous_friction': 2.0, 'imu_pitch_bias': 0.02},
         {},
         34,
         1.0,
@@ -308,7 +397,7 @@ VALIDATION_SUITE = (
     ('out: gyro scale factor +10 %', {}, {'gyro_scale': 0.1}, 42, 1.0, {}, ()),
     (
         'out: LJ2 (arm) encoder offset 0.1 rad',
-        {'encoder_offset_rad': 0.1, 'encoder_offset_joint': 'LJ2'},
+        {EncoderOffset('LJ2'): 0.1},
         {},
         43,
         1.0,

@@ -28,7 +28,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .locate import hot_stretches
+from .evidence import compare
+from .locate import autocorrelation, hot_stretches
 from .phases import PHASES
 from .record import CHANNELS
 from .replay import Replay
@@ -178,9 +179,6 @@ def residual_structure(
 ) -> Structure:
     """The residual-structure test (module docstring) of the model `terms` on the replay's active
     windows, with the naming step's folds and blocks."""
-    from .locate import _acf
-    from .naming import _compare
-
     act = np.flatnonzero(replay.active)
     r = replay.residuals([terms], act)[0]
     z = (r / replay.scales).reshape(-1)
@@ -202,7 +200,7 @@ def residual_structure(
     loss_new = np.full(len(replay), np.nan)
     loss_ref[act] = replay.window_loss(r[None])[0]
     loss_new[act] = replay.window_loss(((z - pred).reshape(shape) * scales)[None])[0]
-    imp, t, _ = _compare(loss_ref, loss_new, blocks, replay.active)
+    imp, t, _ = compare(loss_ref, loss_new, blocks, replay.active)
     st = Structure(imp, t, bool(imp >= min_improvement and t >= min_t))
     zr, pr = z.reshape(shape), pred.reshape(shape)
     for c, ch in enumerate(CHANNELS):
@@ -234,7 +232,7 @@ def residual_structure(
             seq = zr[m, -1, c]
             if seq.size < 16:
                 continue
-            a = _acf(seq, min(seq.size - 1, int(5.0 / dt)))
+            a = autocorrelation(seq, min(seq.size - 1, int(5.0 / dt)))
             below = np.flatnonzero(a < 1 / math.e)
             lags.append((below[0] if below.size else a.size) * dt)
             p = np.abs(np.fft.rfft(seq - seq.mean())) ** 2
@@ -412,3 +410,49 @@ def gap_sentence(gt: dict) -> str:
             + ' (an error that comes with the pose: a mass or an encoder of those links)'
         )
     return words
+
+
+# ----------------------------------------------------------------------------- the verdict
+
+
+def decide(result, structure, gaps_yaml, referenced: bool, drift=None, sitting=None, excess=None):
+    """('unexplained' | 'named' | 'none', reason). Unexplained when the residual after the
+    selected effects is still predictable by generic forces (``residual_structure``), when the
+    model's pitch on the caster misses the measured one (``sitting_offset``), when a selected
+    effect's value changes between the thirds of the records (it is not a constant of the robot),
+    when, judged against a baseline, the model is still more than MAX_GAP times its error on the
+    baseline's own data off, phase for phase (``phase_matched_gap``), or, judged on its own
+    yardstick, when its gap on the balancing windows exceeds what a right model shows
+    (``gap_test``)."""
+    if structure.significant:
+        return 'unexplained', (
+            'the residual after the library effects is still structured: ' + structure.sentence()
+        )
+    if (sitting or {}).get('off'):
+        return 'unexplained', (
+            f'the pitch on the caster is {sitting["pooled"]:+.4f} rad off the model after the '
+            'library effects (model-free: the caster geometry, the wheel radius, the floor slope '
+            f'and the IMU bias set it; tolerance {SITTING_TOL:g} rad)'
+        )
+    moving = [k for k, v in (drift or {}).get('effects', {}).items() if v['inconsistent']]
+    if moving:
+        v = drift['effects'][moving[0]]
+        return 'unexplained', (
+            f'{", ".join(moving)} changes in time: fitted on the first, middle and last thirds '
+            'of the records it is '
+            + ', '.join(f'{x:.4g}' for x in v['values'])
+            + f' {v["unit"]} (chi2/dof {v["chi2_per_dof"]:.1f}): not a constant of the robot'
+        )
+    after = gaps_yaml['after']
+    gap = after.get('gap_matched', after['gap'])
+    if referenced and gap > MAX_GAP:
+        return 'unexplained', (
+            f"the model is still {gap:.3g}x its error on the baseline's own data off after the "
+            'library effects, phase for phase (more than ' + f'{MAX_GAP:g}x)'
+        )
+    if not referenced and (excess or {}).get('exceeds'):
+        return 'unexplained', (
+            'the model is further off than a right model is after the library effects: '
+            + gap_sentence(excess)
+        )
+    return ('none' if result.selected is None else 'named'), ''

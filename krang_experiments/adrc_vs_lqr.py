@@ -1,5 +1,5 @@
-"""ADRC and plain LQR with the same wrong CoM: stand-up, a push, a pose change (README, "ADRC
-versus plain LQR with a wrong CoM"; docs/control.md). `krang experiment adrc-vs-lqr`."""
+"""ADRC and plain LQR with the same wrong CoM: stand-up, a push, a pose change (docs/control.md,
+"ADRC vs plain LQR with a wrong CoM"). `krang experiment adrc-vs-lqr`."""
 
 import json
 import math
@@ -10,7 +10,8 @@ from pathlib import Path
 import numpy as np
 
 from krang_adrc_controller.controller import load_controller_config
-from krang_sim.closed_loop import TABLE2_POSE, ClosedLoop, Disturbance, shifted_beta
+from krang_sim.closed_loop import ClosedLoop, Disturbance
+from krang_sim.scenarios import TABLE2_POSE, shifted_beta
 
 from .common import setup, subplots
 from krang_model.files import save_figure, write_text

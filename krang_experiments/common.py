@@ -29,15 +29,10 @@ def kit_dir(path=None):
 
 def load_filtered_poses(kit):
     """(poses (528, 16) pose order, authors' training order (filtered indices) or None,
-    description) from poses/finalSetMunzir.txt (Munzir format: heading, q_base, x, y, z, q_lwheel,
-    q_rwheel, q_waist, q_torso, q_kinect, left 1..7, right 1..7; the Kinect is dropped)."""
+    description) from poses/finalSetMunzir.txt (load_authors_poses; the Kinect is dropped)."""
     kit = Path(kit)
-    raw = np.loadtxt(kit / 'poses' / 'finalSetMunzir.txt', ndmin=2)
-    if raw.shape[1] != 24:
-        raise ValueError(
-            f'{kit}/poses/finalSetMunzir.txt: expected 24 columns, got {raw.shape[1]}'
-        )
-    poses = raw[:, [7, 8] + list(range(10, 24))]
+    path = kit / 'poses' / 'finalSetMunzir.txt'
+    _, poses = load_authors_poses(path)
     order = None
     train = kit / 'hardware_balanced_poses_train.csv'
     if train.exists():
@@ -46,6 +41,37 @@ def load_filtered_poses(kit):
         rows.sort(key=lambda r: int(r['train_order']))
         order = [int(r['filtered_pose_index']) for r in rows]
     return poses, order, f'{kit}/poses/finalSetMunzir.txt'
+
+
+def load_authors_poses(path):
+    """(q_base, joints (N, 16)) from the authors' pose files: Munzir format (24 columns: heading,
+    q_base, x, y, z, wheels, waist, torso, kinect, arms) or old DART format (25 columns:
+    axis-angle, x, y, z, wheels, waist, torso, kinect, arms; q_base by the rule of
+    krang_data/README.md)."""
+    data = np.loadtxt(path, ndmin=2)
+    if data.shape[1] == 24:
+        q_base = data[:, 1]
+        rest = data[:, 7:]
+    elif data.shape[1] == 25:
+        q_base = np.array([_dart_q_base(aa) for aa in data[:, :3]])
+        rest = data[:, 8:]
+    else:
+        raise ValueError(f'{path}: {data.shape[1]} columns, expected 24 (Munzir) or 25 (DART)')
+    joints = np.column_stack([rest[:, 0:2], rest[:, 3:17]])  # drop q_kinect
+    return q_base, joints
+
+
+def _dart_q_base(aa):
+    angle = np.linalg.norm(aa)
+    if angle < 1e-15:
+        R = np.eye(3)
+    else:
+        k = aa / angle
+        K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+        R = np.eye(3) + math.sin(angle) * K + (1 - math.cos(angle)) * K @ K
+    h = math.atan2(R[0, 0], -R[1, 0])
+    q = math.atan2(R[0, 1] * math.cos(h) + R[1, 1] * math.sin(h), R[2, 1])
+    return (q - math.pi + math.pi) % (2 * math.pi) - math.pi
 
 
 def setup(true_beta=None, params=None):

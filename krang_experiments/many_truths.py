@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from krang_bag.session_report import held_out_configurations
-from krang_com_estimator.estimators import make_estimator
+from krang_com_estimator import make_estimator
 from krang_model.com import balance_pitch, com_error
 from krang_model.config import config_path
 from krang_model.poses import load_poses
@@ -27,7 +27,7 @@ from krang_model.robot import KRANG_POSE_COLUMNS, load_krang
 from krang_model.files import save_figure, write_text
 from krang_pose_server.pool import generate_pool
 from krang_pose_server.selection import AdaptiveSelector
-from krang_sim.closed_loop import run_online_session
+from krang_sim.scenarios import run_online_session
 from krang_sim.truths import TruthRecipe, generate_truth
 
 from .common import subplots
@@ -103,7 +103,7 @@ def exact_pitch_error(
     """The forward CoM error (m) after `n_poses` poses learned from their true balance pitch plus
     N(0, pitch_std_rad) noise, without the closed loop: what the choice of poses alone allows.
     selection 'adaptive' (AdaptiveSelector on the pool, `selector_options` passed on) or 'first'
-    (the pool's first n_poses, a random draw). README "Known issues" quotes it."""
+    (the pool's first n_poses, a random draw)."""
     held_out = held_out_configurations(robot) if held_out is None else held_out
     learner = make_estimator('map-online', robot, robot.nominal_beta)
     rng = np.random.default_rng(seed)

@@ -12,14 +12,13 @@ import numpy as np
 from tqdm import tqdm
 
 from krang_adrc_controller.metrics import PAPER, centred_moving_average, compute_metrics
-from krang_com_estimator.estimators import make_estimator
-from krang_discrepancy.report import load_extended_model
+from krang_com_estimator import make_estimator
+from krang_discrepancy.extended_model import load_extended_model
 from krang_model.beta import save_beta
 from krang_model.com import balance_pitch, com_error
 from krang_model.files import atomic_open, save_figure, write_text
 from krang_pose_server.pool import generate_pool
-from krang_sim.closed_loop import TABLE2_POSE, run_balance, run_online_session, stand_pose
-from krang_sim.physics import SimConfig
+from krang_sim.scenarios import TABLE2_POSE, run_balance, run_online_session, stand_pose
 
 from .common import fmt, kit_dir, load_filtered_poses, mean_std, setup, subplots
 
@@ -82,6 +81,7 @@ class Params:
     betas: str | None = None  # skip the learning: betas (row k = after k updates) from a file
     paper_era_pd: bool = False  # the 2018 runs' controller: the paper-era stand PD all along
     extended_model: str | None = None  # simulate the effects of a `krang discrepancy` model
+    plant: str = 'reduced'  # the simulated robot's physics (krang_sim.plant)
 
 
 def table2_poses(kit, n, order='authors', robot=None, seed=0):
@@ -108,6 +108,26 @@ def table2_poses(kit, n, order='authors', robot=None, seed=0):
     )
 
 
+def terms_summary(terms, nominal=None):
+    """The terms of a true robot that differ from the nominal model, as name=value."""
+    from dataclasses import fields
+
+    from krang_model.effects import ModelTerms, nominal_drive
+
+    nominal = nominal or ModelTerms.nominal(nominal_drive())
+    out = [
+        f'{f.name}={getattr(terms.drive, f.name):.6g}'
+        for f in fields(terms.drive)
+        if getattr(terms.drive, f.name) != getattr(nominal.drive, f.name)
+    ]
+    for name in ('actuation_delay', 'imu_pitch_bias', 'inertia_add', 'com_shift'):
+        if getattr(terms, name) != getattr(nominal, name):
+            out.append(f'{name}={getattr(terms, name):.6g}')
+    out += [f'payload {kg:g} kg on {link} at {tuple(p)}' for link, p, kg in terms.payloads]
+    out += [f'encoder_offset {j}={v:.6g}' for j, v in terms.joint_offsets.items() if v]
+    return ', '.join(out) or 'nominal'
+
+
 def power_trace(run):
     """(t since motion start, the paper's instantaneous power |tau w| in W) of one run, or None."""
     s = centred_moving_average(run.i_left, PAPER.smoothing_window)
@@ -122,9 +142,7 @@ def power_trace(run):
 def run(params: Params, progress=True):
     """Learn (or read the betas), then the balancing runs; returns everything report() writes."""
     robot, true_beta, cfg = setup(params.true_beta, params.params)
-    sim_config = None
-    if params.extended_model:
-        sim_config = SimConfig(effects=load_extended_model(params.extended_model)[0])
+    terms = load_extended_model(params.extended_model) if params.extended_model else None
     # the paper's experiment: the authors' ADRC law, without our balance-point observer (with it
     # every beta rests at its reference, and the Resting Pos column would measure nothing)
     cfg = cfg.override({'balance_point.enabled': False})
@@ -150,7 +168,8 @@ def run(params: Params, progress=True):
             learner,
             seed=params.seed,
             controller_config=cfg,
-            sim_config=sim_config,
+            plant=params.plant,
+            terms=terms,
             progress=progress,
         )
         betas = session.betas
@@ -203,7 +222,8 @@ def run(params: Params, progress=True):
                 seconds=params.seconds,
                 seed=seed,
                 controller_config=run_cfg,
-                sim_config=sim_config,
+                plant=params.plant,
+                terms=terms,
                 name=f'{name}_seed{seed}',
             )
             ex = run.extra
@@ -297,7 +317,7 @@ def run(params: Params, progress=True):
         'standup': standup,
         'ctl_desc': ctl_desc,
         'learn_desc': learn_desc,
-        'sim_config': sim_config,
+        'terms': terms,
         'table': table,
         'trend': trend,
         'summary': summary,
@@ -315,11 +335,7 @@ def report(result, out_dir):
         result['table'],
         result['trend'],
     )
-    ctl_desc, learn_desc, sim_config = (
-        result['ctl_desc'],
-        result['learn_desc'],
-        result['sim_config'],
-    )
+    ctl_desc, learn_desc, terms = result['ctl_desc'], result['learn_desc'], result['terms']
     delta_t2, wall, n_held = result['delta_t2'], result['wall_s'], result['n_held']
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -393,8 +409,8 @@ def report(result, out_dir):
     )
     robot_desc = (
         'the nominal drive train'
-        if sim_config is None
-        else f'the extended model of `{params.extended_model}` ({sim_config.effects})'
+        if terms is None
+        else f'the extended model of `{params.extended_model}` ({terms_summary(terms)})'
     )
     lines = [
         '# Table II in simulation',

@@ -1,5 +1,6 @@
 """Beta files: the authors' text format (one 4B-vector per line) and our labelled YAML/JSON."""
 
+import io
 import json
 from pathlib import Path
 
@@ -19,13 +20,21 @@ def load_beta(path, robot, row=None):
     path = Path(path)
     if not path.exists():
         raise BetaFileError(f'{path}: no such beta file')
+    try:
+        text = path.read_text()
+    except OSError as err:
+        raise BetaFileError(f'{path}: cannot read the beta file ({err.strerror})') from None
+    except UnicodeDecodeError:
+        raise BetaFileError(f'{path}: not a text file') from None
     if path.suffix in ('.yaml', '.yml', '.json'):
-        with open(path) as f:
-            doc = yaml.safe_load(f) if path.suffix != '.json' else json.load(f)
+        try:
+            doc = json.loads(text) if path.suffix == '.json' else yaml.safe_load(text)
+        except (yaml.YAMLError, ValueError) as err:
+            raise BetaFileError(f'{path}: not valid {_syntax_problem(err)}') from None
         beta = _from_labelled(doc, robot, path)
     else:
         try:
-            rows = np.atleast_2d(np.loadtxt(path, ndmin=2))
+            rows = np.atleast_2d(np.loadtxt(io.StringIO(text), ndmin=2))
         except ValueError as err:
             raise BetaFileError(
                 f'{path}: not a whitespace-separated numeric file ({err})'
@@ -47,10 +56,20 @@ def load_beta(path, robot, row=None):
     return beta
 
 
+def _syntax_problem(err):
+    """'YAML (what, line L)' or 'JSON (what)' of a parser's error, on one line."""
+    mark = getattr(err, 'problem_mark', None)
+    if isinstance(err, yaml.YAMLError):
+        where = f', line {mark.line + 1}' if mark is not None else ''
+        return f'YAML ({getattr(err, "problem", None) or "syntax error"}{where})'
+    return f'JSON ({err})'
+
+
 def _from_labelled(doc, robot, path):
-    if not isinstance(doc, dict) or 'bodies' not in doc:
-        raise BetaFileError(f'{path}: expected a mapping with a "bodies" list')
-    by_name = {b.get('name'): b for b in doc['bodies'] if isinstance(b, dict)}
+    if not isinstance(doc, dict) or not isinstance(doc.get('bodies'), list):
+        raise BetaFileError(f'{path}: not a beta file: expected a mapping with a "bodies" list')
+    bodies = [b for b in doc['bodies'] if isinstance(b, dict) and isinstance(b.get('name'), str)]
+    by_name = {b['name']: b for b in bodies}
     missing = [b for b in robot.body_names if b not in by_name]
     if missing:
         raise BetaFileError(f'{path}: bodies missing: {missing}')

@@ -99,3 +99,49 @@ def lateral_com_error(robot, beta, true_beta, joints):
             )
         )
     )
+
+
+class PoseMoments:
+    """The base-frame y and z rows of the mass moment (base_regressor) of a fixed set of
+    configurations, to score many betas at once with one matrix product per set (the learning
+    curves' hot path).
+
+    Its balance error divides by each beta's own total mass (the horizontal CoM distance), where
+    com_error gives the paper's x_com (divided by the nominal mass); both are the same for a beta
+    of the nominal total mass."""
+
+    def __init__(self, robot, joints):
+        self.robot = robot
+        base = base_regressor(robot, joints)  # (N, 3, n_beta), base frame
+        self.Y = np.ascontiguousarray(base[:, 1])
+        self.Z = np.ascontiguousarray(base[:, 2])
+
+    def sequence_rows(self, index, betas):
+        """For K runs, each with its own sequence of these configurations (index (K, L)): the
+        mass-moment rows (Y, Z) (K, L, n_beta) and the balance pitch (K, L) of run k's beta."""
+        Yk, Zk = self.Y[index], self.Z[index]
+        q = np.arctan2(np.einsum('knj,kj->kn', Zk, betas), np.einsum('knj,kj->kn', Yk, betas))
+        return Yk, Zk, q
+
+    def phi_psi(self, Y, Z, q_base):
+        """phi (the paper's, as phi()) and psi = d phi / d q_base from mass-moment rows Y, Z
+        (..., n_beta) at the pitches q_base (...)."""
+        s, c = np.sin(q_base)[..., None], np.cos(q_base)[..., None]
+        m = self.robot.nominal_mass
+        return (s * Y - c * Z) / m, (c * Y + s * Z) / m
+
+    def errors(self, betas, true_betas):
+        """betas, true_betas: (K, n_beta). Mean over the configurations of (balance, position)
+        (K,) each, in metres: the horizontal CoM distance from the axle of beta k at the balance
+        pitch of truth k, and the distance between the two CoMs in the sagittal plane (any pitch;
+        it includes the scale of the moments, which balanced poses cannot observe)."""
+        T = np.asarray(true_betas, dtype=float)
+        B = np.asarray(betas, dtype=float)
+        Yt, Zt = self.Y @ T.T, self.Z @ T.T
+        Mt = T[:, 0::4].sum(1)
+        q_true = np.arctan2(Zt, Yt)
+        Ye, Ze = self.Y @ B.T, self.Z @ B.T
+        Me = B[:, 0::4].sum(1)
+        balance = np.abs(np.sin(q_true) * Ye - np.cos(q_true) * Ze) / Me
+        position = np.hypot(Ye / Me - Yt / Mt, Ze / Me - Zt / Mt)
+        return balance.mean(0), position.mean(0)

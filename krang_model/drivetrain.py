@@ -5,7 +5,8 @@ discrepancy) reads it from here.
 Its fields are also the physical parameters of the WIP equations (krang_model.wip) that are not the
 body: the named effects of the simulator and of `krang discrepancy` (wheel radius, friction, floor
 slope, torque constant) are values of these fields. A field may hold a numpy array: ``stack`` makes
-one Drivetrain of P parameter sets that broadcasts in ``WipDynamics``."""
+one Drivetrain of P parameter sets that broadcasts in ``WipDynamics``. ``HeldCommand`` says how the
+drives apply a sampled, delayed command."""
 
 import math
 from dataclasses import dataclass, fields, replace
@@ -98,3 +99,56 @@ def drivetrain(robot, **overrides):
         floor_slope=cfg['environment']['floor_slope_rad'],
     )
     return replace(params, **overrides)
+
+
+@dataclass(frozen=True, eq=False)
+class HeldCommand:
+    """A sampled command (wheel currents or torques) as the drives apply it: each value holds from
+    its time until the next one (zero-order hold), it takes effect ``delay`` seconds after it was
+    sent (the actuation delay), and nothing is applied before the first value. The one definition
+    of the actuation delay: the replay evaluates it on arrays of times; a plant stepping at ``dt``
+    applies at step k the command sent ``command_delay_steps(delay, dt)`` steps earlier, which is
+    ``applied(t_k, delay)`` with the delay rounded to the step."""
+
+    t: np.ndarray  # (M,) times at which the values were sent (s, increasing)
+    value: np.ndarray  # (M,) or (M, C): the value from each time on
+
+    def __post_init__(self):
+        t = np.asarray(self.t, float)
+        v = np.asarray(self.value, float)
+        if v.shape[:1] != t.shape:
+            raise ValueError(f'{t.size} times for {v.shape[0] if v.ndim else 0} values')
+        dt = np.diff(t).reshape((-1,) + (1,) * (v.ndim - 1))
+        cum = np.concatenate([np.zeros((1,) + v.shape[1:]), np.cumsum(v[:-1] * dt, axis=0)])
+        object.__setattr__(self, 't', t)
+        object.__setattr__(self, 'value', v)
+        object.__setattr__(self, '_cum', cum[: t.size])
+
+    def _at(self, times, delay):
+        """(index of the value in effect or -1, times since it was sent, mask shape helper)."""
+        tt = np.asarray(times, float) - delay
+        i = np.searchsorted(self.t, tt, side='right') - 1
+        j = np.maximum(i, 0)
+        none = (i < 0).reshape(i.shape + (1,) * (self.value.ndim - 1))
+        return j, tt, none
+
+    def applied(self, times, delay=0.0):
+        """The value the drives apply at each of `times`."""
+        if self.t.size == 0:
+            return np.zeros(np.shape(times) + self.value.shape[1:])
+        j, _, none = self._at(times, delay)
+        return np.where(none, 0.0, self.value[j])
+
+    def integral(self, times, delay=0.0):
+        """The running integral of the applied value from the first value's effect to each of
+        `times`, exact for the held steps (the replay's sub-step averages are its differences)."""
+        if self.t.size == 0:
+            return np.zeros(np.shape(times) + self.value.shape[1:])
+        j, tt, none = self._at(times, delay)
+        since = (tt - self.t[j]).reshape(none.shape)
+        return np.where(none, 0.0, self._cum[j] + self.value[j] * since)
+
+
+def command_delay_steps(delay, dt):
+    """Whole steps of `dt` by which a stepping plant delays its commands (``HeldCommand``)."""
+    return int(round(delay / dt))

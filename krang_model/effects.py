@@ -1,12 +1,15 @@
-"""A library of named physical effects: each one a parameterised extension of the nominal WIP model
-with a physical meaning and a unit.
+"""The vocabulary of physical effects: named, parameterised departures of the robot from the
+nominal WIP model, each with a physical meaning and a unit. Plants, the discrepancy replay and the
+discrepancy workflow all apply effects from this one registry.
 
-The nominal model is ``krang_model.wip`` (locked pose reduced to one body on the axle, the drive
-train of ``krang_model.drivetrain``) with the mass model of ``config/sim_true_beta.yaml``. An
-effect changes one term of that model (``ModelTerms``: a field of its ``Drivetrain``, or the body,
-the sensors, the command timing); ``krang_discrepancy.replay.Replay`` then predicts the measured
-signals with the changed terms through ``krang_model.wip.WipDynamics``. Every effect also says how
-its value maps onto ``krang_sim.physics.SimEffects`` so that the extended model can be simulated.
+An effect changes terms of the model (``ModelTerms``): a field of its ``Drivetrain`` (the physical
+parameters of ``krang_model.wip``), the body (payloads, joint encoder offsets), the sensors (IMU
+pitch bias) or the command timing (actuation delay). ``model_terms({'torque_constant': 0.9,
+'floor_slope': 0.01})`` gives the ``ModelTerms`` of a robot with those effects: a simulated plant
+is built with them (``krang_sim.plant``, ``terms=``), ``krang_discrepancy.replay.Replay``
+predicts measured signals under them, and ``krang discrepancy`` fits their values and writes them
+to an extended model. ``apply_effects`` does the same from ``Effect`` objects (the fits' inner
+loop).
 
 Built-in effects (``name``: value unit, meaning):
 
@@ -17,14 +20,15 @@ Built-in effects (``name``: value unit, meaning):
 - ``payload`` kg: an unmodelled point mass rigidly on a named link, at a point of it
 - ``wheel_viscous_friction`` N m s: extra wheel-to-body viscous friction (both wheels together)
 - ``wheel_coulomb_friction`` N m: extra Coulomb friction per wheel (as ``krang_model.wip`` has it)
-- ``torque_constant`` N m/A: true motor torque constant (the fit estimates true/nominal scale)
-- ``actuation_delay`` s: transport delay between the commanded and the applied wheel torque
+- ``torque_constant`` (scale true/nominal, reported in N m/A): true motor torque constant
+- ``actuation_delay`` s: transport delay between the commanded and the applied wheel current
+  (``krang_model.drivetrain.HeldCommand`` says what a delayed command is)
 - ``encoder_offset`` rad: a body-joint encoder reads q + offset (default joint JWaist)
 - ``rolling_resistance`` N m s: tyre rolling resistance, viscous in the ground speed
 
 Optional effects (``register_optional_effects()``, ``krang discrepancy --extra-effects``):
-body_inertia (kg m^2 about the axle), drive_current_limit (A), com_height (m). The simulator
-cannot produce them, so the per-effect tests cannot check them; they serve the hardware data.
+body_inertia (kg m^2 about the axle), drive_current_limit (A), com_height (m). The per-effect
+tests do not cover them; they serve the hardware data.
 
 Adding your own effect
 ----------------------
@@ -47,17 +51,16 @@ runs::
         def apply(self, terms, value):
             terms.extra_forces.append(lambda s, k=value: (0.0 * s.q_base, -k * (s.q_base + 1.55)))
 
-An effect on a physical term of the model changes a field of the drive train instead:
-``terms.add_to_drive(ground_viscous=value)`` (``rolling_resistance``), and returns the matching
-``SimEffects`` from ``sim_effects`` (``{'drive_extra': {'ground_viscous': value}}``).
+``s`` carries numpy arrays ``phi, q_base, dphi, dq_base, theta, tau`` (the applied total wheel
+torque) and ``t``. Such a formula exists only for the reduced model: a plant that cannot apply a
+term refuses it (``krang_sim.plant.UnsupportedTerm``).
 
-A new physical term goes into ``krang_model.wip.WipDynamics`` (its parameter a new field of
-``krang_model.drivetrain.Drivetrain``); an effect then adds to it as above, and the simulator, the
+An effect on a physical term changes a field of the drive train instead:
+``terms.add_to_drive(ground_viscous=value)`` (``rolling_resistance``). A new physical term goes
+into ``krang_model.wip.WipDynamics`` (its parameter a new field of
+``krang_model.drivetrain.Drivetrain``); an effect then adds to it as above, and the plants, the
 replay and the controller's design all see it.
 
-``s`` carries numpy arrays ``phi, q_base, dphi, dq_base, theta, tau`` (the applied total wheel
-torque) and ``t``. ``sim_effects(value)`` (optional) returns the ``SimEffects`` keyword arguments
-of the effect; without it the extended-model YAML lists the effect but the simulator cannot run it.
 Several variants of one physical effect (e.g. a payload on different links) share ``name`` and
 differ in ``key``; the report and the JSON give the name plus the variant's ``detail``.
 """
@@ -159,10 +162,6 @@ class Effect:
     def apply(self, terms: ModelTerms, value: float) -> None:
         raise NotImplementedError
 
-    def sim_effects(self, value: float) -> dict | None:
-        """Keyword arguments of ``krang_sim.physics.SimEffects`` (None: not simulable)."""
-        return None
-
     def display(self, value: float, base: ModelTerms | None = None) -> tuple[float, str]:
         """The reported (value, unit) for a fitted parameter value applied on top of `base`
         (default: unchanged)."""
@@ -188,9 +187,6 @@ class ImuPitchBias(Effect):
     def apply(self, terms, value):
         terms.imu_pitch_bias += value
 
-    def sim_effects(self, value):
-        return {'imu_pitch_bias_rad': float(value)}
-
 
 class FloorSlope(Effect):
     name = 'floor_slope'
@@ -201,9 +197,6 @@ class FloorSlope(Effect):
 
     def apply(self, terms, value):
         terms.add_to_drive(floor_slope=value)
-
-    def sim_effects(self, value):
-        return {'floor_slope_rad': float(value)}
 
 
 class WheelRadius(Effect):
@@ -220,9 +213,6 @@ class WheelRadius(Effect):
 
     def apply(self, terms, value):
         terms.drive = replace(terms.drive, wheel_radius=float(value))
-
-    def sim_effects(self, value):
-        return {'wheel_radius_m': float(value)}
 
 
 class Payload(Effect):
@@ -247,13 +237,6 @@ class Payload(Effect):
     def apply(self, terms, value):
         terms.payloads = tuple(terms.payloads) + ((self.link, self.point, float(value)),)
 
-    def sim_effects(self, value):
-        return {
-            'payload_kg': float(value),
-            'payload_body': self.link,
-            'payload_com_m': list(self.point),
-        }
-
 
 class WheelViscousFriction(Effect):
     name = 'wheel_viscous_friction'
@@ -266,9 +249,6 @@ class WheelViscousFriction(Effect):
 
     def apply(self, terms, value):
         terms.add_to_drive(viscous_friction=value)
-
-    def sim_effects(self, value):
-        return {'wheel_viscous_Nm_s': float(value)}
 
 
 class WheelCoulombFriction(Effect):
@@ -283,9 +263,6 @@ class WheelCoulombFriction(Effect):
 
     def apply(self, terms, value):
         terms.add_to_drive(coulomb_friction=value)
-
-    def sim_effects(self, value):
-        return {'wheel_coulomb_Nm': float(value)}
 
 
 class TorqueConstant(Effect):
@@ -311,9 +288,6 @@ class TorqueConstant(Effect):
     def apply(self, terms, value):
         terms.drive = replace(terms.drive, torque_constant=terms.drive.torque_constant * value)
 
-    def sim_effects(self, value):
-        return {'torque_constant_scale': float(value)}
-
     def display(self, value, base=None):
         """The torque constant itself (N m/A): the scale times the Kt of the model it extends
         (a baseline may already have changed it)."""
@@ -332,9 +306,6 @@ class ActuationDelay(Effect):
 
     def apply(self, terms, value):
         terms.actuation_delay += value
-
-    def sim_effects(self, value):
-        return {'actuation_delay_s': float(value)}
 
 
 class EncoderOffset(Effect):
@@ -358,9 +329,6 @@ class EncoderOffset(Effect):
     def apply(self, terms, value):
         terms.joint_offsets[self.joint] = terms.joint_offsets.get(self.joint, 0.0) + float(value)
 
-    def sim_effects(self, value):
-        return {'encoder_offset_rad': float(value), 'encoder_offset_joint': self.joint}
-
 
 class RollingResistance(Effect):
     name = 'rolling_resistance'
@@ -374,14 +342,10 @@ class RollingResistance(Effect):
     def apply(self, terms, value):
         terms.add_to_drive(ground_viscous=value)
 
-    def sim_effects(self, value):
-        return {'drive_extra': {'ground_viscous': float(value)}}
-
 
 # ----------------------------------------------------------------------------- optional effects
-# Not in the default library (the simulator cannot produce most of them, so the per-effect tests
-# cannot check them); `krang discrepancy --extra-effects` or ``register_optional_effects()`` adds
-# them.
+# Not in the default library (the per-effect tests do not cover them); `krang discrepancy
+# --extra-effects` or ``register_optional_effects()`` adds them.
 
 
 class BodyInertia(Effect):
@@ -442,7 +406,8 @@ def register_optional_effects():
 #: key -> Effect: the library the naming step searches (in registration order).
 EFFECTS: dict[str, Effect] = {}
 
-#: the names the DESIGN.md JSON contract knows (user-added names are allowed too)
+#: the names of the built-in effects, which the `krang discrepancy --json` contract knows
+#: (user-added names are allowed too)
 BUILTIN_NAMES = (
     'imu_pitch_bias',
     'floor_slope',
@@ -518,11 +483,24 @@ def load_effects_module(spec: str) -> None:
 
 
 def apply_effects(terms: ModelTerms, effects, values) -> ModelTerms:
-    """A copy of `terms` with each effect applied at its value."""
+    """A copy of `terms` with each ``Effect`` applied at its value, in order."""
     out = terms.copy()
     for eff, v in zip(effects, values):
         eff.apply(out, float(v))
     return out
+
+
+def model_terms(effects=(), base: ModelTerms | None = None) -> ModelTerms:
+    """The ``ModelTerms`` of a robot with these effects: ``effects`` maps effect keys or names
+    (``'torque_constant'``, ``'payload@rGripper'``) or ``Effect`` objects (a variant the library
+    does not register, ``EncoderOffset('LJ2')``) to values in the effect's parameter unit, as a
+    dict or as (key, value) pairs (a key may repeat: the effects apply in order, on top of each
+    other). `base` defaults to the nominal model (``nominal_drive()``). How a plant, the replay
+    and an extended-model file turn effect values into the model."""
+    items = list(effects.items()) if isinstance(effects, dict) else list(effects)
+    base = ModelTerms.nominal(nominal_drive()) if base is None else base
+    effs = [k if isinstance(k, Effect) else get_effect(k) for k, _ in items]
+    return apply_effects(base, effs, [v for _, v in items])
 
 
 def _register_builtins():

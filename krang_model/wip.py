@@ -1,8 +1,9 @@
 """The robot as a wheeled inverted pendulum: reduction of locked poses, dynamics, linearisation.
 
-This module is the one statement of the WIP physics. The simulator (krang_sim.physics), the
-controller's design (``linearize``), the discrepancy replay and its named effects all evaluate
-``WipDynamics``; a new physical term is added here (its parameter in
+This module is the one statement of the WIP physics. The reduced plant (krang_sim.reduced_plant),
+the controller's design (``linearize``), the discrepancy replay and its named effects
+(krang_model.effects) all evaluate ``WipDynamics`` and step it with its one integrator
+(``step_pitch``); a new physical term is added here (its parameter in
 ``krang_model.drivetrain.Drivetrain``) and nowhere else.
 
 With the body joints locked the robot is one rigid body on two wheels. Its state is the
@@ -11,7 +12,7 @@ pitch"), the base pitch q_base (the IMU pitch; krang_model/README.md, Convention
 psi. The body CoM angle from vertical is theta = q_base + offset, where the offset is fixed by the
 pose and beta.
 
-Equations (Lagrange; notes/identification.md §6 plus rotor inertia as in 18h linearize_wip.cpp,
+Equations (Lagrange, plus rotor inertia as in the hardware's linearize_wip.cpp,
 plus a floor slope alpha and a caster contact):
   [(M+m_w) r^2 + I_w + J] phi'' + [M r l cos(theta+alpha) - J] theta''
       = M r l sin(theta+alpha) theta'^2 - (M+m_w) g r sin(alpha) + tau
@@ -246,14 +247,17 @@ class WipDynamics:
         delta = self._m11 * self._m22 - m12 * m12
         return (self._m22 * f1 - m12 * f2) / delta, (self._m11 * f2 - m12 * f1) / delta
 
+    def yaw_acceleration(self, dpsi, tau_left, tau_right):
+        """psi'' under the given wheel torques (the yaw is decoupled from the pitch plane)."""
+        return (
+            (tau_right - tau_left) * self._yaw_arm - self.drive.yaw_friction * dpsi
+        ) / self._yaw_inertia
+
     def accelerations(self, state, tau_left, tau_right):
         """(phi'', q_base'', psi'') at `state` under the given wheel torques."""
         phi, qb, dphi, dqb, psi, dpsi = state
         ddphi, ddqb = self.pitch_accelerations(qb, dphi, dqb, tau_left + tau_right)
-        ddpsi = (
-            (tau_right - tau_left) * self._yaw_arm - self.drive.yaw_friction * dpsi
-        ) / self._yaw_inertia
-        return ddphi, ddqb, ddpsi
+        return ddphi, ddqb, self.yaw_acceleration(dpsi, tau_left, tau_right)
 
     def energy(self, state):
         """Kinetic + potential energy (J), for conservation checks (slope and caster excluded)."""
@@ -268,13 +272,23 @@ class WipDynamics:
         )
         return kinetic + self._mgl * cos(theta)
 
+    def step_pitch(self, phi, q_base, dphi, dq_base, tau, dt, f_phi=None, f_qbase=None):
+        """One step of the pitch plane: (phi, q_base, phi', q_base') after `dt` under the total
+        wheel torque `tau` (and optional extra generalised forces, as ``pitch_accelerations``).
+        The one integrator of the model: semi-implicit Euler (velocities first), symplectic, one
+        force evaluation per step. Floats (a simulator step) or arrays (the replay: every window
+        and every parameter set at once)."""
+        ddphi, ddqb = self.pitch_accelerations(q_base, dphi, dq_base, tau, f_phi, f_qbase)
+        dphi = dphi + dt * ddphi
+        dq_base = dq_base + dt * ddqb
+        return phi + dt * dphi, q_base + dt * dq_base, dphi, dq_base
+
     def step(self, state, tau_left, tau_right, dt):
-        """Semi-implicit Euler (velocities first): symplectic, one force evaluation per step."""
-        ddphi, ddqb, ddpsi = self.accelerations(state, tau_left, tau_right)
-        dphi = state[2] + dt * ddphi
-        dqb = state[3] + dt * ddqb
-        dpsi = state[5] + dt * ddpsi
-        return [state[0] + dt * dphi, state[1] + dt * dqb, dphi, dqb, state[4] + dt * dpsi, dpsi]
+        """One step of the whole state: ``step_pitch`` and the decoupled yaw, integrated alike."""
+        phi, qb, dphi, dqb, psi, dpsi = state
+        phi, qb, dphi, dqb = self.step_pitch(phi, qb, dphi, dqb, tau_left + tau_right, dt)
+        dpsi = dpsi + dt * self.yaw_acceleration(dpsi, tau_left, tau_right)
+        return [phi, qb, dphi, dqb, psi + dt * dpsi, dpsi]
 
     def step_rk4(self, state, tau_left, tau_right, dt):
         """Classical RK4 (four force evaluations) for accuracy checks."""

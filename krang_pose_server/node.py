@@ -27,7 +27,9 @@ from std_srvs.srv import Trigger
 from krang_model.config import config_path
 from krang_model.poses import load_poses
 from krang_model.robot import KRANG_POSE_COLUMNS, load_krang
-from krang_ros import messages, names, params, topics
+from krang_core import names, params
+from krang_ros import messages, topics
+from krang_ros.params import declare
 from krang_ros.spin import Polled, run_node, take_waiting
 
 from .pool import generate_pool
@@ -100,7 +102,7 @@ class PoseServer(Node):
     def __init__(self, **kwargs):
         super().__init__('pose_server', **kwargs)
         self.robot = load_krang()
-        cfg = params.declare(self, PoseServerParams)
+        cfg = declare(self, PoseServerParams)
         poses_file = cfg.poses_file or str(config_path('excitatory_poses.csv'))
         self.sequence = PoseSequence.from_csv(poses_file, self.robot, KRANG_POSE_COLUMNS)
         self.selection = cfg.selection

@@ -3,7 +3,7 @@
 The estimator's posterior covariance Sigma of beta says how uncertain the forward CoM offset
 x_com = phi(q)^T beta still is in every pose: var = phi^T Sigma phi. Learning from a candidate pose
 c adds one row g_c (the CoM-angle row at the balance pitch the current estimate predicts; there
-x_com = 0, so g_c = phi_c, krang_com_estimator.estimators.balanced_pose_rows) with noise variance
+x_com = 0, so g_c = phi_c, krang_com_estimator.rows.balanced_pose_rows) with noise variance
 r_c = (sigma_pitch z_c)^2, z_c = psi_c^T beta the CoM height. The rank-one update lowers the
 forward-error variance at every reference pose j by (phi_j^T Sigma g_c)^2 / (g_c^T Sigma g_c +
 r_c), so the expected reduction of the mean squared forward error over the reference poses is
@@ -31,7 +31,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from krang_com_estimator.estimators import pitch_sensitivity
+from krang_com_estimator import pitch_sensitivity
 from krang_model.com import balance_pitch, phi as phi_fn
 from krang_model.drivetrain import drivetrain
 

@@ -1,4 +1,4 @@
-"""Streaming a pose move that waits for the controller's balance estimate (issue 14, item 2).
+"""Streaming a pose move that waits for the controller's balance estimate.
 
 The pose server streams a StraightLineMove as joint targets. While the controller reports an
 unconverged balance estimate (``/adrc_controller/balance_converged`` false: the robot does not

@@ -13,7 +13,7 @@ Callbacks run in the order rclpy's SingleThreadedExecutor runs them (waitables, 
 timers, subscriptions, guard conditions, clients and services), one at a time in the calling
 thread, so code written for it runs unchanged; test/test_executor.py checks this against rclpy's
 executor. rclpy's EventsExecutor would be cheaper still, but in rclpy 7.1.6 its services never
-answered and it ignored SIGTERM (README, "The online loop over ROS and CAN").
+answered and it ignored SIGTERM (docs/architecture.md, "The executor").
 """
 
 import inspect
@@ -170,7 +170,8 @@ class _DirectCall:
     """What _make_handler returns for a subscription or timer whose callback is a plain function:
     the Task interface the executor's callers use (call it, then exception() and result()), with
     the work done in the call itself. rclpy wraps every callback in a Task and a coroutine
-    (20-30 us of CPU a wake here, README "Our executor"); only a coroutine callback needs them."""
+    (20-30 us of CPU a wake here, docs/architecture.md "The executor"); only a coroutine callback
+    needs them."""
 
     __slots__ = ('_executor', '_entity', '_run', '_exception')
 

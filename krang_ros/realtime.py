@@ -15,7 +15,7 @@ the node logs one warning and runs on the default scheduler, as controller_manag
 import os
 from dataclasses import dataclass, field
 
-from . import params
+from .params import declare
 
 MAX_PRIORITY = 99  # SCHED_FIFO priorities are 1..99 (sched(7))
 
@@ -55,7 +55,7 @@ def set_fifo_priority(priority: int) -> None:
 def declare_thread_priority(node) -> int:
     """Declare `thread_priority` on `node` and apply it; returns the priority in effect (0 on the
     default scheduler)."""
-    priority = params.declare(node, SchedulingParams).thread_priority
+    priority = declare(node, SchedulingParams).thread_priority
     if priority == 0:
         return 0
     try:

@@ -8,7 +8,9 @@ from rclpy.node import Node
 from std_msgs.msg import Float64MultiArray, String
 from std_srvs.srv import SetBool, Trigger
 
-from . import names, topics
+from krang_core import names
+
+from . import topics
 from .entry import STOP_REQUESTED
 from .executor import StaticSingleThreadedExecutor
 

@@ -7,9 +7,10 @@ import rclpy
 from rclpy.callback_groups import CallbackGroup
 from rclpy.executors import ExternalShutdownException, TimeoutException
 
+from krang_core.params import ParameterError
+
 from .entry import STOP_REQUESTED, settle_garbage_collector
 from .executor import StaticSingleThreadedExecutor
-from .params import ParameterError
 
 
 #: The longest a node's loop waits before it checks STOP_REQUESTED (a signal wakes it at once)

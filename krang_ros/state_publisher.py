@@ -14,11 +14,11 @@ No parameters.
 import sys
 
 from rclpy.node import Node
-from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import Imu, JointState
 from std_msgs.msg import String
 
-from krang_ros import names, topics
+from krang_core import names
+from krang_ros import topics
 from krang_ros.robot_frames import WHEELS, RobotFrames
 from krang_ros.spin import run_node
 
@@ -29,9 +29,6 @@ except ImportError:  # a pip environment without tf2_msgs: /tf is not published
     TFMessage = None
 
 ROBOT_DESCRIPTION, TF, TF_STATIC = '/robot_description', '/tf', '/tf_static'
-LATCHED = QoSProfile(
-    depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL
-)
 
 
 def transform_stamped(stamp, t):
@@ -54,7 +51,7 @@ class StatePublisherNode(Node):
         super().__init__('state_publisher')
         self.frames = RobotFrames()
         self.imu_orientation = None
-        description = self.create_publisher(String, ROBOT_DESCRIPTION, LATCHED)
+        description = self.create_publisher(String, ROBOT_DESCRIPTION, topics.LATCHED)
         description.publish(String(data=self.frames.urdf_text))
         qos = topics.QOS
         self.create_subscription(
@@ -72,7 +69,7 @@ class StatePublisherNode(Node):
             )
             return
         self.tf_pub = self.create_publisher(TFMessage, TF, 100)
-        static = self.create_publisher(TFMessage, TF_STATIC, LATCHED)
+        static = self.create_publisher(TFMessage, TF_STATIC, topics.LATCHED)
         stamp = self.get_clock().now().to_msg()
         static.publish(
             TFMessage(

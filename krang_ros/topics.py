@@ -1,4 +1,4 @@
-"""QoS of every topic of krang_ros.names, defined once for every node, the recorder and the
+"""QoS of every topic of krang_core.names, defined once for every node, the recorder and the
 tests."""
 
 from rclpy.qos import (
@@ -9,7 +9,7 @@ from rclpy.qos import (
     qos_profile_sensor_data,
 )
 
-from . import names
+from krang_core import names
 
 DEFAULT = QoSProfile(depth=10)
 SENSOR = qos_profile_sensor_data

@@ -9,17 +9,12 @@ publishes one. Publishes nothing on ROS.
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PointStamped
 from rclpy.node import Node
-from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import Imu, JointState
 from std_msgs.msg import Float64MultiArray, String
 
-from krang_ros import messages, names, topics
+from krang_core import names
+from krang_ros import messages, topics
 from krang_ros.foxglove_view import LiveView
-
-CONTROLLER_MODE = '/adrc_controller/mode'
-LATCHED = QoSProfile(
-    depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL
-)
 
 
 class LiveViewNode(Node):
@@ -44,7 +39,7 @@ class LiveViewNode(Node):
             self.on_diagnostics,
             qos[names.DIAGNOSTICS],
         )
-        sub(String, CONTROLLER_MODE, lambda msg: self.view.on_mode(msg.data), LATCHED)
+        sub(String, names.MODE, lambda msg: self.view.on_mode(msg.data), topics.LATCHED)
         self.create_timer(1.0 / rate_hz, self.view.publish)
         self.create_timer(1.0, self.view.publish_scene)
         self.view.publish_scene()

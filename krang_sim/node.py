@@ -1,16 +1,19 @@
 """sim_krang: the simulated Krang behind the same CAN frames as the real robot.
 
-A physics thread steps `KrangSim` at `physics_rate_hz` and paces itself at `real_time_factor` times
-wall time (1 = real time, 0 = as fast as the CPU allows). When the CPU cannot keep up it falls
-behind by at most `max_lag_s` and then slows down, instead of catching up in bursts the controller
-cannot see (under lockstep, below, it sees a catch-up sample by sample: config/sim_params.yaml
-allows it more). The device emulators of devices.py answer the bridge on the buses of the device
-map: AMC drives (current commands in, TPDO feedback out), the DMU IMU and the PowerCube modules,
-which move the body joints at their speed limits. With `publish_clock` the node publishes /clock
-(at `clock_rate_hz`, right after the sensor frames of that step), so nodes running with
-use_sim_time follow the simulated time whether it runs faster or slower than real time: `krang
-demo` runs the node set that way, because a simulator starved of CPU slows down. Ground truth for
-evaluation goes to /sim_krang/ground_truth (every 0.1 s of simulated time).
+A physics thread steps the plant (`plant`: a registered engine of krang_sim.plant, by default the
+reduced WIP; `effects`: the true robot's effects from the registry of krang_model.effects) at
+`physics_rate_hz`, and paces itself at `real_time_factor` times wall time (1 = real time, 0 = as
+fast as the CPU allows). What the devices report of its motion is the one sensor model's
+(krang_sim.sensors). When the CPU cannot keep up it falls behind by at most `max_lag_s` and then
+slows down, instead of catching up in bursts the controller cannot see (under lockstep, below, it
+sees a catch-up sample by sample: config/sim_params.yaml allows it more). The device emulators of
+devices.py answer the bridge on the buses of the device map: AMC drives (current commands in, TPDO
+feedback out), the DMU IMU and the PowerCube modules, which move the body joints at their speed
+limits. With `publish_clock` the node publishes /clock (at `clock_rate_hz`, right after the sensor
+frames of that step), so nodes running with use_sim_time follow the simulated time whether it runs
+faster or slower than real time: `krang demo` runs the node set that way, because a simulator
+starved of CPU slows down. Ground truth for evaluation goes to /sim_krang/ground_truth (every 0.1 s
+of simulated time).
 
 Lockstep (`lockstep`): after each sensor sample the physics waits until the wheel current frames
 that answer it are on the bus (an RPDO from every drive, applied to the emulated drives before the
@@ -64,12 +67,15 @@ from krang_can_bridge.config import default_devices_file, load_devices
 from krang_can_bridge.protocols import amc as amc_proto
 from krang_model.beta import load_beta
 from krang_model.robot import load_krang
-from krang_ros import messages, names, params, topics
-from krang_ros.log import Throttled
+from krang_core import names, params
+from krang_ros import messages, topics
+from krang_core.log import Throttled
+from krang_ros.params import declare
 from krang_ros.spin import Polled, run_node, take_latest
 
 from .devices import KrangCanDevices
-from .physics import KrangSim, SensorNoise, SimConfig, SimEffects
+from .plant import BUILTIN, PLANTS, make_plant, terms_from_strings
+from .sensors import SensorModel, SensorNoise
 from .session_config import resolve_config_file
 
 GROUND_TRUTH_FIELDS = ('t', 'q_base', 'x_m', 'balance_pitch', 'current_left_a', 'current_right_a')
@@ -97,6 +103,12 @@ class SimNodeParams:
         (), 'the 16 body joints in pose order, rad (empty = all zero)'
     )
     initial_q_base: float = _doc(math.nan, 'initial base pitch, rad (NaN = resting on the caster)')
+    plant: str = _doc('reduced', f'the physics engine: one of {", ".join(sorted(BUILTIN))}')
+    effects: tuple[str, ...] = _doc(
+        (),
+        "the true robot's physical effects, 'key=value' in the effect's unit (krang_model."
+        "effects, e.g. 'torque_constant=0.8', 'wheel_coulomb_friction=4'; empty = nominal)",
+    )
     physics_rate_hz: float = _doc(1000.0, 'physics steps per simulated second, > 0')
     feedback_rate_hz: float = _doc(250.0, "the DMU's and the drives' sample rate, Hz, > 0")
     real_time_factor: float = _doc(
@@ -142,21 +154,14 @@ class SimNodeParams:
             raise ValueError(
                 'real_time_factor, clock_rate_hz, max_lag_s and lockstep_delay_s must be >= 0'
             )
-
-
-#: SimEffects fields that are ROS parameters `effects.<name>` (the hidden physical effects).
-EFFECT_FIELDS = tuple(
-    f for f in dataclasses.fields(SimEffects) if isinstance(f.default, (float, str))
-)
+        if self.plant not in BUILTIN and self.plant not in PLANTS:
+            raise ValueError(
+                f'plant must be one of {sorted({*BUILTIN, *PLANTS})}, got {self.plant!r}'
+            )
 
 
 def describe_parameters():
     lines = params.describe(SimNodeParams)
-    lines += [
-        f'effects.{f.name} ({type(f.default).__name__}, {f.default!r}): a hidden physical '
-        'effect of the true robot (krang_sim/physics.py SimEffects)'
-        for f in EFFECT_FIELDS
-    ]
     lines.append(
         'silent_devices (list of str, []): devices that stop transmitting (fault '
         "injection: 'imu', a wheel joint, a body joint); settable at run time"
@@ -170,7 +175,7 @@ class SimKrangNode(Node):
         or bus thread)."""
         super().__init__('sim_krang', **kwargs)
         self.robot = load_krang()
-        cfg = params.declare(self, SimNodeParams)
+        cfg = declare(self, SimNodeParams)
         devices_file = str(resolve_config_file(cfg.devices_file, default_devices_file().name))
         truth_file = str(resolve_config_file(cfg.true_beta, 'sim_true_beta.yaml'))
         pose = list(cfg.initial_pose) or [0.0] * len(self.robot.pose_joints)
@@ -190,33 +195,31 @@ class SimKrangNode(Node):
         clock_rate = cfg.clock_rate_hz or self.rate / self.feedback_every
         self.clock_every = max(1, round(self.rate / clock_rate))
         seed = cfg.seed
-        read_only = ParameterDescriptor(read_only=True, description='a hidden physical effect')
-        effects = SimEffects(
-            **{
-                f.name: self.declare_parameter(f'effects.{f.name}', f.default, read_only).value
-                for f in EFFECT_FIELDS
-            }
-        )
+        try:
+            terms = terms_from_strings(self.robot, cfg.effects)
+        except (KeyError, ValueError) as err:
+            raise params.ParameterError(f'sim_krang: effects: {err}') from None
         self.config = load_devices(devices_file)
         true_beta = load_beta(truth_file, self.robot)
-        self.sim = KrangSim(
+        # the plant (its truth is read only for /sim_krang/ground_truth and diagnostics)
+        self.sim = make_plant(
+            cfg.plant,
             self.robot,
             true_beta,
             np.array(pose),
-            None if math.isnan(q_base) else q_base,
-            SimConfig(
-                dt=1.0 / self.rate,
-                effects=effects,
-                seed=seed,
-                # IMU noise: in the emulator
-                noise=SensorNoise(imu_pitch_std_rad=0.0),
-            ),
+            q_base=None if math.isnan(q_base) else q_base,
+            terms=terms,
+            dt=1.0 / self.rate,
         )
+        # the one sensor model: encoder counts, IMU misalignment and joint offsets here, the DMU's
+        # noise and quantisation in its emulator (with the model's noise figures)
+        noise = SensorNoise()
+        self.sensor_model = SensorModel(self.robot, terms, noise, seed=seed)
         self.devices = KrangCanDevices(
             self.config,
             seed=seed,
-            imu_rate_noise_std_rad_s=0.002,
-            imu_accel_noise_std_m_s2=0.02,
+            imu_rate_noise_std_rad_s=noise.gyro_std_rad_s,
+            imu_accel_noise_std_m_s2=noise.accel_std_m_s2,
             initial_joint_positions=dict(zip(self.robot.pose_joints, pose)),
         )
         self._command_joints()  # the modules clamp the pose to their limits
@@ -290,10 +293,11 @@ class SimKrangNode(Node):
         if pump is None:
             self.thread = threading.Thread(target=self.physics_loop, name='physics', daemon=True)
             self.thread.start()
+        truth = self.sim.truth()
         self.get_logger().info(
-            f'simulated Krang: truth {truth_file}, sitting at q_base '
-            f'{self.sim.q_base:+.3f} rad, true balance '
-            f'{self.sim.balance_pitch():+.3f} rad, {self.rate:.0f} Hz physics '
+            f'simulated Krang ({cfg.plant} plant): truth {truth_file}, sitting at q_base '
+            f'{truth.q_base:+.3f} rad, true balance '
+            f'{truth.balance_pitch:+.3f} rad, {self.rate:.0f} Hz physics '
             f'at {self.factor:g}x real time{", lockstep" if self.lockstep else ""}, '
             f'buses {sorted(self.buses)}'
         )
@@ -388,17 +392,7 @@ class SimKrangNode(Node):
         # the answer to this sample acts from this step on
         self.answer_due = k + 1 + self.lockstep_delay_steps
         self.rpdo_seen = set()
-        read = self.sim.sensors()
-        frames = self.devices.wheel_feedback_frames(
-            {'JLWheel': read.wheel_left, 'JRWheel': read.wheel_right},
-            {'JLWheel': read.wheel_left_rate, 'JRWheel': read.wheel_right_rate},
-        )
-        frames += self.devices.imu_frames_from_pitch(
-            self.sim.q_base + self.sim.config.effects.imu_pitch_bias_rad,
-            self.sim.state[3],
-            forward_specific_force=self.sim.axle_acceleration,
-        )
-        return frames
+        return self.devices.sensor_frames(self.sim.motion(), self.sensor_model)
 
     def _after_step(self, frames):
         """Send the step's frames, then /clock (a node's timer that fires on this time finds the
@@ -458,19 +452,21 @@ class SimKrangNode(Node):
 
     def publish_truth(self):
         with self.lock:
+            truth = self.sim.truth()
             values = [
-                self.sim.t,
-                self.sim.q_base,
-                self.sim.x,
-                self.sim.balance_pitch(),
-                *self.sim.applied_current,
+                truth.t,
+                truth.q_base,
+                truth.x_m,
+                truth.balance_pitch,
+                *self.sim.motion().applied_current,
             ]
         msg = messages.labelled_array(values, GROUND_TRUTH_FIELDS, label='truth')
         self.truth_pub.publish(msg)
 
     def publish_diagnostics(self):
         with self.lock:
-            t, qb, bal = self.sim.t, self.sim.q_base, self.sim.balance_pitch()
+            truth = self.sim.truth()
+            t, qb, bal = truth.t, truth.q_base, truth.balance_pitch
             silent, since = sorted(self.devices.silent), self.silent_since
             armed_at = self.first_armed_at
         values = {

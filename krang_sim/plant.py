@@ -23,6 +23,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from krang_model.drivetrain import drivetrain
+from krang_model.effects import ModelTerms, model_terms
+
 
 class UnsupportedTerm(ValueError):
     """The plant cannot reproduce a term of the model it was given (e.g. an extra force that only
@@ -108,6 +111,22 @@ class Plant(abc.ABC):
     def joints_moving(self) -> bool:
         return bool(np.any(np.abs(self.joint_targets - self.joints) > 1e-9))
 
+    def wheel_pitch(self) -> tuple:
+        """(t, q_base, dq_base, wheel_left, wheel_right, wheel_left_rate, wheel_right_rate): the
+        part of ``motion()`` the controller's sample reads besides ``joints`` and
+        ``joints_moving``. A plant may override it to give these without building a ``Motion``
+        (the offline closed loop's hot path)."""
+        m = self.motion()
+        return (
+            m.t,
+            m.q_base,
+            m.dq_base,
+            m.wheel_left,
+            m.wheel_right,
+            m.wheel_left_rate,
+            m.wheel_right_rate,
+        )
+
 
 PLANTS: dict[str, type[Plant]] = {}
 
@@ -130,6 +149,19 @@ def make_plant(name: str, robot, true_beta, joints, **kwargs) -> Plant:
     except KeyError:
         raise ValueError(f'unknown plant {name!r} (known: {", ".join(sorted(PLANTS))})') from None
     return cls(robot, true_beta, joints, **kwargs)
+
+
+def terms_from_strings(robot, items) -> ModelTerms:
+    """The true robot's ``ModelTerms`` from ``'key=value'`` strings (a node parameter, a command
+    line): effect keys or names of ``krang_model.effects`` and values in the effect's unit, applied
+    in order on the nominal model."""
+    pairs = []
+    for item in items:
+        key, sep, value = str(item).partition('=')
+        if not sep:
+            raise ValueError(f"{item!r} is not 'key=value'")
+        pairs.append((key.strip(), float(value)))
+    return model_terms(pairs, ModelTerms.nominal(drivetrain(robot)))
 
 
 #: the built-in plants and the module that registers each (imported lazily: MuJoCo is optional

@@ -2,7 +2,7 @@
 `ros2 launch krang_com sim.launch.py`, the same as `krang bringup --sim` (krang_cli/node_set.py).
 """
 
-from krang_cli.node_set import launch_description
+from krang_ros.launch_set import launch_description
 
 
 def generate_launch_description():

@@ -1,5 +1,5 @@
 """The package as a ROS user gets it: `colcon build` puts every executable where `ros2 run
-krang_com <exe>` looks and every configuration and launch file under share/ (DESIGN.md §2); each
+krang_com <exe>` looks and every configuration and launch file under share/; each
 installed executable comes up from install/ with the installed configuration; package.xml names a
 rosdep key for every import; the launch files start what `krang bringup` starts."""
 
@@ -37,7 +37,7 @@ ROSDEP_KEYS = {
     'launch': 'launch',
     'launch_ros': 'launch_ros',
     'pinocchio': 'pinocchio',
-    'coal': 'pinocchio',  # coal comes with pinocchio
+    'coal': 'coal',  # the collision library pinocchio builds on; its own ROS package
     'numpy': 'python3-numpy',
     'scipy': 'python3-scipy',
     'yaml': 'python3-yaml',
@@ -52,6 +52,7 @@ ROSDEP_KEYS = {
     'mcap_ros2': 'python3-mcap-ros2-support',
     'tf2_msgs': 'tf2_msgs',
     'foxglove': 'python3-foxglove-sdk',
+    'mujoco': 'python3-mujoco',
 }
 OWN_PACKAGES = {p.name for p in REPO.iterdir() if (p / '__init__.py').exists()}
 

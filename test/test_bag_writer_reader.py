@@ -5,6 +5,8 @@ Expected values come from the test's own source data, never from the writer's bo
 """
 
 import json
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -392,3 +394,56 @@ def test_bag_without_statistics_is_counted_by_scanning(tmp_path):
     assert bag_reader.message_counts(path) == {'/wheel_effort_cmd': 7}
     _, rows = bag_reader.read_float_arrays(path, '/wheel_effort_cmd')
     np.testing.assert_allclose(rows[:, 1], -np.arange(7))
+
+
+DATA = Path(__file__).resolve().parent / 'data'
+
+
+def plain(value):
+    """A decoded message as plain values (its fields by name, lists for arrays)."""
+    slots = getattr(value, '__slots__', None)
+    if slots is not None and not isinstance(value, (str, bytes)):
+        return {name: plain(getattr(value, name)) for name in slots}
+    if isinstance(value, (list, tuple)):
+        return [plain(v) for v in value]
+    return value.tolist() if hasattr(value, 'tolist') else value
+
+
+def test_a_bag_recorded_as_the_nodes_publish_reads_the_same():
+    """session_bag_v1.mcap: the messages our nodes publish, serialized by rclpy as DDS delivers
+    them and written by the recorder's path; the JSON beside it holds their values as rclpy
+    deserializes them (NaN included)."""
+    expected = json.loads((DATA / 'session_bag_v1.json').read_text())
+    got = {}
+    for topic, log_time, msg in bag_reader.iter_messages(DATA / 'session_bag_v1.mcap'):
+        got.setdefault(topic, []).append([log_time, plain(msg)])
+    assert json.dumps(got, sort_keys=True) == json.dumps(expected, sort_keys=True)
+    series = bag_reader.read_joint_states(DATA / 'session_bag_v1.mcap')
+    np.testing.assert_array_equal(
+        series.positions[:, 0], [m['position'][0] for _, m in expected['/joint_states']]
+    )
+
+
+def test_reading_a_bag_imports_no_ros_package():
+    """The offline readers (krang_bag.reader, relearn, the discrepancy loaders) in a process where
+    rclpy and every message package fail to import."""
+    script = (
+        'import importlib.abc, sys\n'
+        'class NoRos(importlib.abc.MetaPathFinder):\n'
+        '    def find_spec(self, name, path=None, target=None):\n'
+        "        top = name.split('.')[0]\n"
+        "        if top in ('rclpy', 'rosidl_parser', 'builtin_interfaces', 'krang_ros') or "
+        "top.endswith(('_msgs', '_srvs', '_interfaces')):\n"
+        "            raise ImportError('no ROS here: ' + name)\n"
+        'sys.meta_path.insert(0, NoRos())\n'
+        'from krang_bag import reader, relearn, session_report\n'
+        'from krang_discrepancy import loaders\n'
+        f'print(sum(reader.message_counts({str(DATA / "session_bag_v1.mcap")!r}).values()),\n'
+        f'      len(list(reader.iter_messages({str(DATA / "session_bag_v1.mcap")!r}))))\n'
+    )
+    count = sum(map(len, json.loads((DATA / 'session_bag_v1.json').read_text()).values()))
+    result = subprocess.run(
+        [sys.executable, '-c', script], capture_output=True, text=True, timeout=120
+    )
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.split() == [str(count)] * 2

@@ -1,8 +1,8 @@
-"""Balancing through a pose move on hidden truths with real-sized CoM errors (issue 14, item 2),
-offline: the online session's first move (the pose server's streamed straight line) from the
-default stand pose, on truths of krang_sim.truths (12-25 mm forward error) and with the start
-model 2.5 cm forward of the demo's truth; and (slow) full 12-pose adaptive sessions with the start
-model 2.5 cm off on generated truths.
+"""Balancing through a pose move on hidden truths with real-sized CoM errors, offline: the online
+session's first move (the pose server's streamed straight line) from the default stand pose, on
+truths of krang_sim.truths (12-25 mm forward error) and with the start model 2.5 cm forward of the
+demo's truth; and (slow) full 12-pose adaptive sessions with the start model 2.5 cm off on
+generated truths.
 
 What is bounded (docs/control.md, "Pose moves"): no runaway (no max_speed_m_s stop), a wheel
 travel of at most MOVE_TRAVEL_M during the move, and either a balanced point or, where the pose's
@@ -21,15 +21,10 @@ from krang_model.config import config_path
 from krang_model.robot import KRANG_POSE_COLUMNS, load_krang
 from krang_pose_server.sequence import PoseSequence
 from krang_pose_server.streaming import PauseConfig
-from krang_adrc_controller.controller import JointMotion, load_controller_config
-from krang_sim.closed_loop import (
-    TABLE2_POSE,
-    ClosedLoop,
-    Disturbance,
-    run_online_session,
-    shifted_beta,
-    stand_pose,
-)
+from krang_adrc_controller.controller import load_controller_config
+from krang_adrc_controller.samples import JointMotion
+from krang_sim.closed_loop import ClosedLoop, Disturbance
+from krang_sim.scenarios import TABLE2_POSE, run_online_session, shifted_beta, stand_pose
 from krang_sim.truths import generate_truth
 
 #: wheel travel bound during one move, m: measured 0.39-0.67 m on the generated truths
@@ -153,14 +148,14 @@ def test_the_flag_is_a_python_bool_with_numpy_samples(robot):
     """The node's samples carry numpy floats (its wheel angles come from an array); a numpy bool
     flag reached std_msgs/Bool as false, and the pose server never saw the flag return."""
     loop = balancing_loop(robot)
-    plain = loop.sim.control_sample
+    plain = loop.control_sample
 
     def numpy_sample():
         sample = plain()
         sample.wheel_left, sample.wheel_right = np.array([sample.wheel_left, sample.wheel_right])
         return sample
 
-    loop.sim.control_sample = numpy_sample
+    loop.control_sample = numpy_sample
     assert loop.run(20.0, until=lambda o: o.balance_converged)
     assert type(loop.last_output.balance_converged) is bool
 
@@ -231,7 +226,7 @@ def travel_per_pose(res):
 def adaptive_session_off_model(robot, pool, seed, n_poses, **kw):
     """The online session (adaptive selection, map-online) on generated truth `seed`, started
     from a model 2.5 cm forward of the truth at the nominal stand pose."""
-    from krang_com_estimator.estimators import make_estimator
+    from krang_com_estimator import make_estimator
     from krang_pose_server.selection import AdaptiveSelector
 
     truth = generate_truth(robot, seed).beta

@@ -1,6 +1,7 @@
-"""bench/bench_ros_latency.py: the matching of wheel commands to sensor samples (fast, synthetic
-frame times), the device player's schedule, and a short --robot run (ros, slow) that must print
-its figures as JSON (and, --trace, the segments of its latency)."""
+"""bench/bench_ros_latency.py: the matching of wheel commands to sensor samples (its analysis,
+ros_latency_analysis.py, on synthetic frame times), the device player's schedule, and a short
+--robot run (ros, slow) that must print its figures as JSON (and, --trace, the segments of its
+latency)."""
 
 import importlib.util
 import json
@@ -32,7 +33,8 @@ def _load(path):
 
 @pytest.fixture(scope='module')
 def bench():
-    return _load(BENCH)
+    """The benchmark's analysis (ros_latency_analysis.py, plain numpy)."""
+    return _load(BENCH.parent / 'ros_latency_analysis.py')
 
 
 @pytest.fixture(scope='module')

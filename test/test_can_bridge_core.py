@@ -16,10 +16,10 @@ import numpy as np
 import pytest
 import yaml
 
-from krang_can_bridge import bridge
+from krang_can_bridge import commands, diagnostics, snapshots
 from krang_can_bridge.bridge import BridgeCore
 from krang_can_bridge.config import ConfigError, load_devices
-from krang_can_bridge.protocols import amc as amc_proto
+from krang_can_bridge.protocols import amc_canopen
 from krang_model.drivetrain import drivetrain
 from krang_model.robot import load_krang
 
@@ -331,7 +331,7 @@ def test_inhibit_blocks_motion_and_is_reported():
     assert core.motion_allowed(t)
 
 
-# ---- the two wheels are one machine (issue 10.3) ------------------------------------------------
+# ---- the two wheels are one machine -----------------------------------------------------------
 def test_half_invalid_wheel_command_gives_zero_on_both_and_is_reported():
     core, _, t = healthy_core()
     frames = core.wheel_current_frames(math.nan, 20.0, t)
@@ -382,12 +382,12 @@ def test_rejected_commands_make_diagnostics_warn_with_count_and_reason():
     report = {r.name: r for r in core.diagnostics(t + 1.0)}['can_bridge: commands']
     assert report.level == 1 and report.values['rejected_commands'] == '2'
     assert 'LJ2' in report.message and 'LJ2' in report.values['last_rejection']
-    later = {r.name: r for r in core.diagnostics(t + bridge.REJECTION_WARN_S + 0.1)}
+    later = {r.name: r for r in core.diagnostics(t + diagnostics.REJECTION_WARN_S + 0.1)}
     assert later['can_bridge: commands'].level == 0
     assert '2 rejected' in later['can_bridge: commands'].message
 
 
-# ---- a faulted drive stops both wheels (issue 10.4) ---------------------------------------------
+# ---- a faulted drive stops both wheels --------------------------------------------------------
 RIGHT = CFG.wheels.drive('JRWheel').node_id
 
 
@@ -456,7 +456,7 @@ def test_a_started_drive_leaving_operation_enabled_is_a_fault():
     assert not core.motion_allowed(t + 0.002)
 
 
-# ---- the drive-side watchdog (issue 10.2) -------------------------------------------------------
+# ---- the drive-side watchdog -------------------------------------------------------------------
 def test_heartbeat_only_while_the_command_loop_runs():
     core, _, t = healthy_core()
     wd = CFG.wheels.watchdog
@@ -496,7 +496,7 @@ def test_guarding_requests_and_no_watchdog():
 
 def test_startup_configures_the_drive_watchdog_before_the_drive_starts():
     wd = CFG.wheels.watchdog
-    steps = amc_proto.startup_sequence(CFG.wheels.drive('JLWheel'), CFG.wheels)
+    steps = amc_canopen.startup_sequence(CFG.wheels.drive('JLWheel'), CFG.wheels)
     keys = [(s.action, s.index, s.subindex, s.value) for s in steps]
     consumer = ('write', 0x1016, 1, (wd.node_id << 16) | round(wd.timeout_s * 1000))
     abort = ('write', 0x6007, 0, wd.abort_connection_option)
@@ -505,7 +505,7 @@ def test_startup_configures_the_drive_watchdog_before_the_drive_starts():
     guarding = dataclasses.replace(wd, mechanism='guarding')
     keys = [
         (s.index, s.value)
-        for s in amc_proto.startup_sequence(
+        for s in amc_canopen.startup_sequence(
             CFG.wheels.drive('JLWheel'), dataclasses.replace(CFG.wheels, watchdog=guarding)
         )
     ]
@@ -513,7 +513,7 @@ def test_startup_configures_the_drive_watchdog_before_the_drive_starts():
     assert (0x100D, round(wd.timeout_s / wd.period_s)) in keys
     # without a watchdog the sequence is the 2018 one
     none = dataclasses.replace(CFG.wheels, watchdog=dataclasses.replace(wd, mechanism='none'))
-    steps = amc_proto.startup_sequence(CFG.wheels.drive('JLWheel'), none)
+    steps = amc_canopen.startup_sequence(CFG.wheels.drive('JLWheel'), none)
     assert steps[-1].value == 0x0F
     assert not {0x1016, 0x100C, 0x100D, 0x6007} & {s.index for s in steps}
 
@@ -579,7 +579,7 @@ def test_on_frame_reports_each_sample_when_its_frames_are_in():
     rates = struct.pack('<hhhBB', 0, 0, 0, 0, dev.seq)
     accel = struct.pack('<hhhBB', 0, 0, round(9.81 / (9.80665 * 0.0003)), 0, dev.seq)
     assert core.on_frame(msg(0x40, rates), t, 'can3') is None
-    assert core.on_frame(msg(0x50, accel), t, 'can3') == bridge.IMU_SAMPLE
+    assert core.on_frame(msg(0x50, accel), t, 'can3') == snapshots.IMU_SAMPLE
     assert core.imu_state(t).stamp == t
     events, amps = [], {'JLWheel': 3.0, 'JRWheel': -2.0}
     for d in CFG.wheels.drives:
@@ -591,7 +591,7 @@ def test_on_frame_reports_each_sample_when_its_frames_are_in():
         events.append(core.on_frame(current, t, 'can3'))
         events.append(core.on_frame(msg(base + 6, struct.pack('<H', 0x0027)), t, 'can3'))
     # HandDevices sent no current TPDO: the first sample completes with the right drive's current
-    assert events == [None] * 6 + [bridge.WHEEL_SAMPLE, None]
+    assert events == [None] * 6 + [snapshots.WHEEL_SAMPLE, None]
     js = core.joint_state(t)
     drive = drivetrain(load_krang())
     efforts = dict(zip(js.names, js.efforts))
@@ -619,11 +619,11 @@ def test_watchdog_sends_only_while_commands_stop():
         return [wheel_amps_by_hand(f) for f in core.wheel_watchdog_frames(now)]
 
     quiet_ticks = np.arange(t + 0.5 * period, t + timeout, 0.5 * period)
-    assert len(quiet_ticks) > 2 * bridge.WATCHDOG_QUIET_PERIODS
+    assert len(quiet_ticks) > 2 * commands.WATCHDOG_QUIET_PERIODS
     assert [tick(now) for now in quiet_ticks] == [[]] * len(quiet_ticks)
     late = t + timeout + period
     assert tick(late) == [0.0, 0.0]
     assert tick(late + 0.5 * period) == []
-    assert tick(late + bridge.WATCHDOG_QUIET_PERIODS * period) == [0.0, 0.0]
+    assert tick(late + commands.WATCHDOG_QUIET_PERIODS * period) == [0.0, 0.0]
     # the loop counts as running either way: the drives' watchdog keeps being fed
     assert core.watchdog_frames(late) != []

@@ -27,7 +27,8 @@ from krang_can_bridge.config import load_devices  # noqa: E402
 from krang_can_bridge.node import CanBridgeNode  # noqa: E402
 from krang_model.drivetrain import drivetrain  # noqa: E402
 from krang_model.robot import load_krang  # noqa: E402
-from krang_ros import messages, names, topics, wire  # noqa: E402
+from krang_core import names  # noqa: E402
+from krang_ros import messages, topics, wire  # noqa: E402
 from krang_sim.devices import KrangCanDevices  # noqa: E402
 
 
@@ -136,7 +137,7 @@ def test_node_bridges_states_and_commands(devices_file):
     ex.add_node(bridge)
     ex.add_node(probe)
     # the receive thread serves the DMU's bus first (test_can_bus_io.py: in the order given)
-    assert next(iter(bridge.reader._by_fd.values()))[0] == cfg.imu.bus
+    assert next(iter(bridge.runtime.reader._by_fd.values()))[0] == cfg.imu.bus
 
     def spin_until(cond, timeout):
         end = time.monotonic() + timeout

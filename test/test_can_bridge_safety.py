@@ -44,7 +44,8 @@ from krang_cli.node_set import file_parameter  # noqa: E402
 from krang_cli.processes import NodeSet  # noqa: E402
 from krang_model.drivetrain import drivetrain  # noqa: E402
 from krang_model.robot import load_krang  # noqa: E402
-from krang_ros import messages, names, topics  # noqa: E402
+from krang_core import names  # noqa: E402
+from krang_ros import messages, topics  # noqa: E402
 
 
 def wheel_command(efforts):
@@ -281,7 +282,7 @@ def test_hung_command_loop_stops_the_beat_and_the_drives(peer_map):
         frames = bridge.core.counters.frames
         time.sleep(1.0)
         assert bridge.core.counters.frames > frames + 100  # frames still come in
-        assert bridge._watchdog_thread.is_alive()
+        assert bridge.runtime.watchdog_thread.is_alive()
         assert both_driven(peer, hung_at)
         for joint in ('JLWheel', 'JRWheel'):
             zero_at = peer.first_zero_after(joint, hung_at)

@@ -10,7 +10,7 @@ import pytest
 
 from krang_can_bridge.config import ConfigError, load_devices
 from krang_can_bridge.protocols import MalformedFrame, UnknownFrame, ValueOutOfRange, load_dbc
-from krang_can_bridge.protocols import amc, powercube as pc
+from krang_can_bridge.protocols import amc, amc_canopen, powercube as pc
 from krang_can_bridge.protocols.dmu_imu import DmuAccelerations, DmuCodec, DmuRates
 from krang_model.drivetrain import drivetrain
 from krang_model.robot import load_krang
@@ -248,7 +248,7 @@ def test_amc_malformed_frames_rejected(left):
 
 
 def test_amc_startup_sequence_enters_current_mode(cfg):
-    steps = amc.startup_sequence(cfg.wheels.drive('JLWheel'), cfg.wheels)
+    steps = amc_canopen.startup_sequence(cfg.wheels.drive('JLWheel'), cfg.wheels)
     writes = [(s.index, s.subindex, s.value) for s in steps if s.action == 'write']
     assert (0x6060, 0, 4) in writes  # op-mode current
     # timer 1 (cycle in ms, then the TPDOs it drives) as the device map says, before the start

@@ -14,31 +14,24 @@ from krang_adrc_controller.adrc import AdrcConfig, AdrcController
 from krang_adrc_controller.controller import (
     BalanceController,
     ControllerConfig,
-    ControlSample,
     load_controller_config,
-    sample_from_sensors,
 )
+from krang_adrc_controller.samples import ControlSample, sample_from_sensors
 from krang_adrc_controller.eso import EsoConfig
 from krang_adrc_controller.metrics import compute_metrics
 from krang_model.beta import load_beta
 from krang_model.com import balance_pitch, com_error, x_com
 from krang_model.config import config_path
+from krang_model.drivetrain import drivetrain
 from krang_model.robot import load_krang
-from krang_com_estimator.estimators import make_estimator
-from krang_sim.closed_loop import (
-    TABLE2_POSE,
-    ClosedLoop,
-    Disturbance,
-    FastKrangSim,
-    run_balance,
-    run_online_session,
-    shifted_beta,
-)
-from krang_sim.physics import KrangSim, SimConfig, SensorNoise
+from krang_com_estimator import make_estimator
+from krang_sim.closed_loop import ClosedLoop, Disturbance
+from krang_sim.reduced_plant import ReducedPlant
+from krang_sim.scenarios import TABLE2_POSE, run_balance, run_online_session, shifted_beta
+from krang_sim.sensors import SensorModel, quiet_noise
 
-QUIET = SensorNoise(
-    imu_pitch_std_rad=0.0, gyro_std_rad_s=0.0, accel_std_m_s2=0.0, joint_std_rad=0.0
-)
+QUIET = quiet_noise()
+CASTER_PITCH = drivetrain(load_krang()).caster_pitch
 
 
 @pytest.fixture(scope='module')
@@ -178,10 +171,11 @@ def test_adrc_law_equals_its_matrix_form(robot, true_beta, cfg):
     assert 0 < saturated < 400  # the clamp was exercised, not always on
 
 
-def test_fast_sim_steps_and_samples_exactly_like_krangsim(robot, true_beta):
-    cfg = SimConfig(noise=QUIET)
-    a = KrangSim(robot, true_beta, TABLE2_POSE, config=cfg)
-    b = FastKrangSim(robot, true_beta, TABLE2_POSE, config=cfg)
+def test_fast_path_steps_and_samples_exactly_like_the_full_step(robot, true_beta):
+    """The reduced plant's hot path (torques held over step(n)) and the sensor model's fast
+    sample equal the full step, one at a time, and every device's sample."""
+    a, b = (ReducedPlant(robot, true_beta, TABLE2_POSE) for _ in range(2))
+    sa, sb = (SensorModel(robot, noise=QUIET) for _ in range(2))
     currents = (
         [(-40.0, -38.0)] * 300 + [(60.0, 55.0)] * 100 + [(5.0, -5.0)] * 200
     )  # incl. the clamp
@@ -193,11 +187,12 @@ def test_fast_sim_steps_and_samples_exactly_like_krangsim(robot, true_beta):
             b.command_joints(pose)
         a.command_currents(il, ir)
         b.command_currents(il, ir)
-        a.step(2)
+        a._step_one()
+        a._step_one()
         b.step(2)
         assert b.state == a.state and b.t == a.t and b.applied_current == a.applied_current
-        ref = sample_from_sensors(a.sensors(), a.joints_moving)
-        got = b.control_sample()
+        ref = sample_from_sensors(sa.sample(a.motion()), a.joints_moving)
+        got = sb.control_sample(b)
         for name in (
             't',
             'q_base',
@@ -221,7 +216,7 @@ def test_stands_up_from_the_caster_and_balances(runs, name):
     ex = run.extra
     assert ex['stood_up'] and ex['final_mode'] == 'balance'
     assert ex['mode_times']['stand_up'] < 1.1 < ex['mode_times']['balance'] < 12.0
-    assert run.extra['q_base_true'][0] == pytest.approx(-1.7643, abs=2e-3)  # sat on the caster
+    assert run.extra['q_base_true'][0] == pytest.approx(CASTER_PITCH, abs=2e-3)  # on the caster
     last = run.t > 22.0
     # at rest the TRUE CoM is over the axle, whatever the model says
     assert np.abs(ex['q_base_true'][last] - ex['true_balance_pitch']).max() < 2e-3
@@ -288,7 +283,7 @@ def test_mode_transitions_sit_stand_balance_sit_stop(robot, true_beta):
     ctl.request_sit()
     assert loop.run(10.0, until=lambda o: o.mode == 'sit')
     loop.run(2.0)
-    assert loop.sim.q_base < -1.76  # back on the caster
+    assert loop.sim.q_base < CASTER_PITCH  # back on the caster (pressed into it)
     ctl.request_stop()
     loop.run(0.01)
     assert ctl.mode.value == 'safe_stop' and loop.last_output.current_left == 0.0
@@ -330,7 +325,7 @@ def test_stale_sensors_stop_the_wheels_within_the_timeout(robot, true_beta):
 def test_caller_stale_flag_and_nan_data_stop_at_once(robot, true_beta):
     cfg = load_controller_config(overrides={'modes.start_enabled': True})
     ctl = BalanceController(robot, true_beta, cfg)
-    s = ControlSample(0.0, -1.7643, 0.0, 0.0, 0.0, 0.0, 0.0, TABLE2_POSE.copy(), False)
+    s = ControlSample(0.0, CASTER_PITCH, 0.0, 0.0, 0.0, 0.0, 0.0, TABLE2_POSE.copy(), False)
     assert ctl.step(s).mode in ('sit', 'stand_up')
     s.t = 0.002
     out = ctl.step(s, stale=True)
@@ -366,7 +361,7 @@ def test_new_beta_at_rest_is_bumpless_with_the_balance_point_observer(robot, tru
         true_beta,
         wrong,
         TABLE2_POSE,
-        sim_config=SimConfig(noise=QUIET),
+        noise=QUIET,
         seed=0,
         log_rate_hz=0,
     )
@@ -541,7 +536,7 @@ def test_cli_table2_on_an_extended_model(tmp_path, robot, true_beta, krang_data)
     import json
     import yaml
     from krang_cli.main import main
-    from krang_discrepancy.report import FORMAT
+    from krang_discrepancy.extended_model import FORMAT
 
     betas = np.vstack(
         [robot.nominal_beta] * 15 + [shifted_beta(robot, true_beta, TABLE2_POSE, 0.01)]
@@ -553,8 +548,7 @@ def test_cli_table2_on_an_extended_model(tmp_path, robot, true_beta, krang_data)
             {
                 'format': FORMAT,
                 'nominal': {},
-                'effects': [],
-                'sim_effects': {'imu_pitch_bias_rad': 0.01},
+                'effects': [{'key': 'imu_pitch_bias', 'parameter': 0.01}],
             }
         )
     )
@@ -586,7 +580,7 @@ def test_cli_table2_on_an_extended_model(tmp_path, robot, true_beta, krang_data)
     per_rad = table['beta_16']['expected_rest_offset_m'] / table['beta_16']['theta_error_rad']
     rest = table['TRUE beta']['physical_resting_displacement_m'][0]
     assert rest == pytest.approx(per_rad * 0.01, rel=0.05)
-    assert 'imu_pitch_bias_rad=0.01' in (out / 'report.md').read_text()
+    assert 'imu_pitch_bias=0.01' in (out / 'report.md').read_text()
 
 
 @pytest.mark.slow

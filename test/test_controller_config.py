@@ -1,5 +1,5 @@
 """The controller's configuration: nested dataclasses <-> dotted ROS parameters
-(krang_ros/params.py, without ROS), and the parameter files that set them."""
+(krang_core/params.py, without ROS), and the parameter files that set them."""
 
 from dataclasses import dataclass, field
 
@@ -8,7 +8,7 @@ import yaml
 
 from krang_adrc_controller.controller import NODE_NAME, ControllerConfig, load_controller_config
 from krang_model.config import config_path
-from krang_ros import params
+from krang_core import params
 from krang_ros.realtime import SchedulingParams
 
 

@@ -15,7 +15,8 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy  # noqa: E402
 from sensor_msgs.msg import Imu, JointState  # noqa: E402
 
 from krang_adrc_controller.node import AdrcControllerNode  # noqa: E402
-from krang_ros import messages, names, topics  # noqa: E402
+from krang_core import names  # noqa: E402
+from krang_ros import messages, topics  # noqa: E402
 
 #: a burst, a stall of 20 samples (40 ms at 500 Hz: the sensor-data profile's 5 would drop 15)
 #: and one of 45 (90 ms: topics.STEPPED's former 25 would drop 20)

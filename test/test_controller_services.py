@@ -23,7 +23,8 @@ from krang_cli.node_set import params_files  # noqa: E402
 from krang_cli.processes import NodeSet  # noqa: E402
 from krang_model.drivetrain import drivetrain  # noqa: E402
 from krang_model.robot import load_krang  # noqa: E402
-from krang_ros import names, topics  # noqa: E402
+from krang_core import names  # noqa: E402
+from krang_ros import topics  # noqa: E402
 from krang_ros.session_client import SessionError, open_session_client  # noqa: E402
 from krang_sim.node import GROUND_TRUTH_FIELDS  # noqa: E402
 from krang_sim.session_config import session_devices_file  # noqa: E402

@@ -19,12 +19,13 @@ import pytest
 
 from krang_can_bridge.bridge import BridgeCore
 from krang_can_bridge.config import load_devices
-from krang_can_bridge.protocols import amc as amc_proto
+from krang_can_bridge.protocols import amc_canopen
 from krang_can_bridge.protocols import load_dbc
 from krang_can_bridge.protocols import powercube as pc
 from krang_model.drivetrain import drivetrain
 from krang_model.robot import load_krang
-from krang_sim.devices import AmcDriveEmulator, DmuImuEmulator, KrangCanDevices, PowerCubeEmulator
+from krang_sim.devices import KrangCanDevices
+from krang_sim.emulators import AmcDriveEmulator, DmuImuEmulator, PowerCubeEmulator
 
 CFG = load_devices()
 _uid = itertools.count()
@@ -124,7 +125,7 @@ class Rig:
 
 def start_drives(rig):
     for drive in rig.cfg.wheels.drives:
-        assert amc_proto.run_startup(rig.network, drive, rig.cfg.wheels) == []
+        assert amc_canopen.run_startup(rig.network, drive, rig.cfg.wheels) == []
 
 
 # -------------------------------------------------------------------------------------------------
@@ -138,7 +139,7 @@ def test_amc_startup_through_canopen_enables_current_mode():
             assert (w.nmt_state, w.state, w.mode) == ('OPERATIONAL', 'OPERATION_ENABLED', 4)
         # a bridge whose config disagrees with the drive's constants is told so
         wrong = dataclasses.replace(rig.cfg.wheels.drive('JLWheel'), peak_current_kp=500)
-        mismatches = amc_proto.run_startup(rig.network, wrong, rig.cfg.wheels)
+        mismatches = amc_canopen.run_startup(rig.network, wrong, rig.cfg.wheels)
         assert len(mismatches) == 1 and 'Kp' in mismatches[0] and '600' in mismatches[0]
 
 
@@ -148,7 +149,7 @@ def test_amc_startup_sets_the_tpdo_timer_the_device_map_names():
         assert all(w.tpdo_period_s is None for w in wheels.values())  # power-on: timer 1 off
         seven = dataclasses.replace(rig.cfg.wheels, tpdo_period_ms=7)
         for drive in seven.drives:
-            assert amc_proto.run_startup(rig.network, drive, seven) == []
+            assert amc_canopen.run_startup(rig.network, drive, seven) == []
         assert [w.tpdo_period_s for w in wheels.values()] == [0.007, 0.007]
 
 
@@ -229,7 +230,7 @@ def test_emulated_wheel_state_is_decoded_to_the_values_put_in():
             return dict(zip(js.names, zip(js.positions, js.velocities)))
 
         assert wait_for(lambda: 'JRWheel' in decoded())
-        count = 2 * math.pi / (4000 * 15)
+        count = 1.0 / rig.cfg.wheels.counts_per_wheel_rad
         for joint in ('JLWheel', 'JRWheel'):
             pos, vel = decoded()[joint]
             assert pos == pytest.approx(state['pos'][joint], abs=count)
@@ -324,15 +325,16 @@ def test_amc_emulator_ignores_current_until_started_and_drops_it_on_fault():
 def test_dmu_emulator_quantises_saturates_and_adds_bias():
     dbc = load_dbc(CFG.dbc_path)
     em = DmuImuEmulator(CFG.imu, dbc)
+    rate_lsb, accel_lsb = em.codec.rate_lsb_rad_s, em.codec.accel_lsb_m_s2  # the DBC's
     rates, acc = em.frames((0.0, 0.0, 10.0), (0.0, 0.0, 9.81))
     dq, dp, dr, _, seq = struct.unpack('<hhhBB', bytes(rates.data))
     assert (dq, dp) == (
-        round(CFG.imu.gyro_bias_rad_s[0] / math.radians(0.008)),
-        round(CFG.imu.gyro_bias_rad_s[1] / math.radians(0.008)),
+        round(CFG.imu.gyro_bias_rad_s[0] / rate_lsb),
+        round(CFG.imu.gyro_bias_rad_s[1] / rate_lsb),
     )
     # 10 rad/s saturates
     assert dr == 32767 and seq == 0
-    assert struct.unpack('<hhhBB', bytes(acc.data))[2] == round(9.81 / (0.0003 * 9.80665))
+    assert struct.unpack('<hhhBB', bytes(acc.data))[2] == round(9.81 / accel_lsb)
     assert struct.unpack('<hhhBB', bytes(em.frames((0, 0, 0), (0, 0, 0))[1].data))[4] == 1
     em.on_frame(can.Message(arbitration_id=0x90, data=b'\x0f', is_extended_id=False))
     assert em.frames((0, 0, 0), (0, 0, 9.81)) == []
@@ -396,3 +398,58 @@ def test_devices_step_says_when_a_joint_moved():
         moves.append(moved)
         before = now
     assert 50 < sum(moves) < 1000  # it moved, and it held still
+
+
+def test_sample_frames_of_a_plant_through_the_sensor_model():
+    """sim_krang's sample: the plant's motion through the one sensor model (encoder counts, the
+    IMU's misalignment, the axle's acceleration) and the emulators decodes, with the bridge's
+    codecs, to the wheel angles and, at rest, to the pitch the misaligned IMU sees."""
+    from krang_can_bridge.imu_filter import pitch_measurement, sensor_vectors
+    from krang_can_bridge.protocols import amc as amc_proto
+    from krang_can_bridge.protocols import dmu_imu
+    from krang_model.effects import ModelTerms, model_terms
+    from krang_sim.plant import make_plant
+    from krang_sim.sensors import SensorModel
+
+    robot = load_krang()
+    terms = model_terms({'imu_pitch_bias': 0.02}, ModelTerms.nominal(drivetrain(robot)))
+    plant = make_plant('reduced', robot, robot.nominal_beta, [0.0] * 16, q_base=-1.2, terms=terms)
+    sensors = SensorModel(robot, terms)
+    devices = KrangCanDevices(CFG, auto_enable_wheels=True)
+    codec = dmu_imu.DmuCodec(load_dbc(CFG.dbc_path))
+    mount = CFG.imu.mount_angle_rad
+
+    def decoded(motion):
+        frames = devices.sensor_frames(motion, sensors)
+        ids = (dmu_imu.RATES_ID, dmu_imu.ACCELERATIONS_ID)
+        imu = {
+            type(r).__name__: r
+            for r in (codec.decode(f.msg) for f in frames if f.msg.arbitration_id in ids)
+        }
+        rates = [v - b for v, b in zip(imu['DmuRates'][:3], devices.imu.bias)]
+        wheels = {}
+        for w in devices.wheels.values():
+            for f in frames:
+                if f.msg.arbitration_id == w.codec.ids[amc_proto.TPDO_POSITION]:
+                    r = w.codec.decode(f.msg)
+                    wheels[r.joint] = r.value
+        return pitch_measurement(imu['DmuAccelerations'][:3], rates, mount), wheels
+
+    (pitch, _), _ = decoded(plant.motion())  # at rest
+    assert pitch == pytest.approx(-1.2 + 0.02, abs=2e-3)
+    plant.command_currents(3.0, -2.0)
+    plant.step(20)
+    motion = plant.motion()
+    seen, rate, forward, up = sensors.dmu_inputs(motion)
+    assert (seen, rate) == (motion.q_base + 0.02, motion.dq_base)
+    assert forward == pytest.approx(plant.axle_acceleration, abs=1e-9)
+    assert up == pytest.approx(plant.drive.gravity, abs=1e-9)
+    (pitch, pitch_rate), wheels = decoded(motion)
+    force, rates = sensor_vectors(
+        seen, rate, mount, forward_specific_force=forward, up_specific_force=up
+    )
+    assert pitch == pytest.approx(pitch_measurement(force, rates, mount)[0], abs=2e-3)
+    assert pitch_rate == pytest.approx(motion.dq_base, abs=codec.rate_lsb_rad_s)
+    count = 1.0 / CFG.wheels.counts_per_wheel_rad
+    assert wheels['JLWheel'] == pytest.approx(motion.wheel_left, abs=count)
+    assert wheels['JRWheel'] == pytest.approx(motion.wheel_right, abs=count)

@@ -1,13 +1,13 @@
 """krang discrepancy: replay, locate, name, extend.
 
-Each naming test hides ONE effect in the simulated plant (krang_sim.physics.SimEffects) and runs
-the workflow on the record with the whole effect library; the workflow is not told which effect,
-nor its value. The data generator (synthetic.simulate_record) is KrangSim under the ADRC
-BalanceController with the NOMINAL model: sit, stand up, balance through three pose changes with a
-+-3 A current excitation.
+Each naming test hides ONE effect of the library (krang_model.effects) in the simulated plant and
+runs the workflow on the record with the whole effect library; the workflow is not told which
+effect, nor its value. The data generator (synthetic.simulate_record) is the reduced plant under
+the ADRC BalanceController with the NOMINAL model, on the closed loop: sit, stand up, balance
+through three pose changes with a +-3 A current excitation.
 
 The replay is configured once for all simulated records with the simulator's own data-acquisition
-property, never the hidden effect: KrangSim re-reduces a moving pose every 20 ms, so its body lags
+property, never the hidden effect: the plant re-reduces a moving pose every 20 ms, so its body lags
 the joints by 10 ms on average (pose_delay_s=0.01; without it the no-effect case sees a ~10 %
 'viscous friction' in the moving-joint phases, the pose lag's signature). stride_s=0.1 keeps the
 default run fast.
@@ -26,18 +26,20 @@ import pytest
 from krang_model import effects as fx
 from krang_discrepancy.loaders import load_bag_record, load_csv_record, save_bag
 from krang_discrepancy.locate import locate
-from krang_discrepancy.naming import Fit, NamingConfig, gaps, name_effects
+from krang_discrepancy.extended_model import load_extended_model, write_extended_model
+from krang_discrepancy.fitting import Fit
+from krang_discrepancy.naming import NamingConfig, gaps, name_effects
 from krang_discrepancy.nominal import NominalModel
 from krang_discrepancy.phases import PHASES, label_phases
 from krang_discrepancy.record import Record
 from krang_discrepancy.replay import Replay, ReplayConfig
-from krang_discrepancy.report import load_extended_model, run_discrepancy, write_extended_model
+from krang_discrepancy.report import run_discrepancy
 from krang_discrepancy.synthetic import simulate_record
 from krang_model.drivetrain import drivetrain
 from krang_model.robot import load_krang
 from krang_model.wip import WipDynamics, reduce_pose
-from krang_sim.closed_loop import TABLE2_POSE
-from krang_sim.physics import SensorNoise, SimEffects
+from krang_sim.scenarios import TABLE2_POSE
+from krang_sim.sensors import SensorNoise
 
 SIM_REPLAY = dict(pose_delay_s=0.01, stride_s=0.1)
 RECORD = dict(seconds=22.0, hold_s=2.0, sit_down=False)
@@ -51,28 +53,28 @@ NO_NOISE = SensorNoise(
     joint_std_rad=0.0,
 )
 
-# name, hidden SimEffects, true value in the reported unit, detail the report must give
+# name, hidden effects {key: parameter}, true value in the reported unit, detail the report gives
 CASES = [
-    ('imu_pitch_bias', SimEffects(imu_pitch_bias_rad=0.02), 0.02, {}),
-    ('floor_slope', SimEffects(floor_slope_rad=0.02), 0.02, {}),
+    ('imu_pitch_bias', {'imu_pitch_bias': 0.02}, 0.02, {}),
+    ('floor_slope', {'floor_slope': 0.02}, 0.02, {}),
     (
         'wheel_radius',
-        SimEffects(wheel_radius_m=0.25),
+        {'wheel_radius': 0.25},
         0.25,
         {},
     ),  # the real question: 0.25 vs 0.2667 m
-    ('payload', SimEffects(payload_kg=5.0), 5.0, {'link': 'lGripper'}),
-    ('wheel_viscous_friction', SimEffects(wheel_viscous_Nm_s=2.0), 2.0, {}),
-    ('wheel_coulomb_friction', SimEffects(wheel_coulomb_Nm=2.0), 2.0, {}),
+    ('payload', {'payload@lGripper': 5.0}, 5.0, {'link': 'lGripper'}),
+    ('wheel_viscous_friction', {'wheel_viscous_friction': 2.0}, 2.0, {}),
+    ('wheel_coulomb_friction', {'wheel_coulomb_friction': 2.0}, 2.0, {}),
     (
         'torque_constant',
-        SimEffects(torque_constant_scale=0.8),
+        {'torque_constant': 0.8},
         0.8 * drivetrain(load_krang()).torque_constant,
         {},
     ),
-    ('actuation_delay', SimEffects(actuation_delay_s=0.02), 0.02, {}),
-    ('encoder_offset', SimEffects(encoder_offset_rad=0.05), 0.05, {'joint': 'JWaist'}),
-    ('rolling_resistance', SimEffects(drive_extra={'ground_viscous': 4.0}), 4.0, {}),
+    ('actuation_delay', {'actuation_delay': 0.02}, 0.02, {}),
+    ('encoder_offset', {'encoder_offset@JWaist': 0.05}, 0.05, {'joint': 'JWaist'}),
+    ('rolling_resistance', {'rolling_resistance': 4.0}, 4.0, {}),
 ]
 VALUE_REL_TOL = 0.05
 MIN_GAP_SHRINK = 2.5
@@ -115,7 +117,7 @@ def test_hidden_effect_is_named_with_value_and_the_gap_shrinks(name, hidden, tru
 
 
 def test_no_hidden_effect_names_none(model):
-    rec = simulate_record(SimEffects(), seed=3, **RECORD)
+    rec = simulate_record(None, seed=3, **RECORD)
     rp, res = _name(rec, model)
     assert res.name == 'none', [
         (f.key, round(f.improvement, 3), round(f.t, 1)) for f in res.singles[:3]
@@ -182,35 +184,20 @@ def test_every_library_effect_reproduces_the_simulator(model):
     """All nine effects at once in the plant, no sensor noise: the replay with the true values
     predicts the simulator to ~1e-4 rad (integration and pose-update differences only) while the
     nominal model is off by centimetres of wheel travel."""
-    hidden = SimEffects(
-        imu_pitch_bias_rad=0.01,
-        floor_slope_rad=0.01,
-        wheel_radius_m=0.26,
-        payload_kg=3.0,
-        wheel_viscous_Nm_s=0.5,
-        wheel_coulomb_Nm=0.5,
-        torque_constant_scale=0.9,
-        actuation_delay_s=0.004,
-        encoder_offset_rad=0.02,
-    )
+    hidden = {
+        'imu_pitch_bias': 0.01,
+        'floor_slope': 0.01,
+        'wheel_radius': 0.26,
+        'payload@lGripper': 3.0,
+        'wheel_viscous_friction': 0.5,
+        'wheel_coulomb_friction': 0.5,
+        'torque_constant': 0.9,
+        'actuation_delay': 0.004,
+        'encoder_offset@JWaist': 0.02,
+    }
     rec = simulate_record(hidden, seconds=14.0, seed=1, noise=NO_NOISE, hold_s=1.5, sit_down=False)
     rp = Replay([rec], model, ReplayConfig(**SIM_REPLAY))
-    keys = [
-        'imu_pitch_bias',
-        'floor_slope',
-        'wheel_radius',
-        'payload@lGripper',
-        'wheel_viscous_friction',
-        'wheel_coulomb_friction',
-        'torque_constant',
-        'actuation_delay',
-        'encoder_offset@JWaist',
-    ]
-    truth = fx.apply_effects(
-        model.terms(),
-        [fx.get_effect(k) for k in keys],
-        [0.01, 0.01, 0.26, 3.0, 0.5, 0.5, 0.9, 0.004, 0.02],
-    )
+    truth = fx.model_terms(hidden, model.terms())  # the plant's terms are the replay's
     r0, r1 = rp.residuals([model.terms(), truth])
     w = rp.win_phase == 'balancing'
     assert np.sqrt(np.mean(r1[w][:, -1, 0] ** 2)) < 2e-4
@@ -221,7 +208,7 @@ def test_every_library_effect_reproduces_the_simulator(model):
 
 
 def test_phases_follow_the_controller_modes(model):
-    rec = simulate_record(SimEffects(), seconds=24.0, seed=2, hold_s=2.0, sit_down=True)
+    rec = simulate_record(None, seconds=24.0, seed=2, hold_s=2.0, sit_down=True)
     lab = label_phases(rec)
     mode = rec.meta['mode']
     assert (
@@ -237,7 +224,7 @@ def test_phases_follow_the_controller_modes(model):
 
 
 def test_locate_points_at_the_biased_signals(model):
-    rec = simulate_record(SimEffects(floor_slope_rad=0.02), seed=4, **RECORD)
+    rec = simulate_record({'floor_slope': 0.02}, seed=4, **RECORD)
     rp = Replay([rec], model, ReplayConfig(**SIM_REPLAY))
     loc = locate(rp)
     st = loc.phase_stats['balancing']
@@ -277,7 +264,7 @@ def test_user_effect_registers_and_changes_the_model(model):
         fx.unregister_effect('test_pitch_spring')
 
 
-def test_extended_model_yaml_maps_onto_simeffects(tmp_path, model):
+def test_extended_model_yaml_round_trip(tmp_path, model):
     effs = [
         fx.get_effect('floor_slope'),
         fx.get_effect('payload@rGripper'),
@@ -293,22 +280,31 @@ def test_extended_model_yaml_maps_onto_simeffects(tmp_path, model):
     )
     path = tmp_path / 'ext.yaml'
     write_extended_model(path, fit, model)
-    sim, terms = load_extended_model(path)
-    assert (sim.floor_slope_rad, sim.payload_kg, sim.payload_body, sim.torque_constant_scale) == (
-        0.01,
-        2.0,
-        'rGripper',
-        0.9,
-    )
-    assert tuple(sim.payload_com_m) == (0.0, 0.0, 0.1)
-    assert terms.drive.floor_slope == 0.01 and terms.payloads[0][2] == 2.0
+    terms = load_extended_model(path)
+    assert terms.payloads == (('rGripper', (0.0, 0.0, 0.1), 2.0),)
+    assert terms.drive.floor_slope == 0.01
     assert terms.drive.torque_constant == pytest.approx(
         0.9 * model.drive.torque_constant, rel=1e-15
     )
 
 
+def test_an_extended_model_file_users_keep_still_loads(model):
+    """test/data/extended_model_v1.yaml, a file of format 1 that holds a ``sim_effects`` section
+    beside the effects list, loads: the effects list gives the robot."""
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parent / 'data' / 'extended_model_v1.yaml'
+    terms = load_extended_model(path, model.terms())
+    d = model.drive
+    assert terms.drive.floor_slope == 0.0123
+    assert terms.drive.torque_constant == pytest.approx(0.91 * d.torque_constant, rel=1e-15)
+    assert terms.drive.ground_viscous == d.ground_viscous + 1.75
+    assert terms.payloads == (('lGripper', (0.0, 0.0, 0.1), 2.5),)
+    assert terms.actuation_delay == 0.0 and terms.imu_pitch_bias == 0.0
+
+
 def test_bag_round_trip(tmp_path):
-    rec = simulate_record(SimEffects(), seconds=6.0, seed=5, programme=(), sit_down=False)
+    rec = simulate_record(None, seconds=6.0, seed=5, programme=(), sit_down=False)
     path = save_bag(rec, tmp_path / 'run.mcap', rate_hz=200.0)
     back = load_bag_record(path)
     assert back.period == pytest.approx(0.005, rel=1e-3)
@@ -348,7 +344,7 @@ def test_hardware_csv_loader(krang_data):
 def test_cli_end_to_end_on_a_bag(tmp_path, capsys):
     from krang_cli.main import main
 
-    rec = simulate_record(SimEffects(floor_slope_rad=0.015), seed=6, **RECORD)
+    rec = simulate_record({'floor_slope': 0.015}, seed=6, **RECORD)
     bag = save_bag(rec, tmp_path / 'session.mcap', rate_hz=200.0)
     out = tmp_path / 'disc'
     code = main(
@@ -381,8 +377,8 @@ def test_cli_end_to_end_on_a_bag(tmp_path, capsys):
         'gap_phases.png',
     ):
         assert (out / f).exists(), f
-    sim, _ = load_extended_model(out / 'extended_model.yaml')
-    assert sim.floor_slope_rad == pytest.approx(js['value'])
+    terms = load_extended_model(out / 'extended_model.yaml')
+    assert terms.drive.floor_slope == pytest.approx(js['value'])
     assert 'floor_slope' in (out / 'report.md').read_text()
 
 
@@ -414,7 +410,7 @@ def test_two_hidden_effects_are_named_as_a_pair(model):
     """Slope and delay hidden together: the slope is accepted first, its near-duplicates (IMU bias,
     payload, encoder offset) add nothing, and the delay enters as the second effect."""
     rec = simulate_record(
-        SimEffects(floor_slope_rad=0.015, actuation_delay_s=0.02),
+        {'floor_slope': 0.015, 'actuation_delay': 0.02},
         seconds=30.0,
         seed=8,
         hold_s=2.5,
@@ -432,7 +428,7 @@ def test_two_hidden_effects_are_named_as_a_pair(model):
 @pytest.mark.slow
 @pytest.mark.parametrize('seed', [11, 12, 13])
 def test_no_effect_stays_none_over_seeds_at_the_default_stride(seed, model):
-    rec = simulate_record(SimEffects(), seconds=30.0, seed=seed, hold_s=2.5, sit_down=True)
+    rec = simulate_record(None, seconds=30.0, seed=seed, hold_s=2.5, sit_down=True)
     rp = Replay([rec], model, ReplayConfig(pose_delay_s=0.01))
     assert name_effects(rp).name == 'none'
 

@@ -1,5 +1,5 @@
 """krang discrepancy: 'unexplained' as an answer, judging new data against a baseline, and the
-selection rule (issue 15).
+selection rule.
 
 The hidden effects are put in the simulated plant (krang_discrepancy.synthetic.simulate_record);
 effects outside the library are made around it (``Unmodelled``). The workflow is told neither.
@@ -12,13 +12,14 @@ import pytest
 import yaml
 
 from krang_model import effects as fx
-from krang_discrepancy.naming import _compare, scan_grid, start_value
+from krang_discrepancy.evidence import compare
+from krang_discrepancy.fitting import scan_grid, start_value
 from krang_discrepancy.replay import ReplayConfig
-from krang_discrepancy.report import load_extended_model, run_discrepancy
+from krang_discrepancy.extended_model import load_extended_model
+from krang_discrepancy.report import run_discrepancy
 from krang_discrepancy.synthetic import VALIDATION_SUITE, Unmodelled, simulate_record
 from krang_model.drivetrain import drivetrain
 from krang_model.robot import load_krang
-from krang_sim.physics import SimEffects
 
 SIM_REPLAY = ReplayConfig(pose_delay_s=0.01, stride_s=0.1)
 RECORD = dict(seconds=22.0, hold_s=2.0, sit_down=False)
@@ -59,7 +60,7 @@ def test_weighted_t_admits_concentrated_evidence_and_rarely_noise():
     new = ref * np.exp(-rng.normal(0, 0.05, blocks.size))
     new[blocks < 3] *= 0.3  # the effect shows in 3 blocks only
     weight = np.where(blocks < 3, 1.0, 0.02)
-    imp, t, _, tw, n_eff = _compare(ref, new, blocks, mask, weight)
+    imp, t, _, tw, n_eff = compare(ref, new, blocks, mask, weight)
     assert t < 3 <= tw
     assert n_eff < 4 or tw >= 3
     false = 0
@@ -68,7 +69,7 @@ def test_weighted_t_admits_concentrated_evidence_and_rarely_noise():
         d = rng.normal(0, 0.1, n_blocks)
         w = rng.gamma(0.5, 1.0, n_blocks)
         new = ref * np.exp(-np.repeat(d, per))
-        _, _, _, tw, n_eff = _compare(ref, new, blocks, mask, np.repeat(w, per) / per)
+        _, _, _, tw, n_eff = compare(ref, new, blocks, mask, np.repeat(w, per) / per)
         false += tw >= 3 and n_eff >= 4
     assert false / draws < 0.02
 
@@ -103,11 +104,11 @@ def test_no_effect_is_none_and_its_residual_unstructured(tmp_path):
 
 def test_an_arm_encoder_offset_is_unexplained_where_the_arm_swings(tmp_path):
     """A 0.1 rad offset of the left shoulder's encoder (LJ2), outside the library: no effect
-    is admitted (the offset moves the CoM only in the poses that swing the arm), and the answer
-    was 'none'. The gap on the balancing windows exceeds what a right model shows
+    is admitted (the offset moves the CoM only in the poses that swing the arm), so the rule
+    alone would answer 'none'. The gap on the balancing windows exceeds what a right model shows
     (verdict.MAX_OWN_GAP): 'unexplained', with the stretches that carry the excess, each in a
     pose that has LJ2 away from the first pose."""
-    hidden = SimEffects(encoder_offset_rad=0.1, encoder_offset_joint='LJ2')
+    hidden = {fx.EncoderOffset('LJ2'): 0.1}
     js = _run(simulate_record(hidden, seed=3, **RECORD), tmp_path)['json']
     assert js['effect'] == 'unexplained', js
     gt = js['gap_test']
@@ -121,7 +122,7 @@ def test_the_gap_test_applies_on_the_models_own_yardstick_only():
     """Nothing named, the residual test quiet: a gap on the balancing windows above the limit
     gives 'unexplained' on the model's own yardstick; judged against a baseline MAX_GAP rules."""
     from types import SimpleNamespace
-    from krang_discrepancy.report import _verdict
+    from krang_discrepancy.verdict import decide
     from krang_discrepancy.verdict import MAX_OWN_GAP, Structure
 
     quiet = Structure(0.0, 0.0, False)
@@ -136,9 +137,9 @@ def test_the_gap_test_applies_on_the_models_own_yardstick_only():
         'stretches': [],
         'joints_in_every_stretch': [],
     }
-    assert _verdict(nothing, quiet, gaps, False, excess=over)[0] == 'unexplained'
-    assert _verdict(nothing, quiet, gaps, True, excess=over)[0] == 'none'
-    assert _verdict(nothing, quiet, gaps, False, excess=dict(over, exceeds=False))[0] == 'none'
+    assert decide(nothing, quiet, gaps, False, excess=over)[0] == 'unexplained'
+    assert decide(nothing, quiet, gaps, True, excess=over)[0] == 'none'
+    assert decide(nothing, quiet, gaps, False, excess=dict(over, exceeds=False))[0] == 'none'
 
 
 # ----------------------------------------------------------------------------- baselines
@@ -149,15 +150,15 @@ def test_far_off_a_baseline_is_unexplained_not_none():
     library effects is 'unexplained' even when nothing is named and the residual test is quiet;
     without a baseline the same figures give 'none'."""
     from types import SimpleNamespace
-    from krang_discrepancy.report import _verdict
+    from krang_discrepancy.verdict import decide
     from krang_discrepancy.verdict import MAX_GAP, Structure
 
     quiet = Structure(0.0, 0.0, False)
     nothing = SimpleNamespace(selected=None)
     far = {'after': {'gap': 4.0 * MAX_GAP}}
-    assert _verdict(nothing, quiet, far, True)[0] == 'unexplained'
-    assert _verdict(nothing, quiet, far, False)[0] == 'none'
-    assert _verdict(nothing, quiet, {'after': {'gap': 0.5 * MAX_GAP}}, True)[0] == 'none'
+    assert decide(nothing, quiet, far, True)[0] == 'unexplained'
+    assert decide(nothing, quiet, far, False)[0] == 'none'
+    assert decide(nothing, quiet, {'after': {'gap': 0.5 * MAX_GAP}}, True)[0] == 'none'
 
 
 def test_the_baseline_gap_is_matched_phase_for_phase():
@@ -196,12 +197,12 @@ def test_the_baseline_gap_is_matched_phase_for_phase():
 def test_baseline_chain_of_two_names_what_changed_in_physical_units(tmp_path):
     """A: slope 0.02 rad (its own run). B = A + torque constant 0.8 x, judged against A: names
     the torque constant as N m/A, its file holds slope + Kt. C = B + 5 kg on the left gripper,
-    judged against B: names the payload; its file holds all three and the simulator's SimEffects
-    built from it carries all three. C's robot never stands up (its record is the caster and
+    judged against B: names the payload; its file holds all three and the terms a plant is
+    built with from it carry all three. C's robot never stands up (its record is the caster and
     the attempts), so it is judged phase for phase against B's own errors."""
-    slope = SimEffects(floor_slope_rad=0.02)
-    kt = SimEffects(floor_slope_rad=0.02, torque_constant_scale=0.8)
-    pay = SimEffects(floor_slope_rad=0.02, torque_constant_scale=0.8, payload_kg=5.0)
+    slope = {'floor_slope': 0.02}
+    kt = {'floor_slope': 0.02, 'torque_constant': 0.8}
+    pay = {'floor_slope': 0.02, 'torque_constant': 0.8, 'payload@lGripper': 5.0}
     a = _run(simulate_record(slope, seed=3, **RECORD), tmp_path / 'a')['json']
     assert a['effect'] == 'floor_slope'
     ya = tmp_path / 'a' / 'extended_model.yaml'
@@ -217,11 +218,11 @@ def test_baseline_chain_of_two_names_what_changed_in_physical_units(tmp_path):
     assert set(_named(c)) == {'payload'}, c
     assert c['value'] == pytest.approx(5.0, rel=0.05)
     assert c['gap_matched'][1] < 1.5  # the raw gap: 2.0-2.2 (seeds 5-9)
-    sim, terms = load_extended_model(tmp_path / 'c' / 'extended_model.yaml')
-    assert sim.floor_slope_rad == pytest.approx(0.02, rel=0.05)
-    assert sim.torque_constant_scale == pytest.approx(0.8, rel=0.05)
-    assert sim.payload_kg == pytest.approx(5.0, rel=0.05)
+    terms = load_extended_model(tmp_path / 'c' / 'extended_model.yaml')
+    assert terms.drive.floor_slope == pytest.approx(0.02, rel=0.05)
     assert terms.drive.torque_constant == pytest.approx(0.8 * KT, rel=0.05)
+    [(link, _, kg)] = terms.payloads
+    assert link == 'lGripper' and kg == pytest.approx(5.0, rel=0.05)
 
 
 @pytest.mark.slow
@@ -229,7 +230,7 @@ def test_records_that_disagree_raise_the_misattribution_warning(tmp_path):
     """Two records of 'one robot' whose torque constants differ (0.8 x and 0.6 x): pooled, the
     per-record refits disagree far beyond their uncertainty and the report says so."""
     recs = [
-        simulate_record(SimEffects(torque_constant_scale=k), seed=s, name=f'run{s}', **RECORD)
+        simulate_record({'torque_constant': k}, seed=s, name=f'run{s}', **RECORD)
         for k, s in ((0.8, 3), (0.6, 4))
     ]
     out = run_discrepancy(recs, tmp_path, plots=False, replay_config=SIM_REPLAY)

@@ -1,4 +1,4 @@
-"""krang discrepancy: every phase as evidence (issue 15). The caster geometry makes the sitting
+"""krang discrepancy: every phase as evidence. The caster geometry makes the sitting
 pitch a function of the wheel radius and the floor slope, and the sitting windows enter the fit,
 so that the model-free sitting pitch constrains the radius, the slope and the IMU pitch bias.
 
@@ -21,7 +21,6 @@ from krang_discrepancy.synthetic import simulate_record
 from krang_model.config import robot_config
 from krang_model.drivetrain import drivetrain
 from krang_model.robot import load_krang
-from krang_sim.physics import SimEffects
 
 SIM_REPLAY = ReplayConfig(pose_delay_s=0.01, stride_s=0.1)
 DRIVE = drivetrain(load_krang())
@@ -101,7 +100,7 @@ def test_hidden_radius_moves_the_simulated_sitting_pitch_by_the_geometric_amount
     drop onto the caster) moves by the geometric amount (-0.025 rad), within 3 %."""
     means = []
     for r in (None, 0.28):
-        eff = SimEffects() if r is None else SimEffects(wheel_radius_m=r)
+        eff = None if r is None else {'wheel_radius': r}
         rec = simulate_record(eff, seconds=2.0, sit_down=False, seed=3)
         m = (rec.t > 0.5) & (rec.t < 1.0)  # sitting, before the controller is enabled at 1 s
         means.append(float(np.mean(rec.q_base[m])))
@@ -112,7 +111,7 @@ def test_hidden_radius_moves_the_simulated_sitting_pitch_by_the_geometric_amount
 
 def test_sitting_windows_are_fitted_and_scales_come_from_the_moving_ones():
     """By default every phase is fitted; the whitening scales ignore the still sitting windows."""
-    rec = simulate_record(SimEffects(), seconds=8.0, sit_down=False, seed=3)
+    rec = simulate_record(None, seconds=8.0, sit_down=False, seed=3)
     rp = Replay([rec], NominalModel.default(), SIM_REPLAY)
     assert 'sitting' in rp.phases and np.any(rp.active & (rp.win_phase == 'sitting'))
     r0 = rp.residuals([rp.model.terms()])[0]
@@ -127,7 +126,7 @@ def test_imu_bias_and_radius_are_told_apart_with_sitting_and_balancing():
     pitch sees bias - 1.87 rad/m x radius change (-0.015 rad), the balance sees the bias alone.
     The whole library is searched; both are named, each within 2 % (and 3 sigma)."""
     rec = simulate_record(
-        SimEffects(wheel_radius_m=0.28, imu_pitch_bias_rad=0.01), seconds=30.0, hold_s=2.0, seed=5
+        {'wheel_radius': 0.28, 'imu_pitch_bias': 0.01}, seconds=30.0, hold_s=2.0, seed=5
     )
     rp = Replay([rec], NominalModel.default(), SIM_REPLAY)
     res = name_effects(rp)
@@ -155,13 +154,15 @@ def runs():
     """Four 22 s runs on a 0.01 rad slope: three with Kt x0.8, one with Kt x0.65."""
     rec = {}
     for key, kt, seed in (('a', 0.8, 61), ('b', 0.8, 62), ('c', 0.8, 63), ('odd', 0.65, 64)):
-        eff = SimEffects(floor_slope_rad=0.01, torque_constant_scale=kt)
+        eff = {'floor_slope': 0.01, 'torque_constant': kt}
         rec[key] = simulate_record(eff, seconds=22.0, hold_s=2.0, seed=seed, name=f'run_{key}')
     return rec
 
 
 def _joint(recs):
-    from krang_discrepancy.naming import NamingConfig, Fit, per_record_values
+    from krang_discrepancy.consistency import per_record_values
+    from krang_discrepancy.fitting import Fit
+    from krang_discrepancy.naming import NamingConfig
 
     rp = Replay(recs, NominalModel.default(), SIM_REPLAY)
     base = rp.model.terms()
@@ -205,7 +206,7 @@ def test_discretisation_error_is_refitted_away_and_counted_in_sigma(tmp_path):
     from krang_discrepancy.report import run_discrepancy
 
     rec = simulate_record(
-        SimEffects(torque_constant_scale=0.95), seconds=22.0, hold_s=2.0, sit_down=False, seed=24
+        {'torque_constant': 0.95}, seconds=22.0, hold_s=2.0, sit_down=False, seed=24
     )
     js = run_discrepancy([rec], tmp_path, plots=False, replay_config=SIM_REPLAY)['json']
     truth = 0.95 * DRIVE.torque_constant
@@ -227,7 +228,7 @@ def test_a_sitting_offset_admits_its_partner_or_is_unexplained(tmp_path):
     off by the geometric amount: the answer is unexplained, not a name."""
     from krang_discrepancy.report import run_discrepancy
 
-    eff = SimEffects(torque_constant_scale=0.85, wheel_radius_m=0.25)
+    eff = {'torque_constant': 0.85, 'wheel_radius': 0.25}
     rec = simulate_record(eff, seconds=22.0, hold_s=2.0, sit_down=False, seed=35)
     out = run_discrepancy([rec], tmp_path / 'all', plots=False, replay_config=SIM_REPLAY)
     named = {e['effect']: e['value'] for e in out['json'].get('effects', [])}
@@ -255,7 +256,7 @@ def test_an_effect_indistinguishable_from_zero_is_not_named(tmp_path):
     from dataclasses import replace as dc_replace
 
     from krang_discrepancy.report import run_discrepancy
-    from krang_sim.physics import SensorNoise
+    from krang_sim.sensors import SensorNoise
 
     base = SensorNoise()
     noise = dc_replace(
@@ -264,9 +265,7 @@ def test_an_effect_indistinguishable_from_zero_is_not_named(tmp_path):
         gyro_std_rad_s=base.gyro_std_rad_s * 0.5,
         joint_std_rad=base.joint_std_rad * 0.5,
     )
-    rec = simulate_record(
-        SimEffects(), seed=164, seconds=22.0, hold_s=2.0, sit_down=False, noise=noise
-    )
+    rec = simulate_record(None, seed=164, seconds=22.0, hold_s=2.0, sit_down=False, noise=noise)
     out = run_discrepancy([rec], tmp_path, plots=False, replay_config=SIM_REPLAY)
     assert [f.key for f in out['result'].singles[:1]] == ['torque_constant']
     assert out['result'].singles[0].improvement >= 0.10  # the rule alone would name it

@@ -123,7 +123,7 @@ def test_wheel_commands_name_the_wheels_and_the_sample_they_answer(demo):
 
 
 def test_same_seed_learns_the_same_beta(demo, tmp_path):
-    """Issue 11: a second demo with the same seed learns the same beta, to 1e-12, and reports the
+    """A second demo with the same seed learns the same beta, to 1e-12, and reports the
     same errors."""
     out, summary = demo
     again = run_demo(tmp_path, '--poses', '3')
@@ -156,7 +156,7 @@ def test_relearn_reproduces_the_online_beta(demo, tmp_path):
 
 @pytest.mark.slow
 def test_twelve_poses_on_a_generated_truth_end_under_a_millimetre(tmp_path):
-    """Issue 14 over the node set: `krang demo --poses 12 --truth-seed 5000`, a truth the
+    """Over the node set: `krang demo --poses 12 --truth-seed 5000`, a truth the
     generator draws (14.3 mm forward error), learns every pose and ends under 1 mm (0.6-0.7 mm
     measured on two noise seeds; the demo's own truth: README). About 3 minutes."""
     summary = run_demo(tmp_path, '--poses', '12', '--truth-seed', '5000', timeout=900)

@@ -1,5 +1,5 @@
 """The estimator's per-pose pitch uncertainty, the evidence-calibrated noise and prior scales, the
-IMU pitch-offset term and the per-body shift uncertainty (krang_com_estimator.estimators), on
+IMU pitch-offset term and the per-body shift uncertainty (krang_com_estimator), on
 simulated balanced poses with a known truth, and on the real hardware poses (kit)."""
 
 import math
@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from krang_com_estimator import estimators as est
+import krang_com_estimator as est
 from krang_model.com import balance_pitch
 from krang_model.robot import load_krang
 from krang_pose_server.pool import generate_pool

@@ -5,7 +5,8 @@ import numpy as np
 import pytest
 
 from krang_cli.main import build_parser, main
-from krang_com_estimator import estimators as est
+import krang_com_estimator as est
+from krang_com_estimator import registry
 from krang_model.com import balance_pitch, phi, x_com
 from krang_model.poses import load_poses, save_poses
 from krang_model.robot import KRANG_POSE_COLUMNS, load_krang
@@ -145,9 +146,9 @@ def test_entry_point_plugins_are_loaded(monkeypatch):
             loaded.append(True)
             est.register_estimator('user-ep')(NormalisedGD)
 
-    monkeypatch.setattr(est, '_plugins_loaded', False)
+    monkeypatch.setattr(registry, '_plugins_loaded', False)
     monkeypatch.setattr(
-        est.importlib.metadata,
+        registry.importlib.metadata,
         'entry_points',
         lambda group: [EntryPoint()] if group == est.ENTRY_POINT_GROUP else [],
     )

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from scipy.linalg import lstsq
 
-from krang_com_estimator import estimators as est
+import krang_com_estimator as est
 from krang_model.com import balance_pitch, com_frame0, phi
 from krang_model.poses import load_poses
 from krang_model.robot import KRANG_POSE_COLUMNS, load_krang
@@ -45,6 +45,37 @@ def test_paper_gd_replays_the_authors_trajectory(robot, hardware):
     # the 5e-4 median relative residual of the recovered kinematics; docs/learning.md, "Tests").
     assert err <= 2.05e-4, err
     assert len(rows) == 190
+
+
+def test_the_vectorised_gd_is_paper_gd_on_each_beta(robot):
+    """gd_step on a stack of betas (one row for all, or one per beta), with and without the
+    total-mass projection, is PaperGD / PaperGDMass on each beta alone; gd_stop_count stops where
+    the worst beta's PaperGD errors meet the paper's rule."""
+    q, j = random_poses(robot, 40, seed=21)
+    rows = phi(robot, q, j)
+    rng = np.random.default_rng(4)
+    starts = robot.nominal_beta * (1 + 0.05 * rng.standard_normal((3, robot.n_beta)))
+    B, Bm = starts.copy(), starts.copy()
+    w = est.mass_weights(starts)
+    Bm = est.project_total_mass(Bm, w, robot.nominal_mass)
+    for p in rows:
+        est.gd_step(B, p)
+        est.gd_step(Bm, np.repeat(p[None], 3, 0))
+        Bm = est.project_total_mass(Bm, w, robot.nominal_mass)
+    for k, b0 in enumerate(starts):
+        gd = est.PaperGD(robot, b0)
+        gd.update_rows(rows)
+        np.testing.assert_allclose(B[k], gd.beta, rtol=1e-10, atol=1e-13)
+        gdm = est.PaperGDMass(robot, b0)
+        gdm.update_rows(rows)
+        np.testing.assert_allclose(Bm[k], gdm.beta, rtol=1e-10, atol=1e-13)
+        assert Bm[k][0::4].sum() == pytest.approx(robot.nominal_mass, rel=1e-12)
+    x_tol = 0.3 * float(np.abs(rows @ starts.T).max())
+    count, max_err = est.gd_stop_count(rows, starts, x_tol=x_tol, window=3)
+    worst = np.max([np.abs(est.PaperGD(robot, b0).update_rows(rows)) for b0 in starts], axis=0)
+    np.testing.assert_allclose(max_err, worst[: len(max_err)], rtol=1e-10)
+    assert count is not None and max(worst[count - 3 : count]) < x_tol
+    assert all(max(worst[i - 3 : i]) >= x_tol for i in range(3, count))
 
 
 def test_paper_gd_stop_rule():
@@ -165,13 +196,15 @@ def test_map_recovers_a_hidden_com_from_noisy_balanced_poses(robot):
     """Hidden physical beta (CoMs +-5 cm, masses +-15 %), start at the URDF beta; 60 balanced poses
     with 0.1 deg IMU noise. The horizontal CoM error at held-out poses (at their true balance
     pitch) must fall below 1 mm from a >= 2 cm start."""
-    from krang_experiments.learning import HeldOut, physical_truths
+    from krang_experiments.learning import PHYSICAL_TRUTHS
+    from krang_model.com import PoseMoments
     from krang_pose_server.pool import PosePool
+    from krang_sim.truths import generate_truths
 
     pool = PosePool(robot)
     test = pool.generate(300, seed=11)
-    heldout = HeldOut(robot, test.joints)
-    truths = physical_truths(robot, 4, np.random.default_rng(2), heldout=heldout)
+    heldout = PoseMoments(robot, test.joints)
+    truths = generate_truths(robot, 4, np.random.default_rng(2), PHYSICAL_TRUTHS, heldout)
     train = pool.generate(60, seed=12)
     prior = est.physical_prior_std(robot)
     A, b = est.equality_constraints(robot, robot.nominal_mass)
@@ -245,3 +278,21 @@ def test_map_constrained_enforces_the_bounds(robot):
     )
     assert np.all(G @ bounded >= h - 1e-7)
     assert np.abs(A @ bounded - b).max() < 1e-8
+
+
+def test_pose_moments_score_many_betas_as_com_error_scores_one(robot):
+    """PoseMoments.errors' balance error is com_error for betas of the nominal total mass, and its
+    balance pitch of a sequence is balance_pitch."""
+    from krang_model.com import PoseMoments, com_error
+    from krang_sim.truths import perturbed_betas
+
+    _, joints = random_poses(robot, 50, seed=5)
+    moments = PoseMoments(robot, joints)
+    truths = perturbed_betas(robot, np.random.default_rng(1), 3, 0.1, 0.03)
+    starts = np.repeat(robot.nominal_beta[None], 3, 0)
+    balance, position = moments.errors(starts, truths)
+    for k, t in enumerate(truths):
+        assert balance[k] == pytest.approx(com_error(robot, starts[k], t, joints), rel=1e-9)
+    assert np.all(position >= balance)
+    _, _, q = moments.sequence_rows(np.array([[0, 5, 7], [1, 2, 3], [4, 4, 9]]), truths)
+    assert q[2] == pytest.approx(balance_pitch(robot, joints[[4, 4, 9]], truths[2]), abs=1e-12)

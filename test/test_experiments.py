@@ -9,7 +9,7 @@ import pytest
 
 from krang_experiments import adrc_vs_lqr, learning, table2
 from krang_experiments.common import setup
-from krang_sim.closed_loop import TABLE2_POSE, shifted_beta
+from krang_sim.scenarios import TABLE2_POSE, shifted_beta
 
 
 def test_table2_run_and_report_on_given_betas(tmp_path, krang_data):

@@ -13,7 +13,8 @@ from krang_can_bridge.sample_clock import SampleClock
 from krang_model.beta import load_beta
 from krang_model.config import config_path
 from krang_model.robot import load_krang
-from krang_sim.closed_loop import TABLE2_POSE, ClosedLoop
+from krang_sim.closed_loop import ClosedLoop
+from krang_sim.scenarios import TABLE2_POSE
 
 G = 9.81
 
@@ -307,7 +308,7 @@ def closed_loop_pitch_errors(
     loop = ClosedLoop(robot, beta, beta, TABLE2_POSE, seed=seed)
     sim, ctl = loop.sim, loop.controller
     est, dmu = ImuPitchEstimator(imu), BiasedDmu(imu, seed)
-    control_sample, rows, state = sim.control_sample, [], {'next': 1.0, 'est': None, 'x0': None}
+    control_sample, rows, state = loop.control_sample, [], {'next': 1.0, 'est': None, 'x0': None}
 
     def filtered_sample():
         s = control_sample()
@@ -321,7 +322,7 @@ def closed_loop_pitch_errors(
             s.q_base, s.pitch_rate = state['est'].pitch, state['est'].pitch_rate
         return s
 
-    sim.control_sample = filtered_sample
+    loop.control_sample = filtered_sample
     while sim.t < seconds:
         loop.run(0.1)
         if not ctl.enabled and est.filter.ready and sim.t >= 2.0:

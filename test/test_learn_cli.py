@@ -8,7 +8,7 @@ import sys
 import numpy as np
 import pytest
 
-from krang_com_estimator import estimators as est
+import krang_com_estimator as est
 from krang_model.beta import load_beta
 from krang_model.robot import load_krang
 
@@ -112,6 +112,51 @@ def test_bad_input_is_a_clear_error(krang_data, tmp_path):
         text=True,
     )
     assert res.returncode != 0 and 'no such pose file' in res.stderr
+
+
+BAD_BETA_FILES = {
+    'settings.yaml': 'controller:\n  rate_hz: 500\n',  # valid YAML, not a beta file
+    'list.yaml': '- 1\n- 2\n',
+    'bodies.yaml': 'bodies: 3\n',
+    'names.yaml': 'bodies:\n  - name: [1]\n',
+    'broken.yaml': 'bodies: [1\n',
+    'broken.json': '{"bodies": ',
+    'binary.yaml': '\udcff\udcfe',
+}
+
+
+def _evaluate(beta):
+    from krang_model.config import config_path
+
+    return ['evaluate', '--beta', str(beta), '--poses', str(config_path('excitatory_poses.csv'))]
+
+
+def test_evaluate_refuses_a_file_that_is_not_a_beta_in_one_line(tmp_path):
+    """A YAML that is not a beta file: one line on stderr naming the file and the problem, a
+    non-zero exit and nothing on stdout."""
+    bad = tmp_path / 'settings.yaml'
+    bad.write_text(BAD_BETA_FILES['settings.yaml'])
+    res = subprocess.run(
+        [sys.executable, '-m', 'krang_cli.main', *_evaluate(bad)], capture_output=True, text=True
+    )
+    assert res.returncode == 1 and res.stdout == ''
+    assert res.stderr.splitlines() == [
+        f'krang evaluate: error: {bad}: not a beta file: expected a mapping with a "bodies" list'
+    ]
+
+
+@pytest.mark.parametrize('name', sorted(BAD_BETA_FILES))
+def test_evaluate_names_the_file_and_the_problem_of_any_bad_beta(tmp_path, capsys, name):
+    from krang_cli.main import main
+
+    bad = tmp_path / name
+    bad.write_bytes(BAD_BETA_FILES[name].encode('utf-8', 'surrogateescape'))
+    assert main(_evaluate(bad)) == 1
+    out, err = capsys.readouterr()
+    assert out == '' and len(err.splitlines()) == 1 and f'{bad}: ' in err
+    assert 'Traceback' not in err
+    assert main(_evaluate(tmp_path)) == 1  # a folder
+    assert f'{tmp_path}: cannot read the beta file' in capsys.readouterr().err
 
 
 def test_calibrated_map_with_a_pitch_offset_reports_its_scales(tmp_path, krang_data):

@@ -21,7 +21,9 @@ from std_msgs.msg import Float64MultiArray
 from krang_cli.main import build_parser
 from krang_model import com
 from krang_model.robot import load_krang
-from krang_ros import messages, names, topics
+from krang_core import names
+from krang_core.pitch import pitch_quaternion
+from krang_ros import messages, topics
 from krang_ros.foxglove_view import LiveView
 from krang_ros.spin import spin_until_shutdown
 from krang_ros.view_node import LiveViewNode
@@ -54,7 +56,7 @@ def test_core_poses_the_robot_and_its_com():
     assert view.transforms() is None and view.com_now() is None
     joints, q_star = balanced_pose()
     view.on_joints(dict(zip(robot.pose_joints, joints)) | {'JLWheel': 0.1, 'JRWheel': 0.1})
-    view.on_imu(messages.pitch_quaternion(q_star))
+    view.on_imu(pitch_quaternion(q_star))
     children = {t.child for t in view.transforms()}
     assert set(view.frames.links) <= children
     q_base, estimated, nominal = view.com_now()

@@ -1,7 +1,7 @@
-"""The online session on robots it was not tuned on (issue 14): hidden truths drawn by
-krang_sim.truths (forward CoM error of the nominal model 12-25 mm), the offline closed loop, the
-adaptive pose selection and the map-online estimator, every truth from its own seed (7100 on;
-the development used 1000-1010, 5000-5009 and the demo's truth).
+"""The online session on robots it was not tuned on: hidden truths drawn by krang_sim.truths
+(forward CoM error of the nominal model 12-25 mm), the offline closed loop, the adaptive pose
+selection and the map-online estimator, every truth from its own seed (7100 on; the defaults are
+tuned on seeds 1000-1010, 5000-5009 and the demo's truth).
 
 Must show: 12 poses complete on every one of 10 truths, no safe stop, median forward error under
 1.0 mm after 12 poses and the worst under 1.5 mm (slow). The fast variant runs 2 truths for 3
@@ -47,6 +47,33 @@ def test_generated_truths_follow_the_recipe():
         np.testing.assert_array_equal(generate_truth(robot, seed, recipe).beta, t.beta)
 
 
+def test_the_learning_experiments_truths_are_the_one_recipe():
+    """The learning experiment's `physical` truths are the truth recipe with its options: the Base
+    takes the total mass, the gripper plates stay as they are, both wheels weigh the same and sit
+    on the axle, and the nominal model is off by at least 2 cm on the held-out poses. One draw of
+    the plain recipe is perturbed_beta."""
+    from krang_experiments.learning import PHYSICAL_TRUTHS
+    from krang_model.com import PoseMoments
+    from krang_sim.truths import generate_truths, perturbed_beta, perturbed_betas
+
+    robot = load_krang()
+    moments = PoseMoments(robot, generate_pool(100, seed=1, robot=robot).joints)
+    T = generate_truths(robot, 5, np.random.default_rng(0), PHYSICAL_TRUTHS, moments)
+    b, b0 = T.reshape(5, -1, 4), robot.nominal_beta.reshape(-1, 4)
+    assert b[:, :, 0].sum(1) == pytest.approx([b0[:, 0].sum()] * 5, rel=1e-12)
+    plates = [robot.body_names.index(n) for n in PHYSICAL_TRUTHS.keep_bodies]
+    np.testing.assert_allclose(b[:, plates], np.broadcast_to(b0[plates], (5, len(plates), 4)))
+    left, right = robot.wheel_body_ids
+    assert np.all(b[:, left, 0] == b[:, right, 0]) and np.all(b[:, [left, right], 1:] == 0)
+    ratio = np.delete(b[:, :, 0] / b0[:, 0], robot.body_names.index('Base'), axis=1)
+    assert ratio.min() >= 0.85 and ratio.max() <= 1.15
+    balance, _ = moments.errors(np.repeat(robot.nominal_beta[None], 5, 0), T)
+    assert balance.min() >= 0.02
+    np.testing.assert_array_equal(
+        perturbed_beta(robot, 9), perturbed_betas(robot, np.random.default_rng(9), 1)[0]
+    )
+
+
 def test_adaptive_choice_prefers_the_pose_that_removes_the_uncertainty():
     """The pose of the largest expected gain wins when moves cost nothing; the predicted error
     after it is what the rank-one update gives, and the same pose's gain drops as it should."""
@@ -62,7 +89,7 @@ def test_adaptive_choice_prefers_the_pose_that_removes_the_uncertainty():
     assert np.all(gain > 0) and np.all(after <= before + 1e-15)
     choice = sel.choose(beta, cov, pool[0])
     assert choice.index == int(np.argmax(gain))
-    from krang_com_estimator.estimators import pitch_sensitivity
+    from krang_com_estimator import pitch_sensitivity
     from krang_model.com import balance_pitch, phi
 
     q = balance_pitch(robot, pool[choice.index][None], beta)
@@ -93,9 +120,9 @@ def lowest_true_pitch_on_moves(robot, truth, pool, margin, n_poses=12, seed=0):
     noise) from the default stand pose: the lowest true balance pitch above the caster along
     each straight-line move, rad, and the start's. Checks that every choice keeps the predicted
     margin (or the start's, if lower) on its path."""
-    from krang_com_estimator.estimators import make_estimator
+    from krang_com_estimator import make_estimator
     from krang_model.com import balance_pitch
-    from krang_sim.closed_loop import stand_pose
+    from krang_sim.scenarios import stand_pose
 
     rng = np.random.default_rng(seed)
     learner = make_estimator('map-online', robot, robot.nominal_beta)
@@ -118,7 +145,7 @@ def lowest_true_pitch_on_moves(robot, truth, pool, margin, n_poses=12, seed=0):
 
 def test_caster_margin_on_truths_it_was_not_tuned_on():
     """The choice keeps its margin (0.1 rad plus 2 posterior std of the predicted pitch) from the
-    caster along every move: on truths 7300-7303 (the margin was set on 0-11) no move brings the
+    caster along every move: on truths 7300-7303 (the margin is tuned on 0-11) no move brings the
     true balance pitch within 0.2 rad of the caster, and the first one (from a stand pose that
     some truths put only 0.03 rad above it) never lower than where it starts or 0.1 rad. Without
     the margin the same sessions come within 0.13 rad."""
@@ -187,7 +214,7 @@ def test_report_draws_both_selections_and_writes_the_json(tmp_path):
 
 
 def test_exact_pitch_error_falls_with_the_number_of_poses():
-    """What the choice of poses alone allows (README, Known issues): with exact-ish pitches
+    """What the choice of poses alone allows: with exact-ish pitches
     (0.5 mrad) on the ROS pool's first poses, 50 poses leave less error than 12, and many poses
     drive it towards zero; the adaptive choice of 12 beats the first 12 of the random pool."""
     robot = load_krang()

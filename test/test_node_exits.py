@@ -16,7 +16,7 @@ import pytest
 from krang_cli.node_set import params_files
 from krang_model.config import load_config
 from krang_ros.entry import NODE_MODULES, STOP_DEADLINE_S
-from krang_ros.params import nested_to_dotted
+from krang_core.params import nested_to_dotted
 from krang_sim.session_config import session_devices_file
 
 NODES = sorted(NODE_MODULES)

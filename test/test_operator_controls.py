@@ -9,7 +9,8 @@ from krang_adrc_controller.modes import Mode
 from krang_model.beta import load_beta
 from krang_model.config import config_path
 from krang_model.robot import load_krang
-from krang_sim.closed_loop import TABLE2_POSE, ClosedLoop
+from krang_sim.closed_loop import ClosedLoop
+from krang_sim.scenarios import TABLE2_POSE
 
 
 @pytest.fixture(scope='module')

@@ -7,7 +7,8 @@ from dataclasses import dataclass, field
 
 import pytest
 
-from krang_ros import params
+from krang_core.params import ParameterError
+from krang_ros.params import declare
 
 pytestmark = pytest.mark.ros
 rclpy = pytest.importorskip('rclpy')
@@ -38,7 +39,7 @@ def make_node(context, **overrides):
 
 def test_descriptors_int_for_float_and_string_lists(context):
     node = make_node(context, rate_hz=100, topics=['/a', '/b'])
-    cfg = params.declare(node, Config)
+    cfg = declare(node, Config)
     assert cfg == Config(rate_hz=100.0, topics=('/a', '/b'))
     d = node.describe_parameter('rate_hz')
     assert d.description == 'loop rate [Hz], > 0' and d.read_only
@@ -47,7 +48,7 @@ def test_descriptors_int_for_float_and_string_lists(context):
 
 def test_run_time_change_is_refused_with_a_reason(context):
     node = make_node(context)
-    params.declare(node, Config)
+    declare(node, Config)
     result = node.set_parameters([Parameter('method', value='bogus')])[0]
     assert not result.successful and 'read-only' in result.reason
     assert node.get_parameter('method').value == 'map'
@@ -64,8 +65,8 @@ def test_run_time_change_is_refused_with_a_reason(context):
 )
 def test_invalid_start_values_are_one_parameter_error(context, name, value, message):
     node = make_node(context, **{name: value})
-    with pytest.raises(params.ParameterError, match=message):
-        params.declare(node, Config)
+    with pytest.raises(ParameterError, match=message):
+        declare(node, Config)
     node.destroy_node()
 
 

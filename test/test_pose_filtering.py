@@ -9,7 +9,7 @@ import sys
 import numpy as np
 import pytest
 
-from krang_com_estimator import estimators as est
+import krang_com_estimator as est
 from krang_model.com import phi
 from krang_model.robot import load_krang
 from krang_pose_server.erroneous_betas import authors_betas, paper_betas

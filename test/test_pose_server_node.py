@@ -18,7 +18,8 @@ from std_msgs.msg import Bool, String  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
 
 from krang_model.robot import load_krang  # noqa: E402
-from krang_ros import messages, names, topics  # noqa: E402
+from krang_core import names  # noqa: E402
+from krang_ros import messages, topics  # noqa: E402
 
 NS = '/robot7'
 

@@ -15,7 +15,7 @@ import pytest
 
 from krang_cli.node_set import file_parameter, params_files
 from krang_cli.processes import NodeSet
-from krang_ros import params
+from krang_core import params
 from krang_ros.realtime import SchedulingParams
 
 CONTROL_PATH = ('can_bridge', 'adrc_controller')

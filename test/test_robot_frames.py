@@ -19,8 +19,8 @@ from std_msgs.msg import String
 from krang_can_bridge.imu_filter import sensor_vectors
 from krang_can_bridge.node import CanBridgeNode
 from krang_model import com
+from krang_core.pitch import pitch_from_quaternion, pitch_from_specific_force, pitch_quaternion
 from krang_model.robot import KRANG_URDF, load_krang
-from krang_ros import messages
 from krang_ros.robot_frames import (
     BASE_FOOTPRINT,
     BASE_LINK,
@@ -29,7 +29,8 @@ from krang_ros.robot_frames import (
     RobotFrames,
     matrix_from_quaternion,
 )
-from krang_ros.state_publisher import LATCHED, ROBOT_DESCRIPTION, StatePublisherNode
+from krang_ros.state_publisher import ROBOT_DESCRIPTION, StatePublisherNode
+from krang_ros.topics import LATCHED
 
 G = 9.81
 SIT = -1.76
@@ -61,7 +62,7 @@ def world_placements(transforms):
 def published_tree(frames, q_base, joints, wheels=(0.0, 0.0)):
     robot = load_krang()
     frames.set_joints(dict(zip(robot.pose_joints, joints)))
-    orientation = messages.pitch_quaternion(q_base)
+    orientation = pitch_quaternion(q_base)
     return world_placements(
         frames.static_transforms()
         + frames.joint_transforms()
@@ -111,10 +112,10 @@ def test_accelerometer_sees_gravity_of_the_published_orientation(q_base):
     np.testing.assert_allclose([a.x, a.y, a.z], expected, atol=1e-9)
     assert msg.header.frame_id == IMU_LINK
     # the controller reads the pitch back from the specific force alone (the detector's mean)
-    assert messages.pitch_from_specific_force(a.x, a.y, a.z, G) == pytest.approx(q_base, abs=1e-12)
+    assert pitch_from_specific_force(a.x, a.y, a.z, G) == pytest.approx(q_base, abs=1e-12)
     # not gravity alone (an accelerating robot, a driver that leaves the field zero): not measured
-    assert math.isnan(messages.pitch_from_specific_force(0.0, 0.0, 0.0, G))
-    assert math.isnan(messages.pitch_from_specific_force(1.1 * a.x, a.y, 1.1 * a.z, G))
+    assert math.isnan(pitch_from_specific_force(0.0, 0.0, 0.0, G))
+    assert math.isnan(pitch_from_specific_force(1.1 * a.x, a.y, 1.1 * a.z, G))
 
 
 def test_com_is_over_the_axle_at_the_balance_pitch(poses):
@@ -148,11 +149,11 @@ def test_com_is_over_the_axle_at_the_balance_pitch(poses):
 def test_sitting_is_tilted_back_and_pitch_round_trips():
     """(c) On the caster base_link pitches backwards (REP-103: negative, its z leans to -x)."""
     frames = RobotFrames()
-    base, pitch = frames.base_link_in_footprint(messages.pitch_quaternion(SIT))
+    base, pitch = frames.base_link_in_footprint(pitch_quaternion(SIT))
     assert pitch == pytest.approx(SIT, abs=1e-12) and pitch < 0
     assert base.rotation[0, 2] < 0 and base.translation[2] == pytest.approx(robot_radius())
     for q in np.linspace(-3.1, 3.1, 25):
-        assert messages.pitch_from_quaternion(*messages.pitch_quaternion(q)) == pytest.approx(q)
+        assert pitch_from_quaternion(*pitch_quaternion(q)) == pytest.approx(q)
 
 
 def robot_radius():
@@ -163,11 +164,11 @@ def robot_radius():
 def test_imu_yaw_is_ignored(yaw):
     """REP-145 leaves yaw arbitrary: the pitch and base_link's attitude do not depend on it."""
     frames = RobotFrames()
-    r = rot_z(yaw) @ matrix_from_quaternion(*messages.pitch_quaternion(SIT))
+    r = rot_z(yaw) @ matrix_from_quaternion(*pitch_quaternion(SIT))
     x, y, z, w = pin.Quaternion(r).coeffs()
-    assert messages.pitch_from_quaternion(x, y, z, w) == pytest.approx(SIT)
+    assert pitch_from_quaternion(x, y, z, w) == pytest.approx(SIT)
     base, pitch = frames.base_link_in_footprint((x, y, z, w))
-    reference, _ = frames.base_link_in_footprint(messages.pitch_quaternion(SIT))
+    reference, _ = frames.base_link_in_footprint(pitch_quaternion(SIT))
     assert pitch == pytest.approx(SIT)
     np.testing.assert_allclose(base.rotation, reference.rotation, atol=1e-12)
 

@@ -15,7 +15,8 @@ from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from std_msgs.msg import Float64MultiArray  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
 
-from krang_ros import names, topics  # noqa: E402
+from krang_core import names  # noqa: E402
+from krang_ros import topics  # noqa: E402
 from krang_ros.session_client import open_session_client  # noqa: E402
 from krang_ros.spin import spin_until_shutdown  # noqa: E402
 

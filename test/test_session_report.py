@@ -10,7 +10,8 @@ from krang_bag.reader import read_float_arrays
 from krang_bag.session_report import mode_segments, read_modes, session_figures, timeline_figure
 from krang_bag.writer import BagWriter
 from krang_model.robot import load_krang
-from krang_ros import messages, names
+from krang_core import names
+from krang_ros import messages
 
 MODES = [
     (0.0, 'sit'),

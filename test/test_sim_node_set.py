@@ -32,9 +32,10 @@ from krang_can_bridge.config import load_devices  # noqa: E402
 from krang_cli.node_set import params_files  # noqa: E402
 from krang_cli.processes import NodeSet  # noqa: E402
 from krang_model.config import load_config  # noqa: E402
-from krang_ros import messages, names, topics  # noqa: E402
+from krang_core import names  # noqa: E402
+from krang_ros import messages, topics  # noqa: E402
 from krang_ros.session_client import open_session_client  # noqa: E402
-from krang_ros.names import GROUND_TRUTH  # noqa: E402
+from krang_core.names import GROUND_TRUTH  # noqa: E402
 from krang_sim.node import GROUND_TRUTH_FIELDS  # noqa: E402
 from krang_sim.session_config import session_devices_file  # noqa: E402
 

@@ -1,8 +1,8 @@
-"""krang_ros.log.Throttled: a throttled line is checked against the clock before anything else."""
+"""krang_core.log.Throttled: a throttled line is checked against the clock before anything else."""
 
 import time
 
-from krang_ros.log import Throttled
+from krang_core.log import Throttled
 
 
 def test_logs_at_most_once_a_period_and_again_after_it():

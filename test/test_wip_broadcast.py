@@ -9,7 +9,7 @@ import pytest
 from krang_model.drivetrain import drivetrain, stack
 from krang_model.robot import load_krang
 from krang_model.wip import WipDynamics, linearize, reduce_pose, reduce_poses
-from krang_sim.closed_loop import TABLE2_POSE
+from krang_sim.scenarios import TABLE2_POSE
 
 # the Table II upper-body pose with the waist at 2.2 rad: balances forward of the caster
 POSE = np.concatenate([[2.2], TABLE2_POSE[1:]])  # the Table II pose, waist at 2.2 rad

@@ -9,9 +9,9 @@ import pytest
 
 from krang_model.com import balance_pitch, com_frame0
 from krang_model.robot import load_krang, load_wip7
-from krang_model.drivetrain import drivetrain
+from krang_model.drivetrain import HeldCommand, command_delay_steps, drivetrain, stack
 from krang_model.wip import WipDynamics, linearize, reduce_pose
-from krang_sim.closed_loop import TABLE2_POSE
+from krang_sim.scenarios import TABLE2_POSE
 
 POSE = np.array(
     [
@@ -113,6 +113,54 @@ def test_semi_implicit_euler_tracks_rk4(krang):
         a = dyn.step(a, 5.0, 4.0, 1e-3)
         b = dyn.step_rk4(b, 5.0, 4.0, 1e-3)
     np.testing.assert_allclose(a, b, atol=5e-3)
+
+
+def test_one_step_function_for_floats_and_batches(krang):
+    """``step_pitch`` is the one integrator: ``step`` on floats and ``step_pitch`` on arrays of
+    states and parameter sets (the replay's batches) give the same numbers, bit for bit."""
+    body = reduce_pose(krang, POSE, krang.nominal_beta)
+    nominal = drivetrain(krang)
+    drives = [
+        replace(nominal, torque_constant=k, coulomb_friction=c)
+        for k, c in ((0.08, 0.0), (0.07, 0.4))
+    ]
+    rng = np.random.default_rng(1)
+    qb = -body.com_offset + rng.uniform(-0.2, 0.2, 5)
+    phi, dphi, dqb = rng.normal(size=(3, 5))
+    tau = rng.uniform(-20, 20, 5)
+    batched = WipDynamics(body, stack(drives))
+    out = batched.step_pitch(phi[None], qb[None], dphi[None], dqb[None], tau[None], 1e-3)
+    for p, drive in enumerate(drives):
+        dyn = WipDynamics(body, drive)
+        for i in range(5):
+            state = [float(phi[i]), float(qb[i]), float(dphi[i]), float(dqb[i]), 0.3, 0.1]
+            one = dyn.step(state, 0.25 * float(tau[i]), 0.75 * float(tau[i]), 1e-3)
+            assert [float(x[p, i]) for x in out] == one[:4]
+            acc = dyn.accelerations(state, 0.25 * float(tau[i]), 0.75 * float(tau[i]))
+            assert one[5] == state[5] + 1e-3 * acc[2] and one[4] == state[4] + 1e-3 * one[5]
+
+
+def test_held_command_is_the_delay_of_a_stepping_plant():
+    """HeldCommand: each value held until the next, `delay` later, zero before the first; its
+    integral is exact for the held steps. A plant stepping at dt that applies the command sent
+    command_delay_steps(delay, dt) steps earlier applies HeldCommand.applied during each step."""
+    dt = 1e-3
+    t = np.arange(50) * dt
+    values = np.column_stack([np.sin(t * 90.0), np.cos(t * 70.0)])
+    held = HeldCommand(t, values)
+    delay = 0.0071
+    n = command_delay_steps(delay, dt)
+    assert n == 7
+    queue = [(0.0, 0.0)] * n
+    for k, tk in enumerate(t):
+        queue.append(tuple(values[k]))
+        assert tuple(held.applied(tk + 0.5 * dt, n * dt)) == queue.pop(0)  # during step k
+    assert np.all(held.applied(t[:7] + 1e-9, delay) == 0.0)  # nothing before the first command
+    # the integral's differences are the held values times the step, shifted by the delay
+    edges = t[10:40] + 0.5 * dt
+    means = np.diff(held.integral(edges, 0.003), axis=0) / dt
+    np.testing.assert_allclose(means, 0.5 * (values[7:36] + values[8:37]), atol=1e-9)
+    assert np.all(HeldCommand(np.zeros(0), np.zeros(0)).integral(edges) == 0.0)
 
 
 def test_linearisation_matches_finite_differences(krang):

@@ -1,5 +1,5 @@
-"""Topic and service names of the node graph (README.md, Architecture), spelled once for every
-node, client, recorder and test (no rclpy import, so offline tools can use them too)."""
+"""Topic and service names of the node graph, spelled once for every node, client, recorder,
+offline tool and test."""
 
 JOINT_STATES = '/joint_states'
 IMU = '/imu/data'

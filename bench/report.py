@@ -1,0 +1,719 @@
+"""Run the benchmarks and write docs/performance.md: one section per benchmark, each a table with
+the command that produced it.
+
+    .venv/bin/python bench/report.py [--only NAME ...] [--runs N] [--out FILE]
+    .venv/bin/python bench/report.py --list | --check
+
+Each section of the file sits between ``<!-- bench: NAME -->`` and ``<!-- /bench: NAME -->``. A run
+rewrites the sections it reruns (every one, or those named by --only) and keeps the text of every
+other section, and everything outside the markers, as it is: one benchmark can be rerun alone. A
+benchmark that fails, or whose output cannot be read, leaves its section as it was, and the report
+ends with exit code 1 naming it. --check only reads the file and says whether every section is
+there (no benchmark runs).
+
+Figures come from a benchmark's JSON line (``--json``) where it has one. Where it has none yet,
+they come from the lines it prints, read by a pattern per figure (the ``read_*`` functions below);
+a pattern that does not match the output is an error, never a silently missing figure. The
+sections run one after the other, so no two benchmarks share the machine.
+"""
+
+import argparse
+import json
+import math
+import os
+import re
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+ROOT = Path(__file__).resolve().parents[1]
+DEFAULT_OUT = ROOT / 'docs' / 'performance.md'
+PY = '.venv/bin/python'  # how the commands are written in the document
+BLOCK = re.compile(r'<!-- bench: (\S+) -->\n(.*?)<!-- /bench: \1 -->\n?', re.S)
+
+HEADER = """# Performance
+
+Every table below is written by `bench/report.py`, which runs the benchmark named under its heading
+and puts the figures in the table; `bench/report.py --only NAME` reruns one section and keeps the
+others. Timings are wall-clock on the machine that ran the report: rerun them where it matters
+(the robot computer for the control path). Ranges are the lowest and highest of the runs a section
+makes.
+
+"""
+
+
+class ReportError(RuntimeError):
+    """A benchmark that failed or printed something this report cannot read."""
+
+
+@dataclass
+class Section:
+    """One benchmark's section. `argv` runs from the repository root ('PY': this interpreter,
+    'KRANG': the krang command, 'OUT': a temporary directory); `read` turns one run's stdout into
+    a figures dict, `table` the figures of all runs into markdown lines."""
+
+    name: str
+    title: str
+    argv: list
+    read: Callable[[str], dict]
+    table: Callable[[list], list]
+    about: str = ''
+    runs: int = 1
+    json_mode: bool = False  # the benchmark prints its figures as JSON
+    env: dict = field(default_factory=dict)
+
+    def command(self):
+        """The command as the document shows it."""
+        words = {'PY': PY, 'KRANG': 'krang', 'OUT': 'DIR'}
+        return ' '.join(words.get(a, a) for a in self.argv)
+
+    def argv_to_run(self, out_dir):
+        words = {'PY': [sys.executable], 'KRANG': [sys.executable, '-m', 'krang_cli.main']}
+        words['OUT'] = [str(out_dir)]
+        return [w for a in self.argv for w in words.get(a, [a])]
+
+
+# ---- reading a benchmark's output ------------------------------------------------------------
+def last_json(out):
+    """The JSON object on the last line that holds one."""
+    for line in reversed(out.strip().splitlines()):
+        line = line.strip()
+        if line.startswith('{'):
+            return json.loads(line)
+    raise ReportError('no JSON line in the output')
+
+
+def grab(pattern, out, *, cast=float, group=1):
+    """One figure printed by a benchmark without --json: the first group of `pattern`."""
+    m = re.search(pattern, out, re.M)
+    if m is None:
+        raise ReportError(f'the output has no line matching {pattern!r}')
+    value = m.group(group)
+    return cast(value.replace(',', '')) if cast is not str else value
+
+
+def grab_all(pattern, out):
+    found = re.findall(pattern, out, re.M)
+    if not found:
+        raise ReportError(f'the output has no line matching {pattern!r}')
+    return found
+
+
+def markdown_lines(out):
+    """The markdown table a benchmark prints itself, and the summary line after it."""
+    lines = [ln for ln in out.strip().splitlines() if not ln.startswith('WALL ')]
+    table = [ln for ln in lines if ln.startswith('|')]
+    if not table:
+        raise ReportError('the output has no markdown table')
+    after = lines[lines.index(table[-1]) + 1 :]
+    return {'table': table, 'summary': [ln for ln in after if ln.strip()]}
+
+
+# ---- formatting ---------------------------------------------------------------------------------
+def span(values, fmt='{:.2f}', unit=''):
+    """'a' for one value or equal values, 'lo–hi' for several."""
+    values = [v for v in values if v is not None and not math.isnan(v)]
+    if not values:
+        return '–'
+    lo, hi = min(values), max(values)
+    text = (
+        fmt.format(lo)
+        if fmt.format(lo) == fmt.format(hi)
+        else f'{fmt.format(lo)}–{fmt.format(hi)}'
+    )
+    return text + unit
+
+
+def rows(header, body):
+    out = ['| ' + ' | '.join(header) + ' |', '|' + '---|' * len(header)]
+    return out + ['| ' + ' | '.join(str(c) for c in r) + ' |' for r in body]
+
+
+def col(runs, key):
+    return [r[key] for r in runs]
+
+
+# ---- the sections -------------------------------------------------------------------------------
+def read_phi(out):
+    return {
+        'batched': grab(r'phi batched .*?: ([\d,]+) poses/s', out),
+        'per_pose': grab(r'pinocchio per pose .*?: ([\d,]+) poses/s', out),
+    }
+
+
+def table_phi(runs):
+    b, p = col(runs, 'batched'), col(runs, 'per_pose')
+    return rows(
+        ['figure', 'value', 'target'],
+        [
+            [
+                'phi(q) batched (numpy, 20,000-pose batches)',
+                span(b, '{:,.0f}', ' poses/s'),
+                '≥ 100,000 poses/s',
+            ],
+            ['pinocchio, one pose at a time', span(p, '{:,.0f}', ' poses/s'), ''],
+            ['batched / per pose', span([x / y for x, y in zip(b, p)], '{:.0f}', '×'), ''],
+        ],
+    )
+
+
+def read_wip(out):
+    return {
+        'euler': grab(r'real-time factor: (\d+)x', out),
+        'rk4': grab(r'RK4 for comparison: (\d+)x', out),
+    }
+
+
+def table_wip(runs):
+    return rows(
+        ['integrator (1 kHz step, LQR in the loop)', 'real-time factor', 'target'],
+        [
+            [
+                "semi-implicit Euler (the simulator's)",
+                span(col(runs, 'euler'), '{:.0f}', '×'),
+                '≥ 200×',
+            ],
+            ['RK4', span(col(runs, 'rk4'), '{:.0f}', '×'), ''],
+        ],
+    )
+
+
+def read_pool(out):
+    return {
+        'n': grab(r'^(\d+) poses in ', out),
+        'seconds': grab(r'^\d+ poses in ([\d.]+) s', out),
+        'rate': grab(r' s: (\d+) poses/s', out),
+    }
+
+
+def table_pool(runs):
+    return rows(
+        ['safe balanced poses', 'wall time', 'poses/s', "the authors' C++"],
+        [
+            [
+                span(col(runs, 'n'), '{:,.0f}'),
+                span(col(runs, 'seconds'), '{:.1f}', ' s'),
+                span(col(runs, 'rate'), '{:,.0f}'),
+                'about 2 min for 20,000',
+            ],
+        ],
+    )
+
+
+def read_filter(out):
+    return {
+        'selected': grab(r'^ours:\s+(\d+) poses selected', out),
+        'ours': grab(r'^ours:.* in ([\d.]+) s wall', out),
+        'straight': grab(r'^straightforward: \d+ poses in ([\d.]+) s wall', out),
+        'same': grab(r'identical selections: (\w+)', out, cast=str),
+    }
+
+
+def table_filter(runs):
+    return rows(
+        [
+            'Algorithm 1, 22,000 poses × 500 betas × 92',
+            'poses selected',
+            'wall time',
+            'identical selections',
+        ],
+        [
+            [
+                'ours (`krang_pose_server.filtering`)',
+                span(col(runs, 'selected'), '{:.0f}'),
+                span(col(runs, 'ours'), '{:.2f}', ' s'),
+                '',
+            ],
+            [
+                'the straightforward algorithm',
+                '',
+                span(col(runs, 'straight'), '{:.1f}', ' s'),
+                ', '.join(sorted(set(col(runs, 'same')))),
+            ],
+            [
+                'speed-up',
+                '',
+                span(
+                    [s / o for s, o in zip(col(runs, 'straight'), col(runs, 'ours'))],
+                    '{:.0f}',
+                    '×',
+                ),
+                '',
+            ],
+        ],
+    )
+
+
+def read_closed_loop(out):
+    x = r'([\d.]+)x real'
+    return {
+        'true': grab(r'^run_balance .*true beta\s*:.*= +' + x, out),
+        'wrong': grab(r'^run_balance .*2\.5 cm wrong beta\s*:.*= +' + x, out),
+        'balancing': grab(r'^balancing only .*= +' + x, out),
+        'moving': grab(r'^joints moving .*= +' + x, out),
+        'step_us': grab(r'^BalanceController\.step .*?: +([\d.]+) us/step', out),
+        'adrc_us': grab(r'ADRC law alone .*?: +([\d.]+) us', out),
+        'redesign_ms': grab(r'pose/beta change .*?: +([\d.]+) ms', out),
+    }
+
+
+def table_closed_loop(runs):
+    def f(k, fmt, unit):
+        return span(col(runs, k), fmt, unit)
+
+    return rows(
+        ['figure (controller at 500 Hz, physics at 1 kHz, sensor noise on)', 'value', 'target'],
+        [
+            ['sit → stand → balance, true beta', f('true', '{:.0f}', '× real time'), '≥ 100×'],
+            ['sit → stand → balance, beta 2.5 cm wrong', f('wrong', '{:.0f}', '× real time'), ''],
+            ['balancing only', f('balancing', '{:.0f}', '× real time'), ''],
+            ['while the joints move', f('moving', '{:.0f}', '× real time'), ''],
+            ['one controller step in BALANCE', f('step_us', '{:.1f}', ' µs'), '≪ 2 ms'],
+            ['the ADRC law alone', f('adrc_us', '{:.2f}', ' µs'), ''],
+            [
+                'redesign on a pose or beta change (reduction + LQR(q))',
+                f('redesign_ms', '{:.1f}', ' ms'),
+                '',
+            ],
+        ],
+    )
+
+
+def read_discrepancy(out):
+    result = json.loads(grab(r'^result: (\{.*\})$', out, cast=str))
+    return {'seconds': grab(r'^full discrepancy run: ([\d.]+) s', out), **result}
+
+
+def table_discrepancy(runs):
+    r = runs[-1]
+    return rows(
+        ['60 s simulated record, hidden floor slope 0.02 rad', 'value'],
+        [
+            ['full `krang discrepancy` run', span(col(runs, 'seconds'), '{:.1f}', ' s')],
+            ['named', f'{r.get("effect")} = {r.get("value", float("nan")):.4g}'],
+            [
+                'gap before → after',
+                f'{r.get("gap_before", float("nan")):.3f} → '
+                f'{r.get("gap_after", float("nan")):.3f}',
+            ],
+        ],
+    )
+
+
+def table_markdown(runs):
+    r = runs[-1]
+    return r['table'] + ([''] + r['summary'] if r['summary'] else [])
+
+
+def read_imu_bias(out):
+    found = grab_all(
+        r'^\s*([\d.]+e[+-]\d+)\s+([\d.]+)\s+([\d.]+)\s+([\d.]+)\s+([\d.]+)\s+([\d.]+)(\s+<-)?', out
+    )
+    return {'rows': [[*r[:6], bool(r[6])] for r in found]}
+
+
+def table_imu_bias(runs):
+    body = [[f'{r[0]}' + (' (configured)' if r[6] else ''), *r[1:6]] for r in runs[-1]['rows']]
+    return rows(
+        [
+            'bias process noise',
+            'tracking τ (s)',
+            'error 90–120 s after a bias step, sitting (mrad)',
+            'sitting peak (mrad)',
+            'balancing peak (mrad)',
+            'harsh motion, rms (mrad)',
+        ],
+        body,
+    ) + [
+        '',
+        'Figure: [imu_bias_tradeoff.png](imu_bias_tradeoff.png), written by the same command.',
+    ]
+
+
+def read_latency(out):
+    return last_json(out)
+
+
+def table_latency(runs):
+    def f(k, fmt='{:.2f}', unit=' ms', scale=1.0):
+        return span([r[k] * scale for r in runs], fmt, unit)
+
+    return rows(
+        ['figure', 'ours (`can_bridge` + `adrc_controller`)', 'bare rclpy chain', 'ratio', 'goal'],
+        [
+            ['latency p50', f('p50_ms'), f('ref_p50_ms'), f('p50_ratio', unit='×'), '≤ 1.5×'],
+            ['latency p99', f('p99_ms'), f('ref_p99_ms'), f('p99_ratio', unit='×'), '≤ 1.5×'],
+            [
+                'samples stepped, share of the configured rate',
+                f('rate_ratio', '{:.1f}', ' %', 100.0),
+                '',
+                '',
+                '≥ 99 %',
+            ],
+            [
+                'samples superseded before their step',
+                f('superseded_hz', '{:.0f}', ' /s'),
+                '',
+                '',
+                '',
+            ],
+        ],
+    ) + ['', f'{len(runs)} run(s) of {span(col(runs, "seconds"), "{:.0f}", " s")} each.']
+
+
+def table_trace(runs):
+    r = runs[-1]
+    p50, p90 = r['trace_p50_ms'], r['trace_p90_ms']
+    body = [[k, f'{v:.2f}', f'{p90[k]:.2f}'] for k, v in p50.items() if k != 'total']
+    body.append(
+        [
+            '**total** (frame in the kernel → both current frames sent)',
+            f'{p50["total"]:.2f}',
+            f'{p90["total"]:.2f}',
+        ]
+    )
+    return rows(['segment', 'p50 (ms)', 'p90 (ms)'], body) + [
+        '',
+        f"The probes' p50 in the same run: {r['p50_ms']:.2f} ms, {r['p50_ratio']:.2f}× the bare "
+        f"chain (the trace's own writes cost a little); {r['traced_samples']} samples traced.",
+    ]
+
+
+def read_wire(out):
+    found = grab_all(
+        r'^(\S.*?)\s+publish: object\s+([\d.]+), bytes\s+([\d.]+) .*take and read: object\s+'
+        r'([\d.]+), bytes\s+([\d.]+)',
+        out,
+    )
+    return {'rows': [[m[0], *(float(v) for v in m[1:])] for m in found]}
+
+
+def table_wire(runs):
+    body = [
+        [
+            label,
+            f'{po:.1f}',
+            f'{pb:.1f}',
+            f'{po / pb:.1f}×',
+            f'{to:.1f}',
+            f'{tb:.1f}',
+            f'{to / tb:.1f}×',
+        ]
+        for label, po, pb, to, tb in runs[-1]['rows']
+    ]
+    return rows(
+        [
+            'message',
+            'publish: object (µs)',
+            'bytes (µs)',
+            'ratio',
+            'take and read: object (µs)',
+            'bytes (µs)',
+            'ratio',
+        ],
+        body,
+    )
+
+
+def read_sim_speed(out):
+    procs = grab_all(
+        r'^processes, real_time_factor ([\d.]+): ([\d.]+)x real time.*?([\d.]+) ms wall per '
+        r'sample, of which ([\d.]+) ms waiting.*?lockstep misses (\d+)',
+        out,
+    )
+    return {
+        'processes': {float(m[0]): [float(m[1]), float(m[2]), int(m[4])] for m in procs},
+        'composed': grab(r'^composed: ([\d.]+)x real time', out),
+        'composed_ms': grab(r'^composed: .*?([\d.]+) ms wall per sample', out),
+    }
+
+
+def table_sim_speed(runs):
+    factors = sorted({f for r in runs for f in r['processes']}, reverse=True)
+    body = []
+    for f in factors:
+        got = [r['processes'][f] for r in runs if f in r['processes']]
+        what = 'processes, paced (real_time_factor 1)' if f else 'processes, unpaced (0)'
+        if f not in (0.0, 1.0):
+            what = f'processes, real_time_factor {f:g}'
+        body.append(
+            [
+                what,
+                span([g[0] for g in got], unit='×'),
+                span([g[1] for g in got]),
+                span([g[2] for g in got], '{:.0f}'),
+            ]
+        )
+    body.append(
+        [
+            'composed (one process, as `krang demo`)',
+            span(col(runs, 'composed'), unit='×'),
+            span(col(runs, 'composed_ms')),
+            '–',
+        ]
+    )
+    return rows(
+        ['node set while balancing', 'real-time factor', 'ms wall per sample', 'lockstep misses'],
+        body,
+    )
+
+
+def read_demo(out):
+    fig = last_json(out)
+    fig['wall_s'] = float(grab(r'^WALL ([\d.]+)$', out))
+    return fig
+
+
+def table_demo(runs):
+    mm = 1e3
+    return rows(
+        ['figure', 'value'],
+        [
+            ['wall time', span(col(runs, 'wall_s'), '{:.1f}', ' s')],
+            ['poses learned', span(col(runs, 'poses'), '{:.0f}')],
+            [
+                'forward CoM error before → after',
+                f'{span([r["com_error_before_m"] * mm for r in runs], "{:.1f}")} → '
+                f'{span([r["com_error_after_m"] * mm for r in runs], "{:.1f}")} mm',
+            ],
+        ],
+    )
+
+
+SECTIONS = [
+    Section('phi', 'The CoM regressor phi(q)', ['PY', 'bench/bench_phi.py'], read_phi, table_phi),
+    Section('wip_sim', 'WIP simulation', ['PY', 'bench/bench_wip_sim.py'], read_wip, table_wip),
+    Section(
+        'pose_pool',
+        'The safe balanced pose pool',
+        ['PY', 'bench/bench_pose_pool.py'],
+        read_pool,
+        table_pool,
+    ),
+    Section(
+        'pose_filter',
+        "The meta-learning pose filter (Algorithm 1) at the paper's scale",
+        ['PY', 'bench/bench_pose_filter.py', '--full'],
+        read_filter,
+        table_filter,
+    ),
+    Section(
+        'closed_loop',
+        "The offline closed loop and the controller's step",
+        ['PY', 'bench/bench_closed_loop.py'],
+        read_closed_loop,
+        table_closed_loop,
+    ),
+    Section(
+        'discrepancy',
+        'One `krang discrepancy` run',
+        ['PY', 'bench/bench_discrepancy.py', '--no-plots'],
+        read_discrepancy,
+        table_discrepancy,
+    ),
+    Section(
+        'discrepancy_validation',
+        'The discrepancy workflow: one hidden effect per record',
+        ['PY', 'bench/bench_discrepancy.py', '--validate'],
+        markdown_lines,
+        table_markdown,
+        about='22 s simulated records, one hidden effect each, plus none.',
+    ),
+    Section(
+        'discrepancy_hidden',
+        'The discrepancy workflow: effects it is not told of',
+        ['PY', 'bench/bench_discrepancy.py', '--hidden'],
+        markdown_lines,
+        table_markdown,
+        about='No-effect records at several noise levels and seeds, small effects, pairs, and '
+        'effects outside the library (which must read `unexplained`).',
+    ),
+    Section(
+        'imu_bias',
+        'The IMU filter: gyro-bias tracking against pitch error',
+        ['PY', 'bench/bench_imu_bias.py'],
+        read_imu_bias,
+        table_imu_bias,
+        about='The trade-off behind the configured bias process noise ([imu.md](imu.md)).',
+    ),
+    Section(
+        'ros_latency',
+        "The control path on the robot's configuration",
+        ['PY', 'bench/bench_ros_latency.py', '--robot', '--json'],
+        read_latency,
+        table_latency,
+        about='A DMU frame on the bus to the wheel-command frame answering it, through '
+        "`can_bridge` and `adrc_controller` at 500 Hz under SCHED_FIFO (the robot's parameter "
+        'files), against a bare rclpy chain (CAN → process → topic → process → topic → CAN) '
+        'measured alone beside the same device players just before. The players keep a 1 Mbit/s '
+        "bus's pace and the drives' TPDO phase sweeps the sample period ([architecture.md]"
+        '(architecture.md), "The latency benchmark").',
+        runs=3,
+        json_mode=True,
+    ),
+    Section(
+        'ros_latency_load',
+        'The control path with two busy loops on the machine',
+        ['PY', 'bench/bench_ros_latency.py', '--robot', '--json', '--load', '2'],
+        read_latency,
+        table_latency,
+        about='As above, with two busy-loop processes beside the nodes.',
+        json_mode=True,
+    ),
+    Section(
+        'ros_latency_trace',
+        "Where a sample's time goes on the control path",
+        ['PY', 'bench/bench_ros_latency.py', '--robot', '--trace', '--json'],
+        read_latency,
+        table_trace,
+        json_mode=True,
+        about='Each node records when a sample passes each stage (`krang_ros/trace.py`); the '
+        'segments of one sample add up to its total.',
+    ),
+    Section(
+        'wire',
+        'A control-path message as an rclpy object and as its bytes',
+        ['PY', 'bench/bench_wire.py'],
+        read_wire,
+        table_wire,
+        about='CPU per message in one process over DDS, best of 5 batches of 2,000 '
+        '(`krang_ros/wire.py`).',
+    ),
+    Section(
+        'sim_speed',
+        "The simulated node set at 100 Hz (the simulator's rate)",
+        ['PY', 'bench/bench_sim_speed.py'],
+        read_sim_speed,
+        table_sim_speed,
+        about='sim_krang, can_bridge and adrc_controller in lockstep while balancing '
+        '([simulation.md](simulation.md)).',
+    ),
+    Section(
+        'sim_speed_500',
+        "The simulated node set at 500 Hz (the robot's rate)",
+        ['PY', 'bench/bench_sim_speed.py', '--factors', '0', '--rate-hz', '500'],
+        read_sim_speed,
+        table_sim_speed,
+    ),
+    Section(
+        'demo',
+        '`krang demo`, 3 poses',
+        ['KRANG', 'demo', '--out', 'OUT'],
+        read_demo,
+        table_demo,
+        json_mode=True,
+        about='The composed node set with the default truth and seed; the learned beta is the '
+        'same to the bit in every run.',
+    ),
+]
+BY_NAME = {s.name: s for s in SECTIONS}
+
+
+# ---- running and writing ------------------------------------------------------------------------
+def run_once(section):
+    """stdout of one run of the section's benchmark (raises ReportError when it fails)."""
+    with tempfile.TemporaryDirectory(prefix='krang_report_') as tmp:
+        argv = section.argv_to_run(tmp)
+        t0 = time.monotonic()
+        proc = subprocess.run(
+            argv, cwd=ROOT, capture_output=True, text=True, env={**os.environ, **section.env}
+        )
+        wall = time.monotonic() - t0
+    if proc.returncode != 0:
+        tail = '\n'.join(proc.stderr.strip().splitlines()[-5:])
+        raise ReportError(f'{section.command()} exited with {proc.returncode}:\n{tail}')
+    return proc.stdout + f'\nWALL {wall:.3f}\n'
+
+
+def render(section, runs):
+    """The markdown of one section, markers included."""
+    lines = [f'<!-- bench: {section.name} -->', f'## {section.title}', '']
+    if section.about:
+        lines += [section.about, '']
+    lines += [f'`{section.command()}`', '']
+    lines += section.table(runs)
+    lines += ['<!-- /bench: ' + section.name + ' -->', '']
+    return '\n'.join(lines) + '\n'
+
+
+def split(text):
+    """{name: block text with its markers} of an existing document, and the text before the
+    first block (kept as the document's head)."""
+    blocks = {m.group(1): m.group(0) for m in BLOCK.finditer(text)}
+    first = BLOCK.search(text)
+    head = text[: first.start()] if first else text
+    return head, blocks
+
+
+def assemble(head, blocks):
+    """The document: its head, then the sections in SECTIONS order, then any unknown block kept
+    as it was (a section this script does not make is kept, never dropped silently)."""
+    known = [blocks[s.name] for s in SECTIONS if s.name in blocks]
+    unknown = [b for n, b in blocks.items() if n not in BY_NAME]
+    body = [b if b.endswith('\n\n') else b.rstrip('\n') + '\n\n' for b in known + unknown]
+    return (head or HEADER) + ''.join(body).rstrip('\n') + '\n'
+
+
+def check(path):
+    """Problems of an existing document: sections missing, unknown or empty."""
+    if not path.exists():
+        return [f'{path}: no such file']
+    _, blocks = split(path.read_text())
+    problems = [f'section {s.name!r} missing' for s in SECTIONS if s.name not in blocks]
+    problems += [
+        f'section {n!r} is not made by bench/report.py' for n in blocks if n not in BY_NAME
+    ]
+    problems += [f'section {n!r} has no table' for n, b in blocks.items() if '\n|' not in b]
+    return problems
+
+
+def main(argv=None):
+    p = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
+    p.add_argument(
+        '--only',
+        nargs='+',
+        metavar='NAME',
+        choices=list(BY_NAME),
+        help='rerun these sections only; the others keep their text',
+    )
+    p.add_argument('--runs', type=int, default=None, help='runs per section (default: its own)')
+    p.add_argument('--out', type=Path, default=DEFAULT_OUT, help='the document to write')
+    p.add_argument('--list', action='store_true', help='print the sections and their commands')
+    p.add_argument('--check', action='store_true', help='check the document; run nothing')
+    args = p.parse_args(argv)
+    if args.list:
+        for s in SECTIONS:
+            mode = 'json' if s.json_mode else 'text'
+            print(f'{s.name:24s} runs {s.runs}  {mode}  {s.command()}')
+        return 0
+    if args.check:
+        problems = check(args.out)
+        for line in problems:
+            print(f'{args.out.name}: {line}')
+        return 1 if problems else 0
+    head, blocks = split(args.out.read_text()) if args.out.exists() else ('', {})
+    failed = []
+    for s in [BY_NAME[n] for n in args.only] if args.only else SECTIONS:
+        print(f'{s.name}: {s.command()}', flush=True)
+        try:
+            runs = [s.read(run_once(s)) for _ in range(args.runs or s.runs)]
+            blocks[s.name] = render(s, runs)
+        except (ReportError, ValueError, KeyError) as exc:
+            failed.append(s.name)
+            print(f'{s.name}: {exc}; its section is kept as it was', file=sys.stderr)
+            continue
+        args.out.write_text(assemble(head, blocks))  # each section as soon as it is done
+    if not blocks:
+        args.out.write_text(assemble(head, blocks))
+    if failed:
+        print(f'failed: {", ".join(failed)}', file=sys.stderr)
+        return 1
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())

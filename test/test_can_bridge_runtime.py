@@ -1,0 +1,330 @@
+"""BridgeRuntime without ROS or DDS: the time base, the held wheel sample, the drives' start-up and
+the recovery from a latched fault, over python-can's in-process virtual buses and a clock the test
+sets. Device frames are built by hand from docs/can.md's layouts."""
+
+import math
+import struct
+import threading
+import time
+import uuid
+
+import can
+import pytest
+
+from krang_can_bridge.config import load_devices
+from krang_can_bridge.protocols import amc as amc_proto
+from krang_can_bridge.runtime import SIM_TIME_SLACK_S, BridgeRuntime, TimeBase
+from krang_core import names
+
+CFG = load_devices()
+OPERATION_ENABLED, FAULT = 0x0027, 0x0008
+DMU_PERIOD = 0.04  # a 25 Hz DMU: it holds wheel samples (faster than 1 / IMU_HOLD_MAX_S)
+JOINTS = [d.joint for d in CFG.wheels.drives]
+
+
+def msg(aid, data):
+    return can.Message(arbitration_id=aid, data=bytes(data), is_extended_id=False)
+
+
+class Rig:
+    """A runtime on virtual buses, its clock, what it published, and a listener on each bus."""
+
+    def __init__(self, run_startup=None, amc_startup=False, recover_timeout_s=1.0):
+        self.t = 10.0
+        channels = {b: f'runtime-{uuid.uuid4().hex}' for b in CFG.buses_in_use()}
+        buses = {b: can.Bus(interface='virtual', channel=c) for b, c in channels.items()}
+        self.listen = {b: can.Bus(interface='virtual', channel=c) for b, c in channels.items()}
+        self.published = []
+        kwargs = {} if run_startup is None else {'run_startup': run_startup}
+        self.runtime = BridgeRuntime(
+            CFG,
+            buses,
+            publish=lambda topic, message: self.published.append(message) or True,
+            stamp=lambda seconds: seconds,
+            encode_imu=lambda imu, stamp: ('imu', stamp),
+            encode_joints=lambda joints, stamp: (
+                'joints',
+                dict(zip(joints.names, joints.positions))['JLWheel'],
+            ),
+            time_base=TimeBase(sim_clock=lambda: self.t),
+            amc_startup=amc_startup,
+            recover_timeout_s=recover_timeout_s,
+            **kwargs,
+        )
+        self.seq = 0
+
+    def close(self):
+        if hasattr(self, '_reporter'):
+            self._reporting.set()
+            self._reporter.join()
+        self.runtime.close()
+        for bus in self.listen.values():
+            bus.shutdown()
+
+    def frame(self, bus, m, dt=0.0):
+        self.t += dt
+        return self.runtime.on_received(bus, m)
+
+    def dmu(self, dt=0.0, pitch=-0.9):
+        """One DMU sample (rates, then accelerations, of one sequence number) at rest."""
+        m, g_lsb = CFG.imu.mount_angle_rad, 9.80665 * 0.0003
+        f = (
+            9.81 * math.sin(pitch) * math.cos(m),
+            -9.81 * math.sin(pitch) * math.sin(m),
+            9.81 * math.cos(pitch),
+        )
+        rates = [round(x / math.radians(0.008)) for x in CFG.imu.gyro_bias_rad_s]
+        self.frame(CFG.imu.bus, msg(0x40, struct.pack('<hhhBB', *rates, 0, self.seq)), dt)
+        accel = [round(x / g_lsb) for x in f]
+        self.frame(CFG.imu.bus, msg(0x50, struct.pack('<hhhBB', *accel, 0, self.seq)))
+        self.seq = (self.seq + 1) & 0xFF
+
+    def ids(self, joint):
+        return self.runtime.core.wheel_state(joint).codec.ids
+
+    def wheels(self, counts=0, dt=0.0, status=OPERATION_ENABLED):
+        """Position, velocity and current TPDOs of both drives: one wheel sample."""
+        self.t += dt
+        for drive in CFG.wheels.drives:
+            ids = self.ids(drive.joint)
+            bus = CFG.wheels.bus
+            self.frame(bus, msg(ids[amc_proto.TPDO_POSITION], struct.pack('<Hi', status, counts)))
+            self.frame(bus, msg(ids[amc_proto.TPDO_VELOCITY], struct.pack('<Hi', status, 0)))
+            self.frame(bus, msg(ids[amc_proto.TPDO_CURRENT], struct.pack('<Hh', status, 0)))
+
+    def statusword(self, joint, status, dt=0.0):
+        data = struct.pack('<H', status)
+        self.frame(CFG.wheels.bus, msg(self.ids(joint)[amc_proto.TPDO_STATUSWORD], data), dt)
+
+    def report_status(self, status):
+        """From now on, both drives' statusword TPDOs every 5 ms (in a thread), `status` once the
+        drive's start-up ran (`status_of`), and the clock advancing with them."""
+        self.status_of = {}
+        self._reporting = threading.Event()
+
+        def run():
+            while not self._reporting.wait(0.005):
+                for joint, value in list(self.status_of.items()):
+                    self.statusword(joint, value, dt=0.005)
+
+        self._reporter = threading.Thread(target=run, daemon=True)
+        self._reporter.start()
+        return lambda drive: self.status_of.__setitem__(drive.joint, status)
+
+    def kinds(self):
+        return [m[0] for m in self.published]
+
+    def sent(self, bus):
+        out = []
+        while (m := self.listen[bus].recv(0.0)) is not None:
+            out.append(m)
+        return out
+
+
+@pytest.fixture
+def rig():
+    r = Rig()
+    yield r
+    r.close()
+
+
+def test_time_base_on_the_wall_clock():
+    base = TimeBase()
+    assert not base.simulated
+    assert base.device_time() == pytest.approx(base.frame_time(), abs=0.01)
+    assert base.stamp_seconds(0.0) == pytest.approx(base.stamp_offset)
+
+
+def test_time_base_in_simulation_checks_at_most_the_slack_past_the_newest_frame():
+    now = [5.0]
+    base = TimeBase(sim_clock=lambda: now[0])
+    base.frame_seen(5.0)
+    now[0] = 5.01
+    assert base.device_time() == 5.01
+    now[0] = 7.0  # the clock ran ahead of the frames still queued
+    assert base.device_time() == 5.0 + SIM_TIME_SLACK_S
+    base.frame_seen(6.99)
+    assert base.device_time() == 7.0
+    base.frame_seen(1.0)  # an older frame moves nothing back
+    assert base.newest_frame == 6.99
+    assert base.stamp_seconds(3.0) == 3.0
+
+
+def start_streaming(rig):
+    for _ in range(CFG.imu.kalman.init_samples + 50):
+        rig.dmu(DMU_PERIOD)
+        if rig.kinds().count('imu') >= 2:
+            return
+    raise AssertionError(f'the IMU filter never published: {rig.published}')
+
+
+def test_a_wheel_sample_waits_for_the_next_dmu_sample_while_the_dmu_streams(rig):
+    start_streaming(rig)
+    rig.published.clear()
+    rig.dmu(DMU_PERIOD)
+    rig.wheels(1000, dt=0.3 * DMU_PERIOD)
+    assert rig.kinds() == ['imu'], 'a wheel sample went out between samples'
+    first = rig.runtime.core.wheel_state('JLWheel').position
+    rig.dmu(0.7 * DMU_PERIOD)
+    assert rig.kinds()[1:] == ['joints', 'imu']
+    assert rig.published[1][1] == first
+    # two wheel samples before one DMU sample: only the newer goes out
+    rig.wheels(2000, dt=0.3 * DMU_PERIOD)
+    rig.wheels(3000)
+    newer = rig.runtime.core.wheel_state('JLWheel').position
+    assert newer != first
+    rig.dmu(0.7 * DMU_PERIOD)
+    assert rig.kinds()[3:] == ['joints', 'imu']
+    assert rig.published[3][1] == newer
+    assert rig.runtime.published == {
+        names.IMU: rig.kinds().count('imu') + 2,
+        names.JOINT_STATES: 2,
+    }
+    # the DMU stops: after 1.5 of its periods each wheel sample goes out at once
+    rig.published.clear()
+    rig.wheels(4000, dt=2.0 * DMU_PERIOD)
+    rig.wheels(5000)
+    assert rig.kinds() == ['joints', 'joints']
+
+
+def test_without_the_dmu_wheel_samples_go_out_as_they_complete(rig):
+    rig.wheels(100, dt=0.002)
+    rig.wheels(200, dt=0.002)
+    assert rig.kinds() == ['joints', 'joints']
+
+
+def test_a_frame_that_latches_a_fault_sends_zero_current_at_once_and_is_reported_once(rig):
+    assert rig.runtime.fault_changed() == ''
+    assert rig.runtime.fault_changed() is None
+    rig.sent(CFG.wheels.bus)
+    node_id = CFG.wheels.drives[0].node_id
+    rig.frame(CFG.wheels.bus, msg(0x80 + node_id, [0x10, 0x23, 0, 0, 0, 0, 0, 0]), 0.001)
+    reason = rig.runtime.core.fault_reason
+    assert 'EMCY 0x2310' in reason
+    currents = {m.arbitration_id for m in rig.sent(CFG.wheels.bus)}
+    assert len(currents) == len(CFG.wheels.drives)  # one current frame per drive, zero
+    assert rig.runtime.fault_changed() == reason
+    assert rig.runtime.fault_changed() is None
+
+
+class Startup:
+    """A stand-in for protocols.amc_canopen.run_startup: each call answers from `script` (a list of
+    mismatches, or an exception to raise) and may run `then` (the drive's answer on the bus)."""
+
+    def __init__(self, script, then=None):
+        self.script, self.then, self.calls = list(script), then, []
+
+    def __call__(self, network, drive, wheels, sdo_timeout_s):
+        self.calls.append(drive.joint)
+        step = self.script.pop(0) if len(self.script) > 1 else self.script[0]
+        if isinstance(step, Exception):
+            raise step
+        if self.then is not None:
+            self.then(drive)
+        return step
+
+
+def test_start_up_enables_each_drive_and_retries_a_failed_transfer():
+    startup = Startup([TimeoutError('no SDO response'), []])
+    rig = Rig(run_startup=startup, amc_startup=True)
+    try:
+        assert set(rig.runtime.startup_status.values()) == {'pending'}
+        assert rig.runtime.core.inhibits  # no motion before the start-up
+        rig.runtime.start(retry_s=0.01)
+        rig.runtime.startup_thread.join(5.0)
+        assert rig.runtime.startup_status == dict.fromkeys(JOINTS, 'enabled')
+        assert startup.calls[0] == startup.calls[1] == CFG.wheels.drives[0].joint
+        assert not rig.runtime.core.inhibits
+    finally:
+        rig.close()
+
+
+def test_constants_that_disagree_inhibit_motion():
+    rig = Rig(run_startup=Startup([['Kt: drive 0.1, config 0.2']]), amc_startup=True)
+    try:
+        drive = CFG.wheels.drives[0]
+        rig.runtime.bring_up_drive(drive, retry_s=0.01)
+        assert rig.runtime.startup_status[drive.joint].startswith('constants mismatch: Kt')
+        assert 'Kt' in rig.runtime.core.inhibits[f'startup/{drive.joint}']
+    finally:
+        rig.close()
+
+
+def test_recover_without_a_fault_runs_nothing():
+    startup = Startup([[]])
+    rig = Rig(run_startup=startup)
+    try:
+        assert rig.runtime.recover() == (True, 'no drive fault latched')
+        assert startup.calls == []
+    finally:
+        rig.close()
+
+
+def latch_fault(rig):
+    node_id = CFG.wheels.drives[1].node_id
+    rig.frame(CFG.wheels.bus, msg(0x80 + node_id, [0x10, 0x23, 0, 0, 0, 0, 0, 0]), 0.001)
+    assert rig.runtime.core.fault_reason
+
+
+def test_recover_reruns_each_drive_start_up_and_unlatches_once_all_are_enabled():
+    startup = Startup([[]])
+    rig = Rig(run_startup=startup)
+    try:
+        startup.then = rig.report_status(OPERATION_ENABLED)
+        latch_fault(rig)
+        ok, text = rig.runtime.recover()
+        assert ok and text.startswith('recovered from: ')
+        assert startup.calls == JOINTS
+        assert not rig.runtime.core.fault_reason
+    finally:
+        rig.close()
+
+
+def test_recover_is_refused_while_a_drive_stays_in_fault():
+    startup = Startup([[]])
+    rig = Rig(run_startup=startup)
+    try:
+        startup.then = rig.report_status(FAULT)
+        latch_fault(rig)
+        ok, text = rig.runtime.recover()
+        assert not ok and 'still reports FAULT' in text and 'fault still latched' in text
+        assert rig.runtime.core.fault_reason
+    finally:
+        rig.close()
+
+
+def test_recover_reports_a_failed_start_up_and_keeps_the_fault():
+    rig = Rig(run_startup=Startup([TimeoutError('no SDO response')]))
+    try:
+        latch_fault(rig)
+        ok, text = rig.runtime.recover()
+        assert not ok and 'fault reset and enable failed' in text and 'TimeoutError' in text
+    finally:
+        rig.close()
+
+
+def test_recover_keeps_the_wheel_command_loop_going():
+    startup = Startup([[]])
+    rig = Rig(run_startup=startup)
+    try:
+        report = rig.report_status(OPERATION_ENABLED)
+        startup.then = lambda drive: (time.sleep(0.1), report(drive))
+        latch_fault(rig)
+        rig.sent(CFG.wheels.bus)
+        ok, _ = rig.runtime.recover_keeping_alive()
+        assert ok
+        # zero current went on going out while the start-up ran (at the command rate)
+        assert len(rig.sent(CFG.wheels.bus)) >= 2 * len(CFG.wheels.drives)
+    finally:
+        rig.close()
+
+
+def test_diagnostics_name_the_start_up_and_the_samples():
+    rig = Rig()
+    try:
+        reports = {r.name: r for r in rig.runtime.diagnostics()}
+        for joint in JOINTS:
+            assert reports[f'can_bridge: amc/{joint} start-up'].message == 'pending'
+        assert names.IMU in reports['can_bridge: samples published'].values
+    finally:
+        rig.close()
