@@ -383,6 +383,30 @@ def table_trace(runs):
     ]
 
 
+def read_mujoco(out):
+    cases = grab_all(
+        r'^(\S.*?)\s+([\d.]+)x real time\s+\(\s*([\d.]+) us/step, ([\d.]+)x the reference\)', out
+    )
+    return {name.strip(): (float(rt), float(us), float(ratio)) for name, rt, us, ratio in cases}
+
+
+def table_mujoco(runs):
+    names = list(runs[0])
+    body = [
+        (
+            name,
+            span([r[name][0] for r in runs], '{:.1f}', '×'),
+            span([r[name][1] for r in runs], '{:.1f}'),
+            span([r[name][2] for r in runs], '{:.2f}', '×'),
+            '≥ 20×' if name.startswith('plant at 1 kHz') else '',
+        )
+        for name in names
+    ]
+    return rows(
+        ['case', 'real-time factor', 'µs per physics step', 'against bare mj_step', 'goal'], body
+    )
+
+
 def read_wire(out):
     found = grab_all(
         r'^(\S.*?)\s+publish: object\s+([\d.]+), bytes\s+([\d.]+) .*take and read: object\s+'
@@ -573,6 +597,16 @@ SECTIONS = [
         json_mode=True,
         about='Each node records when a sample passes each stage (`krang_ros/trace.py`); the '
         'segments of one sample add up to its total.',
+    ),
+    Section(
+        'mujoco',
+        'The full-body MuJoCo plant',
+        ['PY', 'bench/bench_mujoco.py'],
+        read_mujoco,
+        table_mujoco,
+        about='`krang_sim/mujoco_plant.py` at 1 kHz physics, best of the repeats; the reference '
+        'is '
+        "MuJoCo's own `mj_step` on the same model in the same run ([mujoco.md](mujoco.md)).",
     ),
     Section(
         'wire',

@@ -12,7 +12,7 @@ from krang_model.com import com_error, lateral_com_error
 from krang_model.files import save_figure
 from krang_core.names import BALANCED_POSE, BETA, DIAGNOSTICS, POSE_TARGET, WHEEL_EFFORT_CMD
 
-from .reader import iter_messages, read_float_arrays, read_joint_states
+from .reader import bag_info, iter_messages, read_float_arrays, read_joint_states
 
 
 def held_out_configurations(robot, n=2000, seed=12345):
@@ -71,10 +71,13 @@ def message_times(bag, topic):
     return np.array([t_ns * 1e-9 for _, t_ns, _ in iter_messages(bag, [topic])])
 
 
-def session_figures(bag, robot, true_beta, out_dir):
-    """learning_curve.png and session_timeline.png; returns ((forward, lateral) curves, paths)."""
-    betas = read_float_arrays(bag, BETA).rows
-    betas = [b for b in betas if len(b) == robot.n_beta]
+def session_figures(bag, robot, true_beta, out_dir, beta0):
+    """learning_curve.png and session_timeline.png; returns ((forward, lateral) curves, paths).
+
+    `beta0` is the estimator's initial beta: the curve starts from it when the session stopped
+    before the estimator published one (a Ctrl-C during stand-up still gets its report)."""
+    betas = read_float_arrays(bag, BETA).rows if BETA in bag_info(bag).topics else []
+    betas = [b for b in betas if len(b) == robot.n_beta] or [np.asarray(beta0, float)]
     curve, lateral = learning_curve(robot, betas, true_beta)
     paths = []
     fig = Figure(figsize=(6, 3.5))

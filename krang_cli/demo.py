@@ -13,6 +13,7 @@ from krang_model.beta import load_beta, save_beta
 from krang_model.robot import load_krang
 from krang_model.files import write_text
 from krang_ros.entry import interrupt
+from krang_sim.plant import plant_terms
 from krang_sim.session_config import session_devices_file, sim_truth_file
 from krang_sim.truths import generate_truth
 
@@ -85,6 +86,28 @@ def register(subparsers):
         help="seed of the simulator's and CAN devices' noise (default 0)",
     )
     p.add_argument(
+        '--plant',
+        choices=('reduced', 'mujoco'),
+        default=None,
+        help="the simulated robot's physics (sim_krang's `plant`; default sim_params.yaml's, "
+        'the reduced model)',
+    )
+    p.add_argument(
+        '--plant-model',
+        metavar='EXTENDED_MODEL.yaml',
+        default=None,
+        help='the simulated robot is the one an extended model of `krang discrepancy` describes '
+        "(its effects and values; sim_krang's `plant_model`)",
+    )
+    p.add_argument(
+        '--effects',
+        nargs='+',
+        metavar='KEY=VALUE',
+        default=None,
+        help="the true robot's effects (krang_model.effects), on top of --plant-model, e.g. "
+        'torque_constant=0.75 wheel_coulomb_friction=4 wheel_viscous_friction=3',
+    )
+    p.add_argument(
         '--processes',
         action='store_true',
         help='run each node in a process of its own, in lockstep with the simulator (as `krang '
@@ -106,6 +129,11 @@ def run(args):
     if bag.exists():
         bag.unlink()
     robot = load_krang()
+    try:  # a bad --plant-model or --effects fails here, in one line, before any node starts
+        plant_terms(robot, args.effects or (), args.plant_model)
+    except (KeyError, ValueError, OSError) as err:
+        log.error('krang demo: --plant-model / --effects: %s', err)
+        return 2
     if args.truth_seed is not None:
         truth = generate_truth(robot, args.truth_seed)
         truth_source, true_beta, meta = truth.describe(), truth.beta, truth.meta()
@@ -127,6 +155,12 @@ def run(args):
         'can_bridge': {'devices_file': devices},
         'com_estimator': {'output': beta_file, 'method': args.method},
     }
+    if args.plant:
+        overrides['sim_krang']['plant'] = args.plant
+    if args.plant_model:
+        overrides['sim_krang']['plant_model'] = str(Path(args.plant_model).resolve())
+    if args.effects:
+        overrides['sim_krang']['effects'] = list(args.effects)
     sigint = signal.signal(signal.SIGINT, interrupt)  # Ctrl-C: the report says so (below)
     started = time.monotonic()
     client = context = nodes = composed = None
@@ -171,7 +205,8 @@ def run(args):
             composed.close()
         signal.signal(signal.SIGINT, sigint)
     wall = time.monotonic() - started
-    (curve, lateral), figures = session_figures(bag, robot, true_beta, out)
+    # the curve starts from com_estimator's initial beta, which the demo leaves at the URDF's
+    (curve, lateral), figures = session_figures(bag, robot, true_beta, out, robot.nominal_beta)
     result = {
         'poses': learned,
         'com_error_before_m': float(curve[0]),

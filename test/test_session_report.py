@@ -40,8 +40,12 @@ def test_mode_segments_merge_repeated_reports():
 
 @pytest.fixture
 def bag(tmp_path):
+    return write_session(tmp_path / 'session.mcap')
+
+
+def write_session(path, betas=3):
+    """A session bag: wheel efforts, diagnostics, targets, learned poses and `betas` betas."""
     robot = load_krang()
-    path = tmp_path / 'session.mcap'
     s = 10**9
     with BagWriter(path) as w:
         w.add_topic(names.WHEEL_EFFORT_CMD, 'std_msgs/msg/Float64MultiArray')
@@ -80,7 +84,7 @@ def bag(tmp_path):
                 ),
                 s + int(t * s),
             )
-        for k in range(3):
+        for k in range(betas):
             w.write_message(
                 names.BETA,
                 messages.labelled_array(robot.nominal_beta * (1 + 0.01 * k), robot.beta_labels()),
@@ -115,8 +119,19 @@ def test_timeline_marks_and_legend(bag):
 
 def test_session_figures_written(bag, tmp_path):
     robot = load_krang()
-    (curve, lateral), paths = session_figures(bag, robot, robot.nominal_beta, tmp_path)
+    (curve, lateral), paths = session_figures(bag, robot, robot.nominal_beta, tmp_path, None)
     assert [p.name for p in paths] == ['learning_curve.png', 'session_timeline.png']
     assert all(p.read_bytes()[:8] == b'\x89PNG\r\n\x1a\n' for p in paths)
     assert len(curve) == 3 and curve[0] == pytest.approx(0.0, abs=1e-12)
     assert not list(tmp_path.glob('.*.tmp'))
+
+
+def test_a_session_stopped_before_any_beta_still_has_its_curve(tmp_path):
+    """Ctrl-C during stand-up: the estimator never published; the curve is the initial beta's."""
+    robot = load_krang()
+    bag = write_session(tmp_path / 'early.mcap', betas=0)
+    beta0 = robot.nominal_beta.copy()
+    beta0[4 * robot.body_names.index('Base') + 2] += 0.5  # the Base's CoM 6.6 mm off
+    (curve, lateral), paths = session_figures(bag, robot, robot.nominal_beta, tmp_path, beta0)
+    assert len(curve) == 1 and curve[0] > 1e-4  # beta0's error, not the truth's zero
+    assert [p.name for p in paths] == ['learning_curve.png', 'session_timeline.png']
