@@ -230,17 +230,20 @@ class WipDynamics:
         c = cos(theta + d.floor_slope)
         s_slope = sin(theta + d.floor_slope)
         rel = dphi - dq_base
-        friction = d.viscous_friction * rel + d.ground_viscous * dphi
+        # the wheels' friction against the body is a torque between the two, like the motors':
+        # it enters the wheel and the pitch equations with opposite signs
+        internal = d.viscous_friction * rel
         if self._coulomb:
-            friction = friction + 2.0 * d.coulomb_friction * tanh(rel / 1e-2)
+            internal = internal + 2.0 * d.coulomb_friction * tanh(rel / 1e-2)
         m12 = self._mrl * c - self._j
-        f1 = self._mrl * s_slope * dq_base * dq_base - self._grade + tau - friction
-        f2 = (
-            self._mgl * sin(theta)
-            - tau
-            + d.viscous_friction * rel
-            + self.caster_torque(q_base, dq_base)
+        f1 = (
+            self._mrl * s_slope * dq_base * dq_base
+            - self._grade
+            + tau
+            - internal
+            - d.ground_viscous * dphi
         )
+        f2 = self._mgl * sin(theta) - tau + internal + self.caster_torque(q_base, dq_base)
         if f_phi is not None:
             f1 = f1 + f_phi
             f2 = f2 + f_qbase

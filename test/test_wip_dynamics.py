@@ -84,6 +84,22 @@ def test_balanced_pose_has_zero_com_angle(krang):
     assert com_frame0(krang, [q_base], POSE[None], beta)[0, 2] > 0
 
 
+def test_coulomb_friction_reacts_on_the_body_as_the_motor_torque_does(krang):
+    """Wheel-to-body Coulomb friction is a torque between wheel and body: its accelerations are
+    those of a motor torque of the same size and opposite sign (the motor's path is the
+    reference), on the wheel and on the pitch."""
+    body = reduce_pose(krang, POSE, krang.nominal_beta)
+    c = 4.0  # N m per wheel
+    with_friction = WipDynamics(body, replace(frictionless(krang), coulomb_friction=c))
+    reference = WipDynamics(body, frictionless(krang))
+    for q_base, dphi, dq_base in ((-1.6, 2.0, 0.3), (-1.5, -1.0, 0.4), (-1.7, 0.05, 0.0)):
+        rel = dphi - dq_base
+        tau_friction = 2.0 * c * math.tanh(rel / 1e-2)
+        got = with_friction.pitch_accelerations(q_base, dphi, dq_base, 0.0)
+        want = reference.pitch_accelerations(q_base, dphi, dq_base, -tau_friction)
+        assert got == pytest.approx(want, rel=1e-12, abs=1e-12)
+
+
 @pytest.mark.parametrize('make_robot', [load_krang, load_wip7])
 def test_energy_is_conserved_without_friction_or_input(make_robot):
     robot = make_robot()
