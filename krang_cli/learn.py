@@ -5,6 +5,7 @@ import math
 import numpy as np
 
 import krang_com_estimator as est
+from krang_com_estimator.identifiability import determined_report
 from krang_model.beta import load_beta, save_beta
 from krang_model.com import x_com
 from krang_model.poses import load_poses
@@ -29,12 +30,14 @@ def register(subparsers):
             'mass and wheel '
             'CoMs on the axle as hard constraints, the IMU/hand-balancing pitch noise, and the '
             'positive-mass '
-            'and CoM-inside-the-link bounds enforced (batch); map-online = the same MAP, '
+            'and CoM-inside-the-link bounds enforced, every mass within --mass-spread of the '
+            "URDF's and every CoM within --com-radius of CAD (batch); map-online = the same MAP, "
             'recursive, in file '
             "order (the com_estimator node's update); estimators registered by plug-ins are "
             'offered too (krang_com_estimator.register_estimator). Reports the k-fold '
-            "cross-validated |x_com| on held-out records, and how far each body's CoM and mass "
-            'moved from beta0.'
+            "cross-validated |x_com| on held-out records, how far each body's CoM and mass "
+            'moved from beta0, which plausibility bounds the fit touches, and which directions '
+            'of beta the data determine and which come from the prior.'
         ),
         epilog='Example (KIT = the real-data kit): krang learn '
         '--poses KIT/hardware_balanced_poses_train.csv '
@@ -90,6 +93,22 @@ def register(subparsers):
         help='known total mass, kg (default: the URDF total, 162.158 kg)',
     )
     p.add_argument(
+        '--mass-spread',
+        type=float,
+        default=est.MASS_SPREAD,
+        metavar='FRAC',
+        help="map: every body's mass stays within this fraction of the URDF's "
+        f'(default {est.MASS_SPREAD}; 0 = no such bound)',
+    )
+    p.add_argument(
+        '--com-radius',
+        type=float,
+        default=est.COM_RADIUS_M,
+        metavar='M',
+        help="map: every body's CoM stays within this distance of the CAD CoM, m "
+        f'(default {est.COM_RADIUS_M}; 0 = no such bound)',
+    )
+    p.add_argument(
         '--calibrate',
         action='store_true',
         help='map: the pitch noise and the prior scales by evidence maximisation on '
@@ -134,13 +153,21 @@ def run(args):
         eta=args.eta,
         calibrate=args.calibrate,
         pitch_offset_std=args.pitch_offset_std,
+        mass_spread=args.mass_spread if args.mass_spread > 0 else None,
+        com_radius=args.com_radius if args.com_radius > 0 else None,
     )
     estimator = est.make_estimator(args.method, robot, beta0, **kw)
     beta, info = estimator.fit(q_base, joints)
     offset = info.get('pitch_offset_rad', 0.0)  # the model sees the poses at q - offset
     xc0 = x_com(robot, q_base, joints, beta0)
     xc = x_com(robot, q_base - offset, joints, beta)
-    cons = est.physical_consistency(robot, beta, total_mass=args.total_mass)
+    cons = est.physical_consistency(
+        robot,
+        beta,
+        total_mass=args.total_mass,
+        mass_spread=kw['mass_spread'],
+        com_radius=kw['com_radius'],
+    )
     summary = {
         'method': args.method,
         'poses': int(len(q_base)),
@@ -167,10 +194,24 @@ def run(args):
             'total_mass_kg': cons['total_mass'],
             'physically_consistent': cons['ok'],
             'violations': cons['violations'],
+            'plausible_region': {
+                'mass_spread': kw['mass_spread'],
+                'com_radius_m': kw['com_radius'],
+                'at_bound': cons['at_bound'],
+            },
+            'max_com_moved_m': max(bd['com_moved_m'] for bd in cons['bodies']),
             'com_moved_m': {bd['name']: bd['com_moved_m'] for bd in cons['bodies']},
             'mass_change_kg': {bd['name']: bd['mass_change_kg'] for bd in cons['bodies']},
+            'mass_kg': {bd['name']: bd['mass'] for bd in cons['bodies']},
         }
     )
+    if getattr(estimator, 'prior_std', None) is not None:
+        rows, _, var = est.balanced_pose_rows(
+            robot, q_base - offset, joints, beta, estimator.noise
+        )
+        summary['identifiability'] = determined_report(
+            robot, estimator.prior_std, rows, var, estimator.A
+        )
     cov = estimator.covariance
     if cov is not None:
         std = est.com_shift_std(robot, beta, cov)
@@ -216,6 +257,32 @@ def _print_report(s, info):
     )
     for v in s['violations']:
         print(f'    - {v}')
+    region = s['plausible_region']
+    if region['mass_spread'] is not None or region['com_radius_m'] is not None:
+        spread = region['mass_spread']
+        radius = region['com_radius_m']
+        print(
+            '  plausible region: masses '
+            + (f"within {100 * spread:.0f} % of the URDF's" if spread is not None else 'free')
+            + ', CoMs '
+            + (f'within {100 * radius:.1f} cm of CAD' if radius is not None else 'free')
+            + f'; largest CoM move {100 * s["max_com_moved_m"]:.2f} cm'
+        )
+        if region['at_bound']:
+            print(
+                '  at a bound (the data push beyond the plausible region there): '
+                + ', '.join(region['at_bound'])
+            )
+    ident = s.get('identifiability')
+    if ident:
+        print(
+            f'  the data determine {ident["determined_by_data"]} of {ident["directions"]} '
+            f"directions of beta (their information at least the prior's); "
+            f'{ident["from_prior"]} come from the prior'
+        )
+        print('    entries set by the data: ' + (', '.join(ident['entries_from_data']) or 'none'))
+        if ident['entries_never_seen']:
+            print('    never seen by the data: ' + ', '.join(ident['entries_never_seen']))
     if 'calibration' in s:
         c = s['calibration']
         print(
@@ -235,4 +302,4 @@ def _print_report(s, info):
         sd = f'{100 * std[name]:8.2f}' if name in std else '       -'
         print(f'  {name:<10} {100 * moved:10.2f}  {sd} {s["mass_change_kg"][name]:14.3f}')
     if info.get('inequality_qp'):
-        print('  (the Gaussian MAP left the physical bounds; the bounded QP solution was used)')
+        print('  (the Gaussian MAP left the plausible region; the constrained MAP was used)')

@@ -12,9 +12,10 @@
   solvers.map_batch solves the same problem in one go with the same result. `MAPOnline` feeds it
   the CoM-angle rows (rows.balanced_pose_rows) and re-linearises (a batch Gauss-Newton pass over
   the poses so far) when the estimate has moved enough to matter; solvers.map_gauss_newton is the
-  batch form, which `MAP.fit` uses and `MAPOnline.finalize()` equals. `MAP` adds the inequality
-  constraints of physical consistency (positive masses, every CoM inside the inflated collision
-  box of its link) as a QP when the Gaussian MAP violates them.
+  batch form, which `MAP.fit` uses and `MAPOnline.finalize()` equals. `MAP` adds the bounds of
+  physical plausibility (positive masses, each within a stated spread of the URDF's, every CoM
+  inside the inflated collision box of its link and within a stated radius of CAD) as a convex
+  program when the Gaussian MAP leaves them.
 The paper estimators and MAPEstimator also take linear rows (`update_row`, `update_rows`).
 """
 
@@ -24,10 +25,23 @@ import numpy as np
 
 from krang_model.com import phi as phi_fn
 
-from .priors import equality_constraints, inequality_constraints, physical_prior_std
+from .priors import (
+    COM_RADIUS_M,
+    MASS_SPREAD,
+    com_balls,
+    equality_constraints,
+    inequality_constraints,
+    physical_prior_std,
+)
 from .registry import Estimator, register_estimator
-from .rows import NoiseModel, balanced_pose_rows, pitch_rows
-from .solvers import calibrate_scales, condition_on_constraints, map_constrained, map_gauss_newton
+from .rows import NoiseModel, angle_rows, balanced_pose_rows, offset_rows, pitch_rows
+from .solvers import (
+    calibrate_scales,
+    condition_on_constraints,
+    map_constrained,
+    map_gauss_newton,
+    within_bounds,
+)
 
 
 # ---------------------------------------------------- the paper's GD, one or many betas
@@ -375,11 +389,15 @@ class MAPOnline(Estimator):
 @register_estimator('map')
 class MAP(MAPOnline):
     """map: the posterior of map-online, with fit() in closed form: the batch Gauss-Newton MAP of
-    all poses (map_gauss_newton), then, with physical=True, the inequality-constrained QP if the
-    Gaussian MAP leaves the physically consistent region (map_constrained). Online: map-online.
+    all poses (map_gauss_newton), then, with physical=True, the constrained MAP if the Gaussian
+    MAP leaves the plausible region (map_constrained, re-linearised until it settles): positive
+    masses, each within mass_spread of the URDF's (priors.mass_bounds; None: no such bound),
+    each CoM inside its link's inflated collision box and within com_radius m of CAD
+    (priors.com_balls; None: no such bound). Online: map-online.
 
     calibrate=True: the noise and prior scales (sigma_pitch, mass_frac, com_std) come from the
-    training poses by evidence maximisation (calibrate_scales) before the fit. pitch_offset_std
+    training poses by evidence maximisation (calibrate_scales) before the fit, mass_frac at most
+    mass_spread / 2 (when given). pitch_offset_std
     (rad): also estimate an IMU pitch offset with that prior std (offset_rows); the estimate and
     its posterior std are `pitch_offset` and `pitch_offset_std_post` (in fit's info too)."""
 
@@ -398,8 +416,12 @@ class MAP(MAPOnline):
         physical=True,
         calibrate=False,
         pitch_offset_std=None,
+        mass_spread=MASS_SPREAD,
+        com_radius=COM_RADIUS_M,
     ):
         self.physical = physical
+        self.mass_spread = mass_spread
+        self.com_radius = com_radius
         self.calibrate = calibrate
         self.pitch_offset_std = pitch_offset_std
         self.calibration = None
@@ -421,6 +443,7 @@ class MAP(MAPOnline):
                 self.A,
                 self.b,
                 pitch_offset_std=self.pitch_offset_std,
+                bounds=self._calibration_bounds(),
             )
             c = self.calibration
             self.noise = NoiseModel(sigma_imu_rad=c['sigma_pitch_rad'])
@@ -441,6 +464,8 @@ class MAP(MAPOnline):
             self.b,
             pitch_offset_std=self.pitch_offset_std,
         )
+        if self.physical:
+            beta, lin, info['inequality_qp'] = self._bounded(q_base, joints, beta, lin)
         if self.pitch_offset_std is not None:
             self.pitch_offset = float(beta[n])
             self.pitch_offset_std_post = float(math.sqrt(cov[n, n]))
@@ -450,17 +475,44 @@ class MAP(MAPOnline):
             q_base = q_base - self.pitch_offset  # the poses as the model now sees them
             beta, cov, lin = beta[:n], cov[:n, :n], lin[:n]
         info['covariance_trace'] = float(np.trace(cov))
-        if self.physical:
-            G, h = inequality_constraints(self.robot)
-            info['inequality_qp'] = bool(np.any(G @ beta < h - 1e-12))
-            if info['inequality_qp']:
-                rows, y, var = balanced_pose_rows(self.robot, q_base, joints, lin, self.noise)
-                beta = map_constrained(
-                    self.beta0, self.prior_std, rows, y, var, self.A, self.b, G, h, beta_start=beta
-                )
         self.q = [float(v) for v in q_base]
         self.joints = [j.copy() for j in np.asarray(joints, dtype=float)]
         self.sigmas = [math.nan] * len(self.q)
         self.n_updates = len(q_base)
         self._set_posterior(beta, cov, lin)
         return self.beta, info
+
+    def _calibration_bounds(self):
+        """The calibration searches only mass stds that keep the plausible mass range at two of
+        them or more (mass_frac <= mass_spread / 2): a wider prior would put most of its weight
+        on masses the plausible region excludes."""
+        if self.mass_spread is None:
+            return None
+        return {'mass_frac': (0.0, self.mass_spread / 2)}
+
+    def _bounded(self, q_base, joints, beta, lin, iterations=5):
+        """(beta, lin, bounded?): the Gaussian MAP if it is inside the plausible region, else the
+        constrained MAP, its rows re-linearised at each solution until it moves less than 1e-6
+        of |beta0|. With a pitch offset (last entry of beta) the offset is solved with beta, so
+        where the bounds stop the masses it can take what the data ask. The covariance stays the
+        Gaussian posterior's."""
+        n = self.robot.n_beta
+        G, h = inequality_constraints(self.robot, mass_spread=self.mass_spread)
+        balls = com_balls(self.robot, self.com_radius) if self.com_radius is not None else None
+        if within_bounds(beta[:n], G, h, balls):
+            return beta, lin, False
+        beta0, std, A, rows_fn = self.beta0, self.prior_std, self.A, angle_rows
+        if len(beta) > n:
+            beta0, std = np.append(beta0, 0.0), np.append(std, self.pitch_offset_std)
+            A, G = (np.column_stack([M, np.zeros(len(M))]) for M in (A, G))
+            rows_fn = offset_rows
+        P, Psi = phi_fn(self.robot, q_base, joints), pitch_rows(self.robot, q_base, joints)
+        scale = np.abs(self.beta0).max()
+        for _ in range(iterations):
+            rows, y, var = rows_fn(P, Psi, lin[:n], self.noise)
+            beta = map_constrained(beta0, std, rows, y, var, A, self.b, G, h, balls=balls)
+            step = np.abs(beta - lin).max()
+            lin = beta
+            if step < 1e-6 * scale:
+                break
+        return beta, lin, True

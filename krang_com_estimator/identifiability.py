@@ -17,6 +17,10 @@ Three regressors are compared:
   restore the scale, because the Base and wheel masses never appear in phi (their origins are on
   the axle), so they can absorb any change of total mass; and knowing all masses does not either,
   because every other mass acts like moments of the links it hangs on.
+
+For one fit (krang learn), information_directions / determined_report say which directions of
+beta its poses determine and which its prior sets: the generalised eigenproblem of the data's
+information against the prior's.
 """
 
 import numpy as np
@@ -279,3 +283,68 @@ def _why_zero(robot, j):
     if k == 0:
         return ' (its origin is on the axle)'
     return ''
+
+
+# ---------------------------------------------- what a fit's data determine, and what its prior
+#: a direction counts as determined by the data when they hold at least as much information on it
+#: as the prior (its posterior variance is at most half the prior's)
+DETERMINED_RATIO = 1.0
+
+
+def information_directions(prior_std, rows, var, A=None):
+    """The directions of beta ranked by how much the data say about them against the prior:
+    (lam, V, Z, H0) with D V = H0 V diag(lam), V^T H0 V = I, where H0 = Z^T P0^-1 Z is the prior's
+    and D = (G Z)^T R^-1 (G Z) the data's information on the null space Z of the equality
+    constraints A (rows G, variances R: the fit's linear rows). lam_k is the data-to-prior
+    information ratio of direction Z v_k: posterior variance / prior variance = 1 / (1 + lam_k).
+    The coordinate of a change d (A d = 0) along v_k is v_k^T H0 Z^T d."""
+    from scipy.linalg import eigh
+
+    from .solvers import null_space
+
+    prior_std = np.asarray(prior_std, dtype=float)
+    n = len(prior_std)
+    Z = null_space(np.zeros((0, n)) if A is None else np.atleast_2d(A), n)
+    H0 = Z.T @ (Z / prior_std[:, None] ** 2)
+    GZ = np.atleast_2d(rows) @ Z
+    D = GZ.T @ (GZ / np.asarray(var, dtype=float)[:, None])
+    lam, V = eigh(0.5 * (D + D.T), 0.5 * (H0 + H0.T))
+    order = np.argsort(lam)[::-1]
+    return np.clip(lam[order], 0.0, None), V[:, order], Z, H0
+
+
+def determined_report(robot, prior_std, rows, var, A=None, threshold=DETERMINED_RATIO):
+    """Which directions and entries of beta a fit's data determine and which come from its prior
+    (JSON-friendly). Directions: information_directions with lam >= threshold. Entries: the
+    posterior std of each entry over its prior std (prior conditioned on A); an entry counts as
+    from the data when that ratio is at most 1/sqrt(1 + threshold), as fixed when the constraints
+    alone fix it."""
+    lam, V, Z, H0 = information_directions(prior_std, rows, var, A)
+    k = int((lam >= threshold).sum())
+    HV = H0 @ V  # the data's information D = (H0 V) diag(lam) (H0 V)^T
+    prior_var = np.einsum('ij,jk,ik->i', Z, np.linalg.inv(H0), Z)
+    post_var = np.einsum('ij,jk,ik->i', Z, np.linalg.inv(H0 + (HV * lam) @ HV.T), Z)
+    fixed = prior_var <= 1e-12 * prior_var.max()
+    ratio = np.sqrt(np.where(fixed, 1.0, post_var / np.where(fixed, 1.0, prior_var)))
+    cut = 1.0 / np.sqrt(1.0 + threshold)
+    labels = [describe_entry(robot, j) for j in range(robot.n_beta)]
+    zero = np.flatnonzero(np.abs(np.atleast_2d(rows)).max(0) == 0)
+    per_body = {}
+    for i, body in enumerate(robot.body_names):
+        per_body[body] = {
+            q: (None if fixed[4 * i + c] else round(float(ratio[4 * i + c]), 3))
+            for c, q in enumerate(('m', 'm*x', 'm*y', 'm*z'))
+        }
+    return {
+        'directions': int(len(lam)),
+        'determined_by_data': k,
+        'from_prior': int(len(lam)) - k,
+        'threshold_information_ratio': float(threshold),
+        'information_ratios_top': [round(float(v), 3) for v in lam[: max(k, 1) + 3]],
+        'entries_from_data': [
+            labels[j] for j in range(robot.n_beta) if not fixed[j] and ratio[j] <= cut
+        ],
+        'entries_fixed_by_constraints': [labels[j] for j in np.flatnonzero(fixed)],
+        'entries_never_seen': [labels[j] for j in zero if not fixed[j]],
+        'posterior_over_prior_std': per_body,
+    }

@@ -1,6 +1,7 @@
 """Priors and physical constraints of beta: the prior spread, the hard linear constraints (known
-total mass, wheel CoMs on the axle), the plausible CoM boxes of the links, and the consistency
-check of a learned beta."""
+total mass, wheel CoMs on the axle), the plausible region of every body (its mass within a stated
+spread of the URDF's, its CoM inside its link's inflated collision box and within a stated radius
+of the CAD CoM), and the consistency check of a learned beta."""
 
 import math
 import xml.etree.ElementTree as ET
@@ -121,16 +122,49 @@ def _rpy(rpy):
     return rz @ ry @ rx
 
 
-def inequality_constraints(robot, bounds=None, min_mass=0.0):
-    """(G, h) with G beta >= h: every mass >= min_mass and every CoM coordinate inside its bounds,
-    written linearly as m*c - lo*m >= 0 and hi*m - m*c >= 0."""
+#: the plausible region of a learned body (docs/learning.md, "Plausible masses and CoMs"): its mass
+#: within MASS_SPREAD of the URDF's (cabling, fasteners and electronics CAD leaves out), its CoM
+#: within COM_RADIUS_M of the CAD CoM. Physical statements, not fitted to any data.
+MASS_SPREAD = 0.2
+COM_RADIUS_M = 0.08
+#: bodies lighter than this (the gripper plates, 1e-5 kg in the URDF) only keep m >= 0 and the box
+PLAUSIBLE_MIN_MASS_KG = 0.1
+
+
+def mass_bounds(robot, spread=MASS_SPREAD):
+    """(lo, hi) (n_bodies,) plausible masses: the URDF's nominal mass times (1 -+ spread); (0, inf)
+    for bodies lighter than PLAUSIBLE_MIN_MASS_KG."""
+    m0 = robot.nominal_beta[0::4]
+    heavy = m0 >= PLAUSIBLE_MIN_MASS_KG
+    lo = np.where(heavy, m0 * (1.0 - spread), 0.0)
+    hi = np.where(heavy, m0 * (1.0 + spread), np.inf)
+    return lo, hi
+
+
+def com_balls(robot, radius=COM_RADIUS_M):
+    """(ids, centres (k, 3), radius): the bodies whose CoM must stay within `radius` m of the CAD
+    CoM (all but those lighter than PLAUSIBLE_MIN_MASS_KG), for solvers.map_constrained."""
+    beta0 = robot.nominal_beta
+    ids = np.flatnonzero(beta0[0::4] >= PLAUSIBLE_MIN_MASS_KG)
+    centres = np.array([beta0[4 * i + 1 : 4 * i + 4] / beta0[4 * i] for i in ids])
+    return ids, centres, float(radius)
+
+
+def inequality_constraints(robot, bounds=None, min_mass=0.0, mass_spread=None):
+    """(G, h) with G beta >= h: every mass >= min_mass (and, with mass_spread, within
+    mass_bounds) and every CoM coordinate inside its bounds, written linearly as
+    m*c - lo*m >= 0 and hi*m - m*c >= 0."""
     lo, hi = com_bounds(robot) if bounds is None else bounds
+    m_lo, m_hi = mass_bounds(robot, mass_spread) if mass_spread is not None else (None, None)
     rows, rhs = [], []
     for i in range(robot.n_bodies):
         a = np.zeros(robot.n_beta)
         a[4 * i] = 1.0
         rows.append(a)
-        rhs.append(min_mass)
+        rhs.append(min_mass if m_lo is None else max(min_mass, m_lo[i]))
+        if m_hi is not None and np.isfinite(m_hi[i]):
+            rows.append(-a)
+            rhs.append(-m_hi[i])
         for k in range(3):
             a = np.zeros(robot.n_beta)
             a[4 * i + 1 + k], a[4 * i] = 1.0, -lo[i, k]
@@ -143,12 +177,19 @@ def inequality_constraints(robot, bounds=None, min_mass=0.0):
     return np.array(rows), np.array(rhs)
 
 
-def physical_consistency(robot, beta, total_mass=None, bounds=None, tol=1e-6):
+def physical_consistency(
+    robot, beta, total_mass=None, bounds=None, tol=1e-6, mass_spread=None, com_radius=None
+):
     """Checks a beta for physical consistency. Returns a dict: ok, and the list of violations
-    (negative masses, total mass off, CoMs outside their bounds, wheel CoMs off the axle), plus the
-    CoM of every body and its distance from the CAD CoM."""
+    (negative masses, total mass off, CoMs outside their bounds, wheel CoMs off the axle; with
+    mass_spread / com_radius also masses outside mass_bounds and CoMs farther than com_radius
+    from CAD), plus the CoM of every body, its distance from the CAD CoM, and `at_bound`: the
+    plausibility bounds the beta touches (where the data push against the prior's region)."""
     beta = np.asarray(beta, dtype=float)
     lo, hi = com_bounds(robot) if bounds is None else bounds
+    m_lo, m_hi = mass_bounds(robot, mass_spread) if mass_spread is not None else (None, None)
+    ball_ids = set(com_balls(robot)[0].tolist()) if com_radius is not None else set()
+    at_bound = []
     total_mass = robot.nominal_mass if total_mass is None else total_mass
     violations = []
     bodies = []
@@ -170,6 +211,22 @@ def physical_consistency(robot, beta, total_mass=None, bounds=None, tol=1e-6):
         if not m > 0:
             violations.append(f'{name}: mass {m:.4g} kg is not positive')
             continue
+        if m_lo is not None and np.isfinite(m_hi[i]):
+            bodies[-1]['mass_range_kg'] = [float(m_lo[i]), float(m_hi[i])]
+            if m < m_lo[i] * (1 - 1e-6) or m > m_hi[i] * (1 + 1e-6):
+                violations.append(
+                    f'{name}: mass {m:.3f} kg outside its plausible range '
+                    f'[{m_lo[i]:.3f}, {m_hi[i]:.3f}] kg'
+                )
+            elif min(m - m_lo[i], m_hi[i] - m) < 1e-3 * m_hi[i]:
+                at_bound.append(f'{name} mass')
+        if i in ball_ids:
+            if moved > com_radius + 1e-6:
+                violations.append(
+                    f'{name}: CoM {100 * moved:.2f} cm from CAD, beyond {100 * com_radius:.1f} cm'
+                )
+            elif moved > com_radius - 1e-4:
+                at_bound.append(f'{name} CoM')
         out = (com < lo[i] - tol) | (com > hi[i] + tol)
         if out.any():
             violations.append(
@@ -186,7 +243,13 @@ def physical_consistency(robot, beta, total_mass=None, bounds=None, tol=1e-6):
     mass = float(beta[0::4].sum())
     if abs(mass - total_mass) > 1e-6 * total_mass:
         violations.append(f'total mass {mass:.3f} kg instead of {total_mass:.3f} kg')
-    return {'ok': not violations, 'violations': violations, 'total_mass': mass, 'bodies': bodies}
+    return {
+        'ok': not violations,
+        'violations': violations,
+        'total_mass': mass,
+        'bodies': bodies,
+        'at_bound': at_bound,
+    }
 
 
 def com_shift_std(robot, beta, covariance, reference=None):

@@ -232,20 +232,25 @@ def calibrate_scales(
     sigma_pitch=None,
     pitch_offset_std=None,
     rounds=3,
+    bounds=None,
 ):
     """Noise and prior scales from the data by evidence maximisation (type-II maximum
     likelihood): the pitch noise sigma_pitch and the prior's mass_frac and com_std
     (physical_prior_std) that maximise log_evidence, alternating with the Gauss-Newton MAP they
-    give (the linearisation point), within CALIBRATION_BOUNDS. Per-pose sigma_pitch values, if
-    given, are added in quadrature (NoiseModel.pitch_std). Returns a dict (sigma_pitch_rad,
+    give (the linearisation point), within CALIBRATION_BOUNDS, narrowed by `bounds` (same keys;
+    e.g. MAP keeps mass_frac within half its plausible mass spread). Per-pose sigma_pitch values,
+    if given, are added in quadrature (NoiseModel.pitch_std). Returns a dict (sigma_pitch_rad,
     mass_frac, com_std_m, log_evidence)."""
     q_meas = np.atleast_1d(np.asarray(q_meas, dtype=float))
     joints = np.atleast_2d(joints)
     P, Psi = phi_fn(robot, q_meas, joints), pitch_rows(robot, q_meas, joints)
     start = start or {'sigma_pitch_rad': math.radians(0.1), 'mass_frac': 0.1, 'com_std_m': 0.03}
     keys = ('sigma_pitch_rad', 'mass_frac', 'com_std_m')
-    bounds = [tuple(np.log(CALIBRATION_BOUNDS[k])) for k in keys]
-    theta = np.log([start[k] for k in keys])
+    limits = {k: tuple(CALIBRATION_BOUNDS[k]) for k in keys}
+    for k, (lo, hi) in (bounds or {}).items():
+        limits[k] = (max(lo, limits[k][0]), min(hi, limits[k][1]))
+    bounds = [tuple(np.log(limits[k])) for k in keys]
+    theta = np.clip(np.log([start[k] for k in keys]), *np.array(bounds).T)
 
     def unpack(t):
         s, mf, cs = np.exp(t)
@@ -296,9 +301,14 @@ def map_constrained(
     G=None,
     h=None,
     beta_start=None,
+    balls=None,
 ):
-    """MAP with the equality constraints A beta = b AND the inequalities G beta >= h (a convex QP;
-    solved on the null space of A by scipy's SLSQP with exact gradients). Returns beta."""
+    """MAP with the equality constraints A beta = b AND the inequalities G beta >= h, and with
+    `balls` = (ids, centres, radius) (priors.com_balls) every listed body's CoM within `radius`
+    of its centre: (r m)^2 - |m c - m centre|^2 >= 0, convex for m > 0. A convex program, solved
+    on the null space of A, whitened by the posterior information (so SLSQP sees the identity),
+    over a working set: the constraints the start violates, then those the solution violates,
+    until none is. Returns beta."""
     beta0 = np.asarray(beta0, dtype=float)
     n = len(beta0)
     Phi = np.atleast_2d(np.asarray(phi_rows, dtype=float)).reshape(-1, n)
@@ -309,24 +319,95 @@ def map_constrained(
     start, _ = (
         map_batch(beta0, prior_std, Phi, y, r, A, b) if beta_start is None else (beta_start, None)
     )
-    if G is None or np.all(G @ start >= h - 1e-12):
+    G = np.zeros((0, n)) if G is None else np.atleast_2d(G)
+    h = np.zeros(0) if h is None else np.atleast_1d(h)
+    ball = _BallConstraints(balls, n)
+    if within_bounds(start, G, h, balls):
         return start
-    Z = null_space(A, n)
     p0inv = 1.0 / np.asarray(prior_std, dtype=float) ** 2
     W = Phi / r[:, None]
-    H = Z.T @ (np.diag(p0inv) + Phi.T @ W) @ Z
+    Z = null_space(A, n)
+    H = Z.T @ (p0inv[:, None] * Z) + (Phi @ Z).T @ (W @ Z)
     g = Z.T @ (p0inv * (beta0 - start) + W.T @ (y - Phi @ start))
-    # in z: f(z) = 1/2 z^T H z - g^T z ; beta = start + Z z ; constraint G Z z >= h - G start
-    scale = max(float(np.abs(np.diag(H)).max()), 1.0)
-    Hs, gs = H / scale, g / scale
-    GZ, hz = G @ Z, h - G @ start
-    res = minimize(
-        lambda z: 0.5 * z @ Hs @ z - gs @ z,
-        np.zeros(Z.shape[1]),
-        jac=lambda z: Hs @ z - gs,
-        constraints=[{'type': 'ineq', 'fun': lambda z: GZ @ z - hz, 'jac': lambda z: GZ}],
-        method='SLSQP',
-        options={'maxiter': 500, 'ftol': 1e-14},
-    )
-    beta = start + Z @ res.x
+    # z = T u with T = L^-T (H = L L^T): f(u) = 1/2 |u|^2 - (T^T g)^T u; beta = start + Zt u
+    L = np.linalg.cholesky(0.5 * (H + H.T))
+    Zt = Z @ np.linalg.inv(L).T
+    gu = np.linalg.solve(L, g)
+    lin_set = np.flatnonzero(G @ start < h - 1e-12)
+    ball_set = np.flatnonzero(ball.value(start) < 0)
+    u = np.zeros(Zt.shape[1])
+    for _ in range(20):
+        cons = []
+        if len(lin_set):
+            GZ, hz = G[lin_set] @ Zt, h[lin_set] - G[lin_set] @ start
+            cons.append(
+                {
+                    'type': 'ineq',
+                    'fun': lambda u, GZ=GZ, hz=hz: GZ @ u - hz,
+                    'jac': lambda u, GZ=GZ: GZ,
+                }
+            )
+        if len(ball_set):
+            cons.append(
+                {
+                    'type': 'ineq',
+                    'fun': lambda u, k=ball_set: ball.value(start + Zt @ u, k),
+                    'jac': lambda u, k=ball_set: ball.jacobian(start + Zt @ u, k) @ Zt,
+                }
+            )
+        res = minimize(
+            lambda u: 0.5 * u @ u - gu @ u,
+            u,
+            jac=lambda u: u - gu,
+            constraints=cons,
+            method='SLSQP',
+            options={'maxiter': 500, 'ftol': 1e-14},
+        )
+        u = res.x
+        beta = start + Zt @ u
+        more_lin = np.setdiff1d(np.flatnonzero(G @ beta < h - 1e-9), lin_set)
+        more_ball = np.setdiff1d(np.flatnonzero(ball.value(beta) < -1e-9), ball_set)
+        if not len(more_lin) and not len(more_ball):
+            break
+        lin_set = np.union1d(lin_set, more_lin)
+        ball_set = np.union1d(ball_set, more_ball)
     return beta
+
+
+def within_bounds(beta, G=None, h=None, balls=None):
+    """True if G beta >= h and every CoM of `balls` lies within its radius (map_constrained)."""
+    beta = np.asarray(beta, dtype=float)
+    inside = G is None or bool(np.all(np.atleast_2d(G) @ beta >= np.atleast_1d(h) - 1e-12))
+    return inside and bool(np.all(_BallConstraints(balls, len(beta)).value(beta) >= 0))
+
+
+class _BallConstraints:
+    """(r m_i)^2 - |m_i c_i - m_i centre_i|^2 >= 0 for the bodies of priors.com_balls, and its
+    Jacobian in beta; none when balls is None."""
+
+    def __init__(self, balls, n):
+        self.n = n
+        if balls is None:
+            self.ids, self.centres, self.radius = np.zeros(0, int), np.zeros((0, 3)), 0.0
+        else:
+            ids, centres, self.radius = balls
+            self.ids, self.centres = np.asarray(ids, int), np.asarray(centres, float)
+
+    def _parts(self, beta, k):
+        ids = self.ids if k is None else self.ids[k]
+        cen = self.centres if k is None else self.centres[k]
+        m = beta[4 * ids]
+        d = beta[4 * ids[:, None] + np.arange(1, 4)] - m[:, None] * cen
+        return ids, cen, m, d
+
+    def value(self, beta, k=None):
+        _, _, m, d = self._parts(beta, k)
+        return (self.radius * m) ** 2 - (d * d).sum(1)
+
+    def jacobian(self, beta, k=None):
+        ids, cen, m, d = self._parts(beta, k)
+        J = np.zeros((len(ids), self.n))
+        rows = np.arange(len(ids))
+        J[rows, 4 * ids] = 2 * self.radius**2 * m + 2 * (d * cen).sum(1)
+        J[rows[:, None], 4 * ids[:, None] + np.arange(1, 4)] = -2 * d
+        return J

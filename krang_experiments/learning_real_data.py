@@ -4,8 +4,9 @@ Algorithm 1 on the authors' own 6003-pose pool and the authors' 528 filtered pos
 betas (where a difference to the paper comes from); and k-fold cross-validation
 (krang_com_estimator.cross_validate_fit) on the 189 hand-balanced records of the real-data kit,
 starting from the authors' beta_0 (row 0): mean and max |x_com| on the held-out records for the
-authors' GD and for our MAP, how many records our method needs to reach the authors' final
-accuracy, the physical consistency of the learned beta and how far each body's CoM moved."""
+authors' GD and for our MAP (with and without the plausible region), how many records our
+method needs to reach the authors' final accuracy, the physical consistency of the learned beta
+and how far each body's CoM moved."""
 
 import math
 from pathlib import Path
@@ -87,6 +88,11 @@ def real_data(
     def fit_map(tr):
         return est.make_estimator('map', robot, b0, **kw).fit(q[tr], j[tr])[0]
 
+    def fit_map_unbounded(tr):  # without the stated plausible region (mass spread, CoM radius)
+        return est.make_estimator('map', robot, b0, mass_spread=None, com_radius=None, **kw).fit(
+            q[tr], j[tr]
+        )[0]
+
     def fit_map_rows(model):  # the linear MAP on the paper's rows (phi) or with the EIV correction
         def f(tr):
             rows_, y_, var_ = est.balanced_pose_rows(robot, q[tr], j[tr], b0, noise, model)
@@ -124,6 +130,7 @@ def real_data(
         ('paper-gd', fit_gd),
         ('paper-gd-mass', fit_gd_mass),
         ('map', fit_map),
+        ('map-unbounded', fit_map_unbounded),
         ('map-phi-rows', fit_map_rows('phi')),
         ('map-eiv-rows', fit_map_rows('eiv')),
     ):
@@ -181,11 +188,14 @@ def real_data(
     }
     # the beta learned from all 189 records
     beta_all = fit_map(np.arange(n))
-    cons = est.physical_consistency(robot, beta_all)
+    cons = est.physical_consistency(
+        robot, beta_all, mass_spread=est.MASS_SPREAD, com_radius=est.COM_RADIUS_M
+    )
     res['learned'] = {
         'in_sample': _err(P @ beta_all),
         'physically_consistent': cons['ok'],
         'violations': cons['violations'],
+        'at_bound': cons['at_bound'],
         'total_mass_kg': cons['total_mass'],
         'com_moved_cm': {bd['name']: round(100 * bd['com_moved_m'], 2) for bd in cons['bodies']},
         'mass_change_kg': {bd['name']: round(bd['mass_change_kg'], 3) for bd in cons['bodies']},
