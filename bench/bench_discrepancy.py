@@ -22,8 +22,12 @@ its pitch on the caster, which must miss by more than verdict.SITTING_TOL to ope
 of the selection rule (naming._admit_by_sitting).
 Designs: the suite's 22 s records; 22 s records whose controller runs and logs at 30 Hz like the
 hardware's (default pose delay); 30 s records that sit down at the end, at the default stride.
---real DIR runs the baseline on all Table II runs of the kit at DIR (balancing_runs/table2) and
-judges one new-tyre run against it, timed.
+--verdicts N [--seed S] runs N in-library records with known truth (verdict_cases: one or two
+library effects at drawn sizes, or none; seeds from 7001) through the workflow and counts how
+often each rule of the verdict fires (verdict.RULES) and how many are answered unexplained.
+--real KIT [--stride S] runs the baseline on all Table II runs of the kit at KIT
+(balancing_runs/table2) and judges one new-tyre run against it (stride 0.1 s unless given), with
+wall and CPU time, peak memory and a reference measured in the same run.
 """
 
 import argparse
@@ -42,7 +46,7 @@ def main(argv=None):
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     ap.add_argument('--seconds', type=float, default=60.0)
-    ap.add_argument('--stride', type=float, default=0.05)
+    ap.add_argument('--stride', type=float, default=None)
     ap.add_argument('--no-plots', action='store_true')
     ap.add_argument('--csv', default=None)
     ap.add_argument('--seed', type=int, default=1)
@@ -51,10 +55,13 @@ def main(argv=None):
     ap.add_argument('--real', metavar='KIT', default=None)
     ap.add_argument('--null', type=int, default=0, metavar='N')
     ap.add_argument('--gap-null', type=int, default=0, metavar='N')
+    ap.add_argument('--verdicts', type=int, default=0, metavar='N')
     ap.add_argument('--design', default='suite', choices=('suite', '30hz', 'long'))
     args = ap.parse_args(argv)
     if args.gap_null:
         return gap_null(args.gap_null, args.seed if args.seed != 1 else 1001, args.design)
+    if args.verdicts:
+        return verdicts(args.verdicts, args.seed if args.seed != 1 else 7001)
     if args.validate:
         return validate(args.seed if args.seed != 1 else 3)
     if args.null:
@@ -62,7 +69,7 @@ def main(argv=None):
     if args.hidden:
         return hidden()
     if args.real:
-        return real(Path(args.real))
+        return real(Path(args.real), args.stride if args.stride is not None else 0.1)
 
     from krang_discrepancy.loaders import load_csv_record
     from krang_discrepancy.replay import ReplayConfig
@@ -72,11 +79,11 @@ def main(argv=None):
     t0 = time.perf_counter()
     if args.csv:
         rec = load_csv_record(args.csv)
-        cfg = ReplayConfig(stride_s=args.stride)
+        cfg = ReplayConfig(stride_s=args.stride or 0.05)
         what = f'hardware log {Path(args.csv).name}'
     else:
         rec = simulate_record({'floor_slope': 0.02}, seconds=args.seconds, seed=args.seed)
-        cfg = ReplayConfig(stride_s=args.stride, pose_delay_s=0.01)
+        cfg = ReplayConfig(stride_s=args.stride or 0.05, pose_delay_s=0.01)
         what = 'simulated record, hidden floor_slope 0.02 rad'
     gen = time.perf_counter() - t0
     with tempfile.TemporaryDirectory() as out:
@@ -243,6 +250,9 @@ def hidden_case(case, seconds=22.0):
         'false_names': false,
         'seconds': secs,
         'gap': (js['gap_before'], js['gap_after']),
+        'rules': js.get('rules_fired', {}),
+        'dropped_changing': sorted(js.get('dropped_changing', {})),
+        'reason': js.get('reason', ''),
     }
 
 
@@ -291,6 +301,88 @@ def null_records(n, first_seed):
         + (f' (95 % upper bound of the rate {upper:.1%})' if false == 0 else '')
     )
     return 0
+
+
+#: sizes of the in-library effects of ``--verdicts`` (parameters as ``model_terms`` takes them),
+#: drawn uniformly (with a random sign where both signs are physical): none of them is a size of
+#: the suite or of the tests
+VERDICT_SIZES = {
+    'imu_pitch_bias': (0.006, 0.03, True),
+    'floor_slope': (0.006, 0.03, True),
+    'wheel_radius': (0.25, 0.29, False),
+    'payload@lGripper': (2.0, 8.0, False),
+    'payload@rGripper': (2.0, 8.0, False),
+    'wheel_viscous_friction': (1.0, 4.0, False),
+    'wheel_coulomb_friction': (0.5, 3.0, False),
+    'torque_constant': (0.7, 0.93, False),
+    'actuation_delay': (0.01, 0.06, False),
+    'encoder_offset@JWaist': (0.02, 0.08, True),
+    'rolling_resistance': (3.0, 8.0, False),
+}
+
+
+def verdict_cases(n, first_seed):
+    """n in-library records with known truth: one library effect (two in every third record, none
+    in every seventh) at a size drawn from ``VERDICT_SIZES``; seed = first_seed + i."""
+    import numpy as np
+
+    keys = sorted(VERDICT_SIZES)
+    cases = []
+    for i in range(n):
+        seed = first_seed + i
+        rng = np.random.default_rng(seed)
+        k = 0 if i % 7 == 6 else (2 if i % 3 == 2 else 1)
+        fx = {}
+        for key in rng.choice(keys, size=k, replace=False):
+            lo, hi, signed = VERDICT_SIZES[key]
+            v = float(rng.uniform(lo, hi))
+            if key == 'wheel_radius' and abs(v - 0.2667) < 0.006:
+                v += 0.012
+            fx[str(key)] = -v if signed and rng.random() < 0.5 else v
+        if 'payload@lGripper' in fx and 'payload@rGripper' in fx:
+            fx.pop('payload@rGripper')
+        noise = (0.5, 1.0, 2.0)[i % 3]
+        truth = {key.split('@')[0]: v for key, v in fx.items()}
+        cases.append(
+            (f'seed {seed}: {fx or "none"}, noise x{noise:g}', fx, {}, seed, noise, truth, ())
+        )
+    return cases
+
+
+def verdicts(n, first_seed):
+    """The verdict's rules on in-library records with known truth (``verdict_cases``): how often
+    each rule fires, and the false-``unexplained`` rate (an in-library record answered
+    ``unexplained``), with its 95 % upper bound."""
+    from krang_discrepancy.verdict import RULES
+
+    rows = []
+    for case in verdict_cases(n, first_seed):
+        r = hidden_case(case)
+        rows.append(r)
+        fired = ', '.join(k for k, v in r['rules'].items() if v) or '-'
+        print(
+            f'{r["case"]}: {r["answer"]} ({"right" if r["right"] else "WRONG"}); rules fired: '
+            f'{fired}; dropped (changing): {", ".join(r["dropped_changing"]) or "-"}; '
+            f'{r["seconds"]:.1f} s',
+            flush=True,
+        )
+    m = len(rows)
+    unexplained = sum(r['answer'] == 'unexplained' for r in rows)
+    print(f'{m} in-library records: named right {sum(r["right"] for r in rows)}/{m}')
+    print(f'false unexplained {unexplained}/{m} ({_upper(unexplained, m)})')
+    for rule in RULES:
+        k = sum(bool(r['rules'].get(rule)) for r in rows)
+        print(f'  {rule}: fired on {k}/{m} ({_upper(k, m)})')
+    k = sum(bool(r['dropped_changing']) for r in rows)
+    print(f'  a changing partner dropped on {k}/{m}')
+    return 0
+
+
+def _upper(k, n):
+    """The rate k/n and, for k = 0, its 95 % upper bound."""
+    if k == 0:
+        return f'0 %, below {1.0 - 0.05 ** (1.0 / n):.1%} at 95 %'
+    return f'{k / n:.1%}'
 
 
 def gap_null(n, first_seed, design):
@@ -355,18 +447,42 @@ def gap_null(n, first_seed, design):
     return 0
 
 
-def real(kit):
-    from krang_discrepancy.replay import ReplayConfig
+def real(kit, stride):
+    """The Table II baseline (all 20 runs pooled) and one new-tyre run judged against it, as
+    `krang discrepancy` runs them (no plots): wall and CPU time (this process, all threads),
+    peak memory, and the CPU time in units of one nominal prediction of every baseline window
+    measured in the same run (a figure that the machine's load does not change)."""
+    import resource
+
+    from krang_discrepancy.loaders import load_measured
+    from krang_discrepancy.nominal import NominalModel
+    from krang_discrepancy.replay import Replay, ReplayConfig
     from krang_discrepancy.report import run_discrepancy
 
-    cfg = ReplayConfig(stride_s=0.1)
+    cfg = ReplayConfig(stride_s=stride)
     runs = kit / 'balancing_runs'
+
+    def clock():
+        r = resource.getrusage(resource.RUSAGE_SELF)
+        return time.perf_counter(), r.ru_utime + r.ru_stime
+
+    model = NominalModel.default()
+    unit_rp = Replay(load_measured([runs / 'table2']), model, cfg)
+    w0, c0 = clock()
+    unit_rp.predict([model.terms()])
+    w1, c1 = clock()
+    unit = c1 - c0
+    print(
+        f'reference: one nominal prediction of the {len(unit_rp)} baseline windows '
+        f'(stride {stride:g} s): {w1 - w0:.2f} s wall, {unit:.2f} s CPU'
+    )
+    del unit_rp
     with tempfile.TemporaryDirectory() as out:
-        t0 = time.perf_counter()
+        w0, c0 = clock()
         a = run_discrepancy(
             [runs / 'table2'], Path(out) / 'table2', replay_config=cfg, plots=False
         )
-        t1 = time.perf_counter()
+        w1, c1 = clock()
         new = sorted((runs / 'new_tire').glob('*.csv'))[0]
         b = run_discrepancy(
             [new],
@@ -375,12 +491,17 @@ def real(kit):
             plots=False,
             baseline=Path(out) / 'table2' / 'extended_model.yaml',
         )
-        t2 = time.perf_counter()
-    for label, res, secs in (
-        ('baseline: all Table II runs', a, t1 - t0),
-        (f'judged: {new.name} against it', b, t2 - t1),
+        w2, c2 = clock()
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    for label, res, wall, cpu in (
+        ('baseline: all Table II runs', a, w1 - w0, c1 - c0),
+        (f'judged: {new.name} against it', b, w2 - w1, c2 - c1),
     ):
-        print(f'{label}: {secs:.1f} s; ' + json.dumps(_brief(res['json'])))
+        print(
+            f'{label}: {wall:.1f} s wall, {cpu:.1f} s CPU ({cpu / unit:.0f} x the reference); '
+            + json.dumps(_brief(res['json']))
+        )
+    print(f'peak memory {peak:.0f} MB; workers {a["replay"].workers}')
     return 0
 
 
@@ -395,6 +516,7 @@ def _brief(js):
         'gap_before',
         'gap_after',
         'reason',
+        'dropped_changing',
     )
     return {k: js[k] for k in keep if k in js}
 

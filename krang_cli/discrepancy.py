@@ -176,6 +176,13 @@ def register(subparsers):
         metavar='S',
         help='cross-validation block length, s (default 2)',
     )
+    p.add_argument(
+        '--workers',
+        type=int,
+        default=0,
+        metavar='N',
+        help='threads of the prediction (default 0: the cores, at most 4)',
+    )
     p.add_argument('--no-plots', action='store_true', help='skip the figures')
     p.set_defaults(func=run)
 
@@ -206,7 +213,12 @@ def run(args):
         v = getattr(args, name)
         if v is not None:
             setattr(ncfg, attr, v)
-    rcfg = ReplayConfig(horizon_s=args.horizon, stride_s=args.stride, pose_delay_s=args.pose_delay)
+    rcfg = ReplayConfig(
+        horizon_s=args.horizon,
+        stride_s=args.stride,
+        pose_delay_s=args.pose_delay,
+        workers=args.workers,
+    )
     phases = tuple(s.strip() for s in args.phases.split(',')) if args.phases else None
     if phases and not set(phases) <= set(PHASES):
         raise ValueError(

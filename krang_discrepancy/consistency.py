@@ -49,7 +49,9 @@ def split_values(replay: Replay, base: ModelTerms, fit: Fit, cfg, groups, names)
         jobs,
         wsets,
         max_iter=cfg.max_nfev,
-        evaluate=lambda rp, b, js, ws, need_jac=True: _evaluate_joint(rp, b, js, ws, effs),
+        evaluate=lambda rp, b, js, ws, need_jac=True: _evaluate_joint(
+            rp, b, js, ws, effs, need_jac
+        ),
     )
     e_per = replay.measured.shape[1] * replay.measured.shape[2]
     idx = np.concatenate(wsets)
@@ -89,11 +91,11 @@ def split_values(replay: Replay, base: ModelTerms, fit: Fit, cfg, groups, names)
     return out
 
 
-def _evaluate_joint(replay, base, jobs, wsets, effects):
+def _evaluate_joint(replay, base, jobs, wsets, effects, need_jac=True):
     """The evaluation of ``fitting.batched_fit`` for the joint fits of ``split_values``:
     parameters [shared..., one per group of the job's own effect]; per group one batched
     prediction of every job's trial point and its finite-difference points (the shared ones and
-    the group's own), a block-sparse Jacobian."""
+    the group's own), a block-sparse Jacobian. need_jac as ``fitting._evaluate``."""
     res = {id(j): [] for j in jobs}
     rows = {id(j): [] for j in jobs}
     n_res = 0
@@ -101,8 +103,10 @@ def _evaluate_joint(replay, base, jobs, wsets, effects):
         terms, owner = [], []
         for j in jobs:
             ns = len(j.shared)
-            cols = list(range(ns)) + [ns + g]
-            pts = [j.trial] + [j.trial + np.eye(j.trial.size)[c] * j.h[c] for c in cols]
+            cols = list(range(ns)) + [ns + g] if need_jac else []
+            pts = [j.trial + np.eye(j.trial.size)[c] * j.h[c] for c in cols]
+            if need_jac != 'columns':
+                pts = [j.trial] + pts
             for x in pts:
                 v = np.empty(len(effects))
                 v[j.shared], v[j.own] = x[:ns], x[ns + g]
@@ -112,14 +116,25 @@ def _evaluate_joint(replay, base, jobs, wsets, effects):
         z = ((replay.measured[w][None] - pred) / replay.scales).reshape(len(terms), -1)
         k = 0
         for j, cols in zip(jobs, owner):
-            res[id(j)].append(z[k])
-            d = (z[k + 1 : k + 1 + len(cols)] - z[k]) / j.h[cols][:, None]
-            rows[id(j)].append((n_res, cols, d.T))
-            j.nfev += 1 + len(cols)
-            k += 1 + len(cols)
+            if need_jac == 'columns':
+                r0 = j.trial_res[n_res : n_res + z.shape[1]]
+                d = (z[k : k + len(cols)] - r0) / j.h[cols][:, None]
+                k += len(cols)
+            else:
+                r0 = z[k]
+                res[id(j)].append(r0)
+                d = (z[k + 1 : k + 1 + len(cols)] - r0) / j.h[cols][:, None]
+                k += 1 + len(cols)
+            if need_jac:
+                rows[id(j)].append((n_res, cols, d.T))
+            j.nfev += len(cols) + (need_jac != 'columns')
         n_res += z.shape[1]
     for j in jobs:
-        j.trial_res = np.concatenate(res[id(j)])
+        if need_jac != 'columns':
+            j.trial_res = np.concatenate(res[id(j)])
+        if not need_jac:
+            j.trial_jac = None
+            continue
         jac = np.zeros((n_res, j.trial.size))
         for start, cols, block in rows[id(j)]:
             jac[start : start + block.shape[0], cols] = block

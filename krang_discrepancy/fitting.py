@@ -112,7 +112,8 @@ def fd_steps(effects, x, lo, hi):
 
 def _evaluate(replay, base, jobs, wsets, need_jac=True):
     """Whitened residuals (and forward-difference Jacobians) of every job at its trial point;
-    one predict call per window set."""
+    one predict call per window set. need_jac: True (residual and Jacobian), False (residual
+    only) or 'columns' (the Jacobian about the residual already in ``trial_res``)."""
     by_set = {}
     for j in jobs:
         by_set.setdefault(j.wset, []).append(j)
@@ -120,11 +121,12 @@ def _evaluate(replay, base, jobs, wsets, need_jac=True):
         w = wsets[ws]
         terms, owner = [], []
         for j in js:
-            pts = [j.trial] + (
+            cols = (
                 [j.trial + np.eye(len(j.trial))[k] * j.h[k] for k in range(len(j.trial))]
                 if need_jac
                 else []
             )
+            pts = cols if need_jac == 'columns' else [j.trial] + cols
             for x in pts:
                 terms.append(apply_effects(base, j.effects, x))
             owner.append(len(pts))
@@ -132,8 +134,11 @@ def _evaluate(replay, base, jobs, wsets, need_jac=True):
         z = ((replay.measured[w][None] - pred) / replay.scales).reshape(len(terms), -1)
         k = 0
         for j, n in zip(js, owner):
-            j.trial_res = z[k]
-            j.trial_jac = ((z[k + 1 : k + n] - z[k]) / j.h[:, None]).T if need_jac else None
+            if need_jac == 'columns':
+                j.trial_jac = ((z[k : k + n] - j.trial_res) / j.h[:, None]).T
+            else:
+                j.trial_res = z[k]
+                j.trial_jac = ((z[k + 1 : k + n] - z[k]) / j.h[:, None]).T if need_jac else None
             j.nfev += n
             k += n
 
@@ -176,12 +181,20 @@ def batched_fit(replay, base, jobs, wsets, max_iter=25, tol=1e-3, evaluate=None)
             break
         for j in live:
             j.trial = j.x + j.step
-        _evaluate_jobs(replay, base, live, wsets)
+        # the cost first: a rejected step needs no Jacobian (one prediction instead of 1 + p)
+        _evaluate_jobs(replay, base, live, wsets, need_jac=False)
+        better = []
+        for j in live:
+            j.trial_cost = float(np.sum(_soft_l1(j.trial_res**2)))
+            if j.trial_cost <= j.cost:
+                better.append(j)
+        if better:
+            _evaluate_jobs(replay, base, better, wsets, need_jac='columns')
         for j in live:
             j.iters += 1
-            cost, grad, hess = _cost_grad_hess(j.trial_res, j.trial_jac)
             small = np.all(np.abs(j.step) <= tol * np.array([e.scale for e in j.effects]))
-            if cost <= j.cost:
+            if j.trial_cost <= j.cost:
+                cost, grad, hess = _cost_grad_hess(j.trial_res, j.trial_jac)
                 rel = (j.cost - cost) / max(j.cost, 1e-300)
                 j.x, j.cost, j.grad, j.hess = j.trial.copy(), cost, grad, hess
                 j.res, j.jac = j.trial_res, j.trial_jac
@@ -354,28 +367,28 @@ def fit_candidates(
             )
     batched_fit(replay, base, [j for j in jobs if j.wset > 0], wsets, max_iter=cfg.max_nfev)
     n = cfg.folds + 1
-    # held-out: each window predicted by the fit of the fold that did not see it
+    # held-out: each window predicted by the fit of the fold that did not see it (only there)
     idx = wsets[0]
-    terms = []
-    for c in range(len(candidate_sets)):
-        for f in range(cfg.folds):
+    held_all = np.full((len(candidate_sets), len(replay)), np.nan)
+    for f in range(cfg.folds):
+        wf = idx[folds[idx] == f]
+        terms = []
+        for c in range(len(candidate_sets)):
             j = jobs[c * n + 1 + f]
             terms.append(apply_effects(base, j.effects, j.x))
-    pred = replay.predict(terms, idx)
-    loss = replay.window_loss(replay.measured[idx][None] - pred).reshape(
-        len(candidate_sets), cfg.folds, -1
-    )
-    # evidence weights: how much each full-data fit changes the reference's predictions
+        held_all[:, wf] = replay.window_loss(replay.measured[wf][None] - replay.predict(terms, wf))
+    # evidence weights: how much each full-data fit changes the reference's predictions (the
+    # fits' own residuals are at their optimum, on these windows)
     ref = base if ref_terms is None else ref_terms
-    pw = replay.predict(
-        [ref]
-        + [
-            apply_effects(base, jobs[c * n].effects, jobs[c * n].x)
-            for c in range(len(candidate_sets))
-        ],
-        idx,
+    z_ref = ((replay.measured[idx] - replay.predict([ref], idx)[0]) / replay.scales).reshape(
+        idx.size, -1
     )
-    change = np.sum(((pw[1:] - pw[:1]) / replay.scales) ** 2, axis=(2, 3))
+    change = np.array(
+        [
+            np.sum((z_ref - jobs[c * n].res.reshape(idx.size, -1)) ** 2, axis=1)
+            for c in range(len(candidate_sets))
+        ]
+    )
     e_per = replay.measured.shape[1] * replay.measured.shape[2]
     clusters = (
         np.floor(replay.win_t[idx] / cfg.cluster_s).astype(int) + 100000 * replay.win_record[idx]
@@ -383,8 +396,7 @@ def fit_candidates(
     fits = []
     for c, effs in enumerate(candidate_sets):
         full = jobs[c * n]
-        held = np.full(len(replay), np.nan)
-        held[idx] = loss[c, folds[idx], np.arange(idx.size)]
+        held = held_all[c]
         cov = cluster_cov(full.jac, full.res, clusters, e_per)
         fold_x = np.array([jobs[c * n + 1 + f].x for f in range(cfg.folds)])
         unc = _uncertainty(cov, fold_x)

@@ -58,6 +58,13 @@ def write_report(
             )
             + '**\n'
         )
+    for k, v in (js.get('dropped_changing') or {}).items():
+        L.append(
+            f'**Dropped partner {k}:** its value changes between the thirds of the records ('
+            + ', '.join(f'{x:.4g}' for x in v['values'])
+            + f' {v["unit"]}, chi2/dof {v["chi2_per_dof"]:.1f}); the rest was refitted without it '
+            'and judged again.\n'
+        )
     if js.get('misattribution_warning'):
         L.append('**Warning (misattributed effect?):** ' + js['misattribution_warning'] + '.\n')
         L.append('| effect | ' + ' | '.join(js['per_record']['groups']) + ' | chi2/dof |')

@@ -294,21 +294,29 @@ def drop_null_effects(replay: Replay, base: ModelTerms, result: NamingResult, z_
     ``refine_step``) of the value that leaves the model unchanged: an effect indistinguishable from
     its own absence is not a finding, however much it trims the held-out loss (on a clean record
     with little sensor noise a torque constant of 0.9994 +- 0.001 x nominal removed 11 % of it,
-    t 3.3: the replay's remaining discretisation error, not a motor). The rest is refitted (a
-    full ``Fit`` with held-out evidence) and replaces the selection, or none is left. Returns
-    the keys dropped."""
+    t 3.3: the replay's remaining discretisation error, not a motor). The rest is refitted
+    (``drop_effects``). Returns the keys dropped."""
     fit = result.selected
     if fit is None:
         return []
     zero = np.array([start_value(e, base) for e in fit.effects])
     null = np.abs(fit.values - zero) < z_min * fit.uncertainty
-    if not np.any(null):
-        return []
     dropped = [e.key for e, n in zip(fit.effects, null) if n]
-    keep = [i for i in range(len(fit.effects)) if not null[i]]
+    drop_effects(replay, base, result, dropped, 'indistinguishable from zero')
+    return dropped
+
+
+def drop_effects(replay: Replay, base: ModelTerms, result: NamingResult, keys, why: str) -> None:
+    """Remove the selected effects `keys` and refit the rest (a full ``Fit`` with held-out
+    evidence against the nominal model), which replaces the selection; none is left when every
+    effect goes."""
+    fit = result.selected
+    if fit is None or not keys:
+        return
+    keep = [i for i, e in enumerate(fit.effects) if e.key not in keys]
     if not keep:
         result.selected = None
-        return dropped
+        return
     sub = fit_candidates(
         replay,
         base,
@@ -320,9 +328,26 @@ def drop_null_effects(replay: Replay, base: ModelTerms, result: NamingResult, z_
         [result.nominal_heldout],
     )[0]
     sub.improvement_vs_nominal = sub.improvement
-    sub.reference = f'nominal ({", ".join(dropped)} dropped: indistinguishable from zero)'
+    sub.reference = f'nominal ({", ".join(keys)} dropped: {why})'
     result.selected = sub
-    return dropped
+
+
+def changing_partners(result: NamingResult, drift: dict) -> list:
+    """The partners (every selected effect but the first, the best single) whose values change
+    between the thirds of the records (``consistency.per_third_values``), when the first does
+    not: a partner admitted on top of the effect that explains the data can absorb something
+    that differs over a record (the excitation, the pose) and drift, which says nothing about
+    that effect (``krang_discrepancy.report`` drops them when no other rule of the verdict
+    fires). A first effect that drifts is the finding itself (``verdict.decide``)."""
+    fit = result.selected
+    effects = (drift or {}).get('effects', {})
+    if (
+        fit is None
+        or len(fit.effects) < 2
+        or effects.get(fit.effects[0].key, {}).get('inconsistent')
+    ):
+        return []
+    return [e.key for e in fit.effects[1:] if effects.get(e.key, {}).get('inconsistent')]
 
 
 def gaps(replay: Replay, base: ModelTerms, result: NamingResult) -> dict:

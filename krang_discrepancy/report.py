@@ -39,17 +39,25 @@ from .fitting import extended_terms, refine_step
 from .loaders import load_measured
 from .locate import locate, plot_location
 from .markdown import write_report
-from .naming import NamingConfig, drop_null_effects, name_effects
+from .naming import (
+    NamingConfig,
+    changing_partners,
+    drop_effects,
+    drop_null_effects,
+    name_effects,
+)
 from .nominal import NominalModel
 from .phases import PHASES
 from .record import resample
 from .replay import Replay, ReplayConfig, gap_metrics
 from .verdict import (
+    MAX_GAP,
     decide,
     gap_test,
     phase_gaps,
     phase_matched_gap,
     residual_structure,
+    rules_fired,
     sitting_offset,
 )
 
@@ -140,13 +148,30 @@ def run_discrepancy(
             discretisation = {k: v for k, v in discretisation.items() if k not in dropped}
         timing['refine_s'] = time.perf_counter() - t
     t = time.perf_counter()
+    drift = per_third_values(replay, base, result.selected, result.config)
     structure = residual_structure(
         replay, extended_terms(base, result.selected), result.folds, result.blocks
     )
+    changing = {}
+    moving = changing_partners(result, drift)
+    # a partner that changes in time is dropped when its drift is the only reason left for
+    # 'unexplained': the rest is refitted and judged by every rule. When another rule fires
+    # anyway, the partial correction keeps it (the best the library can do).
+    matched = ref_phase_gaps if ref_scales is not None else None
+    while moving and not _other_rules_fire(replay, base, result, structure, matched):
+        changing.update({k: drift['effects'][k] for k in moving})
+        drop_effects(replay, base, result, moving, 'changes over the thirds of the records')
+        say(f'dropped (changes in time): {", ".join(moving)}; named: {result.name}')
+        discretisation = {k: v for k, v in discretisation.items() if k not in moving}
+        discretisation.update(refine_step(fine, base, result.selected, result.config))
+        drift = per_third_values(replay, base, result.selected, result.config)
+        structure = residual_structure(
+            replay, extended_terms(base, result.selected), result.folds, result.blocks
+        )
+        moving = changing_partners(result, drift)
     timing['structure_s'] = time.perf_counter() - t
     t = time.perf_counter()
     per_record = per_record_values(replay, base, result.selected, result.config)
-    drift = per_third_values(replay, base, result.selected, result.config)
     timing['per_record_s'] = time.perf_counter() - t
     split = [k for k, v in per_record.get('effects', {}).items() if v['inconsistent']]
     if split:
@@ -189,12 +214,16 @@ def run_discrepancy(
     verdict, reason = decide(
         result, structure, gaps_yaml, ref_scales is not None, drift, sitting, excess
     )
+    fired = rules_fired(
+        result, structure, gaps_yaml, ref_scales is not None, drift, sitting, excess
+    )
     say(f'verdict: {verdict}' + (f' ({reason})' if reason else ''))
     r1a = r1[replay.active]
     own = np.sqrt(np.median(r1a**2, axis=0) / 0.4549) + 1e-12
     extra = {
         'verdict': verdict,
         'verdict_reason': reason,
+        'rules_fired': fired,
         'signature': structure.as_dict(),
         'per_record': per_record,
         'per_third': drift,
@@ -233,6 +262,9 @@ def run_discrepancy(
         js['baseline'] = str(baseline)
     if discretisation:
         js['discretisation'] = discretisation
+    js['rules_fired'] = fired
+    if changing:
+        js['dropped_changing'] = changing
     if sitting:
         js['sitting_offset'] = sitting
     if excess:
@@ -291,6 +323,22 @@ def run_discrepancy(
         'heldout': heldout,
         'extended_terms': ext_terms,
     }
+
+
+def _other_rules_fire(replay, base, result, structure, ref_phase_gaps) -> bool:
+    """Whether a rule other than the drift over thirds makes the selection `unexplained`
+    (``verdict.decide``): the residual's structure, the pitch on the caster, and the gap (the gap
+    test on the model's own yardstick; judged against a baseline, `ref_phase_gaps` not None, the
+    phase-matched gap)."""
+    if structure.significant:
+        return True
+    terms = extended_terms(base, result.selected)
+    if sitting_offset(replay, terms).get('off'):
+        return True
+    r1 = replay.residuals([terms])[0]
+    if ref_phase_gaps is None:
+        return bool(gap_test(replay, r1).get('exceeds'))
+    return phase_matched_gap(replay, r1, ref_phase_gaps) > MAX_GAP
 
 
 def _reference_scales(base_doc, replay, say):

@@ -415,6 +415,29 @@ def gap_sentence(gt: dict) -> str:
 # ----------------------------------------------------------------------------- the verdict
 
 
+#: the rules that turn a selection (or none) into ``unexplained``, in the order ``decide`` gives
+#: their reason; ``rules_fired`` says which of them fire (their false-``unexplained`` rates on
+#: in-library records: docs/discrepancy.md, "Verdicts that hold")
+RULES = ('residual_structure', 'sitting_offset', 'drift_over_thirds', 'baseline_gap', 'gap_test')
+
+
+def rules_fired(
+    result, structure, gaps_yaml, referenced: bool, drift=None, sitting=None, excess=None
+) -> dict:
+    """{rule: fired} for every rule of ``RULES`` (``decide`` explains the first that fires)."""
+    after = gaps_yaml['after']
+    gap = after.get('gap_matched', after['gap'])
+    return {
+        'residual_structure': bool(structure.significant),
+        'sitting_offset': bool((sitting or {}).get('off')),
+        'drift_over_thirds': any(
+            v['inconsistent'] for v in (drift or {}).get('effects', {}).values()
+        ),
+        'baseline_gap': bool(referenced and gap > MAX_GAP),
+        'gap_test': bool(not referenced and (excess or {}).get('exceeds')),
+    }
+
+
 def decide(result, structure, gaps_yaml, referenced: bool, drift=None, sitting=None, excess=None):
     """('unexplained' | 'named' | 'none', reason). Unexplained when the residual after the
     selected effects is still predictable by generic forces (``residual_structure``), when the

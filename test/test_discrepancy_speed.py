@@ -1,0 +1,137 @@
+"""The replay's fast path computes what the model's one integrator computes.
+
+``krang_model.wip.PitchBatch`` is ``WipDynamics.step_pitch`` for the replay's batches (terms
+hoisted, buffers reused, the CoM angle's sine and cosine carried by rotation between exact
+anchors): bit for bit with an exact anchor at every step, to rounding otherwise. A prediction does
+not depend on how its windows are chunked or on the threads that run the chunks, and the fits'
+Levenberg-Marquardt skips the Jacobian of a rejected step without changing its path.
+"""
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from krang_discrepancy.fitting import FitJob, batched_fit, fd_steps, interior
+from krang_discrepancy.nominal import NominalModel
+from krang_discrepancy.replay import Replay, ReplayConfig
+from krang_discrepancy.synthetic import simulate_record
+from krang_model.drivetrain import drivetrain, stack
+from krang_model.effects import apply_effects, library, model_terms
+from krang_model.robot import load_krang
+from krang_model.wip import PitchBatch, WipBody, WipDynamics
+
+
+def _batch(p=3, s=40, seed=0):
+    rng = np.random.default_rng(seed)
+    nominal = drivetrain(load_krang())
+    drives = [
+        replace(nominal, coulomb_friction=c, floor_slope=a, ground_viscous=g)
+        for c, a, g in ((0.0, 0.0, 0.0), (2.0, 0.02, 0.0), (5.0, -0.01, 3.0))[:p]
+    ]
+    body = WipBody(
+        mass=np.full((p, 1), 140.0),
+        com_distance=rng.uniform(0.15, 0.3, (1, s)),
+        com_offset=rng.normal(0.0, 0.05, (1, s)),
+        inertia_axle=rng.uniform(15.0, 25.0, (1, s)),
+    )
+    # pitches around the balance and on the caster (-1.76 rad), so the contact acts in some
+    qb = rng.uniform(-1.8, -1.45, (p, s))
+    state = [rng.normal(0, 1, (p, s)), qb, rng.normal(0, 2, (p, s)), rng.normal(0, 0.5, (p, s))]
+    return stack(drives), body, state, rng.normal(0, 15, (1, s))
+
+
+def _run(drive, body, state, tau, steps, anchor=None, force=None):
+    phi, qb, dphi, dqb = (x.copy() for x in state)
+    f = None if force is None else (force, -force)
+    if anchor is None:
+        dyn = WipDynamics(body, drive)
+        for _ in range(steps):
+            phi, qb, dphi, dqb = dyn.step_pitch(phi, qb, dphi, dqb, tau, 2e-3, *(f or ()))
+        return phi, qb, dphi, dqb
+    stepper = PitchBatch(qb.shape, drive, anchor)
+    stepper.set_body(body)
+    stepper.start(qb)
+    for _ in range(steps):
+        stepper.step(phi, qb, dphi, dqb, tau, 2e-3, *(f or (None, None)))
+    return phi, qb, dphi, dqb
+
+
+@pytest.mark.parametrize('force', [False, True])
+def test_pitch_batch_is_step_pitch_bit_for_bit_with_exact_trigonometry(force):
+    drive, body, state, tau = _batch()
+    f = np.full(state[0].shape, 1.5) if force else None
+    want = _run(drive, body, state, tau, 60, force=f)
+    got = _run(drive, body, state, tau, 60, anchor=1, force=f)
+    for a, b in zip(want, got):
+        assert np.array_equal(a, b)
+
+
+def test_pitch_batch_carries_sines_and_cosines_to_rounding():
+    drive, body, state, tau = _batch(seed=3)
+    want = _run(drive, body, state, tau, 150)
+    got = _run(drive, body, state, tau, 150, anchor=16)
+    for a, b in zip(want, got):
+        assert np.all(np.isfinite(a))
+        np.testing.assert_allclose(b, a, rtol=0, atol=1e-11 * (1 + np.abs(a).max()))
+
+
+@pytest.fixture(scope='module')
+def record():
+    return simulate_record({'floor_slope': 0.01}, seconds=8.0, seed=7, hold_s=1.5, sit_down=False)
+
+
+def test_a_prediction_does_not_depend_on_chunks_or_threads(record):
+    model = NominalModel.default()
+    lib = {e.key: e for e in library()}
+    base = model.terms()
+    sets = [base] + [
+        apply_effects(base, [lib[k]], [v])
+        for k, v in (
+            ('torque_constant', 0.8),
+            ('payload@lGripper', 2.0),
+            ('actuation_delay', 0.01),
+            ('floor_slope', 0.02),
+            ('wheel_coulomb_friction', 1.0),
+        )
+    ]
+    one = Replay([record], model, ReplayConfig(stride_s=0.05, workers=1))
+    two = Replay([record], model, ReplayConfig(stride_s=0.05, workers=2))
+    whole = one.predict(sets, max_elements=10**9)
+    assert np.array_equal(one.predict(sets, max_elements=500), whole)
+    assert np.array_equal(two.predict(sets, max_elements=500), whole)
+    # each parameter set as it would come out of a batch of its own
+    for p, terms in enumerate(sets):
+        assert np.array_equal(one.predict([terms])[0], whole[p])
+
+
+def test_skipping_the_jacobian_of_rejected_steps_keeps_the_fit(record):
+    """The cost is evaluated first and the Jacobian only at an accepted point: the same path as
+    evaluating both at every trial point, with fewer predictions."""
+    model = NominalModel.default()
+    rp = Replay([record], model, ReplayConfig(stride_s=0.1, pose_delay_s=0.01))
+    base = model.terms()
+    rp.set_scales(rp.residuals([base])[0])
+    lib = {e.key: e for e in library()}
+    effs = [lib['floor_slope'], lib['torque_constant']]
+    lo = np.array([e.bounds[0] for e in effs])
+    hi = np.array([e.bounds[1] for e in effs])
+    x = interior(np.array([0.0, 0.9]), lo, hi)
+    wsets = [np.flatnonzero(rp.active)]
+    fast = FitJob(list(effs), 0, x.copy(), lo, hi, fd_steps(effs, x, lo, hi))
+    batched_fit(rp, base, [fast], wsets)
+
+    def both(replay, b, jobs, ws, need_jac=True):  # the residual and the Jacobian every time
+        from krang_discrepancy.fitting import _evaluate
+
+        if need_jac == 'columns':
+            return
+        _evaluate(replay, b, jobs, ws, True)
+
+    slow = FitJob(list(effs), 0, x.copy(), lo, hi, fd_steps(effs, x, lo, hi))
+    batched_fit(rp, base, [slow], wsets, evaluate=both)
+    assert np.array_equal(fast.x, slow.x)
+    assert fast.iters == slow.iters
+    assert fast.nfev <= slow.nfev
+    truth = model_terms({'floor_slope': 0.01}, base)
+    assert abs(fast.x[0] - truth.drive.floor_slope) < 1e-3
