@@ -75,9 +75,45 @@ class AdrcConfig:
         default=0.0,
         metadata={'doc': 'per-wheel torque clamp before the current clamp, N m (0 = none)'},
     )
+    torque_fraction: float = field(
+        default=1.0,
+        metadata={
+            'doc': 'the fraction of the nominal motor torque per ampere the drive chain delivers '
+            '(a gearmotor: 0.6-0.8); the controller asks for 1 / fraction more current in every '
+            "mode, so its torques and its observers' input gain b0 are the chain's"
+        },
+    )
+    coulomb_compensation_nm: float = field(
+        default=0.0,
+        metadata={
+            'doc': "the drive chain's dry (Coulomb) friction per wheel the controller adds back "
+            'in STAND_UP and BALANCE, N m: c tanh(wheel speed / coulomb_speed_rad_s) on each '
+            'wheel, from the wheel speed relative to the body (0 = none: the nominal chain; a '
+            "gearmotor chain's value comes from `krang discrepancy`'s extended model)"
+        },
+    )
+    coulomb_speed_rad_s: float = field(
+        default=0.01,
+        metadata={'doc': 'wheel speed at which the compensation reaches 76 % of its value, rad/s'},
+    )
+    viscous_compensation_nm_s: float = field(
+        default=0.0,
+        metadata={
+            'doc': "the drive chain's viscous friction per wheel beyond the nominal model's, "
+            'added back with the dry friction, N m s/rad (0 = none)'
+        },
+    )
     eso: EsoConfig = EsoConfig()
 
     def __post_init__(self):
+        if not 0.1 <= self.torque_fraction <= 2.0:
+            raise ValueError('adrc.torque_fraction must be in [0.1, 2]')
+        if self.viscous_compensation_nm_s < 0:
+            raise ValueError('adrc.viscous_compensation_nm_s must be >= 0')
+        if self.coulomb_compensation_nm < 0 or self.coulomb_speed_rad_s <= 0:
+            raise ValueError(
+                'adrc.coulomb_compensation_nm must be >= 0 and coulomb_speed_rad_s > 0'
+            )
         if self.eso_input not in ('nominal', 'applied'):
             raise ValueError("adrc.eso_input must be 'nominal' or 'applied'")
         if not 0.0 <= self.left_share <= 1.0:
@@ -263,3 +299,24 @@ class AdrcController:
             scale = tau_total / tau_cmd if tau_cmd != 0 else 1.0
             self._u_prev_x, self._u_prev_theta = tx * scale, tt * scale
         return WheelCommand(tau_l, tau_r, i_l, i_r, tau_total, u_x, u_th, zx[2], zt[2], sat)
+
+
+def drive_chain_overrides(drive: Drivetrain, nominal: Drivetrain) -> dict:
+    """The controller parameters for a drive chain that differs from the nominal one (e.g. the
+    ``ModelTerms.drive`` of an extended model of `krang discrepancy`): its torque fraction, its
+    dry friction and its viscous friction beyond the nominal's; with dry friction, the stand-up's
+    settle check on a low-passed rate (``modes.stand_rate_filter_s``, 1 s) and a slower
+    balance-point trim (``balance_point.time_constant_s``, 4 s): the friction the wheels stick
+    on reads to the balance-point observer as a CoM error of up to c / (m g l), about 10 mrad at
+    8 N m, and a 1 s trim turns that into a limit cycle."""
+    out = {
+        'adrc.torque_fraction': float(drive.torque_constant / nominal.torque_constant),
+        'adrc.coulomb_compensation_nm': float(drive.coulomb_friction),
+        'adrc.viscous_compensation_nm_s': float(
+            max(drive.viscous_friction - nominal.viscous_friction, 0.0)
+        ),
+    }
+    if drive.coulomb_friction > 0:
+        out['modes.stand_rate_filter_s'] = 1.0
+        out['balance_point.time_constant_s'] = 4.0
+    return out

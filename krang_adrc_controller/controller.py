@@ -43,7 +43,7 @@ stand-up's reference and the handover does not move the robot a second time.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -130,7 +130,13 @@ class BalanceController(OperatorRequests, PoseDesign):
         self.robot = robot
         self.config = cfg = config if config is not None else load_controller_config()
         self.h = 1.0 / cfg.rate_hz
-        self.drive = drive = drivetrain(robot)
+        # the drive chain as the controller models it: the nominal one, delivering
+        # adrc.torque_fraction of its torque per ampere
+        nominal = drivetrain(robot)
+        self.drive = drive = replace(
+            nominal, torque_constant=nominal.torque_constant * cfg.adrc.torque_fraction
+        )
+        self._ground_scale = 1.0 / cfg.adrc.torque_fraction  # the ground PD's gains are in A
         self.r = drive.wheel_radius
         self.k_motor = drive.torque_constant * drive.gear_ratio  # wheel N m per motor A
         self.designer = LqrDesigner(cfg.lqr, position_unit='m', wheel_radius_m=self.r)
@@ -144,6 +150,12 @@ class BalanceController(OperatorRequests, PoseDesign):
         self._safety_limits = (cfg.safety.max_speed_m_s, cfg.safety.stand_timeout_s)
         self._spin = (*cfg.modes.spin_gains, cfg.modes.spin_limit_a)
         self._current_limit = drive.current_limit
+        # dry friction of the drive chain, added back on each wheel: (current, speed scale)
+        self._coulomb = (
+            cfg.adrc.coulomb_compensation_nm / self.k_motor,
+            cfg.adrc.coulomb_speed_rad_s,
+            cfg.adrc.viscous_compensation_nm_s / self.k_motor,
+        )
         self._caster_limit = drive.caster_pitch + cfg.safety.caster_margin_rad
         self._place = (cfg.balance_point.place_tol_m, cfg.balance_point.place_speed_m_s)
         self._caster_since: float | None = None
@@ -287,10 +299,19 @@ class BalanceController(OperatorRequests, PoseDesign):
             il = ir = 0.0
         else:
             il, ir = self._ground_law(ground_gains, t, mode, qb, theta, x, dx, dth, psi, dpsi)
+        fl = fr = 0.0
+        ic, v0, iv = self._coulomb
+        if (ic or iv) and (mode is Mode.BALANCE or mode is Mode.STAND_UP):
+            # the drive chain's friction opposes the wheels' motion relative to the body
+            fl = ic * math.tanh(rl / v0) + iv * rl
+            fr = ic * math.tanh(rr / v0) + iv * rr
+            il += fl
+            ir += fr
         il, ir, clamped = self._clamp(il, ir)
         k = self.k_motor
         if mode is Mode.BALANCE and self._balance_point_active:
-            self.balance_point.applied((il + ir) * k, theta, dx, dth)
+            # the torque that reaches the wheels past the friction the compensation expects
+            self.balance_point.applied((il + ir - fl - fr) * k, theta, dx, dth)
         out = ControlOutput(
             mode.value,
             il * k,
@@ -507,8 +528,9 @@ class BalanceController(OperatorRequests, PoseDesign):
         modes = self.config.modes
         r = self.r
         e_th = qb - self._sit_ref(t) if mode is Mode.SIT_DOWN else theta
-        u_th = g[0] * e_th + g[1] * dth
-        u_x = g[2] * ((x - self.x_ref) / r) + g[3] * (dx / r)
+        gs = self._ground_scale
+        u_th = gs * (g[0] * e_th + g[1] * dth)
+        u_x = gs * (g[2] * ((x - self.x_ref) / r) + g[3] * (dx / r))
         u_spin = -(g[4] * (psi - self.psi_ref) + g[5] * dpsi)
         lim = modes.spin_limit_a
         u_spin = -lim if u_spin < -lim else (lim if u_spin > lim else u_spin)

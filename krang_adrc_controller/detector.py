@@ -23,6 +23,15 @@ re-arms only when the joints move again (flag set, or a joint leaves ``rearm_tol
 emitted pose). A gap in the samples longer than ``max_gap_s`` (at least three feed periods)
 restarts the window.
 
+A robot that cannot come to rest (a limit cycle of a few mrad under the dry friction of a
+gearmotor drive chain, which sticks below its breakaway torque) never gives such a window. It
+still balances on average: over a stationary window of ``stationary_window_s`` (several cycles)
+in which it keeps its place (mean ground speed below ``wheel_speed_max``, every sample's below
+``stationary_speed_max``, pitch rate below ``stationary_rate_max``) and the batch-means standard
+error of the mean pitch is below ``stationary_se_max``, the window mean is a point too, emitted
+with that standard error (so the learner weighs it as it deserves). A robot that does settle gives
+its strict point first (2 s against 8 s).
+
 Thresholds are ``DetectorConfig``: our choices, except pitch_rate_max = 0.03 rad/s, the hardware's
 "standing still" rate threshold (docs/control.md).
 """
@@ -82,6 +91,24 @@ class DetectorConfig:
         },
     )
 
+    stationary_window_s: float = field(
+        default=8.0,
+        metadata={'doc': 'stationary window of a robot in a small limit cycle, s (0 = off)'},
+    )
+    stationary_speed_max: float = field(
+        default=0.15, metadata={'doc': '|ground speed| bound at every sample of it, m/s'}
+    )
+    stationary_rate_max: float = field(
+        default=0.3, metadata={'doc': '|pitch rate| bound at every sample of it, rad/s'}
+    )
+    stationary_se_max: float = field(
+        default=2e-3,
+        metadata={
+            'doc': 'bound on the standard error of its mean pitch, rad (batch means; the point '
+            'carries it, and the learner weighs the point by it)'
+        },
+    )
+
     def __post_init__(self):
         if self.window_s <= 0 or self.rate_hz <= 0:
             raise ValueError('detector.window_s and rate_hz must be positive')
@@ -128,16 +155,24 @@ class BalancedPoseDetector:
         self.max_gap_s = max(c.max_gap_s, 3.0 / c.rate_hz)
         self.min_samples = c.min_samples
         self.accel_max = c.accel_max or None
+        self.stationary = (
+            c.stationary_window_s,
+            c.stationary_speed_max,
+            c.stationary_rate_max,
+            c.stationary_se_max,
+        )
         self.reset()
 
     def reset(self) -> None:
         """Forget everything and arm."""
         self._buf: deque = deque()
+        self._long: deque = deque()  # the stationary window
         self.armed = True
         self.last_point: BalancedPoint | None = None
 
     def _clear(self) -> None:
         self._buf.clear()
+        self._long.clear()
 
     def mean_acceleration(self) -> float:
         """Mean ground acceleration over the window, m/s^2: the least-squares slope of the wheel
@@ -183,9 +218,13 @@ class BalancedPoseDetector:
         if joints_moving:
             self._clear()
             return None
+        if self.stationary[0]:
+            point = self._stationary(t, q_base, dtheta, wheel_speed, joints, gravity_pitch)
+            if point is not None:
+                return point
         still = abs(dtheta) < self.pitch_rate_max and abs(wheel_speed) < self.wheel_speed_max
         if not still:
-            self._clear()
+            self._buf.clear()
             return None
         self._buf.append(
             (float(t), float(q_base), float(fhat), joints, float(wheel_speed), gravity_pitch)
@@ -210,7 +249,39 @@ class BalancedPoseDetector:
         qb = np.array([s[1] for s in self._buf])
         if self.q_base_std_max is not None and qb.std() > self.q_base_std_max:
             return None
-        gp = np.array([s[5] for s in self._buf], dtype=float)
+        return self._emit(t, qb, np.array([s[5] for s in self._buf], dtype=float), jw, span)
+
+    def _stationary(self, t, q_base, dtheta, wheel_speed, joints, gravity_pitch):
+        """The stationary window's point, or None (see the module docstring)."""
+        window, speed_max, rate_max, se_max = self.stationary
+        if abs(wheel_speed) > speed_max or abs(dtheta) > rate_max:
+            self._long.clear()
+            return None
+        buf = self._long
+        buf.append((t, q_base, wheel_speed, joints, gravity_pitch))
+        while buf and t - buf[0][0] > window:
+            buf.popleft()
+        span = t - buf[0][0]
+        n = len(buf)
+        if n < self.min_samples or span < window * (1.0 - 1.0 / n):
+            return None
+        if abs(np.mean([s[2] for s in buf])) > self.wheel_speed_max:
+            return None
+        jw = np.vstack([s[3] for s in buf])
+        if np.max(np.abs(jw - jw.mean(axis=0))) > self.joint_tol:
+            return None
+        qb = np.array([s[1] for s in buf])
+        gp = np.array([s[4] for s in buf], dtype=float)
+        pitch = gp if np.all(np.isfinite(gp)) else qb
+        if standard_error(pitch[:, None])[0] > se_max:
+            return None
+        return self._emit(t, qb, gp, jw, span)
+
+    def _emit(self, t, qb, gp, jw, span):
+        """One point from a window: pitch (the accelerometer's where every sample has one) and
+        joints, their means and standard errors; then disarm."""
+        n = len(qb)
+        jmean = jw.mean(axis=0)
         pitch = gp if np.all(np.isfinite(gp)) else qb
         point = BalancedPoint(
             float(t),

@@ -10,7 +10,9 @@ thresholds in ``ModesConfig`` and ``SafetyConfig``:
   balance_rate_max (0.03 rad/s) have held *continuously* for stand_settle_s. The hardware counts
   "> 100 iterations"; at the paper's 0.0333 s loop that is 3.33 s, the default. (The 2018 code
   counted iterations without resetting the counter; a continuous duration is the safe reading
-  and does not depend on the loop rate.)
+  and does not depend on the loop rate.) With stand_rate_filter_s > 0 the rate is low-passed
+  first: a drive chain with dry friction holds the robot in a limit cycle of a few mrad whose
+  rate crosses 0.03 rad/s every cycle, so it would never settle by the instantaneous rate.
 * STAND_UP/BALANCE -> SIT_DOWN on a sit request only if the waist is above sit_waist_min_rad
   (150 deg); SIT_DOWN -> SIT once the IMU pitch is below sit_imu_limit_rad (-103 deg).
 * Any mode -> SAFE_STOP on a stop request or stale sensor data (newest sample older than
@@ -87,6 +89,13 @@ class ModesConfig:
     stand_settle_s: float = field(
         default=3.33,
         metadata=_doc('settle time before BALANCE, s (100 loops of the 30 Hz hardware)'),
+    )
+    stand_rate_filter_s: float = field(
+        default=0.0,
+        metadata=_doc(
+            'time constant of a low-pass of the pitch rate the settle check reads, s (0 = the '
+            "hardware's instantaneous rate; a chain with dry friction needs about 1 s)"
+        ),
     )
     sit_waist_min_rad: float = field(
         default=2.61799, metadata=_doc('sit down only with the waist above this, rad (150 deg)')
@@ -236,6 +245,8 @@ class ModeMachine:
         self.balance_imu_min = config.balance_imu_min_rad
         self.balance_rate_max = config.balance_rate_max
         self.stand_settle_s = config.stand_settle_s
+        self.stand_rate_filter_s = config.stand_rate_filter_s
+        self._rate_lp: tuple | None = None  # (t, low-passed pitch rate) in STAND_UP
         self.sit_waist_min = config.sit_waist_min_rad
         self.sit_imu_limit = config.sit_imu_limit_rad
         self.sit_theta_max = config.sit_theta_max_rad
@@ -284,7 +295,21 @@ class ModeMachine:
         events.append(f'{self.mode.value}->{mode.value}: {why}')
         self.mode = mode
         self._settle_since = None
+        self._rate_lp = None
         return True
+
+    def _rate(self, u: ModeInputs) -> float:
+        """The pitch rate the settle check reads: instantaneous, or low-passed."""
+        tau = self.stand_rate_filter_s
+        if not tau:
+            return u.dtheta
+        if self._rate_lp is None or not 0.0 < u.t - self._rate_lp[0] < 1.0:
+            self._rate_lp = (u.t, u.dtheta)
+        else:
+            t0, r = self._rate_lp
+            r += (1.0 - math.exp(-(u.t - t0) / tau)) * (u.dtheta - r)
+            self._rate_lp = (u.t, r)
+        return self._rate_lp[1]
 
     def step(self, u: ModeInputs) -> ModeOutput:
         events: list = []
@@ -321,7 +346,7 @@ class ModeMachine:
             else:
                 events.append('sit_refused: ' + why)
         elif self.mode is Mode.STAND_UP:
-            ok = u.imu_pitch > self.balance_imu_min and abs(u.dtheta) < self.balance_rate_max
+            ok = u.imu_pitch > self.balance_imu_min and abs(self._rate(u)) < self.balance_rate_max
             if not ok:
                 self._settle_since = None
             else:

@@ -17,6 +17,11 @@ instead define ``register_experiment(experiment_subparsers)`` and add its own su
 Built in:
 * ``table2``: Table II in simulation (krang_experiments.table2).
 * ``adrc-vs-lqr``: ADRC and plain LQR with the same wrong CoM (krang_experiments.adrc_vs_lqr).
+* ``many-truths``: the online session on many hidden truths (krang_experiments.many_truths).
+* ``campaign``: the online session across plants and drive chains (krang_experiments.campaign).
+
+``table2``, ``many-truths`` and ``campaign`` take the simulated robot's physics (``--plant``) and
+an extended model of `krang discrepancy` (``--plant-model``).
 
 The experiment modules are imported when a command runs, not at parser time: they load the
 simulator and matplotlib, which every other `krang` command would otherwise pay for.
@@ -94,6 +99,39 @@ def register(subparsers):
         if callable(hook) and hook is not register_experiment:
             hook(sub)
     p.set_defaults(func=lambda args: (p.print_help(), 2)[1])
+
+
+# ----------------------------------------------------------------------------- the plant
+
+
+def _plant_arg(p):
+    p.add_argument(
+        '--plant',
+        choices=('reduced', 'mujoco'),
+        default='reduced',
+        help="the simulated robot's physics: the controller's reduced model or the full-body "
+        'MuJoCo Krang (krang_sim.plant; default reduced)',
+    )
+
+
+def _true_robot_args(p):
+    """--plant, --plant-model and --effects: the physics and the drive chain of the simulated
+    robot."""
+    _plant_arg(p)
+    p.add_argument(
+        '--plant-model',
+        default=None,
+        metavar='EXTENDED_MODEL.yaml',
+        help='the simulated robot is the one an extended model of `krang discrepancy` describes',
+    )
+    p.add_argument(
+        '--effects',
+        nargs='+',
+        metavar='KEY=VALUE',
+        default=(),
+        help="the true robot's effects (krang_model.effects) on top of --plant-model, e.g. "
+        'torque_constant=0.75 wheel_coulomb_friction=4 wheel_viscous_friction=3',
+    )
 
 
 # ----------------------------------------------------------------------------- adrc-vs-lqr
@@ -195,13 +233,16 @@ def _table2_args(p):
         'which the learned betas never met), no ADRC',
     )
     p.add_argument(
+        '--plant-model',
         '--extended-model',
+        dest='plant_model',
         default=None,
-        metavar='YAML',
+        metavar='EXTENDED_MODEL.yaml',
         help='simulate the robot with the effects `krang discrepancy` found (its '
-        'extended_model.yaml, '
-        'e.g. from the hardware Table II runs), to compare the simulated table with the hardware',
+        'extended_model.yaml, e.g. from the hardware Table II runs), to compare the simulated '
+        'table with the hardware',
     )
+    _plant_arg(p)
     p.add_argument(
         '--json', action='store_true', help='print the table as JSON on the last stdout line'
     )
@@ -221,7 +262,8 @@ def _run_table2(args):
         seed=args.seed,
         betas=args.betas,
         paper_era_pd=args.paper_era_pd,
-        extended_model=args.extended_model,
+        extended_model=args.plant_model,
+        plant=args.plant,
     )
     result = table2.run(params)
     print(table2.report(result, args.out))
@@ -258,6 +300,7 @@ def _many_truths_args(p):
         help='pose selection: the meta-learned list, adaptive, or both (default)',
     )
     p.add_argument('--method', default='map-online', help='estimator (default map-online)')
+    _true_robot_args(p)
     p.add_argument(
         '--json', action='store_true', help='print a JSON summary as the last stdout line'
     )
@@ -273,6 +316,9 @@ def _run_many_truths(args):
         selections=selections,
         method=args.method,
         progress=True,
+        plant=args.plant,
+        plant_model=args.plant_model,
+        effects=tuple(args.effects),
     )
     result = many_truths.run(params)
     print(many_truths.report(result, args.out))
@@ -286,4 +332,71 @@ register_experiment(
     'the online session on many hidden truths: fixed pose list vs adaptive selection',
     _many_truths_args,
     _run_many_truths,
+)
+
+
+# ----------------------------------------------------------------------------- campaign
+
+
+def _campaign_args(p):
+    p.add_argument('--out', default='out/campaign', help='output folder (PNG, JSON, Markdown)')
+    p.add_argument('--truths', type=int, default=10, help='number of hidden truths (default 10)')
+    p.add_argument('--first-seed', type=int, default=5000, help='first truth seed (default 5000)')
+    p.add_argument('--poses', type=int, default=12, help='poses per session (default 12)')
+    p.add_argument(
+        '--plants', nargs='+', default=['reduced', 'mujoco'], choices=('reduced', 'mujoco')
+    )
+    p.add_argument(
+        '--chains',
+        nargs='+',
+        default=['nominal', 'gearmotor'],
+        help='drive chains of krang_experiments.campaign.CHAINS (nominal, gearmotor, '
+        'gear-light, gear-hard; default nominal gearmotor)',
+    )
+    p.add_argument(
+        '--chain-unknown',
+        action='store_true',
+        help='run the shipped controller configuration instead of telling it the drive chain',
+    )
+    p.add_argument(
+        '--plant-model',
+        default=None,
+        metavar='EXTENDED_MODEL.yaml',
+        help='an extended model of `krang discrepancy` under every chain',
+    )
+    p.add_argument(
+        '--short', action='store_true', help="the default test run's version (about 30 s)"
+    )
+    p.add_argument(
+        '--json', action='store_true', help='print a JSON summary as the last stdout line'
+    )
+
+
+def _run_campaign(args):
+    from krang_experiments import campaign
+
+    params = campaign.Params(
+        truth_seeds=tuple(range(args.first_seed, args.first_seed + args.truths)),
+        plants=tuple(args.plants),
+        chains=tuple(args.chains),
+        n_poses=args.poses,
+        chain_known=not args.chain_unknown,
+        plant_model=args.plant_model,
+        progress=True,
+    )
+    if args.short:
+        params = campaign.short(params)
+    result = campaign.run(params)
+    command = 'krang experiment campaign ' + ' '.join(sys.argv[3:])
+    print(campaign.report(result, args.out, command=command))
+    if args.json:
+        print_json({'out': str(Path(args.out)), 'summary': result['summary']})
+    return 0
+
+
+register_experiment(
+    'campaign',
+    'the online session across plants (reduced, MuJoCo) and drive chains (nominal, gearmotors)',
+    _campaign_args,
+    _run_campaign,
 )

@@ -19,14 +19,18 @@ from pathlib import Path
 import numpy as np
 
 from krang_bag.session_report import held_out_configurations
+from krang_adrc_controller.adrc import drive_chain_overrides
+from krang_adrc_controller.controller import load_controller_config
 from krang_com_estimator import make_estimator
 from krang_model.com import balance_pitch, com_error
 from krang_model.config import config_path
+from krang_model.drivetrain import drivetrain
 from krang_model.poses import load_poses
 from krang_model.robot import KRANG_POSE_COLUMNS, load_krang
 from krang_model.files import save_figure, write_text
-from krang_pose_server.pool import generate_pool
+from krang_pose_server.pool import PosePool
 from krang_pose_server.selection import AdaptiveSelector
+from krang_sim.plant import plant_terms
 from krang_sim.scenarios import run_online_session
 from krang_sim.truths import TruthRecipe, generate_truth
 
@@ -47,24 +51,40 @@ class Params:
     error_range_m: tuple = (0.012, 0.025)
     criterion: str = 'forward'
     progress: bool = False
+    plant: str = 'reduced'  # the simulated robot's physics (krang_sim.plant)
+    plant_model: str | None = None  # an extended model of `krang discrepancy` (its YAML)
+    effects: tuple = ()  # 'key=value' effects of krang_model.effects on top of plant_model
+    path_check: bool = True  # refuse moves whose straight joint line hits the floor or itself
+    chain_known: bool = False  # the controller is told the true drive chain (adrc.*)
+    controller: dict = field(default_factory=dict)  # more controller overrides (dotted names)
     extra: dict = field(default_factory=dict)
 
 
-def session(robot, true_beta, selection, params, pool=None, held_out=None):
+def session(robot, true_beta, selection, params, pool=None, held_out=None, pose_pool=None):
     """One online session; returns a dict with the forward-error curve (m, one value per learned
-    pose and the start), the failures, the poses learned and the timings."""
+    pose and the start), the failures, the poses learned, the timings and the wheel travel of
+    each move. `pose_pool`: the PosePool whose ``path_clear`` vets each adaptive move (built here
+    when params.path_check and it is None)."""
     held_out = held_out_configurations(robot) if held_out is None else held_out
+    terms = plant_terms(robot, params.effects, params.plant_model)
     learner = make_estimator(params.method, robot, robot.nominal_beta)
     if selection == 'fixed':
         _, poses, _ = load_poses(config_path('excitatory_poses.csv'), KRANG_POSE_COLUMNS)
         chooser = poses[: params.n_poses]
     elif selection == 'adaptive':
+        if params.path_check and pose_pool is None:
+            pose_pool = PosePool(robot)
         pool = (
-            generate_pool(params.pool_size, seed=params.pool_seed, robot=robot)
+            (pose_pool or PosePool(robot)).generate(params.pool_size, seed=params.pool_seed)
             if pool is None
             else pool
         )
-        chooser = AdaptiveSelector(robot, pool.joints, criterion=params.criterion)
+        chooser = AdaptiveSelector(
+            robot,
+            pool.joints,
+            criterion=params.criterion,
+            path_check=pose_pool.path_clear if params.path_check else None,
+        )
     else:
         raise ValueError(f'selection must be one of {SELECTIONS}, not {selection!r}')
     res = run_online_session(
@@ -76,17 +96,34 @@ def session(robot, true_beta, selection, params, pool=None, held_out=None):
         seed=params.sim_seed,
         progress=params.progress,
         n_poses=params.n_poses,
+        plant=params.plant,
+        terms=terms,
+        controller_config=controller_config(robot, terms, params),
     )
     curve = [com_error(robot, b, true_beta, held_out) for b in res.betas]
     return {
         'curve_m': curve,
         'learned': len(res.points),
         'failures': [list(f) for f in res.failures],
+        'safe_stops': res.safe_stops,
+        'travel_m': list(res.travel_m),
+        'refused_paths': getattr(chooser, 'refused', 0),
         'timings': res.timings,
         'sim_s': res.sim_s,
         'wall_s': res.wall_s,
         'pitch_error_rad': [p.q_base - t for p, t in zip(res.points, res.true_pitch)],
     }
+
+
+def controller_config(robot, terms, params):
+    """The controller's configuration for a session: the shipped one, told the true drive chain
+    when params.chain_known (as an extended model of `krang discrepancy` would tell it), with
+    params.controller's overrides; None when that is the shipped one."""
+    overrides = (
+        dict(drive_chain_overrides(terms.drive, drivetrain(robot))) if (params.chain_known) else {}
+    )
+    overrides.update(params.controller)
+    return load_controller_config().override(overrides) if overrides else None
 
 
 def exact_pitch_error(
@@ -131,14 +168,15 @@ def run(params=None):
     robot = load_krang()
     recipe = TruthRecipe(error_range_m=tuple(params.error_range_m))
     held_out = held_out_configurations(robot)
-    pool = generate_pool(params.pool_size, seed=params.pool_seed, robot=robot)
+    pose_pool = PosePool(robot)
+    pool = pose_pool.generate(params.pool_size, seed=params.pool_seed)
     wall = time.perf_counter()
     truths, runs = [], {s: [] for s in params.selections}
     for seed in params.truth_seeds:
         truth = generate_truth(robot, seed, recipe)
         truths.append({'seed': seed, 'draw': truth.draw, 'forward_error_m': truth.forward_error_m})
         for sel in params.selections:
-            runs[sel].append(session(robot, truth.beta, sel, params, pool, held_out))
+            runs[sel].append(session(robot, truth.beta, sel, params, pool, held_out, pose_pool))
     return {
         'params': params,
         'truths': truths,

@@ -189,6 +189,20 @@ class PosePool:
             and self.checker.is_free(q_base, joints)
         )
 
+    def path_clear(self, start, goal, beta=None, points=16) -> bool:
+        """True when the straight joint line from `start` to `goal` (the pose server's move) stays
+        free of self- and floor collision at `points` poses along it, each at the balance pitch
+        `beta` (default the pool's) predicts: the robot balances through the move, so a path
+        between two safe poses can still drive a gripper into the floor on the way."""
+        start, goal = np.asarray(start, dtype=float), np.asarray(goal, dtype=float)
+        u = np.linspace(0.0, 1.0, int(points) + 1)[1:-1]
+        if u.size == 0:
+            return True
+        path = start + u[:, None] * (goal - start)
+        beta = self.real_beta if beta is None else np.asarray(beta, float)
+        q_base = balance_pitch(self.robot, path, beta)
+        return all(self.checker.is_free(q, j) for q, j in zip(q_base, path))
+
     def generate(self, n, seed=0, progress=None, max_tries=None):
         """n poses (q_base (n,), joints (n, 16)). `progress(k)` is called with the number of new
         poses."""

@@ -25,6 +25,12 @@ moves by z per radian of pitch, so std = sqrt(g^T Sigma g) / z), must stay `cast
 above the caster pitch, or, where the robot already stands closer than that, never go lower
 than where it starts. A candidate that breaks this is not chosen; when every one does, the one
 whose path keeps the most margin is.
+
+Path clearance. Both ends of a move are safe poses, but the straight joint line between them can
+lower a gripper into the floor on the way (the full-body plant shows it: the controller then
+saturates and the robot runs away). With ``path_check`` (``PosePool.path_clear``: collisions at
+points along the line, at the balance pitch the current beta predicts), the best-scoring candidate
+whose path is clear is chosen, and one whose path is not is refused.
 """
 
 from dataclasses import dataclass
@@ -79,6 +85,7 @@ class AdaptiveSelector:
         margin_sigmas=2.0,
         path_points=8,
         caster_pitch=None,
+        path_check=None,
     ):
         if criterion not in CRITERIA:
             raise ValueError(f'criterion must be one of {CRITERIA}, not {criterion!r}')
@@ -99,7 +106,9 @@ class AdaptiveSelector:
         self.caster_pitch = float(
             drivetrain(robot).caster_pitch if caster_pitch is None else caster_pitch
         )
+        self.path_check = path_check  # (start, goal, beta) -> bool, or None: no check
         self.used = set()
+        self.refused = 0  # candidates refused by path_check
 
     def reset(self):
         self.used.clear()
@@ -165,7 +174,9 @@ class AdaptiveSelector:
         score, gain, move, before, after, margin = self.scores(
             beta, covariance, current_joints, sigma_pitch_rad
         )
-        i = int(np.argmax(score))
+        i = self._first_clear(score, beta, current_joints)
+        if i is None:
+            return None
         self.used.add(i)
         return Choice(
             i,
@@ -176,3 +187,15 @@ class AdaptiveSelector:
             float(after[i]),
             float(margin[i]),
         )
+
+    def _first_clear(self, score, beta, current_joints):
+        """The best-scoring candidate whose path passes ``path_check`` (None if none does)."""
+        if self.path_check is None:
+            return int(np.argmax(score))
+        for i in np.argsort(-score, kind='stable'):
+            if score[i] == -np.inf:  # used, or its path breaks the caster margin
+                break
+            if self.path_check(current_joints, self.pool[i], beta):
+                return int(i)
+            self.refused += 1
+        return None

@@ -1,7 +1,8 @@
 """sim_krang: the simulated Krang behind the same CAN frames as the real robot.
 
 A physics thread steps the plant (`plant`: a registered engine of krang_sim.plant, by default the
-reduced WIP; `effects`: the true robot's effects from the registry of krang_model.effects) at
+reduced WIP; `plant_model`: an extended model of `krang discrepancy`; `effects`: the true robot's
+effects from the registry of krang_model.effects, on top of it) at
 `physics_rate_hz`, and paces itself at `real_time_factor` times wall time (1 = real time, 0 = as
 fast as the CPU allows). What the devices report of its motion is the one sensor model's
 (krang_sim.sensors). When the CPU cannot keep up it falls behind by at most `max_lag_s` and then
@@ -74,7 +75,7 @@ from krang_ros.params import declare
 from krang_ros.spin import Polled, run_node, take_latest
 
 from .devices import KrangCanDevices
-from .plant import BUILTIN, PLANTS, make_plant, terms_from_strings
+from .plant import BUILTIN, PLANTS, make_plant, plant_terms
 from .sensors import SensorModel, SensorNoise
 from .session_config import resolve_config_file
 
@@ -108,6 +109,11 @@ class SimNodeParams:
         (),
         "the true robot's physical effects, 'key=value' in the effect's unit (krang_model."
         "effects, e.g. 'torque_constant=0.8', 'wheel_coulomb_friction=4'; empty = nominal)",
+    )
+    plant_model: str = _doc(
+        '',
+        'an extended model written by `krang discrepancy` (its extended_model.yaml): the true '
+        "robot's effects, with `effects` applied on top ('' = the nominal robot)",
     )
     physics_rate_hz: float = _doc(1000.0, 'physics steps per simulated second, > 0')
     feedback_rate_hz: float = _doc(250.0, "the DMU's and the drives' sample rate, Hz, > 0")
@@ -196,9 +202,9 @@ class SimKrangNode(Node):
         self.clock_every = max(1, round(self.rate / clock_rate))
         seed = cfg.seed
         try:
-            terms = terms_from_strings(self.robot, cfg.effects)
-        except (KeyError, ValueError) as err:
-            raise params.ParameterError(f'sim_krang: effects: {err}') from None
+            terms = plant_terms(self.robot, cfg.effects, cfg.plant_model or None)
+        except (KeyError, ValueError, OSError) as err:
+            raise params.ParameterError(f'sim_krang: effects / plant_model: {err}') from None
         self.config = load_devices(devices_file)
         true_beta = load_beta(truth_file, self.robot)
         # the plant (its truth is read only for /sim_krang/ground_truth and diagnostics)

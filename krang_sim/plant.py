@@ -155,13 +155,18 @@ def terms_from_strings(robot, items) -> ModelTerms:
     """The true robot's ``ModelTerms`` from ``'key=value'`` strings (a node parameter, a command
     line): effect keys or names of ``krang_model.effects`` and values in the effect's unit, applied
     in order on the nominal model."""
+    return model_terms(effect_pairs(items), ModelTerms.nominal(drivetrain(robot)))
+
+
+def effect_pairs(items) -> list:
+    """``[(key, value), ...]`` from ``'key=value'`` strings."""
     pairs = []
     for item in items:
         key, sep, value = str(item).partition('=')
         if not sep:
             raise ValueError(f"{item!r} is not 'key=value'")
         pairs.append((key.strip(), float(value)))
-    return model_terms(pairs, ModelTerms.nominal(drivetrain(robot)))
+    return pairs
 
 
 #: the built-in plants and the module that registers each (imported lazily: MuJoCo is optional
@@ -175,3 +180,14 @@ def _import_builtin(name):
     module = BUILTIN.get(name)
     if module is not None:
         importlib.import_module(module)
+
+
+def plant_terms(robot, effects=(), model_file=None) -> ModelTerms:
+    """The true robot's ``ModelTerms`` as a command line or a node gives them: the extended
+    model of ``model_file`` (an ``extended_model.yaml`` written by `krang discrepancy`; None or ''
+    = the nominal model), then the ``'key=value'`` ``effects`` applied on top of it, in order."""
+    if not model_file:
+        return terms_from_strings(robot, effects)
+    from krang_discrepancy.extended_model import load_extended_model
+
+    return model_terms(effect_pairs(effects), load_extended_model(model_file))

@@ -180,6 +180,12 @@ class SessionResult:
     failures: list = field(default_factory=list)
     loop: object = None
     poses: np.ndarray = None  # the commanded poses (the chooser's picks, if adaptive)
+    travel_m: list = field(default_factory=list)  # per move: largest wheel excursion (m)
+
+    @property
+    def safe_stops(self) -> int:
+        """Moves that ended in SAFE_STOP."""
+        return sum('safe_stop' in str(why) for _, why in self.failures)
 
     @property
     def beta(self):
@@ -291,6 +297,7 @@ def run_online_session(
     stood = loop.plant.t
     betas = [np.array(learner.beta, float)]
     points, idx, timings, true_pitch, failures, chosen = [], [], [], [], [], []
+    travel = []  # per move: the wheels' largest excursion from where the move began (m)
     bar = None
     if progress:
         from tqdm import tqdm
@@ -301,20 +308,28 @@ def run_online_session(
             if adaptive:
                 choice = chooser.choose(learner.beta, learner.covariance, loop.plant.joint_targets)
                 if choice is None:
+                    failures.append((i, 'no pose left to choose (pool used up or paths refused)'))
                     break
                 pose = choice.joints
                 chosen.append(pose)
             t0 = loop.plant.t
             loop.start_move(pose, speed_fraction, stream_rate_hz, pause)
             moved = [None]
+            x0 = loop.last_output.x
+            span = [x0, x0]  # the wheels' ground position: lowest, highest (m)
 
-            def done(o, moved=moved):
+            def done(o, moved=moved, span=span):
                 if moved[0] is None and loop.streamer is None and not loop.plant.joints_moving:
                     moved[0] = loop.plant.t
+                if o.x < span[0]:
+                    span[0] = o.x
+                elif o.x > span[1]:
+                    span[1] = o.x
                 return o.balanced_point is not None or o.mode != 'balance'
 
             got = loop.run(pose_timeout_s, until=done)
             out = loop.last_output
+            travel.append(max(x0 - span[0], span[1] - x0))
             if out.mode != 'balance':
                 failures.append((i, f'left balance: {out.mode}'))
                 break
@@ -343,6 +358,7 @@ def run_online_session(
                     'settle_s': t1 - t0 - mv,
                     'total_s': t1 - t0,
                     'paused_s': paused,
+                    'travel_m': travel[-1],
                     'ok': True,
                 }
             )
@@ -364,4 +380,5 @@ def run_online_session(
         failures,
         loop,
         np.array(chosen) if adaptive else poses,
+        travel,
     )
