@@ -12,14 +12,18 @@ Safety rules, all enforced here so the ROS shell cannot get them wrong:
   are one command (the wheels are one machine), so unless both are finite and there are exactly
   two, BOTH wheels get zero current; every rejection is counted, its reason kept, and
   `diagnostics` WARNs for REJECTION_WARN_S after it;
-- a FAULT statusword or an EMCY (error code not 0) of ANY drive, or a started drive leaving
-  OPERATION_ENABLED, latches a drive fault (`fault_reason`): zero current on both wheels and no
-  joint motion until `clear_fault`, which the node calls only after a DS402 fault reset and enable
-  sequence left every drive OPERATION_ENABLED again (`recover_status`);
+- a FAULT statusword or an EMCY (error code not 0) of ANY drive, a started drive leaving
+  OPERATION_ENABLED, or its boot-up message or an NMT state but OPERATIONAL (a reboot: its
+  settings and watchdog gone), latches a drive fault (`fault_reason`): zero current on both
+  wheels and no joint motion until `clear_fault`, which the node calls only after the start-up
+  sequence (DS402 fault reset and enable) left every drive OPERATION_ENABLED again
+  (`recover_status`);
 - the watchdog frames the drives consume (`watchdog_frames`: heartbeat or node-guarding requests,
   see config.WatchdogConfig) are produced only while the wheel command loop ran within
   `wheels.watchdog.alive_timeout_s`: a hung bridge stops beating and the drives stop by
   themselves;
+- a frozen DMU (sequence counter stuck, or values bit-identical for imu.frozen_after_s) counts as
+  silent: its samples are dropped, not filtered or published;
 - `motion_allowed(now)` is False while a drive fault is latched, any required device is silent,
   the IMU filter is not initialised, or an `inhibit` is set (e.g. by the node until the AMC
   start-up succeeded); then
@@ -74,6 +78,8 @@ from krang_can_bridge.snapshots import (
 logger = logging.getLogger('krang_can_bridge')
 
 NMT_ID = 0x000
+NMT_BOOT_UP, NMT_OPERATIONAL = 0x00, 0x05  # DS301 NMT state byte of 0x700 + node
+NMT_STATE_NAMES = {0x04: 'STOPPED', 0x05: 'OPERATIONAL', 0x7F: 'PRE-OPERATIONAL'}
 EMCY_BASE, SDO_RESPONSE_BASE, SDO_REQUEST_BASE, HEARTBEAT_BASE = 0x080, 0x580, 0x600, 0x700
 
 
@@ -114,9 +120,13 @@ class BridgeCore(CommandFrames, BridgeDiagnostics):
                 HEARTBEAT_BASE + drive.node_id,
             }
         self._emcy_ids = {EMCY_BASE + s.codec.drive.node_id: s for s in self._wheels.values()}
+        self._nmt_state_ids = {
+            HEARTBEAT_BASE + s.codec.drive.node_id: s for s in self._wheels.values()
+        }
         self._wheel_echo_ids.add(amc_proto.HEARTBEAT_BASE + w.watchdog.node_id)  # our heartbeat
         self._wheel_command: tuple[float, float, float] | None = None  # (left, right, time)
         self._command_loop_at: float | None = None
+        self._loop_steady_since: float | None = None
         self._wheel_sent_at: float | None = None
         self._fault = ''
 
@@ -127,6 +137,11 @@ class BridgeCore(CommandFrames, BridgeDiagnostics):
         self._imu_accel: DmuAccelerations | None = None
         self._imu_snapshot: ImuSnapshot | None = None
         self._last_stream_toggle: float | None = None
+        self._imu_frame_at: float | None = None  # any DMU frame, frozen or not (stream toggle)
+        self._imu_sequence: int | None = None  # of the last paired sample
+        self._imu_values: tuple[float, ...] | None = None
+        self._imu_same_since: float | None = None  # the values have not changed since
+        self._imu_frozen = ''  # why the DMU's latest sample was dropped as frozen
 
         pcfg = config.powercube
         self._poll_frames: list[BusFrame] | None = None
@@ -193,6 +208,13 @@ class BridgeCore(CommandFrames, BridgeDiagnostics):
                 self._on_module(self._modules[(bus, aid & pc.MODULE_ID_MASK)], msg, now)
             elif bus == self.config.wheels.bus and aid in self._emcy_ids:
                 self._on_emcy(self._emcy_ids[aid], msg)
+            elif (
+                bus == self.config.wheels.bus
+                and aid in self._nmt_state_ids
+                and not msg.is_remote_frame
+            ):
+                c.canopen += 1
+                self._on_nmt_state(self._nmt_state_ids[aid], msg)
             elif self._is_echo(bus, aid):
                 c.echoes += 1
             elif bus == self.config.wheels.bus and aid in self._canopen_ids:
@@ -269,6 +291,30 @@ class BridgeCore(CommandFrames, BridgeDiagnostics):
         text = f'0x{code:04X}' if code is not None else f'malformed ({data.hex()})'
         self._latch_fault(f'{joint}: EMCY {text}, data {data.hex()}')
 
+    def _on_nmt_state(self, state: WheelState, msg: can.Message) -> None:
+        """A drive's NMT state frame (DS301 0x700 + node: boot-up, heartbeat or guarding reply).
+        A boot-up means the drive power-cycled or reset: its object dictionary is back to the
+        defaults (no TPDO timer, no heartbeat consumer, abort option 1) and it is PRE-OPERATIONAL.
+        Once started, that, or any NMT state but OPERATIONAL, latches a drive fault: only a rerun
+        of its whole start-up (the recover service) makes it a drive the bridge may command."""
+        data = bytes(msg.data)
+        if not data:
+            return
+        code, joint = data[0] & 0x7F, state.codec.drive.joint
+        if code == NMT_BOOT_UP:
+            state.boots += 1
+            logger.warning(f'{joint}: boot-up message (drive power-cycled or reset)')
+            if state.started:
+                self._latch_fault(
+                    f'{joint}: drive rebooted (DS301 boot-up): its settings and watchdog are '
+                    'back to the defaults'
+                )
+            state.started = state.armed = False
+        elif code != NMT_OPERATIONAL and state.started:
+            name = NMT_STATE_NAMES.get(code, f'0x{code:02X}')
+            self._latch_fault(f'{joint}: drive left NMT OPERATIONAL for {name}')
+            state.started = state.armed = False
+
     def _check_drive_state(self, state: WheelState) -> None:
         joint, sw = state.codec.drive.joint, state.drive_status
         name = amc_proto.drive_state(sw)
@@ -340,7 +386,7 @@ class BridgeCore(CommandFrames, BridgeDiagnostics):
         except ProtocolError:
             self._imu_device.malformed += 1
             raise
-        self._imu_device.last_seen = now
+        self._imu_frame_at = now
         if isinstance(sample, DmuRates):
             self._imu_rates = sample
         else:
@@ -349,6 +395,8 @@ class BridgeCore(CommandFrames, BridgeDiagnostics):
         if r is None or a is None or r.sequence != a.sequence:
             return None
         self._imu_rates = self._imu_accel = None  # one filter update per paired sample
+        if not self._imu_alive(r, a, now):
+            return None
         est: PitchEstimate = self._imu_estimator.update(
             (r.x, r.y, r.z), (a.x, a.y, a.z), now, r.sequence
         )
@@ -363,6 +411,45 @@ class BridgeCore(CommandFrames, BridgeDiagnostics):
             now,
         )
         return IMU_SAMPLE
+
+    def _imu_alive(self, r: DmuRates, a: DmuAccelerations, now: float) -> bool:
+        """Whether a paired DMU sample is a live one (then the DMU counts as heard from). A
+        frozen DMU keeps sending at its rate: a sequence counter that did not advance, or (with
+        imu.frozen_after_s) values bit-identical for longer than that, which the sensor's noise
+        does not allow. Its samples are dropped (no filter step, no /imu/data), so the DMU falls
+        silent after its silence timeout. A repeated value within frozen_after_s is used but is
+        no sign of life either."""
+        values = (r.x, r.y, r.z, a.x, a.y, a.z)
+        frozen_after = self.config.imu.frozen_after_s
+        repeated = frozen_after > 0 and values == self._imu_values
+        stuck = r.sequence == self._imu_sequence
+        if not repeated:
+            self._imu_same_since = now
+        self._imu_sequence, self._imu_values = r.sequence, values
+        reason = ''
+        if stuck:
+            reason = f'sequence counter stuck at {r.sequence}'
+        elif repeated and now - self._imu_same_since > frozen_after:
+            reason = f'values bit-identical for {now - self._imu_same_since:.3f} s'
+        if reason:
+            c = self.counters
+            c.frozen_samples += 1
+            c.last_frozen = reason
+            if not self._imu_frozen:
+                logger.error(f'DMU frozen ({reason}): its samples are dropped')
+            self._imu_frozen = reason
+            return False
+        if self._imu_frozen:
+            logger.warning(f'DMU live again after it froze ({self._imu_frozen})')
+            self._imu_frozen = ''
+        if not repeated:
+            self._imu_device.last_seen = now
+        return True
+
+    @property
+    def imu_frozen(self) -> str:
+        """Why the DMU's latest sample was dropped as frozen; '' while it is live."""
+        return self._imu_frozen
 
     def _on_module(self, state: ModuleState, msg: can.Message, now: float) -> None:
         try:

@@ -295,3 +295,36 @@ class _Pumped:
 
     def stop(self, timeout_s: float = 1.0) -> None:
         self.stopped = True
+
+
+class SendFailures:
+    """Frames the buses refused: counted per bus, and each run of failures on a bus timed (from
+    its first failure to the next frame that goes out), so that a bus refusing everything is told
+    from one refusing a frame now and then. Called from every sending thread."""
+
+    def __init__(self):
+        self.counts: dict[str, int] = {}
+        self._runs: dict[str, tuple[float, str]] = {}  # bus -> (first failure, last error)
+        self._lock = threading.Lock()
+
+    def failed(self, bus: str, error: str, now: float) -> float:
+        """A send on `bus` raised `error` at `now`: how long its run of failures has lasted."""
+        with self._lock:
+            self.counts[bus] = self.counts.get(bus, 0) + 1
+            since = self._runs.get(bus, (now, ''))[0]
+            self._runs[bus] = (since, error)
+        return now - since
+
+    def sent(self, bus: str, now: float) -> float | None:
+        """A frame went out on `bus`: the length of the run of failures it ended, else None."""
+        if bus not in self._runs:
+            return None
+        with self._lock:
+            run = self._runs.pop(bus, None)
+        return None if run is None else now - run[0]
+
+    def failing(self, now: float) -> dict[str, tuple[float, str]]:
+        """Buses whose last send failed: {bus: (seconds since the run's first failure, last
+        error)}."""
+        with self._lock:
+            return {bus: (now - since, error) for bus, (since, error) in self._runs.items()}

@@ -106,7 +106,8 @@ class CommandFrames:
         """The current frames of the latest command if younger than command_timeout_s, else zero
         current (sent on each command, and by `wheel_watchdog_frames`)."""
         now = self._now(now)
-        self._command_loop_at = self._wheel_sent_at = now
+        self._loop_ran(now)
+        self._wheel_sent_at = now
         cmd = self._wheel_command
         if cmd is None or now - cmd[2] > self.config.wheels.command_timeout_s:
             return self.wheel_current_frames(0.0, 0.0, now)
@@ -121,7 +122,7 @@ class CommandFrames:
         and run on while the controller is late). Either way the loop counts as running, which
         keeps the drives' watchdog fed."""
         now = self._now(now)
-        self._command_loop_at = now
+        self._loop_ran(now)
         quiet = WATCHDOG_QUIET_PERIODS / self.config.wheels.command_rate_hz
         if self._wheel_sent_at is not None and now - self._wheel_sent_at < quiet:
             return []
@@ -195,6 +196,23 @@ class CommandFrames:
                 ]
         return frames
 
+    def _loop_ran(self, now: float) -> None:
+        """The wheel command loop ran at `now`; a gap of more than half the watchdog's
+        alive_timeout_s restarts its steady run (`loop_steady_for`)."""
+        last = self._command_loop_at
+        if last is None or now - last > 0.5 * self.config.wheels.watchdog.alive_timeout_s:
+            self._loop_steady_since = now
+        self._command_loop_at = now
+
+    def loop_steady_for(self, now: float | None = None) -> float:
+        """How long the wheel command loop has run without a gap of half the watchdog's
+        alive_timeout_s, up to `now` [s]; 0 before it ran or once it stopped."""
+        now = self._now(now)
+        last = self._command_loop_at
+        if last is None or now - last > 0.5 * self.config.wheels.watchdog.alive_timeout_s:
+            return 0.0
+        return now - self._loop_steady_since
+
     def watchdog_frames(self, now: float | None = None) -> list[BusFrame]:
         """The frames the drives' watchdog consumes (the bridge's heartbeat, or a guarding request
         per drive), or [] when the wheel command loop has not run within alive_timeout_s: a beat
@@ -260,12 +278,12 @@ class CommandFrames:
         return frames
 
     def imu_stream_frames(self, now: float | None = None) -> list[BusFrame]:
-        """The DMU stream toggle, only after the IMU has been silent for stream_toggle_retry_s (it
-        is a toggle: sending it to a streaming DMU would stop it)."""
+        """The DMU stream toggle, only after no DMU frame came for stream_toggle_retry_s (it is a
+        toggle: sending it to a streaming DMU would stop it, a frozen one included)."""
         now = self._now(now)
         quiet_since = max(
             self._started_at,
-            self._imu_device.last_seen if self._imu_device.last_seen is not None else -math.inf,
+            self._imu_frame_at if self._imu_frame_at is not None else -math.inf,
             self._last_stream_toggle if self._last_stream_toggle is not None else -math.inf,
         )
         if now - quiet_since < self.config.imu.stream_toggle_retry_s:

@@ -154,6 +154,9 @@ class ImuConfig:
     required: bool
     frame_id: str
     kalman: KalmanConfig
+    # A DMU whose six values stay bit-identical this long is frozen (its noise changes them at
+    # every sample); 0: not checked (a noise-free simulated DMU repeats its values at rest)
+    frozen_after_s: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -289,6 +292,16 @@ def _positive(value: Any, where: str) -> float:
     v = float(value)
     if not math.isfinite(v) or v <= 0.0:
         raise ConfigError(f'{where} must be a positive finite number, got {value!r}')
+    return v
+
+
+def _non_negative(value: Any, where: str) -> float:
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        v = math.nan
+    if not math.isfinite(v) or v < 0.0:
+        raise ConfigError(f'{where} must be a finite number >= 0, got {value!r}')
     return v
 
 
@@ -452,6 +465,7 @@ def _parse_imu(d: Mapping, buses: Mapping) -> ImuConfig:
         ),
         required=bool(d.get('required', True)),
         frame_id=str(d.get('frame_id', 'imu_link')),
+        frozen_after_s=_non_negative(d.get('frozen_after_s', 0.0), 'imu.frozen_after_s'),
         kalman=KalmanConfig(
             process_k1=_positive(_req(k, 'process_k1', 'imu.kalman'), 'process_k1'),
             process_k1b=_positive(_req(k, 'process_k1b', 'imu.kalman'), 'process_k1b'),

@@ -15,6 +15,11 @@ REJECTION_WARN_S = 10.0  # /diagnostics WARNs this long after a rejected command
 class BridgeDiagnostics:
     """BridgeCore's reports."""
 
+    def _silence_text(self, device) -> str:
+        if device is self._imu_device and self._imu_frozen:
+            return f'{device.name} silent (frozen: {self._imu_frozen})'
+        return f'{device.name} silent'
+
     def diagnostics(self, now: float | None = None) -> list[DiagnosticReport]:
         now = self._now(now)
         c = self.counters
@@ -34,7 +39,7 @@ class BridgeDiagnostics:
                     '; '.join(
                         fault
                         + list(self._inhibits.values())
-                        + [f'{d.name} silent' for d in silent if d.required]
+                        + [self._silence_text(d) for d in silent if d.required]
                     )
                     or 'IMU filter not initialised'
                 ),
@@ -144,7 +149,9 @@ class BridgeDiagnostics:
             )
         imu = self._imu_snapshot
         level = (
-            STALE
+            ERROR
+            if self._imu_frozen
+            else STALE
             if self._imu_device.silent(now)
             else (OK if imu is not None and imu.ready else WARN)
         )
@@ -152,10 +159,16 @@ class BridgeDiagnostics:
             DiagnosticReport(
                 'can_bridge: imu',
                 level,
-                'silent' if level == STALE else ('ok' if level == OK else 'initialising'),
+                f'frozen: {self._imu_frozen}; its samples are dropped'
+                if self._imu_frozen
+                else 'silent'
+                if level == STALE
+                else ('ok' if level == OK else 'initialising'),
                 {
                     'pitch_rad': str(imu.pitch if imu else None),
                     'malformed': str(self._imu_device.malformed),
+                    'frozen_samples': str(c.frozen_samples),
+                    'last_frozen': c.last_frozen,
                 },
             )
         )

@@ -90,7 +90,8 @@ from krang_can_bridge.config import (
     resolve_devices_file,
     robot_devices_file,
 )
-from krang_can_bridge.runtime import BridgeRuntime, TimeBase, imu_vectors
+from krang_can_bridge.runtime import BridgeRuntime, imu_vectors
+from krang_can_bridge.sample_clock import TimeBase
 from krang_core import names, params
 from krang_core.log import Throttled
 from krang_ros import messages, realtime, topics, trace, wire

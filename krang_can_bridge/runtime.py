@@ -2,14 +2,15 @@
 start-up, with the samples handed to a `publish` callable.
 
 `BridgeRuntime` owns what happens between the buses and the topics:
-- the time base (`TimeBase`): the devices' time, wall time on the robot or the simulator's clock;
+- the time base (sample_clock.TimeBase): the devices' time, wall or the simulator's;
 - the receive path (`on_received`): each frame to the core under one lock, each completed sample
   out at once, a wheel sample held for the next DMU sample while the DMU streams (below), zero
   current at once when a frame latches a drive fault, the SDO responses to canopen;
 - the sends: wheel currents from each command and from the watchdog timer, PowerCube polls and
-  moves through a send thread, the drives' watchdog frames from their own thread;
-- the drives' start-up (`start_drive`: one run of one drive's sequence, fault reset, watchdog
-  objects and enable; `bring_up_drive`: that until it is done) and the recovery from a latched
+  moves through a send thread, the drives' watchdog frames from their own thread; frames a bus
+  refuses, counted, and a wheels' bus refusing them all for the command timeout stops motion;
+- the drives' start-up once the command loop runs steadily (`start_drive`: one verified run of one
+  drive's sequence; `bring_up_drive`: that until it is done) and the recovery from a latched
   fault (`recover`), both in threads because SDO transfers block;
 - the diagnostics of all this.
 
@@ -36,11 +37,12 @@ import can
 import canopen
 
 from krang_can_bridge.bridge import BridgeCore
-from krang_can_bridge.bus_io import BusReader, SendThread
+from krang_can_bridge.bus_io import BusReader, SendFailures, SendThread
 from krang_can_bridge.config import CanDevicesConfig, WheelDriveConfig
 from krang_can_bridge.imu_filter import pitch_axis, tilt_direction
+from krang_can_bridge.protocols import amc as amc_proto
 from krang_can_bridge.protocols import amc_canopen
-from krang_can_bridge.sample_clock import SampleClock
+from krang_can_bridge.sample_clock import SampleClock, TimeBase
 from krang_can_bridge.snapshots import (
     ERROR,
     IMU_SAMPLE,
@@ -57,45 +59,11 @@ from krang_core.log import Throttled
 
 logger = logging.getLogger('krang_can_bridge')
 
-SIM_TIME_SLACK_S = 0.025  # simulated time: checks run at most this far past the newest frame
 IMU_HOLD_MAX_S = 0.05  # a DMU slower than 20 Hz holds no wheel sample back
 IMU_CLOCK_LAG_MAX_S = 0.04  # counter-timed DMU samples: within this of the clock (< its timeout)
 STARTUP_WARN_PERIOD_S = 10.0  # a failing start-up warns at most this often per drive
-
-
-class TimeBase:
-    """The devices' time, which every time of the core is in (IMU filter steps, silence and
-    command timeouts), and the stamps' offset from it.
-
-    Wall time (monotonic) on the robot. In simulation (`sim_clock`, seconds of the simulator's
-    clock), the simulator's time, because a simulated DMU samples in simulated time: a simulator
-    starved of CPU runs slower than the wall clock, and integrating its gyro over wall-clock gaps
-    overstates every pitch change by the slow-down. That clock may reach the process on another
-    path than the frames, and after a stall run ahead of frames still queued in the sockets; so
-    received frames are stamped with it, but the checks run at most SIM_TIME_SLACK_S past the
-    newest frame stamped: a device silent while others talk is still caught, and when the
-    simulator stops, its clock stops too.
-
-    Stamps are the device time as wall time (one offset fixed at start, so the spacing of the
-    samples stays the devices'), or the simulator's time as it is."""
-
-    def __init__(self, sim_clock: Callable[[], float] | None = None):
-        self.simulated = sim_clock is not None
-        self.frame_time = sim_clock if sim_clock is not None else time.monotonic
-        self.newest_frame = self.frame_time()
-        self.stamp_offset = 0.0 if self.simulated else time.time() - time.monotonic()
-
-    def device_time(self) -> float:
-        if not self.simulated:
-            return self.frame_time()
-        return min(self.frame_time(), self.newest_frame + SIM_TIME_SLACK_S)
-
-    def frame_seen(self, t: float) -> None:
-        if t > self.newest_frame:
-            self.newest_frame = t
-
-    def stamp_seconds(self, t: float) -> float:
-        return t + self.stamp_offset
+STARTUP_SETTLE_S = 1.0  # the command loop runs steadily this long before the drives start
+STARTUP_SETTLE_MAX_S = 10.0  # ... or the drives start anyway after this long
 
 
 def imu_vectors(imu: ImuSnapshot, mount_angle_rad: float):
@@ -178,7 +146,7 @@ class BridgeRuntime:
         self._recover_timeout = recover_timeout_s
         self._run_startup = run_startup
         self.amc_startup = amc_startup
-        self._send_errors: dict[str, int] = {}
+        self.send_failures = SendFailures()
         self._receive_errors: dict[str, str] = {}
         self._warn_send = Throttled(logger.warning, 1.0)
         self._warn_startup = {
@@ -197,6 +165,7 @@ class BridgeRuntime:
             if amc_startup:
                 self.core.inhibit(_startup_key(drive), f'{drive.joint}: AMC start-up not done')
         self.reader = self.sender = None
+        self._verify_startup = True
         self.startup_thread = threading.Thread(target=self._startup_worker, daemon=True)
         self.watchdog_thread = threading.Thread(target=self._watchdog_worker, daemon=True)
 
@@ -211,6 +180,10 @@ class BridgeRuntime:
             imu_first, on_frame or self.on_received, self.on_bus_error
         )
         self.sender = None if pump else SendThread(self.send, self.on_send_error)
+        # composed, the devices are emulators that the composition steps once the drives are
+        # enabled, in the one process: no statusword comes before, and no other process stalls
+        # the command loop (start_drive, _wait_for_a_steady_loop)
+        self._verify_startup = pump is None
         self._retry_s = retry_s
         self.startup_thread.start()
         self.watchdog_thread.start()
@@ -327,12 +300,34 @@ class BridgeRuntime:
 
     # ---- send -----------------------------------------------------------------------------------
     def send(self, frames: list[BusFrame]) -> None:
+        """Send each frame; a refused one (a full transmit queue, a bus-off controller) is
+        counted and its run of failures timed (bus_io.SendFailures). Once every send on the
+        wheels' bus has failed for wheels.command_timeout_s, motion is inhibited (zero current is
+        then what the bridge tries to send; the drives' watchdog stops them anyway once the beat
+        has not gone out for its timeout); the first frame that goes out again lifts it."""
         for bus, msg in frames:
             try:
                 self.buses[bus].send(msg, timeout=self._send_timeout)
             except can.CanError as exc:
-                self._send_errors[bus] = self._send_errors.get(bus, 0) + 1
-                self._warn_send(f'send on {bus} failed: {exc}')
+                error = f'{type(exc).__name__}: {exc}'
+                failing_for = self.send_failures.failed(bus, error, time.monotonic())
+                self._warn_send(f'send on {bus} failed: {error}')
+                if bus == self.config.wheels.bus and (
+                    failing_for > self.config.wheels.command_timeout_s
+                ):
+                    self._inhibit_sends(
+                        bus, f'wheel frames refused by {bus} for {failing_for:.3f} s ({error})'
+                    )
+            else:
+                ended = self.send_failures.sent(bus, time.monotonic())
+                if ended is not None:
+                    logger.warning(f'send on {bus} works again after {ended:.3f} s of failures')
+                    if bus == self.config.wheels.bus:
+                        self._inhibit_sends(bus, None)
+
+    def _inhibit_sends(self, bus: str, reason: str | None) -> None:
+        with self.lock:
+            self.core.inhibit(f'send/{bus}', reason)
 
     def send_later(self, frames: list[BusFrame], key=None) -> None:
         """Frames no control loop waits for: sent by the send thread, a newer batch of the same
@@ -399,18 +394,46 @@ class BridgeRuntime:
 
     # ---- drive start-up and recovery ------------------------------------------------------------
     def start_drive(self, drive: WheelDriveConfig) -> list[str]:
-        """One run of a drive's start-up sequence (fault reset, the watchdog objects, enable): its
-        constants' mismatches with the config. The drive counts as started only without them.
-        Raises what the SDO transfers raise."""
+        """One run of a drive's start-up sequence (fault reset, the watchdog objects read back,
+        enable): its mismatches with the config (the drive then left disabled). The drive counts
+        as started only without them, with no boot-up during the run and its statusword TPDO
+        reporting OPERATION_ENABLED after it (not awaited composed); StartupNotVerified
+        otherwise. Raises what the SDO transfers raise."""
         with self.lock:
             self.core.drive_started(drive.joint, False)
+            boots = self.core.wheel_state(drive.joint).boots
         with self._sdo_lock:
             mismatches = self._run_startup(
                 self.network, drive, self.config.wheels, self._sdo_timeout
             )
+        if not mismatches and self._verify_startup:
+            self._verify_enabled(drive.joint, boots)
         with self.lock:
             self.core.drive_started(drive.joint, not mismatches)
         return mismatches
+
+    def _verify_enabled(self, joint: str, boots: int) -> None:
+        """Wait up to recover_timeout_s for a statusword TPDO saying OPERATION_ENABLED."""
+        since = self.time.frame_time()
+        deadline = time.monotonic() + self._recover_timeout
+        while True:
+            with self.lock:
+                state = self.core.wheel_state(joint)
+                rebooted = state.boots != boots
+                seen = state.drive_status_at is not None and state.drive_status_at >= since
+                name = amc_proto.drive_state(state.drive_status) if seen else None
+            if rebooted:
+                raise StartupNotVerified(f'{joint} rebooted during its start-up')
+            if name == 'OPERATION_ENABLED':
+                return
+            if name == 'FAULT' or time.monotonic() > deadline or self._stop.is_set():
+                raise StartupNotVerified(
+                    f'{joint} {"still " if name == "FAULT" else ""}reports {name} (statusword '
+                    f'0x{state.drive_status:04X}) after its start-up'
+                    if seen
+                    else f'{joint}: no statusword within {self._recover_timeout} s of its start-up'
+                )
+            time.sleep(0.005)
 
     def bring_up_drive(self, drive: WheelDriveConfig, retry_s: float) -> None:
         """start_drive until it runs through (retrying a failed transfer every `retry_s`); then
@@ -441,13 +464,33 @@ class BridgeRuntime:
         self.send(frames)
         if not self.amc_startup:
             return
+        self._wait_for_a_steady_loop()
         for drive in self.config.wheels.drives:
             self.bring_up_drive(drive, self._retry_s)
 
+    def _wait_for_a_steady_loop(self) -> None:
+        """Arm the drives' watchdog once the wheel command loop has run steadily for
+        STARTUP_SETTLE_S (device time), or after STARTUP_SETTLE_MAX_S (wall time): a process
+        stalls most in its first second, and a beat withheld then trips a drive just enabled,
+        a fault only a recover clears (docs/can.md). Not when composed (start: `pump`)."""
+        if self.config.wheels.watchdog.mechanism == 'none' or not self._verify_startup:
+            return
+        deadline = time.monotonic() + STARTUP_SETTLE_MAX_S
+        while not self._stop.is_set() and time.monotonic() < deadline:
+            with self.lock:
+                steady = self.core.loop_steady_for(self.time.device_time())
+            if steady >= STARTUP_SETTLE_S:
+                return
+            self._stop.wait(0.02)
+        if not self._stop.is_set():
+            logger.warning(
+                f'wheel command loop not steady for {STARTUP_SETTLE_S} s within '
+                f'{STARTUP_SETTLE_MAX_S} s: starting the drives anyway'
+            )
+
     @property
     def startup_status(self) -> dict[str, str]:
-        """Each drive's start-up: 'pending', 'enabled', 'failed: ...' or 'constants
-        mismatch: ...'."""
+        """Each drive's start-up: 'pending', 'enabled', 'failed: ...' or 'constants mismatch'."""
         return dict(self._startup_status)
 
     def fault_changed(self) -> str | None:
@@ -508,14 +551,24 @@ class BridgeRuntime:
         start-up."""
         with self.lock:
             reports = self.core.diagnostics(self.time.device_time())
+        stop_after = self.config.wheels.command_timeout_s
+        failing = {
+            b: f
+            for b, f in self.send_failures.failing(time.monotonic()).items()
+            if f[0] > stop_after
+        }
         for bus in self.buses:
-            sent_err, recv_err = self._send_errors.get(bus, 0), self._receive_errors.get(bus)
+            sent_err = self.send_failures.counts.get(bus, 0)
+            recv_err = self._receive_errors.get(bus)
             if sent_err or recv_err:
+                text = recv_err or f'{sent_err} send errors'
+                if bus in failing:
+                    text += f'; every send failing for {failing[bus][0]:.1f} s: {failing[bus][1]}'
                 reports.append(
                     DiagnosticReport(
                         f'can_bridge: bus {bus} I/O',
-                        ERROR if recv_err else WARN,
-                        recv_err or f'{sent_err} send errors',
+                        ERROR if recv_err or bus in failing else WARN,
+                        text,
                         {'send_errors': sent_err, 'receive_error': recv_err},
                     )
                 )
@@ -537,6 +590,10 @@ class BridgeRuntime:
                 )
             )
         return reports
+
+
+class StartupNotVerified(RuntimeError):
+    """A drive's start-up sequence ran but the drive is not verifiably enabled by it."""
 
 
 def _startup_key(drive: WheelDriveConfig) -> str:

@@ -1,4 +1,5 @@
-"""Times of a fixed-rate sensor's samples from their sequence counter, not from their arrival.
+"""The bridge's times: the devices' time base (TimeBase), and the times of a fixed-rate sensor's
+samples from their sequence counter, not from their arrival (SampleClock).
 
 The DMU streams at a fixed rate and numbers its samples (8 bits). Timing them by arrival goes wrong
 after a stall of the receiving process: a burst of queued samples arrives at once, and the IMU
@@ -11,6 +12,46 @@ track lost).
 """
 
 from __future__ import annotations
+
+import time
+from typing import Callable
+
+SIM_TIME_SLACK_S = 0.025  # simulated time: checks run at most this far past the newest frame
+
+
+class TimeBase:
+    """The devices' time, which every time of the core is in (IMU filter steps, silence and
+    command timeouts), and the stamps' offset from it.
+
+    Wall time (monotonic) on the robot. In simulation (`sim_clock`, seconds of the simulator's
+    clock), the simulator's time, because a simulated DMU samples in simulated time: a simulator
+    starved of CPU runs slower than the wall clock, and integrating its gyro over wall-clock gaps
+    overstates every pitch change by the slow-down. That clock may reach the process on another
+    path than the frames, and after a stall run ahead of frames still queued in the sockets; so
+    received frames are stamped with it, but the checks run at most SIM_TIME_SLACK_S past the
+    newest frame stamped: a device silent while others talk is still caught, and when the
+    simulator stops, its clock stops too.
+
+    Stamps are the device time as wall time (one offset fixed at start, so the spacing of the
+    samples stays the devices'), or the simulator's time as it is."""
+
+    def __init__(self, sim_clock: Callable[[], float] | None = None):
+        self.simulated = sim_clock is not None
+        self.frame_time = sim_clock if sim_clock is not None else time.monotonic
+        self.newest_frame = self.frame_time()
+        self.stamp_offset = 0.0 if self.simulated else time.time() - time.monotonic()
+
+    def device_time(self) -> float:
+        if not self.simulated:
+            return self.frame_time()
+        return min(self.frame_time(), self.newest_frame + SIM_TIME_SLACK_S)
+
+    def frame_seen(self, t: float) -> None:
+        if t > self.newest_frame:
+            self.newest_frame = t
+
+    def stamp_seconds(self, t: float) -> float:
+        return t + self.stamp_offset
 
 
 class SampleClock:

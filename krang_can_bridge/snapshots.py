@@ -88,6 +88,7 @@ class WheelState:
     emcy: str | None = None
     started: bool = False  # the node's start-up (or recovery) sequence enabled this drive
     armed: bool = False  # started and seen OPERATION_ENABLED: leaving it is a fault
+    boots: int = 0  # DS301 boot-up messages seen (a start-up during which one came is void)
     fresh: set = field(default_factory=set)  # TPDO kinds received since the last wheel sample
 
 
@@ -106,6 +107,8 @@ class Counters:
     last_rejection: str = ''
     last_rejection_at: float | None = None
     drive_faults: int = 0
+    frozen_samples: int = 0  # DMU samples dropped as frozen (counter stuck or values repeated)
+    last_frozen: str = ''
 
 
 def float32_within(value: float, lower: float, upper: float) -> float:

@@ -15,7 +15,18 @@ of the protocol. Each drive:
   cycle (0x2120, ms, as the host wrote it; 0, the power-on value, sends none).
 
 SIGUSR1 puts the --fault-node drive into FAULT with an EMCY (0x2310, over-current) while its cause
-stays; SIGUSR2 removes the cause (the drive stays in FAULT until a fault reset).
+stays; SIGUSR2 removes the cause (the drive stays in FAULT until a fault reset). Lines on stdin:
+- `reboot`: the --fault-node drive power-cycles (a brown-out): its object dictionary back to the
+  defaults (no TPDO timer, no heartbeat consumer, abort option 1), DS402 SWITCH_ON_DISABLED, the
+  DS301 boot-up message, then NMT PRE-OPERATIONAL;
+- `freeze counter` / `freeze values` / `thaw`: the DMU (--dmu) goes on sending at its rate, either
+  its last frames again (sequence counter stuck, same values) or the same values with an
+  advancing counter; `thaw` makes it live again.
+
+With --dmu CHANNEL:PORT it is also a DMU on that bus: the angular-rate frame 0x40 and the
+acceleration frame 0x50 (int16 x, y, z, u8 status, u8 sequence, little-endian; docs/can.md) every
+--dmu-period-ms, from the raw values --dmu-raw (six int16: rates x y z, accelerations x y z) plus
++-2 LSB of noise on each, as a real sensor's noise makes every sample differ.
 
 Every change of a drive's applied current or state is printed as a JSON line with its
 time.monotonic() (one clock for all processes of the machine), so a test can time what the drive
@@ -26,12 +37,14 @@ did.
 
 import argparse
 import json
+import random
 import signal
 import struct
 import sys
 import threading
 import time
 
+import can
 import canopen
 from canopen import objectdictionary as od
 
@@ -182,6 +195,7 @@ class Drive:
                 self.mode = value
             elif index == 0x6007:
                 self.abort_option = value
+                emit(node=self.id, event='sdo', index=index, value=value)
             elif index == 0x2120:
                 self.tpdo_period_s = value / 1000.0
                 emit(node=self.id, event='tpdo timer', ms=value)
@@ -193,7 +207,22 @@ class Drive:
                 self.last_heartbeat = None
                 if ms:
                     self.network.subscribe(0x700 + producer, self.on_heartbeat)
+                emit(node=self.id, event='sdo', index=index, value=value)
             self.report(f'SDO 0x{index:04X}')
+
+    def reboot(self):
+        """A power cycle: everything the host wrote is gone, the drive boots again."""
+        with self.lock:
+            if self.consumer is not None:
+                self.network.unsubscribe(0x700 + self.consumer[0], self.on_heartbeat)
+            self.node.data_store = {}
+            self.state, self.mode, self.last_cw, self.target_a = 'SWITCH_ON_DISABLED', 0, 0, 0.0
+            self.consumer, self.last_heartbeat, self.abort_option = None, None, 1
+            self.tpdo_period_s, self.fault_cause = 0.0, False
+            emit(node=self.id, event='rebooted')
+            self.node.nmt.send_command(0x81)  # boot-up, then pre-operational
+            self.node.nmt.send_command(0x80)
+            self.report('reboot')
 
     def on_read(self, index, subindex, od):
         if index == 0x6041:
@@ -250,6 +279,45 @@ class Drive:
         ]
 
 
+class Dmu:
+    """The DMU: 0x40 and 0x50 every period, live, or frozen as asked (module docstring)."""
+
+    def __init__(self, bus, period_s, raw):
+        self.bus, self.period_s, self.raw = bus, period_s, raw
+        self.mode, self.sequence, self.next_at = 'live', 0, time.monotonic()
+        self.last = None
+        self.rng = random.Random()
+
+    def frames(self, now):
+        if now < self.next_at:
+            return []
+        self.next_at = max(self.next_at + self.period_s, now)
+        if self.mode == 'counter' and self.last is not None:
+            return self.last  # the same frames again
+        if self.mode == 'values' and self.last is not None:
+            values = self.values
+        else:
+            values = [v + self.rng.randint(-2, 2) for v in self.raw]
+        self.values, seq = values, self.sequence
+        self.sequence = (self.sequence + 1) & 0xFF
+        self.last = [
+            (0x40, struct.pack('<hhhBB', *values[:3], 0, seq)),
+            (0x50, struct.pack('<hhhBB', *values[3:], 0, seq)),
+        ]
+        return self.last
+
+    def send(self, now):
+        for cob, data in self.frames(now):
+            self.bus.send(can.Message(arbitration_id=cob, data=data, is_extended_id=False))
+
+
+def read_commands(commands):
+    """Lines on stdin, one command each (module docstring)."""
+    for line in sys.stdin:
+        if line.strip():
+            commands.append(line.strip())
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument('--channel', required=True)
@@ -259,6 +327,9 @@ def main():
     ap.add_argument('--kp', type=int, default=KP_DEFAULT)
     ap.add_argument('--ki', type=int, default=KI_DEFAULT)
     ap.add_argument('--ks', type=int, default=KS_DEFAULT)
+    ap.add_argument('--dmu', help='CHANNEL:PORT of the DMU bus (none: no DMU)')
+    ap.add_argument('--dmu-period-ms', type=float, default=5.0)
+    ap.add_argument('--dmu-raw', help='six int16: rates x y z, accelerations x y z')
     args = ap.parse_args()
     network = canopen.Network()
     network.connect(interface='udp_multicast', channel=args.channel, port=args.port)
@@ -266,9 +337,16 @@ def main():
     for item in args.nodes.split(','):
         node_id, sign = (int(x, 0) for x in item.split(':'))
         drives[node_id] = Drive(network, node_id, sign, args.kp, args.ki, args.ks)
-    requests = []
+    dmu = None
+    if args.dmu:
+        channel, port = args.dmu.rsplit(':', 1)
+        dmu_bus = can.Bus(interface='udp_multicast', channel=channel, port=int(port))
+        raw = [int(x) for x in args.dmu_raw.split(',')]
+        dmu = Dmu(dmu_bus, args.dmu_period_ms / 1000.0, raw)
+    requests, commands = [], []
     signal.signal(signal.SIGUSR1, lambda *_: requests.append('fault'))
     signal.signal(signal.SIGUSR2, lambda *_: requests.append('clear'))
+    threading.Thread(target=read_commands, args=(commands,), daemon=True).start()
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     emit(event='ready')
@@ -284,6 +362,15 @@ def main():
                     else:
                         drive.fault_cause = False
                         emit(node=drive.id, event='fault cause removed')
+            while commands:
+                command = commands.pop(0)
+                if command == 'reboot':
+                    drives[args.fault_node].reboot()
+                elif dmu is not None and command.startswith(('freeze', 'thaw')):
+                    dmu.mode = command.split()[1] if command != 'thaw' else 'live'
+                    emit(event='dmu', mode=dmu.mode)
+            if dmu is not None:
+                dmu.send(now)
             for drive in drives.values():
                 drive.watch(now)
             for drive in drives.values():
@@ -292,6 +379,8 @@ def main():
             time.sleep(WATCH_PERIOD_S)
     finally:
         network.disconnect()
+        if dmu is not None:
+            dmu.bus.shutdown()
     return 0
 
 

@@ -10,8 +10,10 @@ import dataclasses
 import math
 import random
 import struct
+import uuid
 
 import can
+import canopen
 import numpy as np
 import pytest
 import yaml
@@ -627,3 +629,106 @@ def test_watchdog_sends_only_while_commands_stop():
     assert tick(late + commands.WATCHDOG_QUIET_PERIODS * period) == [0.0, 0.0]
     # the loop counts as running either way: the drives' watchdog keeps being fed
     assert core.watchdog_frames(late) != []
+
+
+def dmu_sample(core, t, seq, wobble=0):
+    """One DMU sample at rest (-0.9 rad), its x rate `wobble` LSB off: what on_frame returned for
+    the rates frame and for the accelerations frame."""
+    m, g_lsb = CFG.imu.mount_angle_rad, 9.80665 * 0.0003
+    f = (9.81 * math.sin(-0.9) * math.cos(m), -9.81 * math.sin(-0.9) * math.sin(m))
+    f += (9.81 * math.cos(-0.9),)
+    rates = [round(x / math.radians(0.008)) for x in CFG.imu.gyro_bias_rad_s]
+    rates[0] += wobble
+    accel = [round(x / g_lsb) for x in f]
+    return (
+        core.on_frame(msg(0x40, struct.pack('<hhhBB', *rates, 0, seq & 0xFF)), t, 'can3'),
+        core.on_frame(msg(0x50, struct.pack('<hhhBB', *accel, 0, seq & 0xFF)), t, 'can3'),
+    )
+
+
+def test_a_dmu_whose_sequence_counter_is_stuck_is_silent_and_its_samples_dropped():
+    core, dev, t = healthy_core()
+    seq = dev.seq
+    assert dmu_sample(core, t + 0.002, seq) == (None, snapshots.IMU_SAMPLE)
+    for k in range(2, 40):  # the same frames again at the DMU's rate
+        t_k = t + 0.002 * k
+        assert dmu_sample(core, t_k, seq) == (None, None)
+        dev.feed(t_k, imu=False)
+        quiet = t_k - (t + 0.002)  # since the last live sample
+        if abs(quiet - CFG.imu.silence_timeout_s) > 1e-6:
+            assert core.motion_allowed(t_k) == (quiet < CFG.imu.silence_timeout_s), k
+    assert core.imu_state(t_k) is None
+    assert 'sequence counter stuck' in core.imu_frozen
+    reports = {r.name: r for r in core.diagnostics(t_k)}
+    assert reports['can_bridge: imu'].level == snapshots.ERROR
+    assert 'frozen' in reports['can_bridge: motion'].message
+    assert core.counters.frozen_samples == 38
+    # live again: the counter advances
+    assert dmu_sample(core, t_k + 0.002, seq + 1) == (None, snapshots.IMU_SAMPLE)
+    dev.feed(t_k + 0.002, imu=False)
+    assert core.motion_allowed(t_k + 0.002) and not core.imu_frozen
+
+
+def test_dmu_values_repeated_longer_than_frozen_after_s_are_frozen():
+    cfg = dataclasses.replace(CFG, imu=dataclasses.replace(CFG.imu, frozen_after_s=0.02))
+    core = BridgeCore(cfg, clock=lambda: 0.0)
+    dev = HandDevices(core)
+    t, seq = 0.0, 0
+    for k in range(cfg.imu.kalman.init_samples + 20):  # a noisy DMU: its x rate wobbles
+        t += 0.002
+        seq += 1
+        dmu_sample(core, t, seq, wobble=k % 3)
+        dev.feed(t, imu=False)
+    assert core.motion_allowed(t)
+    first = t + 0.002  # a new value, then the same again and again, the counter advancing
+    done = []
+    for _ in range(40):
+        t += 0.002
+        seq += 1
+        done.append(dmu_sample(core, t, seq, wobble=(k + 1) % 3)[1])
+        dev.feed(t, imu=False)
+        if abs(t - first - cfg.imu.silence_timeout_s) > 1e-6:
+            assert core.motion_allowed(t) == (t - first < cfg.imu.silence_timeout_s), t - first
+    # published while a repeat is within the noise's allowance (frozen_after_s), dropped after
+    kept = done.index(None)
+    assert set(done[:kept]) == {snapshots.IMU_SAMPLE} and set(done[kept:]) == {None}
+    assert kept - 1 == pytest.approx(cfg.imu.frozen_after_s / 0.002, abs=1)
+    assert 'bit-identical' in core.imu_frozen
+    # the sequence counter alone never freezes a live DMU with frozen_after_s 0 (the default)
+    assert CFG.imu.frozen_after_s == 0.0
+
+
+def test_startup_reads_the_watchdog_back_before_it_enables_the_drive():
+    wd = CFG.wheels.watchdog
+    steps = amc_canopen.startup_sequence(CFG.wheels.drive('JLWheel'), CFG.wheels)
+    keys = [(s.action, s.index, s.subindex, s.value) for s in steps]
+    verified = [s.action for s in steps].index('verified')
+    consumer = (wd.node_id << 16) | round(wd.timeout_s * 1000)
+    assert ('check', 0x1016, 1, consumer) in keys[:verified]
+    assert ('check', 0x6007, 0, wd.abort_connection_option) in keys[:verified]
+    assert verified < keys.index(('nmt', 0, 0, 0x01))  # before the NMT start and the enable
+
+
+def test_a_drive_whose_watchdog_does_not_take_is_never_enabled():
+    """A drive that forgets its heartbeat consumer (reads back 0): the start-up reports it and
+    leaves the drive pre-operational, never enabled."""
+    drive = CFG.wheels.drive('JLWheel')
+    channel = f'startup-{uuid.uuid4().hex}'
+    host, device = canopen.Network(), canopen.Network()
+    host.connect(interface='virtual', channel=channel)
+    device.connect(interface='virtual', channel=channel)
+    node = canopen.LocalNode(drive.node_id, amc_canopen.object_dictionary(drive))
+    node.add_read_callback(lambda index, subindex, od: 0 if index == 0x1016 else None)
+    controlwords = []
+    node.add_write_callback(
+        lambda index, subindex, od, data: index == 0x6040 and controlwords.append(data)
+    )
+    device.add_node(node)
+    try:
+        mismatches = amc_canopen.run_startup(host, drive, CFG.wheels)
+        assert len(mismatches) == 1 and 'heartbeat consumer' in mismatches[0], mismatches
+        assert node.nmt.state != 'OPERATIONAL'
+        assert controlwords == []  # no fault reset, no enable
+    finally:
+        host.disconnect()
+        device.disconnect()

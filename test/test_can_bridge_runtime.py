@@ -13,7 +13,8 @@ import pytest
 
 from krang_can_bridge.config import load_devices
 from krang_can_bridge.protocols import amc as amc_proto
-from krang_can_bridge.runtime import SIM_TIME_SLACK_S, BridgeRuntime, TimeBase
+from krang_can_bridge.runtime import BridgeRuntime
+from krang_can_bridge.sample_clock import SIM_TIME_SLACK_S, TimeBase
 from krang_core import names
 
 CFG = load_devices()
@@ -54,6 +55,9 @@ class Rig:
         self.seq = 0
 
     def close(self):
+        if hasattr(self, '_loop'):
+            self._looping.set()
+            self._loop.join()
         if hasattr(self, '_reporter'):
             self._reporting.set()
             self._reporter.join()
@@ -110,6 +114,20 @@ class Rig:
         self._reporter = threading.Thread(target=run, daemon=True)
         self._reporter.start()
         return lambda drive: self.status_of.__setitem__(drive.joint, status)
+
+    def run_command_loop(self):
+        """From now on, the wheel command loop's timer every 5 ms of the clock (in a thread), as
+        the node's executor runs it."""
+        self._looping = threading.Event()
+
+        def run():
+            while not self._looping.wait(0.005):
+                self.t += 0.005
+                self.runtime.time.frame_seen(self.t)
+                self.runtime.wheel_watchdog()
+
+        self._loop = threading.Thread(target=run, daemon=True)
+        self._loop.start()
 
     def kinds(self):
         return [m[0] for m in self.published]
@@ -228,10 +246,14 @@ def test_start_up_enables_each_drive_and_retries_a_failed_transfer():
     startup = Startup([TimeoutError('no SDO response'), []])
     rig = Rig(run_startup=startup, amc_startup=True)
     try:
+        startup.then = rig.report_status(OPERATION_ENABLED)
         assert set(rig.runtime.startup_status.values()) == {'pending'}
         assert rig.runtime.core.inhibits  # no motion before the start-up
         rig.runtime.start(retry_s=0.01)
-        rig.runtime.startup_thread.join(5.0)
+        time.sleep(0.3)
+        assert startup.calls == []  # the drives wait for a steady command loop
+        rig.run_command_loop()
+        rig.runtime.startup_thread.join(10.0)
         assert rig.runtime.startup_status == dict.fromkeys(JOINTS, 'enabled')
         assert startup.calls[0] == startup.calls[1] == CFG.wheels.drives[0].joint
         assert not rig.runtime.core.inhibits
@@ -328,3 +350,138 @@ def test_diagnostics_name_the_start_up_and_the_samples():
         assert names.IMU in reports['can_bridge: samples published'].values
     finally:
         rig.close()
+
+
+def test_a_start_up_whose_drive_does_not_report_enabled_is_not_taken_for_done():
+    """The sequence ran, but the drive (disabled on the way, e.g. by its watchdog) reports
+    SWITCH_ON_DISABLED: not started, motion stays inhibited, and the start-up runs again."""
+    startup = Startup([[]])
+    rig = Rig(run_startup=startup, amc_startup=True, recover_timeout_s=0.2)
+    try:
+        report = rig.report_status(0x0040)
+        startup.then = report
+        drive = CFG.wheels.drives[0]
+        worker = threading.Thread(target=rig.runtime.bring_up_drive, args=(drive, 0.01))
+        worker.start()
+        deadline = time.monotonic() + 5.0
+        while len(startup.calls) < 3 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        status = rig.runtime.startup_status[drive.joint]
+        assert status.startswith('failed: StartupNotVerified') and 'SWITCH_ON_DISABLED' in status
+        assert f'startup/{drive.joint}' in rig.runtime.core.inhibits
+        assert not rig.runtime.core.wheel_state(drive.joint).started
+        rig.status_of.clear()
+        startup.then = rig.report_status(OPERATION_ENABLED)
+        worker.join(5.0)
+        assert rig.runtime.startup_status[drive.joint] == 'enabled'
+        assert f'startup/{drive.joint}' not in rig.runtime.core.inhibits
+    finally:
+        rig.close()
+
+
+def boot_up(rig, joint):
+    node_id = CFG.wheels.drive(joint).node_id
+    rig.frame(CFG.wheels.bus, msg(0x700 + node_id, [0x00]), 0.001)
+
+
+def test_a_drive_that_reboots_latches_a_fault_that_only_its_start_up_again_clears():
+    startup = Startup([[]])
+    rig = Rig(run_startup=startup)
+    try:
+        startup.then = rig.report_status(OPERATION_ENABLED)
+        for drive in CFG.wheels.drives:
+            rig.runtime.start_drive(drive)
+        assert not rig.runtime.core.fault_reason
+        rig.sent(CFG.wheels.bus)
+        boot_up(rig, 'JRWheel')
+        reason = rig.runtime.core.fault_reason
+        assert 'JRWheel' in reason and 'rebooted' in reason
+        assert len(rig.sent(CFG.wheels.bus)) == len(JOINTS)  # zero current on both, at once
+        assert not rig.runtime.core.motion_allowed()
+        startup.calls.clear()
+        ok, text = rig.runtime.recover()
+        assert ok, text
+        assert startup.calls == JOINTS  # the whole start-up again, the rebooted drive's included
+        assert not rig.runtime.core.fault_reason
+    finally:
+        rig.close()
+
+
+def test_a_boot_up_during_the_start_up_voids_it():
+    rig = Rig()
+    try:
+        report = rig.report_status(OPERATION_ENABLED)
+
+        def rebooting(drive):
+            boot_up(rig, drive.joint)  # power-cycled after its objects were written
+            report(drive)
+
+        rig.runtime._run_startup = Startup([[]], then=rebooting)
+        with pytest.raises(RuntimeError, match='rebooted during its start-up'):
+            rig.runtime.start_drive(CFG.wheels.drives[0])
+        assert not rig.runtime.core.wheel_state(CFG.wheels.drives[0].joint).started
+        assert not rig.runtime.core.fault_reason  # not started yet: no fault, a retry
+    finally:
+        rig.close()
+
+
+def test_an_nmt_state_other_than_operational_of_a_started_drive_latches_a_fault(rig):
+    rig.runtime.core.drive_started('JLWheel', True)
+    node_id = CFG.wheels.drive('JLWheel').node_id
+    rig.frame(CFG.wheels.bus, msg(0x700 + node_id, [0x05]), 0.001)  # a heartbeat: operational
+    assert not rig.runtime.core.fault_reason
+    rig.frame(CFG.wheels.bus, msg(0x700 + node_id, [0x7F]), 0.001)
+    assert 'PRE-OPERATIONAL' in rig.runtime.core.fault_reason
+
+
+class Refusing:
+    """A bus whose send raises (a full transmit queue, a bus-off controller) while `refusing`, or
+    on every `every`-th frame."""
+
+    def __init__(self, bus):
+        self.bus, self.refusing, self.every, self.sends = bus, False, 0, 0
+
+    def send(self, msg, timeout=None):
+        self.sends += 1
+        if self.refusing or (self.every and self.sends % self.every == 0):
+            raise can.CanOperationError('Failed to transmit: No buffer space available')
+        self.bus.send(msg, timeout=timeout)
+
+    def __getattr__(self, name):
+        return getattr(self.bus, name)
+
+
+def send_for(rig, seconds):
+    """The wheel command loop for `seconds` (wall time: send failures are timed on it)."""
+    end = time.monotonic() + seconds
+    while time.monotonic() < end:
+        rig.runtime.wheel_effort([1.0, 1.0])
+        time.sleep(0.005)
+
+
+@pytest.mark.parametrize('pattern', ['intermittent', '200 ms', 'for good'])
+def test_a_bus_that_refuses_frames(rig, pattern):
+    """Intermittent failures are counted; sends failing for longer than the command timeout
+    inhibit motion (zero current is what the bridge then tries to send) with the reason in
+    diagnostics, until a frame goes out again."""
+    bus = CFG.wheels.bus
+    refusing = rig.runtime.buses[bus] = Refusing(rig.runtime.buses[bus])
+    core, key = rig.runtime.core, f'send/{bus}'
+    if pattern == 'intermittent':
+        refusing.every = 3
+        send_for(rig, 0.3)
+        assert key not in core.inhibits and rig.runtime.send_failures.counts[bus] >= 10
+        report = {r.name: r for r in rig.runtime.diagnostics()}[f'can_bridge: bus {bus} I/O']
+        assert report.level == 1 and 'send errors' in report.message
+        return
+    refusing.refusing = True
+    send_for(rig, 0.2 if pattern == '200 ms' else 0.5)
+    assert 'refused' in core.inhibits[key] and 'No buffer space' in core.inhibits[key]
+    report = {r.name: r for r in rig.runtime.diagnostics()}[f'can_bridge: bus {bus} I/O']
+    assert report.level == 2 and 'every send failing' in report.message
+    if pattern == '200 ms':
+        refusing.refusing = False
+        send_for(rig, 0.02)
+        assert key not in core.inhibits
+        report = {r.name: r for r in rig.runtime.diagnostics()}[f'can_bridge: bus {bus} I/O']
+        assert report.level == 1  # the errors stay counted

@@ -57,7 +57,7 @@ class StartupStep:
     """One step of the drive start-up: an NMT command, an SDO write, or an SDO read to compare with
     config."""
 
-    action: str  # 'nmt' | 'write' | 'check'
+    action: str  # 'nmt' | 'write' | 'check' | 'verified' (stop here after any mismatch)
     index: int = 0
     subindex: int = 0
     value: int = 0  # NMT command, value written, or expected value
@@ -263,6 +263,10 @@ def startup_sequence(drive: WheelDriveConfig, wheels: WheelsConfig) -> list[Star
     """amcdrive_init_drive + amcdrive_start as data: configure the PDOs, the TPDO timer
     (`wheels.tpdo_period_ms`) and the drive-side watchdog (`wheels.watchdog`), enter current mode.
 
+    The drive is started and enabled only once its constants and the objects just written (the
+    watchdog's and the TPDO timer's) read back as the config says (the 'verified' step): a drive
+    whose watchdog did not take is never enabled.
+
     Only the current RPDO is enabled (position/velocity RPDOs stay disabled, as in amciod); all
     four TPDOs are enabled (amciod left the current TPDO off; we want the measured current in
     diagnostics). The fault reset (0x80 after 0x06) runs in PRE-OPERATIONAL, where the drive
@@ -301,11 +305,20 @@ def startup_sequence(drive: WheelDriveConfig, wheels: WheelsConfig) -> list[Star
         )
     for index in list(RPDO_COMM.values()) + list(TPDO_COMM.values()):
         steps.append(StartupStep('write', index, 2, PDO_TRANS_ASYNC, 'async transmission'))
-    steps += watchdog_steps(wheels.watchdog)
+    watchdog = watchdog_steps(wheels.watchdog)
     period = wheels.tpdo_period_ms
-    steps += [
+    timer = [
         StartupStep('write', TIMER1_CYCLE, 0, period, f'timer 1 = {period} ms'),
         StartupStep('write', TIMER1_TPDOS, 0, TIMER1_TPDO_BITS, 'timer 1 drives TPDO 1/3/4/5'),
+    ]
+    steps += watchdog + timer
+    # read back what the drive's safety and the samples rest on before it may be enabled
+    steps += [
+        StartupStep('check', s.index, s.subindex, s.value, f'{s.what} (read back)')
+        for s in watchdog + timer
+    ]
+    steps += [
+        StartupStep('verified', what='constants and written objects as the config says'),
         StartupStep('write', CONTROLWORD, 0, CW_SHUTDOWN, 'shutdown'),
         StartupStep('write', CONTROLWORD, 0, CW_RESET_FAULT, 'reset fault'),
         StartupStep('nmt', value=NMT_START, what='start'),
@@ -326,8 +339,9 @@ def run_startup(
     """Execute `startup_sequence` through canopen (blocking SDO transfers; run it off the ROS
     executor).
 
-    Returns human-readable mismatches between the drive's constants and the config (the codecs use
-    the config values, so a mismatch means wrong currents: the caller must treat it as an error).
+    Returns human-readable mismatches between the drive's constants or the objects it was given
+    and the config (the codecs use the config values, so a mismatch means wrong currents or no
+    watchdog: the caller must treat it as an error); after any, the drive is left disabled.
     Raises canopen's SdoCommunicationError / SdoAbortedError when the drive does not answer or
     refuses a write.
     """
@@ -338,7 +352,10 @@ def run_startup(
     mismatches = []
     try:
         for step in startup_sequence(drive, wheels):
-            if step.action == 'nmt':
+            if step.action == 'verified':
+                if mismatches:
+                    break
+            elif step.action == 'nmt':
                 node.nmt.send_command(step.value)
             elif step.action == 'write':
                 var = dictionary[step.index]
@@ -346,7 +363,9 @@ def run_startup(
                     var = var[step.subindex]
                 node.sdo.download(step.index, step.subindex, var.encode_raw(step.value))
             else:
-                var = dictionary[step.index][step.subindex]
+                var = dictionary[step.index]
+                if not isinstance(var, od.ODVariable):
+                    var = var[step.subindex]
                 got = var.decode_raw(node.sdo.upload(step.index, step.subindex))
                 if got != step.value:
                     mismatches.append(
