@@ -32,7 +32,7 @@ from krang_ros import messages, topics
 from krang_ros.params import declare
 from krang_ros.spin import Polled, run_node, take_waiting
 
-from .pool import generate_pool
+from .pool import PosePool
 from .selection import CRITERIA, AdaptiveSelector
 from .sequence import PoseSequence, StraightLineMove
 from .streaming import MoveStreamer, PauseConfig
@@ -154,13 +154,17 @@ class PoseServer(Node):
         self.create_timer(1.0, self.publish_diagnostics)
 
     def _make_selector(self, cfg):
+        # every move's path is checked for floor and self-collision at the balance pitch the
+        # current beta predicts: a straight joint line between two safe poses can still drive a
+        # gripper into the floor
+        self.pose_pool = PosePool(self.robot)
         if cfg.pool_file:
             _, joints, _ = load_poses(
                 cfg.pool_file, KRANG_POSE_COLUMNS, (self.robot.lower, self.robot.upper)
             )
             source = cfg.pool_file
         else:
-            joints = generate_pool(cfg.pool_size, seed=cfg.pool_seed, robot=self.robot).joints
+            joints = self.pose_pool.generate(cfg.pool_size, seed=cfg.pool_seed).joints
             source = f'{cfg.pool_size} safe, balanced poses drawn with seed {cfg.pool_seed}'
         selector = AdaptiveSelector(
             self.robot,
@@ -169,6 +173,7 @@ class PoseServer(Node):
             criterion=cfg.criterion,
             settle_s=cfg.settle_s,
             speed_fraction=self.speed_fraction,
+            path_check=self.pose_pool.path_clear,
         )
         self.get_logger().info(f'adaptive pose selection ({selector.criterion}) from {source}')
         return selector
@@ -201,7 +206,9 @@ class PoseServer(Node):
             return None, 'the estimator reports no covariance: use selection:=fixed with it'
         choice = self.selector.choose(beta, cov, start)
         if choice is None:
-            return None, f'pool used up; call {names.POSE_RESET} to start over'
+            refused = self.selector.refused
+            why = f' ({refused} refused: their path collides)' if refused else ''
+            return None, f'pool used up{why}; call {names.POSE_RESET} to start over'
         self.chosen += 1
         return choice.joints, (
             f'adaptive pose {self.chosen} (pool pose {choice.index}; '
