@@ -126,7 +126,7 @@ class LqrDesigner:
 class GainCache:
     """LQR(q) recomputed only when the rounded (pose, beta) key changes.
 
-    ``linearize(pose, beta) -> (A, B)`` is any callable (the lead's ``krang_model.wip.linearize``
+    ``linearize(pose, beta) -> (A, B)`` is any callable (``krang_model.wip.linearize``
     wrapped as needed). Keys round pose to ``pose_decimals`` (rad) and beta to ``beta_decimals``;
     a small LRU keeps the last ``maxsize`` designs so oscillating between two poses is free.
     """

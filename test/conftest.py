@@ -21,7 +21,7 @@ def krang_data_dir():
     """The real-data kit: $KRANG_DATA, else ../shared/krang_data next to the checkout."""
     env = os.environ.get('KRANG_DATA')
     path = Path(env) if env else REPO.parent / 'shared' / 'krang_data'
-    return path if (path / 'FACTS.md').exists() else None
+    return path if (path / 'hardware_balanced_poses_train.csv').exists() else None
 
 
 @pytest.fixture(scope='session')

@@ -249,7 +249,7 @@ def adaptive_session_off_model(robot, pool, seed, n_poses, **kw):
 @pytest.mark.slow
 @pytest.mark.timeout(3600)
 def test_twelve_poses_with_the_model_two_and_a_half_centimetres_off(robot):
-    """Issue 14: with the start model 2.5 cm forward of the truth (the real robot's size) at the
+    """With the start model 2.5 cm forward of the truth (the real robot's size) at the
     stand pose, the online session (adaptive selection, map-online) balances through every one
     of 12 moves on generated truths: 12 points, no safe stop, no caster catch, and a wheel travel
     of at most SESSION_TRAVEL_FAR_M per pose."""
