@@ -212,6 +212,12 @@ from krang_ros.spin import run_node
 class SlowStop(Node):
     def __init__(self):
         super().__init__('slow_stop')
+        # 'spinning' once the executor runs the node: a signal before the constructor returned
+        # would end it before run_node holds it, with no close() to interrupt
+        self.ready = self.create_timer(0.01, self.on_ready)
+
+    def on_ready(self):
+        self.ready.cancel()
         print('spinning', flush=True)
 
     def close(self):
