@@ -10,7 +10,7 @@ would, with the whole library, plots and report.
 
 --csv runs the workflow on a hardware log instead (e.g. balancing_runs/table2/beta190_trial0.csv).
 --validate prints the per-effect validation table of docs/discrepancy.md instead (the settings of
-test/test_discrepancy.py: 22 s records, seed 3, one hidden effect each, plus no effect).
+krang_com/test/test_discrepancy.py: 22 s records, seed 3, one hidden effect each, plus no effect).
 --hidden runs krang_discrepancy.synthetic.VALIDATION_SUITE (no-effect seeds and noise levels,
 small effects, pairs, effects outside the library): answer, values, 2-sigma coverage, false names.
 --null N runs N no-effect records (seeds 101.., noise x0.5, x1, x2) and counts false names: the
@@ -38,7 +38,7 @@ import tempfile
 import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / 'krang_com'))
 
 
 def main(argv=None):

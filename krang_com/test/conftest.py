@@ -6,7 +6,8 @@ from pathlib import Path
 
 import pytest
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[1]  # the krang_com package
+CHECKOUT = REPO.parent  # the repository: krang_com/, krang_com_interfaces/, bench/, docs/
 
 # Single-threaded OpenBLAS before numpy is imported, as every node and `krang` run
 # (krang_ros/entry.py).
@@ -20,7 +21,7 @@ os.environ.setdefault('ROS_DOMAIN_ID', str(random.Random(os.getpid()).randint(1,
 def krang_data_dir():
     """The real-data kit: $KRANG_DATA, else ../shared/krang_data next to the checkout."""
     env = os.environ.get('KRANG_DATA')
-    path = Path(env) if env else REPO.parent / 'shared' / 'krang_data'
+    path = Path(env) if env else CHECKOUT.parent / 'shared' / 'krang_data'
     return path if (path / 'hardware_balanced_poses_train.csv').exists() else None
 
 

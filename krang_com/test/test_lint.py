@@ -1,5 +1,5 @@
-"""Lint: ruff over the package with ruff.toml (ROS's 99 columns, ament_flake8's E, F and W
-checks), in the default run like ament_flake8 in a colcon test."""
+"""Lint: ruff over the checkout (the package and bench/) with ruff.toml (ROS's 99 columns,
+ament_flake8's E, F and W checks), in the default run like ament_flake8 in a colcon test."""
 
 import subprocess
 import sys
@@ -9,7 +9,7 @@ import pytest
 
 pytest.importorskip('ruff', reason='ruff is in the test extras: pip install -e .[test]')
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]  # the checkout: krang_com/, bench/
 
 
 def test_ruff_finds_no_violations():

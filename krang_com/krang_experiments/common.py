@@ -22,8 +22,8 @@ def kit_dir(path=None):
         p = Path(path)
         return p if p.exists() else None
     env = os.environ.get('KRANG_DATA')
-    repo = Path(__file__).resolve().parents[1]
-    p = Path(env) if env else repo.parent / 'shared' / 'krang_data'
+    checkout = Path(__file__).resolve().parents[2]  # krang_com/<package>/common.py
+    p = Path(env) if env else checkout.parent / 'shared' / 'krang_data'
     return p if (p / 'poses' / 'finalSetMunzir.txt').exists() else None
 
 

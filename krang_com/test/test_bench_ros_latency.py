@@ -20,7 +20,7 @@ pytest.importorskip('msgpack')  # python-can's udp_multicast needs it
 from krang_cli.node_set import file_parameter  # noqa: E402
 from krang_sim.devices import BusFrame  # noqa: E402
 
-BENCH = Path(__file__).resolve().parents[1] / 'bench' / 'bench_ros_latency.py'
+BENCH = Path(__file__).resolve().parents[2] / 'bench' / 'bench_ros_latency.py'
 PERIOD = 0.002
 
 

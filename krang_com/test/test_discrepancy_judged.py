@@ -263,7 +263,7 @@ def test_validation_suite(case, tmp_path):
     import importlib.util
     from pathlib import Path
 
-    path = Path(__file__).resolve().parents[1] / 'bench' / 'bench_discrepancy.py'
+    path = Path(__file__).resolve().parents[2] / 'bench' / 'bench_discrepancy.py'
     spec = importlib.util.spec_from_file_location('bench_discrepancy', path)
     bench = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(bench)
