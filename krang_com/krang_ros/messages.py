@@ -4,9 +4,11 @@ import math
 
 import numpy as np
 from builtin_interfaces.msg import Time
+from builtin_interfaces.msg import Duration
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from krang_com_interfaces.msg import BalancedPose, ControllerMode, DriveFault, MassModel
 from sensor_msgs.msg import JointState
-from std_msgs.msg import Float64MultiArray, MultiArrayDimension
+from std_msgs.msg import Float64MultiArray, Header, MultiArrayDimension
 
 from krang_core.pitch import pitch_quaternion
 
@@ -154,3 +156,50 @@ def diagnostic_array(stamp, statuses):
 def diagnostics(stamp, name, level, message, values=None, hardware_id=''):
     """A DiagnosticArray of one status (diagnostic_status)."""
     return diagnostic_array(stamp, [diagnostic_status(name, level, message, values, hardware_id)])
+
+
+def balanced_pose(stamp, joint_names, point):
+    """A BalancedPose from the detector's BalancedPoint (krang_adrc_controller.detector)."""
+    joints_se = point.joints_se if point.joints_se is not None else []
+    window = Duration(sec=int(point.window_s), nanosec=int(round((point.window_s % 1.0) * 1e9)))
+    return BalancedPose(
+        header=_header(stamp),
+        joint_names=list(joint_names),
+        positions=[float(v) for v in point.joints],
+        position_standard_errors=[float(v) for v in joints_se],
+        base_pitch=float(point.q_base),
+        base_pitch_standard_error=float(point.q_base_se),
+        base_pitch_std=float(point.q_base_std),
+        base_pitch_imu_filter=float(point.q_base_filter),
+        settle_window=window,
+        samples=int(point.n_samples),
+    )
+
+
+def mass_model(stamp, body_names, beta, covariance=None, source='', poses=0):
+    """A MassModel: beta by body (m, mx, my, mz each), its covariance row-major if known."""
+    cov = [] if covariance is None else np.asarray(covariance, dtype=float).ravel().tolist()
+    return MassModel(
+        header=_header(stamp),
+        body_names=list(body_names),
+        beta=[float(v) for v in beta],
+        covariance=cov,
+        source=source,
+        poses=int(poses),
+    )
+
+
+def controller_mode(stamp, name):
+    """A ControllerMode for a mode name ('sit', 'balance', ...: krang_adrc_controller.modes)."""
+    return ControllerMode(
+        header=_header(stamp), mode=getattr(ControllerMode, name.upper()), name=name
+    )
+
+
+def drive_fault(stamp, reason):
+    """A DriveFault: active with its reason, or clear when reason is ''."""
+    return DriveFault(header=_header(stamp), active=bool(reason), reason=reason)
+
+
+def _header(stamp):
+    return Header(stamp=stamp)

@@ -24,6 +24,7 @@ COLCON = Path(sys.executable).parent / 'colcon'
 
 #: Import name -> rosdep key of package.xml, for every third-party module the package imports.
 ROSDEP_KEYS = {
+    'krang_com_interfaces': 'krang_com_interfaces',  # the repository's interface package
     'rclpy': 'rclpy',
     'ament_index_python': 'ament_index_python',
     'builtin_interfaces': 'builtin_interfaces',
