@@ -28,26 +28,22 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from krang_model.com import base_regressor, phi as phi_fn
+from krang_model.com import base_moment_rows, base_moment_yz, phi as phi_fn
 
 
 def pitch_sensitivity(robot, q_base, joints, beta):
     """d(phi^T beta)/d q_base (N,) = M(beta)/M_nom * z_com: how a pitch error shows up in x_com
     (m/rad)."""
     q_base = np.atleast_1d(np.asarray(q_base, dtype=float))
-    base = base_regressor(robot, joints) @ np.asarray(
-        beta, dtype=float
-    )  # (N, 3) base-frame moment
-    return (np.cos(q_base) * base[:, 1] + np.sin(q_base) * base[:, 2]) / robot.nominal_mass
+    y, z = base_moment_yz(robot, joints, beta)  # base-frame mass moment
+    return (np.cos(q_base) * y + np.sin(q_base) * z) / robot.nominal_mass
 
 
 def pitch_rows(robot, q_base, joints):
     """psi(q) (N, n_beta) = d phi(q) / d q_base, so that psi^T beta = pitch_sensitivity."""
     q_base = np.atleast_1d(np.asarray(q_base, dtype=float))
-    base = base_regressor(robot, joints)
-    return (
-        np.cos(q_base)[:, None] * base[:, 1] + np.sin(q_base)[:, None] * base[:, 2]
-    ) / robot.nominal_mass
+    Y, Z = base_moment_rows(robot, joints)
+    return (np.cos(q_base)[:, None] * Y + np.sin(q_base)[:, None] * Z) / robot.nominal_mass
 
 
 def balanced_pose_rows(

@@ -65,14 +65,40 @@ def com_frame0(robot, q_base, joints, beta):
     return regressor(robot, q_base, joints) @ beta / beta[0::4].sum()
 
 
+def base_moment_rows(robot, joints):
+    """(Y, Z) (N, 4B) each: the base-frame y and z rows of the mass moment (rows 1 and 2 of
+    base_regressor), from the y and z rows of the body frames alone
+    (kinematics.projected_body_placements) at a fifth of the cost of the full regressor. They
+    are all a balance pitch needs: x_com, the CoM height and phi follow from them at any pitch
+    (PoseMoments)."""
+    joints = np.atleast_2d(np.asarray(joints, dtype=float))
+    n = joints.shape[0]
+    directions = np.zeros((2 * n, 3))
+    directions[:n, 1] = 1.0
+    directions[n:, 2] = 1.0
+    offset, row = projected_body_placements(robot, np.concatenate([joints, joints]), directions)
+    rows = np.empty((2 * n, robot.n_bodies, 4))
+    rows[..., 0] = offset
+    rows[..., 1:] = row
+    rows = rows.reshape(2 * n, robot.n_beta)
+    return rows[:n], rows[n:]
+
+
+def base_moment_yz(robot, joints, beta):
+    """(Y, Z) (N,), (N,): the base-frame y and z of the mass moment of `beta`."""
+    Y, Z = base_moment_rows(robot, joints)
+    beta = np.asarray(beta, dtype=float)
+    return Y @ beta, Z @ beta
+
+
 def balance_pitch(robot, joints, beta):
     """q_base (N,) that puts the CoM of `beta` exactly over the axle with the CoM above it.
 
     x_com = sin(q) Y - cos(q) Z vanishes for q = atan2(Z, Y), where (Y, Z) are the base-frame y, z
     of the mass moment; that root has z_com = hypot(Y, Z) > 0 (the other root hangs below).
     """
-    moment = base_regressor(robot, joints) @ np.asarray(beta, dtype=float)
-    return np.arctan2(moment[:, 2], moment[:, 1])
+    y, z = base_moment_yz(robot, joints, beta)
+    return np.arctan2(z, y)
 
 
 # ---- how wrong a beta is, against a known truth (simulation) ------------------------------------
@@ -102,7 +128,7 @@ def lateral_com_error(robot, beta, true_beta, joints):
 
 
 class PoseMoments:
-    """The base-frame y and z rows of the mass moment (base_regressor) of a fixed set of
+    """The base-frame y and z rows of the mass moment (base_moment_rows) of a fixed set of
     configurations, to score many betas at once with one matrix product per set (the learning
     curves' hot path).
 
@@ -112,9 +138,16 @@ class PoseMoments:
 
     def __init__(self, robot, joints):
         self.robot = robot
-        base = base_regressor(robot, joints)  # (N, 3, n_beta), base frame
-        self.Y = np.ascontiguousarray(base[:, 1])
-        self.Z = np.ascontiguousarray(base[:, 2])
+        self.Y, self.Z = base_moment_rows(robot, joints)  # (N, n_beta) each, base frame
+
+    def balance(self, beta):
+        """(q_base, phi, sensitivity) at each configuration for one beta: its balance pitch (N,),
+        phi there (N, n_beta) and d(phi^T beta)/d q_base (N,) (krang_com_estimator.rows)."""
+        beta = np.asarray(beta, dtype=float)
+        y, z = self.Y @ beta, self.Z @ beta
+        q = np.arctan2(z, y)
+        phi, psi = self.phi_psi(self.Y, self.Z, q)
+        return q, phi, psi @ beta
 
     def sequence_rows(self, index, betas):
         """For K runs, each with its own sequence of these configurations (index (K, L)): the

@@ -61,8 +61,12 @@ def rotate_rows_by_axis(rows, axis, angles):
     """rows @ Rot(axis, angle) for row vectors rows (N, 3): Rodrigues on vectors, no matrices."""
     c = np.cos(angles)[:, None]
     s = np.sin(angles)[:, None]
-    # v^T R(a, q) = (R(a, -q) v)^T = v cos q - (a x v) sin q + a (a . v)(1 - cos q)
-    return rows * c - np.cross(axis, rows) * s + np.outer(rows @ axis, axis) * (1.0 - c)
+    axis = np.asarray(axis, dtype=float)
+    # v^T R(a, q) = (R(a, -q) v)^T = v cos q - (a x v) sin q + a (a . v)(1 - cos q), with the
+    # cross and outer products as 3x3 products of the rows: (a x v)^T = v^T [a]x^T, a (a . v) =
+    # (v^T a a^T)^T
+    skew = np.array([[0.0, -axis[2], axis[1]], [axis[2], 0.0, -axis[0]], [-axis[1], axis[0], 0.0]])
+    return rows * c - (rows @ skew.T) * s + (rows @ np.outer(axis, axis)) * (1.0 - c)
 
 
 def projected_body_placements(robot, joints, direction):

@@ -37,8 +37,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from krang_com_estimator import pitch_sensitivity
-from krang_model.com import balance_pitch, phi as phi_fn
+from krang_model.com import PoseMoments
 from krang_model.drivetrain import drivetrain
 
 from .sequence import move_times
@@ -61,10 +60,7 @@ class Choice:
 def predicted_pitch(robot, joints, beta, covariance):
     """(pitch, std) (N,), (N,): the balance pitch `beta` predicts at each pose (rows of joints) and
     its posterior std, sqrt(g^T Sigma g) / |z| (g = phi at that pitch, z = d x_com / d pitch)."""
-    joints = np.atleast_2d(np.asarray(joints, dtype=float))
-    q = balance_pitch(robot, joints, beta)
-    g = phi_fn(robot, q, joints)
-    z = pitch_sensitivity(robot, q, joints, beta)
+    q, g, z = PoseMoments(robot, joints).balance(beta)
     var = np.einsum('ij,ij->i', g @ np.asarray(covariance, dtype=float), g)
     return q, np.sqrt(np.maximum(var, 0.0)) / np.abs(z)
 
@@ -107,6 +103,11 @@ class AdaptiveSelector:
             drivetrain(robot).caster_pitch if caster_pitch is None else caster_pitch
         )
         self.path_check = path_check  # (start, goal, beta) -> bool, or None: no check
+        # the pool's mass-moment rows: every choice scores it for a new beta without kinematics
+        self._pool_moments = PoseMoments(robot, self.pool)
+        self._reference_moments = (
+            None if reference_joints is None else PoseMoments(robot, self.reference)
+        )
         self.used = set()
         self.refused = 0  # candidates refused by path_check
 
@@ -131,16 +132,11 @@ class AdaptiveSelector:
         beta = np.asarray(beta, dtype=float)
         cov = np.asarray(covariance, dtype=float)
         sigma = self.sigma_pitch if sigma_pitch_rad is None else float(sigma_pitch_rad)
-        q = balance_pitch(self.robot, self.pool, beta)
-        G = phi_fn(self.robot, q, self.pool)
-        z = pitch_sensitivity(self.robot, q, self.pool, beta)
+        q, G, z = self._pool_moments.balance(beta)
         r = (sigma * z) ** 2
         SG = cov @ G.T  # (n_beta, N)
         s = np.einsum('ij,ji->i', G, SG)  # g^T Sigma g
-        if self.reference is self.pool:
-            R = G
-        else:
-            R = phi_fn(self.robot, balance_pitch(self.robot, self.reference, beta), self.reference)
+        R = G if self._reference_moments is None else self._reference_moments.balance(beta)[1]
         before = float(np.mean(np.einsum('ij,ji->i', R, cov @ R.T)))
         if self.criterion == 'forward':
             gain = np.mean((R @ SG) ** 2, axis=0) / (s + r)
