@@ -398,7 +398,8 @@ def gap_null(n, first_seed, design):
     from krang_sim.sensors import SensorNoise
 
     model = NominalModel.default()
-    at_30hz = record_controller_config({'rate_hz': 30.0, 'detector.rate_hz': 30.0})
+    # the logs' 30 Hz, as the nearest whole number of 1 ms physics steps (33 ms)
+    at_30hz = record_controller_config({'rate_hz': 1000 / 33, 'detector.rate_hz': 1000 / 33})
     base = SensorNoise()
     gaps, sits = [], []
     for i in range(n):

@@ -151,3 +151,72 @@ def plot_gap_bars(per_phase, out_dir):
     save_figure(fig, out_dir / 'gap_phases.png', dpi=90)
     plt.close(fig)
     return 'gap_phases.png'
+
+
+#: the closed-loop figure's curves: (key of the check's traces, label, colour, line style)
+CLOSED_LOOP_CURVES = (
+    ('measured', 'measured (the real robot)', 'k', '-'),
+    ('before', 'nominal model, closed loop', 'C3', '--'),
+    ('after', 'extended model, closed loop', 'C2', '-'),
+)
+
+
+def plot_closed_loop(closed, out_dir, names=None, filename='closed_loop.png', t_span=12.0):
+    """Measured vs simulated pitch over time, one panel per run (``names``, default: up to four,
+    the first run of each name stem such as beta16_*): the measured log (black), the closed-loop
+    replay with the nominal model (red, dashed) and with the extended one (green); time from the
+    stand command; dots mark each lift-off, the dotted line is the lift-off level (sitting pitch +
+    ``LIFT_RAD``). Other models' traces in the check (keys beyond the three) are drawn thin."""
+    import matplotlib
+
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+
+    from .closed_loop_check import LIFT_RAD
+
+    runs = {r['name']: r for r in closed['runs']}
+    if names is None:
+        stems, names = set(), []
+        for n in runs:
+            stem = n.split('_')[0]
+            if stem not in stems and runs[n]['measured']['stood_up'] and len(names) < 4:
+                stems.add(stem)
+                names.append(n)
+        names = names or list(runs)[:4]
+    fig, axes = plt.subplots(len(names), 1, figsize=(10, 2.4 * len(names) + 0.6), squeeze=False)
+    for ax, name in zip(axes[:, 0], names):
+        tr, run = closed['traces'][name], runs[name]
+        main = [c[0] for c in CLOSED_LOOP_CURVES]
+        extra = [k for k in tr if k not in main]
+        curves = list(CLOSED_LOOP_CURVES) + [
+            (k, k, f'C{4 + i}', '-.') for i, k in enumerate(extra)
+        ]
+        for key, label, colour, style in curves:
+            if key not in tr:
+                continue
+            t, q = tr[key]
+            keep = (t >= -1.0) & (t <= t_span)
+            lw = 1.4 if key in main else 0.9
+            ax.plot(t[keep], q[keep], color=colour, ls=style, lw=lw, label=label)
+            m = run.get(key, {})
+            if m.get('lift_off_s') is not None:
+                lo = m['lift_off_s']
+                ax.plot([lo], [np.interp(lo, t, q)], 'o', color=colour, ms=5)
+        q_sit = run['measured'].get('sitting_pitch_rad')
+        if q_sit is not None:
+            ax.axhline(q_sit + LIFT_RAD, color='0.5', ls=':', lw=0.8, label='lift-off level')
+        words = ', '.join(
+            f'{k} {run[k]["lift_off_s"]:.2f} s'
+            if run[k].get('lift_off_s') is not None
+            else f'{k} never'
+            for k in ('measured', 'before', 'after')
+        )
+        ax.set_title(f'{name}: lift-off {words}', fontsize=9)
+        ax.set_ylabel('IMU pitch q_base (rad)', fontsize=8)
+        ax.set_xlim(-1.0, t_span)
+    axes[0, 0].legend(fontsize=7, loc='lower right')
+    axes[-1, 0].set_xlabel('time since the stand command (s)')
+    fig.tight_layout()
+    save_figure(fig, out_dir / filename, dpi=90)
+    plt.close(fig)
+    return filename

@@ -261,10 +261,90 @@ def write_report(
         if f.startswith('gap_'):
             L.append(f'![{f}]({f})')
     L.append('')
+    L += closed_loop_section(js, files)
     L.append('## JSON\n')
     L.append('```json\n' + json.dumps(plain(js)) + '\n```\n')
     L.append('Stage timings (s): ' + ', '.join(f'{k} {v:.2f}' for k, v in timing.items()) + '\n')
     write_text(path, '\n'.join(L))
+
+
+#: the closed-loop figures of the report: (key, heading, unit, digits)
+CLOSED_LOOP_ROWS = (
+    ('lift_off_s', 'lift-off after the stand command', 's', 3),
+    ('settle_time_s', 'time until resting (8 cm)', 's', 3),
+    ('resting_displacement_m', 'resting position', 'm', 3),
+    ('resting_pitch_rad', 'resting pitch', 'rad', 4),
+    ('peak_electrical_power_w', 'peak electrical power', 'W', 3),
+    ('mean_resting_electrical_power_w', 'mean resting electrical power', 'W', 3),
+)
+
+
+def closed_loop_section(js, files) -> list:
+    """The closed-loop check's section (``closed_loop_check``), when it ran."""
+    cl = js.get('closed_loop')
+    if not cl:
+        return []
+    g0, g1 = cl['gap']['before'], cl['gap']['after']
+    lo = cl['lift_off_gap_s']
+    L = ["## 4. Closed loop: does the model's robot stand up as the real one did?\n"]
+    L.append(
+        'Each run replayed in closed loop under the controller that made it, on the reduced plant '
+        'with the nominal model (before) and the extended model (after). '
+        + '; '.join(f'{k}: {v}' for k, v in cl['definitions'].items())
+        + '.\n'
+    )
+    L.append('| gap | before (nominal) | after (extended) |')
+    L.append('|---|---|---|')
+    L.append(f'| one-step gap (whitened) | {_f(js["gap_before"])} | {_f(js["gap_after"])} |')
+    L.append(
+        f'| runs that stood up (measured {g0["measured_stood_up"]} of {g0["runs"]}) | '
+        f'{g0["stood_up"]} | {g1["stood_up"]} |'
+    )
+    L.append(
+        f'| runs that came to rest balanced (measured {g0["measured_balanced"]}) | '
+        f'{g0["balanced"]} | {g1["balanced"]} |'
+    )
+    L.append(f'| stand-ups missed | {g0["missed_stand_up"]} | {g1["missed_stand_up"]} |')
+    L.append(
+        f'| worst lift-off error (s) | {_f(g0["lift_off_worst_s"], 3)} | '
+        f'{_f(g1["lift_off_worst_s"], 3)} |'
+    )
+    L.append(
+        '| lift-off gap the verdict reads (s) | '
+        + ' | '.join('missed' if v is None else _f(v, 3) for v in lo)
+        + ' |'
+    )
+    for key, head, unit, _ in CLOSED_LOOP_ROWS:
+        L.append(f'| median abs. error, {head} ({unit}) | {_f(g0[key], 3)} | {_f(g1[key], 3)} |')
+    L.append('')
+    L.append(
+        '| run | '
+        + ' | '.join(
+            f'{head} ({unit}): measured / nominal / extended'
+            for _, head, unit, _ in CLOSED_LOOP_ROWS
+        )
+        + ' |'
+    )
+    L.append('|---|' + '---|' * len(CLOSED_LOOP_ROWS))
+    for run in cl['runs']:
+        L.append(
+            f'| {run["name"]} | '
+            + ' | '.join(
+                ' / '.join(_f(run[k].get(key), d) for k in ('measured', 'before', 'after'))
+                for key, _, _, d in CLOSED_LOOP_ROWS
+            )
+            + ' |'
+        )
+    L.append('')
+    for f in files:
+        if f.startswith('closed_loop'):
+            L.append(
+                f'![{f}]({f})\n\nIMU pitch over time from the stand command: measured (black), '
+                'the nominal model in closed loop (red, dashed), the extended model (green); dots '
+                'mark each lift-off, the dotted line the lift-off level.'
+            )
+    L.append('')
+    return L
 
 
 def ambiguity(result) -> str:

@@ -7,7 +7,9 @@ DIR/*.png, DIR/extended_model.yaml, DIR/result.json.
   3. name the missing effect(s) by held-out improvement (``naming``);
   4. write the extended model (``extended_model``), read it back and re-simulate every window
      with it: the gap after is computed from the file, not from the fit in memory;
-  5. judge what is left (``verdict``), write the report (``markdown``) and the figures
+  5. replay every run whose controller is known in closed loop with the model before and after
+     (``closed_loop_check``): does the model's robot stand up as the real one did?
+  6. judge what is left (``verdict``), write the report (``markdown``) and the figures
      (``figures``), and return the ``krang discrepancy --json`` object (``contract``).
 
 The gap (JSON ``gap_before`` / ``gap_after``) is the RMS prediction error over the fitting windows
@@ -31,10 +33,11 @@ import yaml
 from krang_model.effects import apply_effects, library
 from krang_model.files import atomic_open
 
+from .closed_loop_check import closed_loop_check, closed_loop_json
 from .consistency import per_record_values, per_third_values
 from .contract import contract, with_verdict
 from .extended_model import load_extended_model, plain, write_extended_model
-from .figures import plot_evidence, plot_gap, plot_gap_bars
+from .figures import plot_closed_loop, plot_evidence, plot_gap, plot_gap_bars
 from .fitting import extended_terms, refine_step
 from .loaders import load_measured
 from .locate import locate, plot_location
@@ -75,11 +78,14 @@ def run_discrepancy(
     rate_hz=None,
     log=None,
     baseline=None,
+    closed_loop: bool = True,
 ) -> dict:
     """The workflow (module docstring). `measured`: paths (files/folders) or Record objects.
     `baseline`: an extended_model.yaml of earlier runs: the new data are compared with the robot as
     that file corrects it, whitened by its own typical errors there (so the gap says how far off it
-    is), and the effects named are what changed.
+    is), and the effects named are what changed. `closed_loop`: also replay every run whose
+    controller is known in closed loop, before and after (``closed_loop_check``; its verdict rule
+    ``closed_loop_stand_up``).
     Returns {'json': contract, 'result': NamingResult, 'location': Location, 'replay': Replay,
     'timing': {stage: s}, 'files': [...]}."""
     say = log or (lambda msg: None)
@@ -211,11 +217,23 @@ def run_discrepancy(
     }
     sitting = sitting_offset(replay, extended_terms(base, result.selected))
     excess = gap_test(replay, r1)
+    closed = None
+    if closed_loop:
+        t_cl = time.perf_counter()
+        closed = closed_loop_check(records, model, base, ext_terms)
+        timing['closed_loop_s'] = time.perf_counter() - t_cl
+        if closed['runs']:
+            say(
+                f'closed loop: lift-off gap {closed["lift_off_gap_s"][0]:.3g} -> '
+                f'{closed["lift_off_gap_s"][1]:.3g} s'
+            )
+        else:
+            closed = None
     verdict, reason = decide(
-        result, structure, gaps_yaml, ref_scales is not None, drift, sitting, excess
+        result, structure, gaps_yaml, ref_scales is not None, drift, sitting, excess, closed
     )
     fired = rules_fired(
-        result, structure, gaps_yaml, ref_scales is not None, drift, sitting, excess
+        result, structure, gaps_yaml, ref_scales is not None, drift, sitting, excess, closed
     )
     say(f'verdict: {verdict}' + (f' ({reason})' if reason else ''))
     r1a = r1[replay.active]
@@ -269,6 +287,8 @@ def run_discrepancy(
         js['sitting_offset'] = sitting
     if excess:
         js['gap_test'] = excess
+    if closed:
+        js['closed_loop'] = closed_loop_json(closed)
     if per_record:
         js['per_record'] = per_record
         if split:
@@ -277,7 +297,7 @@ def run_discrepancy(
                 'uncertainties (chi2/dof > 4, spread > 10 %): one robot has one value, so the '
                 'effect is absorbing something else that differs between the runs'
             )
-    timing['resimulate_s'] = time.perf_counter() - t
+    timing['resimulate_s'] = time.perf_counter() - t - timing.get('closed_loop_s', 0.0)
     files = []
     t = time.perf_counter()
     if plots:
@@ -289,6 +309,8 @@ def run_discrepancy(
         if f:
             files.append(f)
         files.append(plot_gap_bars(per_phase, out_dir))
+        if closed:
+            files.append(plot_closed_loop(closed, out_dir))
     timing['plots_s'] = time.perf_counter() - t
     t = time.perf_counter()
     write_report(
@@ -322,6 +344,7 @@ def run_discrepancy(
         'per_phase': per_phase,
         'heldout': heldout,
         'extended_terms': ext_terms,
+        'closed_loop': closed,
     }
 
 

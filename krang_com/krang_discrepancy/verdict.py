@@ -418,11 +418,43 @@ def gap_sentence(gt: dict) -> str:
 #: the rules that turn a selection (or none) into ``unexplained``, in the order ``decide`` gives
 #: their reason; ``rules_fired`` says which of them fire (their false-``unexplained`` rates on
 #: in-library records: docs/discrepancy.md, "Verdicts that hold")
-RULES = ('residual_structure', 'sitting_offset', 'drift_over_thirds', 'baseline_gap', 'gap_test')
+RULES = (
+    'residual_structure',
+    'sitting_offset',
+    'drift_over_thirds',
+    'baseline_gap',
+    'gap_test',
+    'closed_loop_stand_up',
+)
+
+#: the closed-loop check (``closed_loop_check``): the model's robot, under the controller that
+#: made the logs, must lift off its caster in every run where the real robot did (and come to rest
+#: balanced where it did), and its lift-off must come within this many seconds of the measured one
+#: in every run. 0.5 s: a little more than the widest spread of the measured lift-off over the
+#: trials of one beta (beta_32: 0.41-0.85 s), so a model inside that spread passes every run; a
+#: third of beta_16's 1.3-1.5 s; 15 periods of the logs' 30 Hz loop. The true model misses its own
+#: synthetic record's lift-off by under 0.01 s (docs/discrepancy.md, "Closed-loop validation")
+MAX_LIFT_OFF_GAP_S = 0.5
+
+
+def closed_loop_fails(closed) -> bool:
+    """Whether the extended model's closed-loop replay misses the stand-up the logs show
+    (``closed_loop_check``'s 'lift_off_gap_s' [before, after]; None: not checked)."""
+    if not closed:
+        return False
+    gap = closed['lift_off_gap_s'][1]
+    return bool(gap == math.inf or gap > MAX_LIFT_OFF_GAP_S)
 
 
 def rules_fired(
-    result, structure, gaps_yaml, referenced: bool, drift=None, sitting=None, excess=None
+    result,
+    structure,
+    gaps_yaml,
+    referenced: bool,
+    drift=None,
+    sitting=None,
+    excess=None,
+    closed=None,
 ) -> dict:
     """{rule: fired} for every rule of ``RULES`` (``decide`` explains the first that fires)."""
     after = gaps_yaml['after']
@@ -435,10 +467,20 @@ def rules_fired(
         ),
         'baseline_gap': bool(referenced and gap > MAX_GAP),
         'gap_test': bool(not referenced and (excess or {}).get('exceeds')),
+        'closed_loop_stand_up': closed_loop_fails(closed),
     }
 
 
-def decide(result, structure, gaps_yaml, referenced: bool, drift=None, sitting=None, excess=None):
+def decide(
+    result,
+    structure,
+    gaps_yaml,
+    referenced: bool,
+    drift=None,
+    sitting=None,
+    excess=None,
+    closed=None,
+):
     """('unexplained' | 'named' | 'none', reason). Unexplained when the residual after the
     selected effects is still predictable by generic forces (``residual_structure``), when the
     model's pitch on the caster misses the measured one (``sitting_offset``), when a selected
@@ -446,7 +488,8 @@ def decide(result, structure, gaps_yaml, referenced: bool, drift=None, sitting=N
     when, judged against a baseline, the model is still more than MAX_GAP times its error on the
     baseline's own data off, phase for phase (``phase_matched_gap``), or, judged on its own
     yardstick, when its gap on the balancing windows exceeds what a right model shows
-    (``gap_test``)."""
+    (``gap_test``), or when its robot, in closed loop under the logs' controller, does not stand
+    up as the real one did (``closed_loop_fails``, `closed`: ``closed_loop_check``'s result)."""
     if structure.significant:
         return 'unexplained', (
             'the residual after the library effects is still structured: ' + structure.sentence()
@@ -477,5 +520,19 @@ def decide(result, structure, gaps_yaml, referenced: bool, drift=None, sitting=N
         return 'unexplained', (
             'the model is further off than a right model is after the library effects: '
             + gap_sentence(excess)
+        )
+    if closed_loop_fails(closed):
+        g = closed['gap']['after']
+        return 'unexplained', (
+            "in closed loop under the controller that made the logs, the model's robot does not "
+            'stand up as the real one did: '
+            + (
+                f'it does not lift off, or does not come to rest balanced, in '
+                f'{g["missed_stand_up"]} of the {g["runs"]} runs where the real robot did'
+                if g['missed_stand_up']
+                else f'its lift-off is {g["lift_off_worst_s"]:.2f} s off the measured one in the '
+                'worst run'
+            )
+            + f' (tolerance {MAX_LIFT_OFF_GAP_S:g} s), whatever its one-step gap'
         )
     return ('none' if result.selected is None else 'named'), ''
