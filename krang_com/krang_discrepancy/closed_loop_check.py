@@ -331,6 +331,7 @@ def closed_loop_check(
         'gap': gap,
         'lift_off_gap_s': [lift_off_gap(gap['before']), lift_off_gap(gap['after'])],
         'traces': traces,
+        'lift_rad': LIFT_RAD,
         'definitions': {
             'stand_command': f'first sample with a commanded current above {COMMAND_A:g} A',
             'lift_off_s': f'time after the stand command at which the pitch leaves the caster '

@@ -166,13 +166,12 @@ def plot_closed_loop(closed, out_dir, names=None, filename='closed_loop.png', t_
     the first run of each name stem such as beta16_*): the measured log (black), the closed-loop
     replay with the nominal model (red, dashed) and with the extended one (green); time from the
     stand command; dots mark each lift-off, the dotted line is the lift-off level (sitting pitch +
-    ``LIFT_RAD``). Other models' traces in the check (keys beyond the three) are drawn thin."""
+    the check's ``lift_rad``). Other models' traces in the check (keys beyond the three) are
+    drawn thin."""
     import matplotlib
 
     matplotlib.use('Agg')
     import matplotlib.pyplot as plt
-
-    from .closed_loop_check import LIFT_RAD
 
     runs = {r['name']: r for r in closed['runs']}
     if names is None:
@@ -204,7 +203,8 @@ def plot_closed_loop(closed, out_dir, names=None, filename='closed_loop.png', t_
                 ax.plot([lo], [np.interp(lo, t, q)], 'o', color=colour, ms=5)
         q_sit = run['measured'].get('sitting_pitch_rad')
         if q_sit is not None:
-            ax.axhline(q_sit + LIFT_RAD, color='0.5', ls=':', lw=0.8, label='lift-off level')
+            lift = q_sit + closed['lift_rad']
+            ax.axhline(lift, color='0.5', ls=':', lw=0.8, label='lift-off level')
         words = ', '.join(
             f'{k} {run[k]["lift_off_s"]:.2f} s'
             if run[k].get('lift_off_s') is not None
