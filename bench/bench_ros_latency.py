@@ -161,7 +161,7 @@ def bring_to_balance(client, tell, timeout, dead=dict):
         elif mode == 'sit':
             client.pause(1.0)  # the controller's pose from complete joint states
             if client.mode == 'sit':
-                reply = client.operate(names.STAND_UP)
+                reply = client.stand_up()
                 client.pause(0.2)
         elif mode == 'stand_up' and not ramp:
             tell('stand')

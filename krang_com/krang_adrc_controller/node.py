@@ -14,35 +14,44 @@ and the wheel command goes out as bytes: rclpy's message objects cost 50-70 us e
 either input is older than `stale_timeout_s`, the controller is told the data are stale and
 commands zero torque (safe stop) until recovered.
 
-The operator's controls are node-private services (README, "Running on the robot"): ~/enable
-(SetBool), ~/stand_up, ~/sit_down, ~/halt, ~/recover (Trigger). Each answers at once, accepted or
-refused with the reason; stand_up and sit_down only start, and the latched ~/mode topic reports
-their progress. A non-empty can_bridge/drive_fault forces a safe stop. Topics are relative
-(joint_states, imu/data, wheel_effort_cmd, balanced_pose, diagnostics, ...), so the node moves with
-__ns; its services and ~/mode, ~/balance_converged move with __node too.
+The operator's controls are node-private (README, "Running on the robot"): the services ~/enable
+(SetBool), ~/halt and ~/recover (Trigger) answer at once, accepted or refused with the reason; the
+actions ~/stand_up (StandUp) and ~/sit_down (SitDown) give feedback while the mode machine works
+and their result when it gets there or leaves (krang_adrc_controller.goals, krang_ros.actions).
+Their callbacks and the feedback timer are a callback group of their own, and the control step
+only hands them the steps with events. An active can_bridge/drive_fault forces a safe stop.
+Topics are relative (joint_states, imu/data, wheel_effort_cmd, balanced_pose, diagnostics, ...),
+so the node moves with __ns; its services, actions and ~/mode, ~/balance_converged move with
+__node too.
 """
 
 import sys
 
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
+from krang_com_interfaces.action import SitDown, StandUp
+from krang_com_interfaces.msg import BalancedPose, ControllerMode, DriveFault, MassModel
 from rcl_interfaces.msg import ParameterDescriptor
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.node import Node
 from sensor_msgs.msg import Imu, JointState
-from std_msgs.msg import Bool, Float64MultiArray, String
+from std_msgs.msg import Bool
 from std_srvs.srv import SetBool, Trigger
 
 from krang_model.beta import load_beta
 from krang_model.robot import load_krang
-from krang_core import names, params
+from krang_core import message_values, names, params
 from krang_core.log import Throttled
 from krang_core.names import WHEEL_JOINTS as WHEELS
 from krang_core.pitch import pitch_from_quaternion, pitch_from_specific_force
 from krang_ros import messages, realtime, topics, trace, wire
+from krang_ros.actions import HeldGoals
 from krang_ros.params import declare
 from krang_ros.spin import Polled, run_node, take_latest, take_waiting
 
 from .controller import BalanceController, ControllerConfig
+from .goals import SIT_DOWN, STAND_UP, OperatorGoal
+from .modes import MODE_CODES
 from .samples import ControlSample, JointMotion, Reply
 
 #: the node's own parameters besides ControllerConfig's: name -> (type, default, description)
@@ -74,6 +83,8 @@ def describe_parameters():
 
 #: with step_on_imu the watch timer steps once no sample came for this many control periods
 WATCH_PERIODS = 3.0
+#: feedback of the stand_up and sit_down actions while a goal is active [Hz]
+FEEDBACK_HZ = 10.0
 
 
 class AdrcControllerNode(Node):
@@ -114,9 +125,9 @@ class AdrcControllerNode(Node):
             return self.create_publisher(kind, topic, profile or qos[name])
 
         self.effort_pub = publisher(JointState, names.WHEEL_EFFORT_CMD)
-        self.pose_pub = publisher(JointState, names.BALANCED_POSE)
+        self.pose_pub = publisher(BalancedPose, names.BALANCED_POSE)
         self.diag_pub = publisher(DiagnosticArray, names.DIAGNOSTICS)
-        self.mode_pub = publisher(String, names.MODE, True, topics.LATCHED)
+        self.mode_pub = publisher(ControllerMode, names.MODE, True, topics.LATCHED)
         self.converged_pub = publisher(Bool, names.BALANCE_CONVERGED, True, topics.LATCHED)
         # Every imu/data sample steps the control law (the observer sees each measurement), but
         # only the newest one waiting sends a command: on_imu takes the queue (topics.STEPPED
@@ -136,22 +147,21 @@ class AdrcControllerNode(Node):
             raw=True,
         )
         self.create_subscription(
-            Float64MultiArray, names.relative(names.BETA), self.on_beta, qos[names.BETA]
+            MassModel, names.relative(names.BETA), self.on_beta, qos[names.BETA]
         )
         self.create_subscription(
             JointState, names.relative(names.POSE_TARGET), self.on_target, qos[names.POSE_TARGET]
         )
         self.create_subscription(
-            String, names.relative(names.DRIVE_FAULT), self.on_drive_fault, topics.LATCHED
+            DriveFault, names.relative(names.DRIVE_FAULT), self.on_drive_fault, topics.LATCHED
         )
         self.create_service(SetBool, '~/enable', self.on_enable)
         for name, call in (
-            (names.STAND_UP, self.on_stand_up),
-            (names.SIT_DOWN, self.on_sit_down),
             (names.HALT, self.on_halt),
             (names.CONTROLLER_RECOVER, self.on_recover),
         ):
             self.create_service(Trigger, names.private(name), call)
+        self._init_actions()
         self.period = 1.0 / self.config.rate_hz
         self.last_sample_t = None
         self.timer = self.create_timer(
@@ -255,19 +265,21 @@ class AdrcControllerNode(Node):
         self.target = messages.joints_from_state(msg, self.robot.pose_joints)
 
     def on_beta(self, msg):
-        beta = messages.array_values(msg, self.robot.n_beta)
-        if beta is None:
-            self.get_logger().error(f'rejected a beta of {len(msg.data)} values or with NaN/inf')
+        values = message_values.mass_model_values(msg, self.robot.n_beta)
+        if values is None:
+            self.get_logger().error(f'rejected a beta of {len(msg.beta)} values or with NaN/inf')
             return
+        beta = values[0]
         self.controller.set_beta(beta)
         self.get_logger().info(f'new beta (total mass {beta[0::4].sum():.2f} kg)')
 
     def on_drive_fault(self, msg):
-        if msg.data and msg.data != self.controller.drive_fault:
-            self.get_logger().error(f'drive fault: {msg.data}; safe stop')
-        elif not msg.data and self.controller.drive_fault:
+        reason = message_values.drive_fault_reason(msg)
+        if reason and reason != self.controller.drive_fault:
+            self.get_logger().error(f'drive fault: {reason}; safe stop')
+        elif not reason and self.controller.drive_fault:
             self.get_logger().info('drive fault cleared by the bridge; recover to power the loop')
-        self.controller.set_drive_fault(msg.data)
+        self.controller.set_drive_fault(reason)
 
     def sensors_stale(self, now=None):
         now = self.now() if now is None else now
@@ -286,11 +298,14 @@ class AdrcControllerNode(Node):
     def answer(self, response, reply, what):
         response.success = reply.ok
         response.message = reply.message
+        self.log_reply(reply, what)
+        return response
+
+    def log_reply(self, reply, what):
         if reply.ok:  # rclpy ties a logging call site to one severity: two calls
             self.get_logger().info(f'{what}: {reply.message}')
         else:
             self.get_logger().warn(f'{what}: {reply.message}')
-        return response
 
     def fresh(self, request):
         """The controller's answer to `request`, or a refusal while sensor data are not fresh."""
@@ -305,11 +320,95 @@ class AdrcControllerNode(Node):
             reply = self.controller.request_enable(False)
         return self.answer(response, reply, 'enable' if request.data else 'disable')
 
-    def on_stand_up(self, request, response):
-        return self.answer(response, self.fresh(self.controller.request_stand), 'stand_up')
+    # ---- the stand_up and sit_down actions ------------------------------------------------------
+    def _init_actions(self):
+        group = MutuallyExclusiveCallbackGroup()
+        self.goals = {}  # goal key -> (HeldGoals, goal handle, OperatorGoal), while active
+        self.actions = {
+            kind: HeldGoals(
+                self,
+                action,
+                names.private(name),
+                lambda handle, kind=kind: self.on_goal(kind, handle),
+                self.on_cancel,
+                group,
+            )
+            for kind, action, name in (
+                (STAND_UP, StandUp, names.STAND_UP_ACTION),
+                (SIT_DOWN, SitDown, names.SIT_DOWN_ACTION),
+            )
+        }
+        # runs only while a goal is active
+        self.feedback_timer = self.create_timer(
+            1.0 / FEEDBACK_HZ, self.on_feedback, callback_group=group
+        )
+        self.feedback_timer.cancel()
 
-    def on_sit_down(self, request, response):
-        return self.answer(response, self.controller.request_sit(), 'sit_down')
+    def on_goal(self, kind, handle):
+        """A goal, accepted: the controller's request, refused at once with the reason or held
+        until the mode machine gets there (goals.OperatorGoal)."""
+        if kind == STAND_UP:
+            reply = self.fresh(self.controller.request_stand)
+        else:
+            reply = self.controller.request_sit()
+        self.log_reply(reply, kind)
+        actions = self.actions[kind]
+        if not reply.ok:
+            actions.end(handle, False, message=reply.message, **self.state())
+            return
+        self.goals[bytes(handle.goal_id.uuid)] = (actions, handle, OperatorGoal(kind, self.now()))
+        if self.feedback_timer.is_canceled():
+            self.feedback_timer.reset()
+
+    def on_cancel(self, handle):
+        """A stand-up is cancelled by sitting back down (on_feedback asks for it); a sit-down,
+        once the controller has it, runs to the caster: cancel is refused."""
+        entry = self.goals.get(bytes(handle.goal_id.uuid))
+        if entry is None:
+            return False  # it has ended
+        if entry[2].kind != STAND_UP:
+            self.get_logger().warn('cancel refused: a sit-down ends on the caster (or halt)')
+            return False
+        entry[2].cancel_requested = True
+        return True
+
+    def on_feedback(self):
+        """FEEDBACK_HZ while a goal is active: each goal's feedback; a cancelled stand-up asks
+        for the sit-down once the controller has left sit."""
+        state = self.state()
+        now = self.now()
+        for key, (actions, handle, goal) in list(self.goals.items()):
+            if goal.cancel_requested and not goal.sitting_back:
+                mode = self.controller.mode.value
+                if mode in ('stand_up', 'balance'):
+                    reply = self.controller.request_sit()
+                    self.log_reply(reply, 'stand_up cancel: sit_down')
+                    if reply.ok:
+                        goal.sitting_back = True
+                    else:
+                        why = f'cancelled, not sitting back down ({reply.message}): standing up'
+                        self.end_goal(key, False, why, True)
+                        continue
+            actions.feedback(handle, elapsed=now - goal.started, **state)
+
+    def judge_goals(self, out):
+        """After a control step with events: end the goals it decides."""
+        for key, (_, _, goal) in list(self.goals.items()):
+            ending = goal.after_step(out.mode, out.events)
+            if ending is not None:
+                self.end_goal(key, ending.success, ending.message, ending.cancelled)
+
+    def end_goal(self, key, success, message, cancelled=False):
+        actions, handle, goal = self.goals.pop(key)
+        actions.end(handle, success, cancelled, message=message, **self.state())
+        self.log_reply(Reply(success, message), f'{goal.kind} goal')
+        if not self.goals:
+            self.feedback_timer.cancel()
+
+    def state(self):
+        """The mode and base pitch an action's feedback and result report."""
+        pitch = self.imu[1] if self.imu is not None else float('nan')
+        return {'mode': MODE_CODES[self.controller.mode.value], 'base_pitch': pitch}
 
     def on_halt(self, request, response):
         return self.answer(response, self.controller.request_stop('operator halt'), 'halt')
@@ -385,20 +484,22 @@ class AdrcControllerNode(Node):
         if out.mode != self.mode:
             self.get_logger().info(f'mode {self.mode} -> {out.mode}')
             self.mode = out.mode
-            self.mode_pub.publish(String(data=out.mode))
+            self.mode_pub.publish(
+                messages.controller_mode(self.get_clock().now().to_msg(), out.mode)
+            )
             self.publish_diagnostics()  # a mode change at once, not at the next 1 Hz report
+        if out.events and self.goals:  # every mode change has its event
+            self.judge_goals(out)
         if out.balance_converged != self.converged:
             self.converged = out.balance_converged
             self.converged_pub.publish(Bool(data=out.balance_converged))
         if out.balanced_point is not None:
             point = out.balanced_point
-            joint_names = list(self.robot.pose_joints) + [names.BASE_PITCH]
-            msg = messages.joint_state(
-                self.get_clock().now().to_msg(), joint_names, list(point.joints) + [point.q_base]
+            self.pose_pub.publish(
+                messages.balanced_pose(
+                    self.get_clock().now().to_msg(), self.robot.pose_joints, point
+                )
             )
-            # effort[i]: the standard error of position[i], rad (docs/interfaces.md)
-            msg.effort = [float(v) for v in point.joints_se] + [float(point.q_base_se)]
-            self.pose_pub.publish(msg)
             self.get_logger().info(
                 f'balanced pose detected: q_base {point.q_base:+.4f} rad '
                 f'(standard error {point.q_base_se:.5f}; the IMU filter: '

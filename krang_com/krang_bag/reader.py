@@ -269,8 +269,8 @@ def read_joint_states(path, topic: str = JOINT_STATES) -> JointStateSeries:
 
 
 def read_float_arrays(path, topic: str) -> FloatArraySeries:
-    """All Float64MultiArray messages of a topic, one row each (e.g. /com_estimator/beta); of a
-    JointState topic the efforts in message order (/wheel_effort_cmd: [JLWheel, JRWheel] N m)."""
+    """All Float64MultiArray messages of a topic, one row each (e.g. /sim_krang/ground_truth); of
+    a JointState topic the efforts in message order (/wheel_effort_cmd: [JLWheel, JRWheel] N m)."""
     _require_topic(path, topic, ('std_msgs/msg/Float64MultiArray', 'sensor_msgs/msg/JointState'))
     times, data = [], []
     for _, log_time, msg in iter_messages(path, [topic]):

@@ -1,11 +1,13 @@
-"""Re-learn beta offline from the balanced poses recorded in a bag."""
+"""Re-learn beta offline from the balanced poses recorded in a bag (today's BalancedPose and
+MassModel, or the JointState and Float64MultiArray of older bags: krang_core.message_values)."""
 
 from dataclasses import dataclass
 
 import numpy as np
 
-from krang_com_estimator.online import OnlineLearner, pitch_standard_error
-from krang_core.names import BALANCED_POSE as BALANCED_POSE_TOPIC, BASE_PITCH, BETA as BETA_TOPIC
+from krang_com_estimator.online import OnlineLearner
+from krang_core.message_values import balanced_pose_values, mass_model_values
+from krang_core.names import BALANCED_POSE as BALANCED_POSE_TOPIC, BETA as BETA_TOPIC
 
 from .reader import iter_messages
 
@@ -38,22 +40,20 @@ def balanced_poses(bag, robot):
     malformed ones are skipped."""
     poses = []
     for _, _, msg in iter_messages(bag, [BALANCED_POSE_TOPIC]):
-        index = {n: i for i, n in enumerate(msg.name)}
-        if BASE_PITCH not in index or any(j not in index for j in robot.pose_joints):
-            continue
-        poses.append(
-            (
-                float(msg.position[index[BASE_PITCH]]),
-                np.array([msg.position[index[j]] for j in robot.pose_joints]),
-                pitch_standard_error(msg),
-            )
-        )
+        pose = balanced_pose_values(msg, robot.pose_joints)
+        if pose is not None:
+            poses.append((pose.q_base, pose.joints, pose.q_base_se))
     return poses
 
 
 def recorded_betas(bag, robot):
-    rows = [np.array(msg.data) for _, _, msg in iter_messages(bag, [BETA_TOPIC])]
-    return np.array([r for r in rows if r.size == robot.n_beta])
+    """The betas the online estimator published on /com_estimator/beta, in order."""
+    betas = []
+    for _, _, msg in iter_messages(bag, [BETA_TOPIC]):
+        model = mass_model_values(msg, robot.n_beta)
+        if model is not None:
+            betas.append(model[0])
+    return np.array(betas)
 
 
 def relearn(bag, robot, method='map-online', beta0=None):

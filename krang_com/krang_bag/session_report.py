@@ -10,9 +10,10 @@ from matplotlib.ticker import MaxNLocator
 
 from krang_model.com import com_error, lateral_com_error
 from krang_model.files import save_figure
-from krang_core.names import BALANCED_POSE, BETA, DIAGNOSTICS, POSE_TARGET, WHEEL_EFFORT_CMD
+from krang_core.names import BALANCED_POSE, DIAGNOSTICS, POSE_TARGET, WHEEL_EFFORT_CMD
 
-from .reader import bag_info, iter_messages, read_float_arrays, read_joint_states
+from .reader import iter_messages, read_float_arrays
+from .relearn import recorded_betas
 
 
 def held_out_configurations(robot, n=2000, seed=12345):
@@ -76,8 +77,7 @@ def session_figures(bag, robot, true_beta, out_dir, beta0):
 
     `beta0` is the estimator's initial beta: the curve starts from it when the session stopped
     before the estimator published one (a Ctrl-C during stand-up still gets its report)."""
-    betas = read_float_arrays(bag, BETA).rows if BETA in bag_info(bag).topics else []
-    betas = [b for b in betas if len(b) == robot.n_beta] or [np.asarray(beta0, float)]
+    betas = list(recorded_betas(bag, robot)) or [np.asarray(beta0, float)]
     curve, lateral = learning_curve(robot, betas, true_beta)
     paths = []
     fig = Figure(figsize=(6, 3.5))
@@ -145,7 +145,7 @@ def timeline_figure(bag, effort):
             lw=0.9,
             label='pose move starts (new /pose_server/target)' if k == 0 else None,
         )
-    for k, t in enumerate(read_joint_states(bag, BALANCED_POSE).t - t0):
+    for k, t in enumerate(message_times(bag, BALANCED_POSE) - t0):
         ax.axvline(
             t,
             color='tab:green',

@@ -39,9 +39,9 @@ Topics:
 - subscribes /wheel_effort_cmd (sensor_msgs/JointState: name [JLWheel, JRWheel], effort N m at the
   wheel, header.stamp = the /imu/data sample it answers; reliable) and /joint_position_cmd
   (sensor_msgs/JointState, positions by name);
-- publishes /can_bridge/drive_fault (std_msgs/String, latched): the latched drive fault's reason,
-  '' when clear (BridgeCore: a FAULT or EMCY of any drive stops both wheels; the frame that latches
-  it sends zero current at once);
+- publishes /can_bridge/drive_fault (krang_com_interfaces/DriveFault, latched): the latched drive
+  fault, active with its reason, or clear (BridgeCore: a FAULT or EMCY of any drive stops both
+  wheels; the frame that latches it sends zero current at once);
 - serves ~/recover (std_srvs/Trigger, /can_bridge/recover): DS402 fault reset and the enable
   sequence (the start-up again), then unlatches only if every drive reports OPERATION_ENABLED;
   refused with the reason otherwise.
@@ -75,10 +75,10 @@ from dataclasses import dataclass, field
 import can
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
+from krang_com_interfaces.msg import DriveFault
 from rclpy._rclpy_pybind11 import RCLError
 from rclpy.node import Node
 from sensor_msgs.msg import Imu, JointState
-from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
 from krang_can_bridge.bus_io import enlarge_receive_buffer, receive_only
@@ -266,7 +266,7 @@ class CanBridgeNode(Node):
             DiagnosticArray, names.relative(names.DIAGNOSTICS), qos[names.DIAGNOSTICS]
         )
         self.fault_pub = self.create_publisher(
-            String, names.private(names.DRIVE_FAULT), topics.LATCHED
+            DriveFault, names.private(names.DRIVE_FAULT), topics.LATCHED
         )
         self.publish_fault()
         self.create_service(Trigger, '~/recover', self.on_recover)
@@ -348,10 +348,10 @@ class CanBridgeNode(Node):
 
     # ---- drive faults ---------------------------------------------------------------------------
     def publish_fault(self) -> None:
-        """The latched drive fault on DRIVE_FAULT, whenever it changes ('' once at start-up)."""
+        """The latched drive fault on DRIVE_FAULT, whenever it changes (clear once at start-up)."""
         reason = self.runtime.fault_changed()
         if reason is not None:
-            self.fault_pub.publish(String(data=reason))
+            self.fault_pub.publish(messages.drive_fault(self.get_clock().now().to_msg(), reason))
 
     def on_recover(self, request, response):
         """The recovery (BridgeRuntime.recover_keeping_alive). The other callbacks wait (rclpy's

@@ -40,6 +40,7 @@ def node_classes():
     from krang_can_bridge.node import CanBridgeNode
     from krang_com_estimator.node import ComEstimatorNode
     from krang_pose_server.node import PoseServer
+    from krang_ros.state_publisher import StatePublisherNode
     from krang_sim.node import SimKrangNode
 
     return {
@@ -48,6 +49,7 @@ def node_classes():
         'adrc_controller': AdrcControllerNode,
         'pose_server': PoseServer,
         'com_estimator': ComEstimatorNode,
+        'state_publisher': StatePublisherNode,
         RECORDER: McapRecorder,
     }
 

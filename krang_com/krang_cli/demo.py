@@ -1,4 +1,5 @@
-"""krang demo: the simulated Krang end to end, learning its mass model online over next_pose."""
+"""krang demo: the simulated Krang end to end, learning its mass model online, one
+move_to_next_pose goal per pose."""
 
 import logging
 import signal
@@ -35,7 +36,8 @@ def register(subparsers):
         'nominal model) and the node set in this process, on one executor over DDS and '
         'in-process CAN buses, so that the same seed gives the same session and the same beta '
         '(--processes: a process per node instead). Records every topic to DIR/session.mcap, '
-        'lets the robot stand up, then asks /pose_server/next_pose for '
+        'stands the robot up (/adrc_controller/stand_up), then sends '
+        '/pose_server/move_to_next_pose a goal for '
         "each pose (adaptive selection by default: the pose that most lowers the estimator's "
         'expected forward CoM error per second) while com_estimator learns beta online '
         'from each balanced pose. Writes DIR/beta.yaml, DIR/report.md with PNG figures and '

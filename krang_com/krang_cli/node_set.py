@@ -9,13 +9,23 @@ from dataclasses import dataclass
 
 from krang_model.config import config_path, load_config
 
-#: The robot's own nodes, in start order (the bridge first: it owns the drives).
-ROBOT_NODES = ('can_bridge', 'adrc_controller', 'pose_server', 'com_estimator')
+#: The robot's own nodes, in start order (the bridge first: it owns the drives). state_publisher
+#: puts /robot_description, /tf and the CoM in every recording, so that a bag opens in Foxglove
+#: with the robot drawn and posed.
+ROBOT_NODES = ('can_bridge', 'adrc_controller', 'pose_server', 'com_estimator', 'state_publisher')
 SIM_NODE = 'sim_krang'
 RECORDER = 'mcap_recorder'
 #: Stop order: commands first, the bridge (which sends zero current on exit) after the controller,
 #: the simulator after the bridge, the recorder last so that it sees everything.
-STOP_ORDER = ('pose_server', 'adrc_controller', 'com_estimator', 'can_bridge', SIM_NODE, RECORDER)
+STOP_ORDER = (
+    'pose_server',
+    'adrc_controller',
+    'com_estimator',
+    'state_publisher',
+    'can_bridge',
+    SIM_NODE,
+    RECORDER,
+)
 
 #: Parameter files of config/, later files win. sim_params.yaml holds every setting of the
 #: simulated node set that differs from the robot's, with the reason.

@@ -1,7 +1,9 @@
 """com_estimator: learns beta from /balanced_pose and publishes it (thin shell over OnlineLearner).
 
-Publishes ~/beta (latched, labelled), ~/com and ~/posterior (latched: beta and its covariance, for
-the pose server's adaptive choice); serves ~/save (writes `output` atomically) and ~/reset."""
+Subscribes /balanced_pose (krang_com_interfaces/BalancedPose). Publishes ~/beta (MassModel,
+latched: beta with its posterior covariance, which the pose server's adaptive choice reads) and
+~/com (the CoM at each learned pose, in base_footprint); serves ~/save (writes `output`
+atomically) and ~/reset."""
 
 import sys
 from dataclasses import dataclass, field
@@ -9,21 +11,21 @@ from pathlib import Path
 
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PointStamped
-import numpy as np
+from krang_com_interfaces.msg import BalancedPose, MassModel
 from rclpy.node import Node
-from sensor_msgs.msg import JointState
-from std_msgs.msg import Float64MultiArray, MultiArrayDimension
 from std_srvs.srv import Trigger
 
 from krang_model.beta import load_beta, save_beta
 from krang_model.robot import load_krang
 from krang_core import names, params
+from krang_core.message_values import balanced_pose_values
 from krang_ros import messages, topics
+from krang_ros.robot_frames import BASE_FOOTPRINT
 from krang_ros.params import declare
 from krang_ros.spin import run_node
 
 from .registry import estimator_names
-from .online import OnlineLearner, pitch_standard_error
+from .online import OnlineLearner
 
 
 @dataclass(frozen=True)
@@ -64,22 +66,18 @@ class ComEstimatorNode(Node):
         method, beta_file, self.output = cfg.method, cfg.initial_beta, Path(cfg.output)
         beta0 = load_beta(beta_file, self.robot) if beta_file else self.robot.nominal_beta
         self.learner = OnlineLearner(self.robot, beta0, method)
-        self.labels = self.robot.beta_labels()
         qos = topics.QOS
         self.beta_pub = self.create_publisher(
-            Float64MultiArray, names.private(names.BETA), qos[names.BETA]
+            MassModel, names.private(names.BETA), qos[names.BETA]
         )
         self.com_pub = self.create_publisher(
             PointStamped, names.private(names.COM), qos[names.COM]
-        )
-        self.posterior_pub = self.create_publisher(
-            Float64MultiArray, names.private(names.POSTERIOR), topics.LATCHED
         )
         self.diag_pub = self.create_publisher(
             DiagnosticArray, names.relative(names.DIAGNOSTICS), qos[names.DIAGNOSTICS]
         )
         self.create_subscription(
-            JointState,
+            BalancedPose,
             names.relative(names.BALANCED_POSE),
             self.on_balanced_pose,
             qos[names.BALANCED_POSE],
@@ -95,29 +93,27 @@ class ComEstimatorNode(Node):
         )
 
     def on_balanced_pose(self, msg):
-        joints = messages.joints_from_state(msg, self.robot.pose_joints)
-        pitch = messages.joints_from_state(msg, [names.BASE_PITCH])
-        if joints is None or pitch is None:
+        pose = balanced_pose_values(msg, self.robot.pose_joints)
+        if pose is None:
             self.rejected += 1
             self.get_logger().error(
-                f'rejected balanced pose: needs all body joints and {names.BASE_PITCH}, '
-                f'finite (got {list(msg.name)})'
+                'rejected balanced pose: needs every body joint and the base pitch, finite '
+                f'(got {list(msg.joint_names)})'
             )
             return
         try:
-            beta = self.learner.add_balanced_pose(
-                float(pitch[0]), joints, pitch_standard_error(msg)
-            )
+            beta = self.learner.add_balanced_pose(pose.q_base, pose.joints, pose.q_base_se)
         except ValueError as err:
             self.rejected += 1
             self.get_logger().error(f'rejected balanced pose: {err}')
             return
         self.publish_beta()
-        com = self.learner.com(float(pitch[0]), joints)
+        com = self.learner.com(pose.q_base, pose.joints)
         point = PointStamped()
         point.header = msg.header
-        point.header.frame_id = 'frame0'
-        point.point.x, point.point.y, point.point.z = (float(v) for v in com)
+        point.header.frame_id = BASE_FOOTPRINT  # frame 0 (the axle) is one wheel radius above it
+        point.point.x, point.point.y = float(com[0]), float(com[1])
+        point.point.z = float(com[2]) + self.robot.wheel_radius
         self.com_pub.publish(point)
         self.get_logger().info(
             f'pose {len(self.learner.poses)}: CoM x {1000 * com[0]:+.2f} mm at the measured '
@@ -125,19 +121,17 @@ class ComEstimatorNode(Node):
         )
 
     def publish_beta(self):
-        self.beta_pub.publish(messages.labelled_array(self.learner.beta, self.labels))
         beta, cov = self.learner.posterior()
-        n = len(beta)
-        cov = np.zeros((n, n)) if cov is None else cov
-        msg = Float64MultiArray()
-        msg.layout.dim = [
-            MultiArrayDimension(
-                label='row 0 beta, rows 1.. covariance', size=n + 1, stride=(n + 1) * n
-            ),
-            MultiArrayDimension(label='beta entry', size=n, stride=n),
-        ]
-        msg.data = np.vstack([beta, cov]).ravel().tolist()
-        self.posterior_pub.publish(msg)
+        self.beta_pub.publish(
+            messages.mass_model(
+                self.get_clock().now().to_msg(),
+                self.robot.body_names,
+                beta,
+                cov,
+                source=self.learner.method,
+                poses=len(self.learner.poses),
+            )
+        )
 
     def on_save(self, request, response):
         path = save_beta(

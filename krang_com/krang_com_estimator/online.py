@@ -7,7 +7,6 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from krang_model.com import com_frame0
-from krang_core.names import BASE_PITCH
 
 from .registry import make_estimator
 from .rows import NoiseModel
@@ -64,13 +63,3 @@ class OnlineLearner:
 
     def reset(self):
         self.__post_init__()
-
-
-def pitch_standard_error(msg):
-    """The standard error of the base pitch in a /balanced_pose message: its `effort` entry (the
-    controller's convention: effort[i] is the standard error of position[i], README topic table),
-    or None when absent, not finite or not positive."""
-    if len(msg.effort) != len(msg.name) or BASE_PITCH not in msg.name:
-        return None
-    se = float(msg.effort[list(msg.name).index(BASE_PITCH)])
-    return se if np.isfinite(se) and se > 0 else None

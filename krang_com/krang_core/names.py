@@ -1,5 +1,5 @@
-"""Topic and service names of the node graph, spelled once for every node, client, recorder,
-offline tool and test."""
+"""Topic, service and action names of the node graph, spelled once for every node, client,
+recorder, offline tool and test."""
 
 JOINT_STATES = '/joint_states'
 IMU = '/imu/data'
@@ -12,28 +12,28 @@ POSE_TARGET = '/pose_server/target'
 DIAGNOSTICS = '/diagnostics'
 CLOCK = '/clock'  # ROS simulated time, published by sim_krang
 GROUND_TRUTH = '/sim_krang/ground_truth'  # the simulator's truth, for evaluation only
-DRIVE_FAULT = '/can_bridge/drive_fault'  # latched reason of a drive fault, '' when clear
-MODE = '/adrc_controller/mode'  # latched controller mode (Mode values)
+DRIVE_FAULT = '/can_bridge/drive_fault'  # latched DriveFault
+MODE = '/adrc_controller/mode'  # latched ControllerMode
 BALANCE_CONVERGED = '/adrc_controller/balance_converged'  # latched Bool: balance estimate settled
 
-# latched (n_beta + 1) x n_beta Float64MultiArray: row 0 beta, rows 1.. its covariance (zeros when
-# the estimator has none); the pose server's adaptive choice reads it
-POSTERIOR = '/com_estimator/posterior'
-
-BASE_PITCH = 'base_pitch'  # the extra "joint" of /balanced_pose
+BASE_PITCH = 'base_pitch'  # the extra "joint" of /balanced_pose in older bags (JointState)
 WHEEL_JOINTS = ('JLWheel', 'JRWheel')
 
 # Services: the node that serves each and the name it is served under.
+# The controller's operator controls (README "Running on the robot"): std_srvs SetBool, Trigger.
 ENABLE = '/adrc_controller/enable'
-STAND_UP = '/adrc_controller/stand_up'  # std_srvs/Trigger; operator controls of
-SIT_DOWN = '/adrc_controller/sit_down'  # the controller, README "Running on the robot"
 HALT = '/adrc_controller/halt'
 CONTROLLER_RECOVER = '/adrc_controller/recover'
-NEXT_POSE = '/pose_server/next_pose'
+NEXT_POSE = '/pose_server/next_pose'  # Trigger: starts the move of MOVE_TO_NEXT_POSE
 POSE_RESET = '/pose_server/reset'
 SAVE = '/com_estimator/save'
 ESTIMATOR_RESET = '/com_estimator/reset'
 BRIDGE_RECOVER = '/can_bridge/recover'  # std_srvs/Trigger: fault reset + enable, or why not
+
+# Actions (krang_com_interfaces/action): the long calls, with feedback, result and cancel.
+STAND_UP_ACTION = '/adrc_controller/stand_up'  # StandUp
+SIT_DOWN_ACTION = '/adrc_controller/sit_down'  # SitDown
+MOVE_TO_NEXT_POSE = '/pose_server/move_to_next_pose'  # MoveToNextPose
 
 
 def relative(name):
@@ -43,6 +43,6 @@ def relative(name):
 
 
 def private(name):
-    """A service name above as the serving node's private name ('~/save'): it moves with __ns
-    and __node."""
+    """A service or action name above as the serving node's private name ('~/save'): it moves
+    with __ns and __node."""
     return '~/' + name.rsplit('/', 1)[1]

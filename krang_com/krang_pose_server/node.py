@@ -1,16 +1,21 @@
-"""pose_server: the next excitatory pose on /pose_server/next_pose (thin ROS shell).
+"""pose_server: the move to the next excitatory pose (thin ROS shell).
 
 selection 'adaptive' (default): from a pool of safe, balanced poses (pool_file, or pool_size poses
 drawn at start with pool_seed), the pose that most lowers the expected forward CoM error per
-second of move and settle, given the estimator's posterior on /com_estimator/posterior
-(krang_pose_server.selection). selection 'fixed': the meta-learned list poses_file in order (the
-paper's method).
+second of move and settle, given the estimator's mass model and its covariance on
+/com_estimator/beta (krang_pose_server.selection). selection 'fixed': the meta-learned list
+poses_file in order (the paper's method).
 
-~/next_pose is refused unless the controller balances (its latched mode topic) and while a move is
-under way; a move stops where it is if the controller leaves balance. While the controller's
+Two ways start the same move (start_move): the action ~/move_to_next_pose (MoveToNextPose:
+feedback while it moves, the balanced pose that ends it as the result, cancel) and the service
+~/next_pose (Trigger: answers once the move has started). Both are refused unless the controller
+balances (its latched mode topic) and while a move is under way (or, for a goal, waits for its
+balanced pose); a move stops where it is if the controller leaves balance. While the controller's
 latched balance_converged is false a move holds its setpoint (at most max_pause_s in total per
 move, then the rest at slow_fraction of its speed: krang_pose_server.streaming); each pause is
-logged, and the next reply and the diagnostics give the pauses of the last move."""
+logged, and the next reply and the diagnostics give the pauses of the last move. A cancelled goal
+stops the move where it is: that setpoint becomes the target, commanded once more, and the
+controller balances the robot there."""
 
 import math
 import sys
@@ -19,18 +24,23 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from diagnostic_msgs.msg import DiagnosticArray
+from krang_com_interfaces.action import MoveToNextPose
+from krang_com_interfaces.msg import BalancedPose, ControllerMode, MassModel
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.node import Node
-from sensor_msgs.msg import JointState
-from std_msgs.msg import Bool, Float64MultiArray, String
+from sensor_msgs.msg import Imu, JointState
+from std_msgs.msg import Bool
 from std_srvs.srv import Trigger
 
 from krang_model.config import config_path
 from krang_model.poses import load_poses
 from krang_model.robot import KRANG_POSE_COLUMNS, load_krang
-from krang_core import names, params
-from krang_ros import messages, topics
+from krang_core import message_values, names, params
+from krang_core.pitch import pitch_from_quaternion
+from krang_ros import messages, topics, wire
+from krang_ros.actions import HeldGoals, goal_key
 from krang_ros.params import declare
-from krang_ros.spin import Polled, run_node, take_waiting
+from krang_ros.spin import Polled, run_node, take_latest, take_waiting, without_qos_events
 
 from .pool import PosePool
 from .selection import CRITERIA, AdaptiveSelector
@@ -98,6 +108,20 @@ def describe_parameters():
     return params.describe(PoseServerParams)
 
 
+@dataclass
+class MoveGoal:
+    """A move_to_next_pose goal while it is active."""
+
+    handle: object  # its ServerGoalHandle
+    target: np.ndarray
+    expected_gain: float  # [m]; NaN if unknown
+    text: str  # what start_move said
+    settling: bool = False  # the move reached its target: the next balanced pose ends the goal
+    cancel_requested: bool = False
+    imu: object = None  # a Polled /imu/data subscription for the feedback's pitch, while active
+    pitch: float = math.nan
+
+
 class PoseServer(Node):
     def __init__(self, **kwargs):
         super().__init__('pose_server', **kwargs)
@@ -108,8 +132,9 @@ class PoseServer(Node):
         self.selection = cfg.selection
         self.speed_fraction = cfg.speed_fraction
         self.selector = None
-        self.posterior = None
+        self.posterior = None  # (beta, covariance or None) from /com_estimator/beta
         self.chosen = 0
+        self.expected_gain = math.nan  # of the pose start_move chose last [m]
         self.mode = None  # the controller's, from its latched mode topic
         if self.selection == 'adaptive':
             self.selector = self._make_selector(cfg)
@@ -127,6 +152,15 @@ class PoseServer(Node):
         )
         self.create_service(Trigger, names.private(names.NEXT_POSE), self.on_next_pose)
         self.create_service(Trigger, names.private(names.POSE_RESET), self.on_reset)
+        self.goal = None  # the active MoveGoal
+        self.move_action = HeldGoals(
+            self,
+            MoveToNextPose,
+            names.private(names.MOVE_TO_NEXT_POSE),
+            self.on_goal,
+            self.on_cancel,
+            MutuallyExclusiveCallbackGroup(),
+        )
         # read when a move is planned (measured_joints), not by a callback: the executor would
         # wake for every sample (100-500 Hz) to keep one of them
         self.joint_sub = self.create_subscription(
@@ -137,9 +171,17 @@ class PoseServer(Node):
             callback_group=Polled(),
         )
         self.create_subscription(
-            Float64MultiArray, names.relative(names.POSTERIOR), self.on_posterior, topics.LATCHED
+            MassModel, names.relative(names.BETA), self.on_mass_model, topics.QOS[names.BETA]
         )
-        self.create_subscription(String, names.relative(names.MODE), self.on_mode, topics.LATCHED)
+        self.create_subscription(
+            ControllerMode, names.relative(names.MODE), self.on_mode, topics.LATCHED
+        )
+        self.create_subscription(
+            BalancedPose,
+            names.relative(names.BALANCED_POSE),
+            self.on_balanced_pose,
+            qos[names.BALANCED_POSE],
+        )
         self.create_subscription(
             Bool, names.relative(names.BALANCE_CONVERGED), self.on_converged, topics.LATCHED
         )
@@ -148,6 +190,7 @@ class PoseServer(Node):
         self.stream_rate = cfg.stream_rate_hz
         self.measured = None
         self.move = None  # the MoveStreamer under way
+        self.target = None  # the pose of the last move started
         self.last_move = None  # ... and the one before, for its pauses
         self.last_tick = None
         self.create_timer(1.0 / self.stream_rate, self.stream_move)
@@ -178,19 +221,19 @@ class PoseServer(Node):
         self.get_logger().info(f'adaptive pose selection ({selector.criterion}) from {source}')
         return selector
 
-    def on_posterior(self, msg):
-        n = self.robot.n_beta
-        data = np.asarray(msg.data, dtype=float)
-        if data.size != (n + 1) * n:
+    def on_mass_model(self, msg):
+        values = message_values.mass_model_values(msg, self.robot.n_beta)
+        if values is None:
             self.get_logger().error(
-                f'posterior of {data.size} numbers ignored (needs {(n + 1) * n})'
+                f'mass model of {len(msg.beta)} values or with NaN/inf ignored '
+                f'(needs {self.robot.n_beta})'
             )
             return
-        data = data.reshape(n + 1, n)
-        self.posterior = (data[0], data[1:])
+        self.posterior = values
 
     def _next_target(self, start):
         """(joints, text) of the next pose, or (None, why not)."""
+        self.expected_gain = math.nan
         if self.selector is None:
             target = self.sequence.advance()
             if target is None:
@@ -200,9 +243,9 @@ class PoseServer(Node):
                 )
             return target.joints, target.describe()
         if self.posterior is None:
-            return None, f'no posterior from com_estimator yet ({names.POSTERIOR})'
+            return None, f'no mass model from com_estimator yet ({names.BETA})'
         beta, cov = self.posterior
-        if not np.any(cov):
+        if cov is None or not np.any(cov):
             return None, 'the estimator reports no covariance: use selection:=fixed with it'
         choice = self.selector.choose(beta, cov, start)
         if choice is None:
@@ -210,6 +253,7 @@ class PoseServer(Node):
             why = f' ({refused} refused: their path collides)' if refused else ''
             return None, f'pool used up{why}; call {names.POSE_RESET} to start over'
         self.chosen += 1
+        self.expected_gain = choice.rms_before_m - choice.rms_after_m  # NaN unless 'forward'
         return choice.joints, (
             f'adaptive pose {self.chosen} (pool pose {choice.index}; '
             f'predicted RMS forward error {1000 * choice.rms_before_m:.2f} -> '
@@ -218,10 +262,14 @@ class PoseServer(Node):
         )
 
     def on_mode(self, msg):
-        self.mode = msg.data
-        if self.move is not None and self.mode != 'balance':
+        self.mode = message_values.mode_name(msg)
+        if self.mode == 'balance':
+            return
+        if self.move is not None:
             self.get_logger().warning(f'controller left balance ({self.mode}): the move stops')
             self.move = None
+        if self.goal is not None:
+            self.end_goal(False, f'the controller left balance ({self.mode}): the move stopped')
 
     def on_converged(self, msg):
         self.converged = bool(msg.data)
@@ -241,8 +289,15 @@ class PoseServer(Node):
         return self.get_clock().now().nanoseconds * 1e-9
 
     def stream_move(self):
+        """At stream_rate_hz: the move's next setpoint, the goal's feedback and its cancel."""
+        goal = self.goal
+        if goal is not None and goal.cancel_requested:
+            self.stop_for_cancel(goal)
+            return
         move = self.move
         if move is None:
+            if goal is not None:
+                self.publish_feedback(goal, 1.0, False)
             return
         now = self.now()
         event = move.advance(max(now - self.last_tick, 0.0), self.converged is not False)
@@ -259,49 +314,149 @@ class PoseServer(Node):
                 f'move paused {self.pause.max_pause_s:g} s in total: the rest at '
                 f'{self.pause.slow_fraction:g} of its speed'
             )
-        self.cmd_pub.publish(
-            messages.joint_state(
-                self.get_clock().now().to_msg(), self.robot.pose_joints, move.setpoint
-            )
-        )
+        self.command(move.setpoint)
         if move.done:
             self.get_logger().info(f'move done ({move.summary()})')
             self.last_move, self.move = move, None
+            if goal is not None:
+                goal.settling = True
+        if goal is not None:
+            duration = move.move.duration
+            progress = 1.0 if duration <= 0 else move.progress_s / duration
+            self.publish_feedback(goal, progress, move.paused)
 
-    def on_next_pose(self, request, response):
+    def command(self, joints):
+        self.cmd_pub.publish(
+            messages.joint_state(self.get_clock().now().to_msg(), self.robot.pose_joints, joints)
+        )
+
+    def start_move(self):
+        """The move to the next pose, started: (True, what it is) or (False, why not). The one
+        way next_pose and move_to_next_pose move the robot."""
         if self.mode != 'balance':
-            response.success = False
-            response.message = (
+            return False, (
                 f'refused: the robot is not balancing (controller mode: '
                 f'{self.mode or "unknown"}); stand it up first'
             )
-            return response
         if self.move is not None:
-            response.success = False
-            response.message = 'refused: a move is still under way'
-            return response
+            return False, 'refused: a move is still under way'
+        if self.goal is not None:
+            return False, 'refused: a move is still under way (waiting for its balanced pose)'
         start = self.measured_joints()
         goal, text = self._next_target(
             start if start is not None else np.zeros(len(self.robot.pose_joints))
         )
         if goal is None:
-            response.success = False
-            response.message = text
-            return response
+            return False, text
         start = goal if start is None else start
         plan = StraightLineMove.plan(start, goal, self.robot.velocity_limit, self.speed_fraction)
         self.move = MoveStreamer(plan, self.pause)
+        self.target = np.array(goal, dtype=float)
         self.last_tick = self.now()
-        self.target_pub.publish(
-            messages.joint_state(self.get_clock().now().to_msg(), self.robot.pose_joints, goal)
-        )
+        self.publish_target(goal)
         self.stream_move()
-        response.success = True
-        response.message = f'{text} (a move of {plan.duration:.1f} s)'
+        message = f'{text} (a move of {plan.duration:.1f} s)'
         if self.last_move is not None:
-            response.message += f'; the last move: {self.last_move.summary()}'
-        self.get_logger().info(f'commanding {response.message}')
+            message += f'; the last move: {self.last_move.summary()}'
+        self.get_logger().info(f'commanding {message}')
+        return True, message
+
+    def publish_target(self, joints):
+        self.target_pub.publish(
+            messages.joint_state(self.get_clock().now().to_msg(), self.robot.pose_joints, joints)
+        )
+
+    def on_next_pose(self, request, response):
+        response.success, response.message = self.start_move()
         return response
+
+    # ---- the move_to_next_pose action -----------------------------------------------------------
+    def on_goal(self, handle):
+        """A goal, accepted: the move started, or the goal ended at once with why not."""
+        ok, message = self.start_move()
+        if not ok:
+            self.get_logger().warning(f'move_to_next_pose: {message}')
+            self.move_action.end(handle, False, message=message)
+            return
+        # a move of no length is done as it starts: the next balanced pose ends the goal
+        self.goal = MoveGoal(
+            handle, self.target, self.expected_gain, message, settling=self.move is None
+        )
+        # the feedback's pitch, read only while a goal is active: one more reader of the 500 Hz
+        # /imu/data would cost the bridge's publication on the control path all the time
+        self.goal.imu = self.create_subscription(
+            Imu,
+            names.relative(names.IMU),
+            lambda raw: None,
+            topics.LATEST,
+            raw=True,
+            callback_group=Polled(),
+        )
+        without_qos_events(self)
+
+    def on_cancel(self, handle):
+        """Accepted for the active goal: stream_move stops the move at its next tick."""
+        if self.goal is None or goal_key(self.goal.handle) != goal_key(handle):
+            return False
+        self.goal.cancel_requested = True
+        return True
+
+    def stop_for_cancel(self, goal):
+        """The move stops at its setpoint, which becomes the target: the robot holds that pose
+        and the controller balances it there."""
+        move = self.move
+        if move is None:
+            self.end_goal(False, 'cancelled: the move had reached its target', True)
+            return
+        self.last_move, self.move = move, None
+        held = move.setpoint
+        self.publish_target(held)
+        self.command(held)
+        done = 1.0 if move.move.duration <= 0 else move.progress_s / move.move.duration
+        self.get_logger().info(f'move cancelled at {done:.0%} of its path ({move.summary()})')
+        self.end_goal(
+            False, f'cancelled: the move stopped at {done:.0%} of its path, holding there', True
+        )
+
+    def on_balanced_pose(self, msg):
+        goal = self.goal
+        if goal is not None and goal.settling:
+            self.end_goal(
+                True,
+                f'balanced at base pitch {msg.base_pitch:+.4f} rad: {goal.text}',
+                balanced_pose=msg,
+            )
+
+    def publish_feedback(self, goal, progress, paused):
+        raw = take_latest(goal.imu)
+        if raw is not None:
+            try:
+                goal.pitch = pitch_from_quaternion(*wire.read_imu(raw).orientation)
+            except wire.WireError:
+                pass
+        self.move_action.feedback(
+            goal.handle,
+            progress=float(progress),
+            base_pitch=goal.pitch,
+            paused_for_balance=bool(paused),
+            expected_gain=goal.expected_gain,
+        )
+
+    def end_goal(self, success, message, cancelled=False, **fields):
+        goal, self.goal = self.goal, None
+        self.destroy_subscription(goal.imu)
+        self.move_action.end(
+            goal.handle,
+            success,
+            cancelled,
+            message=message,
+            target=[float(v) for v in goal.target],
+            **fields,
+        )
+        if success:
+            self.get_logger().info(f'move_to_next_pose: {message}')
+        else:
+            self.get_logger().warning(f'move_to_next_pose: {message}')
 
     def on_reset(self, request, response):
         self.sequence.reset()

@@ -44,9 +44,15 @@ from foxglove.messages import (
     Vector3,
 )
 
-from krang_model import com
 from krang_model.robot import load_krang
-from krang_ros.robot_frames import BASE_FOOTPRINT, WHEELS, RobotFrames, quaternion_from_matrix
+from krang_ros.robot_frames import (
+    BASE_FOOTPRINT,
+    WHEELS,
+    RobotFrames,
+    com_marks,
+    com_now,
+    quaternion_from_matrix,
+)
 
 COLORS = {
     'Base': (0.55, 0.55, 0.6),
@@ -65,6 +71,10 @@ JSON_SCHEMAS = {
 
 def _vec(v):
     return Vector3(x=float(v[0]), y=float(v[1]), z=float(v[2]))
+
+
+def _point(p):
+    return Point3(x=float(p[0]), y=float(p[1]), z=float(p[2]))
 
 
 def _quat(q):
@@ -145,12 +155,13 @@ class LiveView:
             self.beta_step = float(np.linalg.norm(beta - self.beta))
         self.beta, self.beta_seen = beta, True
 
-    def on_learned_com(self, com_frame0):
-        """/com_estimator/com: the estimator's CoM (frame 0) at a newly learned balanced pose."""
+    def on_learned_com(self, point):
+        """/com_estimator/com: the estimator's CoM at a newly learned balanced pose, in
+        base_footprint (x: its offset ahead of the axle)."""
         self.poses_learned += 1
         sample = {
             'pose': self.poses_learned,
-            'x_com_mm': 1000.0 * float(com_frame0[0]),
+            'x_com_mm': 1000.0 * float(point[0]),
             'beta_step': self.beta_step,
         }
         if self.server is not None:
@@ -184,57 +195,42 @@ class LiveView:
         joints = self.pose_joints()
         if joints is None or self.imu_orientation is None:
             return None
-        _, q_base = self.frames.base_link_in_footprint(self.imu_orientation)
-        estimated, nominal = (
-            com.com_frame0(self.robot, q_base, joints[None], beta)[0]
-            for beta in (self.beta, self.robot.nominal_beta)
-        )
-        return q_base, estimated, nominal
+        return com_now(self.robot, self.frames, self.imu_orientation, joints, self.beta)
 
     def com_scene(self, q_base, estimated, nominal):
-        r = self.frames.radius
-        axle = np.array([0.0, 0.0, r])
-        est, nom = estimated + axle, nominal + axle
-        top = max(est[2], nom[2]) + 0.3
+        marks = com_marks(q_base, estimated, nominal, self.frames.radius, self.mode or '?')
         lines = [
             LinePrimitive(
                 type=LinePrimitiveLineType.LineStrip,
-                thickness=0.01,
-                points=[Point3(x=0.0, y=0.0, z=r), Point3(x=0.0, y=0.0, z=top)],
-                color=_color((0.1, 0.8, 0.2)),
-            ),
-            LinePrimitive(
-                type=LinePrimitiveLineType.LineStrip,
-                thickness=0.008,
-                points=[Point3(x=0.0, y=0.0, z=r), Point3(x=est[0], y=est[1], z=est[2])],
-                color=_color((0.9, 0.15, 0.1)),
-            ),
+                thickness=thickness,
+                points=[_point(marks.axle), _point(end)],
+                color=_color(rgb),
+            )
+            for end, thickness, rgb in (
+                (marks.top, 0.01, (0.1, 0.8, 0.2)),
+                (marks.estimated, 0.008, (0.9, 0.15, 0.1)),
+            )
         ]
         spheres = [
             SpherePrimitive(
-                pose=_pose(est),
+                pose=_pose(marks.estimated),
                 size=Vector3(x=0.07, y=0.07, z=0.07),
                 color=_color((0.9, 0.15, 0.1)),
             ),
             SpherePrimitive(
-                pose=_pose(nom),
+                pose=_pose(marks.nominal),
                 size=Vector3(x=0.05, y=0.05, z=0.05),
                 color=_color((0.6, 0.6, 0.6), 0.7),
             ),
         ]
-        label = (
-            f'CoM {1000 * estimated[0]:+.1f} mm ahead of the axle (estimated beta, red); '
-            f'nominal {1000 * nominal[0]:+.1f} mm (grey); q_base {q_base:+.3f} rad; '
-            f'mode {self.mode or "?"}'
-        )
         texts = [
             TextPrimitive(
-                pose=_pose(est + np.array([0.0, 0.0, 0.12])),
+                pose=_pose(marks.estimated + np.array([0.0, 0.0, 0.12])),
                 billboard=True,
                 font_size=14.0,
                 scale_invariant=True,
                 color=_color((1.0, 1.0, 1.0)),
-                text=label,
+                text=marks.label,
             )
         ]
         return SceneUpdate(

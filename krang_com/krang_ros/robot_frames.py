@@ -13,6 +13,10 @@ The tree follows REP-105: odom -> base_footprint -> base_link, then the URDF's l
   below base_footprint, so this one edge is published child-to-parent.
 - every other URDF joint parent -> child: fixed joints once (/tf_static), moving joints from their
   positions (/tf), both from pinocchio's forward kinematics of the same URDF.
+
+The CoM the viewers draw (com_now, com_marks) is in base_footprint: frame 0 of krang_model.com
+(origin at the axle midpoint, x along the heading, z up) is base_footprint raised by one wheel
+radius.
 """
 
 from __future__ import annotations
@@ -25,6 +29,7 @@ from pathlib import Path
 import numpy as np
 import pinocchio as pin
 
+from krang_model import com
 from krang_model.robot import KRANG_URDF
 
 ODOM, BASE_FOOTPRINT, BASE_LINK, IMU_LINK = 'odom', 'base_footprint', 'base_link', 'imu_link'
@@ -186,3 +191,46 @@ class RobotFrames:
         x, y, yaw = self.odometry.update(left_wheel, right_wheel, pitch)
         odom = Transform(ODOM, BASE_FOOTPRINT, np.array([x, y, 0.0]), _rot_z(yaw))
         return [odom, base]
+
+
+def com_now(robot, frames, imu_quaternion, joints, beta):
+    """(q_base, CoM of `beta`, CoM of the URDF's nominal beta), both in frame 0, at the pitch of
+    the IMU orientation (x, y, z, w) and the body joints `joints` (pose order)."""
+    _, q_base = frames.base_link_in_footprint(imu_quaternion)
+    # one pass of the kinematics for both betas (com.com_frame0 for each would take two): the
+    # mass moment over the total mass
+    moment = com.regressor(robot, q_base, np.asarray(joints, dtype=float)[None])[0]
+    estimated, nominal = (
+        moment @ b / b[0::4].sum() for b in (np.asarray(beta, float), robot.nominal_beta)
+    )
+    return q_base, estimated, nominal
+
+
+@dataclass(frozen=True)
+class ComMarks:
+    """What a viewer draws of the CoM, in base_footprint: a vertical line from the axle to `top`
+    (balanced: the CoM is on it), a line from the axle to the estimated CoM, the estimated CoM
+    (red) and the nominal one (grey), and a label."""
+
+    axle: np.ndarray
+    top: np.ndarray
+    estimated: np.ndarray
+    nominal: np.ndarray
+    label: str
+
+
+def com_marks(q_base, estimated, nominal, radius, mode=''):
+    """ComMarks of com_now's CoMs (frame 0) for a wheel of `radius`; `mode` goes in the label."""
+    axle = np.array([0.0, 0.0, float(radius)])
+    est, nom = np.asarray(estimated, float) + axle, np.asarray(nominal, float) + axle
+    label = (
+        f'CoM {1000 * estimated[0]:+.1f} mm ahead of the axle (estimated beta, red); '
+        f'nominal {1000 * nominal[0]:+.1f} mm (grey); q_base {q_base:+.3f} rad'
+    )
+    return ComMarks(
+        axle=axle,
+        top=np.array([0.0, 0.0, max(est[2], nom[2]) + 0.3]),
+        estimated=est,
+        nominal=nom,
+        label=label + (f'; mode {mode}' if mode else ''),
+    )

@@ -1,19 +1,20 @@
 """The ROS side of `krang view`: subscribes to the robot's topics and feeds
 krang_ros.foxglove_view.LiveView, which serves them to Foxglove over a WebSocket.
 
-Subscribes /joint_states, /imu/data, /com_estimator/beta, /com_estimator/com, /diagnostics (the
-controller's 'mode' value) and the latched /adrc_controller/mode (std_msgs/String) if a controller
-publishes one. Publishes nothing on ROS.
+Subscribes /joint_states, /imu/data, /com_estimator/beta (MassModel), /com_estimator/com,
+/diagnostics (the controller's 'mode' value) and the latched /adrc_controller/mode
+(ControllerMode) if a controller publishes one. Publishes nothing on ROS.
 """
 
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PointStamped
+from krang_com_interfaces.msg import ControllerMode, MassModel
 from rclpy.node import Node
 from sensor_msgs.msg import Imu, JointState
-from std_msgs.msg import Float64MultiArray, String
 
 from krang_core import names
-from krang_ros import messages, topics
+from krang_core.message_values import mass_model_values, mode_name
+from krang_ros import topics
 from krang_ros.foxglove_view import LiveView
 
 
@@ -31,7 +32,7 @@ class LiveViewNode(Node):
             qos[names.JOINT_STATES],
         )
         sub(Imu, names.relative(names.IMU), self.on_imu, qos[names.IMU])
-        sub(Float64MultiArray, names.BETA, self.on_beta, qos[names.BETA])
+        sub(MassModel, names.BETA, self.on_beta, qos[names.BETA])
         sub(PointStamped, names.COM, self.on_com, qos[names.COM])
         sub(
             DiagnosticArray,
@@ -39,7 +40,12 @@ class LiveViewNode(Node):
             self.on_diagnostics,
             qos[names.DIAGNOSTICS],
         )
-        sub(String, names.MODE, lambda msg: self.view.on_mode(msg.data), topics.LATCHED)
+        sub(
+            ControllerMode,
+            names.MODE,
+            lambda msg: self.view.on_mode(mode_name(msg)),
+            topics.LATCHED,
+        )
         self.create_timer(1.0 / rate_hz, self.view.publish)
         self.create_timer(1.0, self.view.publish_scene)
         self.view.publish_scene()
@@ -56,9 +62,9 @@ class LiveViewNode(Node):
         self.view.on_imu((q.x, q.y, q.z, q.w))
 
     def on_beta(self, msg):
-        beta = messages.array_values(msg, self.view.robot.n_beta)
-        if beta is not None:
-            self.view.on_beta(beta)
+        model = mass_model_values(msg, self.view.robot.n_beta)
+        if model is not None:
+            self.view.on_beta(model[0])
 
     def on_com(self, msg):
         p = msg.point

@@ -26,6 +26,8 @@ COLCON = Path(sys.executable).parent / 'colcon'
 ROSDEP_KEYS = {
     'krang_com_interfaces': 'krang_com_interfaces',  # the repository's interface package
     'rclpy': 'rclpy',
+    'action_msgs': 'action_msgs',
+    'unique_identifier_msgs': 'unique_identifier_msgs',
     'ament_index_python': 'ament_index_python',
     'builtin_interfaces': 'builtin_interfaces',
     'std_msgs': 'std_msgs',
@@ -52,6 +54,7 @@ ROSDEP_KEYS = {
     'mcap': 'python3-mcap',
     'mcap_ros2': 'python3-mcap-ros2-support',
     'tf2_msgs': 'tf2_msgs',
+    'visualization_msgs': 'visualization_msgs',
     'foxglove': 'python3-foxglove-sdk',
     'mujoco': 'python3-mujoco',
 }
@@ -133,7 +136,7 @@ def test_launch_files_start_what_bringup_starts(launch_file, sim, monkeypatch):
     # the parameter files are the ones krang bringup passes, and they exist
     assert all(p == params_files(sim) for _, p in launched)
     assert all(Path(f).is_file() for f in params_files(sim))
-    expected = {'can_bridge', 'adrc_controller', 'pose_server', 'com_estimator'}
+    expected = {'can_bridge', 'adrc_controller', 'pose_server', 'com_estimator', 'state_publisher'}
     assert {e for e, _ in launched} == expected | ({'sim_krang'} if sim else set())
 
 

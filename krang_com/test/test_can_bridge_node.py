@@ -21,7 +21,7 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data  # 
 from builtin_interfaces.msg import Time  # noqa: E402
 from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
 from sensor_msgs.msg import Imu, JointState  # noqa: E402
-from std_msgs.msg import String  # noqa: E402
+from krang_com_interfaces.msg import DriveFault  # noqa: E402
 
 from krang_can_bridge.config import load_devices  # noqa: E402
 from krang_can_bridge.node import CanBridgeNode  # noqa: E402
@@ -126,7 +126,7 @@ def test_node_bridges_states_and_commands(devices_file):
         DiagnosticArray, '/diagnostics', lambda m: got.__setitem__('diag', m), 10
     )
     probe.create_subscription(
-        String, names.DRIVE_FAULT, lambda m: got.__setitem__('fault', m), topics.LATCHED
+        DriveFault, names.DRIVE_FAULT, lambda m: got.__setitem__('fault', m), topics.LATCHED
     )
     effort_pub = probe.create_publisher(
         JointState,
@@ -179,7 +179,8 @@ def test_node_bridges_states_and_commands(devices_file):
             return abs(c['JLWheel'] - expected) < 0.01 and abs(c['JRWheel'] - expected) < 0.01
 
         assert spin_until(current_arrived, 5.0), robot.devices.wheel_currents()
-        assert got['fault'].data == ''  # latched '' from the start: no fault
+        # latched clear from the start: no fault
+        assert not got['fault'].active and got['fault'].reason == ''
 
         # half-invalid: both wheels stop, and /diagnostics WARNs with the count and the reason
         def both_zero_and_warned():

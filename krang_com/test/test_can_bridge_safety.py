@@ -45,7 +45,7 @@ from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
 from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 from sensor_msgs.msg import Imu, JointState  # noqa: E402
-from std_msgs.msg import String  # noqa: E402
+from krang_com_interfaces.msg import DriveFault  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
 
 from krang_can_bridge.config import default_devices_file, load_devices, resolve_devices_file  # noqa: E402
@@ -55,6 +55,7 @@ from krang_cli.processes import NodeSet, child_setup  # noqa: E402
 from krang_model.drivetrain import drivetrain  # noqa: E402
 from krang_model.robot import load_krang  # noqa: E402
 from krang_core import names  # noqa: E402
+from krang_core.message_values import drive_fault_reason  # noqa: E402
 from krang_ros import messages, topics  # noqa: E402
 
 
@@ -232,7 +233,10 @@ class Probe:
         )
         self.fault, self.diag = None, {}
         self.node.create_subscription(
-            String, names.DRIVE_FAULT, lambda m: setattr(self, 'fault', m.data), topics.LATCHED
+            DriveFault,
+            names.DRIVE_FAULT,
+            lambda m: setattr(self, 'fault', drive_fault_reason(m)),
+            topics.LATCHED,
         )
         self.node.create_subscription(DiagnosticArray, names.DIAGNOSTICS, self._on_diag, 10)
         self.imu_at = []  # /imu/data: each sample's time (its stamp) on time.monotonic()

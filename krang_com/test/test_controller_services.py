@@ -1,7 +1,9 @@
-"""The controller's operator services over real processes (sim_krang, can_bridge, adrc_controller):
-enable sits powered without standing, stand_up balances, sit_down puts the robot back on its caster
-without a fall, halt zeroes the current, recover is refused while the bridge reports a drive fault;
-and the controller's names move with its namespace (README, "Running on the robot")."""
+"""The controller's operator controls over real processes (sim_krang, can_bridge, adrc_controller):
+enable sits powered without standing; the stand_up action gives feedback and balances, and
+cancelled it sits the robot back down; a stand-up while balancing is refused with the reason; the
+sit_down action puts the robot back on its caster without a fall and cannot be cancelled; halt
+zeroes the current, recover is refused while the bridge reports a drive fault; and the
+controller's names move with its namespace (README, "Running on the robot")."""
 
 import subprocess
 import sys
@@ -14,9 +16,12 @@ pytestmark = pytest.mark.ros
 rclpy = pytest.importorskip('rclpy')
 pytest.importorskip('msgpack')  # python-can's udp_multicast needs it
 
+from action_msgs.msg import GoalStatus  # noqa: E402
+from krang_com_interfaces.msg import ControllerMode, DriveFault  # noqa: E402
 from rcl_interfaces.srv import SetParameters  # noqa: E402
+from rclpy.action import get_action_names_and_types  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
-from std_msgs.msg import Float64MultiArray, String  # noqa: E402
+from std_msgs.msg import Float64MultiArray  # noqa: E402
 from std_srvs.srv import SetBool  # noqa: E402
 
 from krang_cli.node_set import params_files  # noqa: E402
@@ -24,7 +29,7 @@ from krang_cli.processes import NodeSet  # noqa: E402
 from krang_model.drivetrain import drivetrain  # noqa: E402
 from krang_model.robot import load_krang  # noqa: E402
 from krang_core import names  # noqa: E402
-from krang_ros import topics  # noqa: E402
+from krang_ros import messages, topics  # noqa: E402
 from krang_ros.session_client import SessionError, open_session_client  # noqa: E402
 from krang_sim.node import GROUND_TRUTH_FIELDS  # noqa: E402
 from krang_sim.session_config import session_devices_file  # noqa: E402
@@ -53,6 +58,10 @@ def wait_mode(client, mode, timeout):
     client.spin_until(lambda: client.mode == mode, timeout, f'mode {mode}')
 
 
+def fault(client, reason):
+    return messages.drive_fault(client.get_clock().now().to_msg(), reason)
+
+
 @pytest.mark.timeout(300)
 def test_operator_services_over_ros(tmp_path):
     caster = drivetrain(load_krang()).caster_pitch
@@ -64,7 +73,7 @@ def test_operator_services_over_ros(tmp_path):
     client, context = open_session_client()
     try:
         watch = Watch(client)
-        fault_pub = client.create_publisher(String, names.DRIVE_FAULT, topics.LATCHED)
+        fault_pub = client.create_publisher(DriveFault, names.DRIVE_FAULT, topics.LATCHED)
         enable = client.enable
         for _ in range(60):  # refused until the sensor data flow
             try:
@@ -76,19 +85,47 @@ def test_operator_services_over_ros(tmp_path):
         wait_mode(client, 'sit', 10.0)
         client.pause(3.0)
         assert client.mode == 'sit', 'enable must not stand the robot up'
-        reply = client.operate(names.STAND_UP)
-        assert reply.success and reply.message.startswith('started'), reply.message
-        wait_mode(client, 'balance', 120.0)
+
+        goal = client.stand_up()  # cancelled while standing up: back onto the caster
+        client.spin_until(
+            lambda: client.mode == 'stand_up' and goal.feedback, 20.0, 'stand-up feedback'
+        )
+        assert client.cancel(goal)
+        result = client.result(goal, 30.0)
+        assert goal.status == GoalStatus.STATUS_CANCELED and not result.success, result.message
+        assert 'sat back down' in result.message and result.mode == ControllerMode.SIT
+        wait_mode(client, 'sit', 5.0)  # another topic than the result's: it can come after it
+        assert client.modes[-3:] == ['stand_up', 'sit_down', 'sit'], client.modes
+        client.pause(2.0)
+
+        goal = client.stand_up()
+        result = client.result(goal, 120.0)
+        assert goal.status == GoalStatus.STATUS_SUCCEEDED and result.success, result.message
+        assert result.mode == ControllerMode.BALANCE
+        wait_mode(client, 'balance', 5.0)
+        modes = [f.mode for f in goal.feedback]
+        assert ControllerMode.STAND_UP in modes and set(modes) <= {0, 1, 2}, modes
+        elapsed = [f.elapsed for f in goal.feedback]
+        assert elapsed == sorted(elapsed) and elapsed[-1] > 1.0, elapsed
+        assert all(caster - 0.1 < f.base_pitch < 0.0 for f in goal.feedback)
+        assert caster + 0.1 < result.base_pitch < 0.0, result.base_pitch
+
         reply = client.call(enable, SetBool.Request(data=False))
         assert not reply.success and 'use sit_down or halt' in reply.message
-        reply = client.operate(names.STAND_UP)
-        assert not reply.success and 'already balancing' in reply.message
+        goal = client.stand_up()  # refused, with the reason
+        result = client.result(goal, 10.0)
+        assert goal.status == GoalStatus.STATUS_ABORTED and not result.success
+        assert 'already balancing' in result.message, result.message
         client.pause(3.0)
 
         n_truth = len(watch.truth)
-        reply = client.operate(names.SIT_DOWN)
-        assert reply.success, reply.message
-        wait_mode(client, 'sit', 20.0)
+        goal = client.sit_down()
+        assert not client.cancel(goal), 'a sit-down, once begun, ends on the caster'
+        result = client.result(goal, 20.0)
+        assert goal.status == GoalStatus.STATUS_SUCCEEDED and result.success, result.message
+        assert result.mode == ControllerMode.SIT
+        wait_mode(client, 'sit', 5.0)
+        assert {f.mode for f in goal.feedback} <= {2, 3}
         client.pause(3.0)
         sat = watch.truth[n_truth:]
         rates = np.abs(np.diff([r['q_base'] for r in sat]) / np.diff([r['t'] for r in sat]))
@@ -109,12 +146,12 @@ def test_operator_services_over_ros(tmp_path):
             r['current_left_a'] == 0.0 and r['current_right_a'] == 0.0 for r in watch.truth[-3:]
         )
 
-        fault_pub.publish(String(data='JRWheel: FAULT (test)'))
+        fault_pub.publish(fault(client, 'JRWheel: FAULT (test)'))
         client.pause(1.0)
         reply = client.operate(names.CONTROLLER_RECOVER)
         assert not reply.success and '/can_bridge/recover' in reply.message, reply.message
         assert 'JRWheel: FAULT (test)' in reply.message
-        fault_pub.publish(String(data=''))
+        fault_pub.publish(fault(client, ''))
         client.pause(1.0)
         reply = client.operate(names.CONTROLLER_RECOVER)
         assert reply.success, reply.message
@@ -140,15 +177,9 @@ def test_names_move_with_the_namespace_and_read_only_parameters_refuse(tmp_path)
     client, context = open_session_client()
     try:
         expected_services = {
-            '/robot1' + n
-            for n in (
-                names.ENABLE,
-                names.STAND_UP,
-                names.SIT_DOWN,
-                names.HALT,
-                names.CONTROLLER_RECOVER,
-            )
+            '/robot1' + n for n in (names.ENABLE, names.HALT, names.CONTROLLER_RECOVER)
         }
+        expected_actions = {'/robot1' + n for n in (names.STAND_UP_ACTION, names.SIT_DOWN_ACTION)}
         expected_topics = {
             '/robot1' + n
             for n in (
@@ -172,7 +203,11 @@ def test_names_move_with_the_namespace_and_read_only_parameters_refuse(tmp_path)
             )
 
         client.spin_until(
-            lambda: expected_services <= graph()[0] and expected_topics <= graph()[1],
+            lambda: (
+                expected_services <= graph()[0]
+                and expected_topics <= graph()[1]
+                and expected_actions <= {n for n, _ in get_action_names_and_types(client)}
+            ),
             60.0,
             'the namespaced controller in the graph',
         )

@@ -16,9 +16,9 @@ from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PointStamped
 from rclpy.executors import SingleThreadedExecutor
 from sensor_msgs.msg import Imu, JointState
-from std_msgs.msg import Float64MultiArray
 
 from krang_cli.main import build_parser
+from krang_com_interfaces.msg import MassModel
 from krang_model import com
 from krang_model.robot import load_krang
 from krang_core import names
@@ -119,7 +119,7 @@ def test_view_node_serves_the_robot_to_a_websocket_client():
         n: fake.create_publisher(t, n, qos[n])
         for n, t in (
             (names.JOINT_STATES, JointState),
-            (names.BETA, Float64MultiArray),
+            (names.BETA, MassModel),
             (names.COM, PointStamped),
             (names.DIAGNOSTICS, DiagnosticArray),
         )
@@ -135,13 +135,11 @@ def test_view_node_serves_the_robot_to_a_websocket_client():
 
     def publish():
         stamp = fake.get_clock().now().to_msg()
-        pub[names.BETA].publish(messages.labelled_array(robot.nominal_beta, robot.beta_labels()))
-        time.sleep(0.3)
-        pub[names.BETA].publish(
-            messages.labelled_array(robot.nominal_beta + step, robot.beta_labels())
-        )
-        time.sleep(0.3)
+        for beta in (robot.nominal_beta, robot.nominal_beta + step):
+            pub[names.BETA].publish(messages.mass_model(stamp, robot.body_names, beta))
+            time.sleep(0.3)
         point = PointStamped()
+        point.header.frame_id = 'base_footprint'
         point.point.x, point.point.z = 0.0123, 0.5
         pub[names.COM].publish(point)
         pub[names.DIAGNOSTICS].publish(

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from krang_cli.node_set import params_files
+from krang_cli.node_set import node_set, params_files
 from krang_model.config import load_config
 from krang_ros.entry import NODE_MODULES, STOP_DEADLINE_S
 from krang_core.params import nested_to_dotted
@@ -325,8 +325,9 @@ def test_nodes_stop_when_bringup_is_killed(tmp_path):
     try:
         time.sleep(6.0)
         nodes = _children(proc.pid)
-        assert len(nodes) == 5, (
-            f'bringup --sim started {len(nodes)} nodes, expected 5 (bringup exit code '
+        expected = len(node_set(sim=True))
+        assert len(nodes) == expected, (
+            f'bringup --sim started {len(nodes)} nodes, expected {expected} (bringup exit code '
             f'{proc.poll()}): '
             + ''.join(p.read_text()[-800:] for p in (tmp_path / 'logs').glob('*.log'))
         )

@@ -1,8 +1,11 @@
 """pose_server over ROS, as a process under a namespace: next_pose is refused unless the
 controller balances and while a move is under way, and a move stops when the controller leaves
 balance; a move holds its setpoint while the controller's balance_converged is false and goes on
-when it is true; every name moves with __ns."""
+when it is true; the move_to_next_pose action gives feedback while it moves, ends with the next
+balanced pose, stops and holds where it is when cancelled, and says why when refused; every name
+moves with __ns."""
 
+import math
 import subprocess
 import sys
 import time
@@ -12,11 +15,16 @@ import pytest
 
 pytestmark = pytest.mark.ros
 rclpy = pytest.importorskip('rclpy')
+from action_msgs.msg import GoalStatus  # noqa: E402
+from krang_com_interfaces.action import MoveToNextPose  # noqa: E402
+from krang_com_interfaces.msg import BalancedPose, ControllerMode  # noqa: E402
+from rclpy.action import ActionClient  # noqa: E402
 from rclpy.node import Node  # noqa: E402
-from sensor_msgs.msg import JointState  # noqa: E402
-from std_msgs.msg import Bool, String  # noqa: E402
+from sensor_msgs.msg import Imu, JointState  # noqa: E402
+from std_msgs.msg import Bool  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
 
+from krang_adrc_controller.detector import BalancedPoint  # noqa: E402
 from krang_model.robot import load_krang  # noqa: E402
 from krang_core import names  # noqa: E402
 from krang_ros import messages, topics  # noqa: E402
@@ -88,18 +96,26 @@ def call(node, context, client, attempts=3):
     raise AssertionError(f'no answer from next_pose in {attempts} calls')
 
 
+def mode_publisher(node):
+    """A fake controller's latched mode topic: publish(name)."""
+    pub = node.create_publisher(ControllerMode, names.relative(names.MODE), topics.LATCHED)
+    return lambda name: pub.publish(
+        messages.controller_mode(node.get_clock().now().to_msg(), name)
+    )
+
+
 def test_next_pose_waits_for_the_controller(pose_server):
     proc, node, context = pose_server
     commands = []
     node.create_subscription(
         JointState, names.relative(names.JOINT_POSITION_CMD), commands.append, 10
     )
-    mode = node.create_publisher(String, names.relative(names.MODE), topics.LATCHED)
+    mode = mode_publisher(node)
     client = node.create_client(Trigger, f'{NS}/pose_server/next_pose')  # moved with __ns
 
     reply = call(node, context, client)  # no controller yet
     assert not reply.success and 'not balancing' in reply.message
-    mode.publish(String(data='sit'))
+    mode('sit')
     spin(node, context, 0.5)
     reply = call(node, context, client)
     assert not reply.success and 'mode: sit' in reply.message
@@ -108,7 +124,7 @@ def test_next_pose_waits_for_the_controller(pose_server):
     joint_states.publish(
         messages.joint_state(node.get_clock().now().to_msg(), load_krang().pose_joints, [0.0] * 16)
     )
-    mode.publish(String(data='balance'))
+    mode('balance')
     spin(node, context, 0.5)
     reply = call(node, context, client)
     assert reply.success, reply.message
@@ -116,7 +132,7 @@ def test_next_pose_waits_for_the_controller(pose_server):
     assert len(commands) >= 5, 'the move did not stream'
     reply = call(node, context, client)
     assert not reply.success and 'under way' in reply.message
-    mode.publish(String(data='safe_stop'))
+    mode('safe_stop')
     spin(node, context, 0.5)
     n = len(commands)
     spin(node, context, 1.0)
@@ -137,14 +153,14 @@ def test_a_move_holds_while_the_balance_estimate_is_unconverged(patient_pose_ser
     node.create_subscription(
         JointState, f'{NS}/pose_server/target', targets.append, topics.QOS[names.POSE_TARGET]
     )
-    mode = node.create_publisher(String, names.relative(names.MODE), topics.LATCHED)
+    mode = mode_publisher(node)
     converged = node.create_publisher(
         Bool, names.relative(names.BALANCE_CONVERGED), topics.LATCHED
     )
     joint_states = node.create_publisher(JointState, names.relative(names.JOINT_STATES), 10)
     client = node.create_client(Trigger, f'{NS}/pose_server/next_pose')
     assert client.wait_for_service(timeout_sec=30.0)
-    mode.publish(String(data='balance'))
+    mode('balance')
     converged.publish(Bool(data=False))  # a fake controller: the estimate is not settled
     spin(node, context, 1.0)
     joint_states.publish(
@@ -167,3 +183,122 @@ def test_a_move_holds_while_the_balance_estimate_is_unconverged(patient_pose_ser
     spin(node, context, 0.3)
     reply = call(node, context, client)  # the move has ended: the next one is accepted
     assert reply.success and '1 pause(s)' in reply.message, reply.message
+
+
+class Probe:
+    """A fake controller and IMU beside the pose server, and a client of its move action."""
+
+    def __init__(self, node, context):
+        self.node, self.context = node, context
+        self.executor = rclpy.executors.SingleThreadedExecutor(context=context)
+        self.executor.add_node(node)
+        self.commands, self.targets, self.feedback = [], [], []
+        node.create_subscription(
+            JointState, names.relative(names.JOINT_POSITION_CMD), self.commands.append, 100
+        )
+        node.create_subscription(
+            JointState, f'{NS}/pose_server/target', self.targets.append, topics.LATCHED
+        )
+        self.mode = mode_publisher(node)
+        self.imu = node.create_publisher(Imu, names.relative(names.IMU), topics.QOS[names.IMU])
+        self.poses = node.create_publisher(
+            BalancedPose, names.relative(names.BALANCED_POSE), topics.QOS[names.BALANCED_POSE]
+        )
+        self.joint_states = node.create_publisher(
+            JointState, names.relative(names.JOINT_STATES), 10
+        )
+        self.action = ActionClient(node, MoveToNextPose, f'{NS}/pose_server/move_to_next_pose')
+        self.next_pose = node.create_client(Trigger, f'{NS}/pose_server/next_pose')
+
+    def spin_until(self, condition, timeout, what):
+        """Spin (publishing /imu/data at a pitch of PITCH) until `condition()`."""
+        end = time.monotonic() + timeout
+        while not condition():
+            assert time.monotonic() < end, f'timed out waiting for {what}'
+            stamp = self.node.get_clock().now().to_msg()
+            self.imu.publish(messages.imu(stamp, 'imu', PITCH, 1e-6, (0, 0, 0), (0, 0, 9.8)))
+            self.executor.spin_once(timeout_sec=0.02)
+
+    def pause(self, seconds):
+        end = time.monotonic() + seconds
+        self.spin_until(lambda: time.monotonic() > end, seconds + 1.0, 'the time')
+
+    def send(self):
+        """A goal, accepted (as every goal is: a refused one ends at once, aborted): (goal
+        handle, its feedback list, the future of its result)."""
+        assert self.action.wait_for_server(timeout_sec=30.0), 'move_to_next_pose not served'
+        feedback = []
+        future = self.action.send_goal_async(
+            MoveToNextPose.Goal(), feedback_callback=lambda m: feedback.append(m.feedback)
+        )
+        self.spin_until(future.done, 10.0, 'the goal accepted')
+        handle = future.result()
+        assert handle.accepted
+        return handle, feedback, handle.get_result_async()
+
+    def result(self, result, timeout):
+        self.spin_until(result.done, timeout, 'the result')
+        return result.result().status, result.result().result
+
+
+PITCH = -1.55  # the fake IMU's pitch [rad]
+
+
+def test_move_to_next_pose_action(pose_server):
+    """Refused with its reason; feedback while moving; the next balanced pose after the move
+    ends it, with the target; next_pose is refused meanwhile; cancel stops the move and holds
+    the pose where it stopped."""
+    _, node, context = pose_server
+    probe = Probe(node, context)
+    robot = load_krang()
+
+    _, _, result = probe.send()  # no controller yet: refused, with why
+    status, res = probe.result(result, 10.0)
+    assert status == GoalStatus.STATUS_ABORTED and not res.success
+    assert 'not balancing' in res.message, res.message
+
+    probe.joint_states.publish(
+        messages.joint_state(node.get_clock().now().to_msg(), robot.pose_joints, [0.0] * 16)
+    )
+    probe.mode('balance')
+    probe.pause(0.5)
+    _, feedback, result = probe.send()
+    probe.spin_until(lambda: len(probe.targets) > 0, 10.0, 'the target')
+    target = np.array(probe.targets[-1].position)
+    probe.spin_until(lambda: feedback and feedback[-1].progress > 0.2, 10.0, 'progress')
+    future = probe.next_pose.call_async(Trigger.Request())
+    probe.spin_until(future.done, 10.0, 'the next_pose answer')
+    assert not future.result().success and 'under way' in future.result().message
+    probe.spin_until(lambda: feedback[-1].progress == 1.0, 30.0, 'the move to end')
+    progress = [f.progress for f in feedback]
+    assert progress == sorted(progress) and 0.0 <= progress[0] < 0.2, progress
+    assert not any(f.paused_for_balance for f in feedback)
+    assert math.isnan(feedback[-1].expected_gain)  # the fixed list predicts no gain
+    assert feedback[-1].base_pitch == pytest.approx(PITCH, abs=1e-6)
+    assert not result.done(), 'the goal ended before its balanced pose'
+    point = BalancedPoint(
+        t=1.0, q_base=-1.5432, joints=target, q_base_std=0.001, n_samples=45, window_s=1.5
+    )
+    probe.poses.publish(
+        messages.balanced_pose(node.get_clock().now().to_msg(), robot.pose_joints, point)
+    )
+    status, res = probe.result(result, 10.0)
+    assert status == GoalStatus.STATUS_SUCCEEDED and res.success, res.message
+    assert res.balanced_pose.base_pitch == -1.5432
+    np.testing.assert_allclose(res.target, target)
+
+    handle, feedback, result = probe.send()
+    probe.spin_until(lambda: feedback and feedback[-1].progress > 0.1, 10.0, 'progress')
+    cancel = handle.cancel_goal_async()
+    probe.spin_until(cancel.done, 10.0, 'the cancel answer')
+    assert len(cancel.result().goals_canceling) == 1
+    status, res = probe.result(result, 10.0)
+    assert status == GoalStatus.STATUS_CANCELED and not res.success
+    assert res.message.startswith('cancelled: the move stopped'), res.message
+    probe.pause(0.3)  # the held setpoint's command, which can come after the result
+    n = len(probe.commands)
+    probe.pause(1.0)
+    assert len(probe.commands) == n, 'the move went on after its cancel'
+    held = np.array(probe.commands[-1].position)
+    np.testing.assert_array_equal(probe.targets[-1].position, held)  # the held pose: the target
+    assert 0.05 < np.max(np.abs(held)) and not np.allclose(held, res.target)

@@ -222,3 +222,85 @@ def test_state_publisher_latches_the_urdf():
         listener.destroy_node()
     finally:
         rclpy.try_shutdown()
+
+
+@pytest.mark.ros
+def test_state_publisher_poses_the_robot_and_its_com_at_its_frequency():
+    """/joint_states at 100 Hz of stamps: /tf at publish_frequency (10 Hz), with every moving
+    joint and the base; /tf_static with the fixed ones; the CoM markers in base_footprint at the
+    CoM of the latest /com_estimator/beta."""
+    from rclpy.parameter import Parameter
+    from sensor_msgs.msg import JointState
+    from tf2_msgs.msg import TFMessage
+    from visualization_msgs.msg import MarkerArray
+
+    from krang_com_interfaces.msg import MassModel
+    from krang_core import names
+    from krang_ros import messages, topics
+    from krang_ros.robot_frames import com_now
+    from krang_ros.state_publisher import COM_MARKERS, TF, TF_STATIC
+
+    robot = load_krang()
+    joints = np.random.default_rng(3).uniform(robot.lower, robot.upper)
+    q_base = -0.05
+    beta = robot.nominal_beta.copy()
+    beta[4 * robot.body_names.index('Base') + 2] += 5.0  # the Base's CoM moved along its y
+    rclpy.init()
+    try:
+        node = StatePublisherNode(parameter_overrides=[Parameter('publish_frequency', value=10.0)])
+        peer = rclpy.create_node('peer')
+        got = {TF: [], TF_STATIC: [], COM_MARKERS: []}
+        subscriptions = [(TF, TFMessage, 100), (TF_STATIC, TFMessage, LATCHED)]
+        for topic, cls, qos in subscriptions + [(COM_MARKERS, MarkerArray, 10)]:
+            peer.create_subscription(cls, topic, got[topic].append, qos)
+        pub_joints = peer.create_publisher(
+            JointState, names.JOINT_STATES, topics.QOS[names.JOINT_STATES]
+        )
+        pub_imu = peer.create_publisher(Imu, names.IMU, topics.QOS[names.IMU])
+        pub_beta = peer.create_publisher(MassModel, names.BETA, topics.QOS[names.BETA])
+        executor = SingleThreadedExecutor()
+        executor.add_node(node)
+        executor.add_node(peer)
+
+        def spin(seconds):
+            end = time.monotonic() + seconds
+            while time.monotonic() < end:
+                executor.spin_once(timeout_sec=0.01)
+
+        pub_beta.publish(messages.mass_model(Time(), robot.body_names, beta))
+        imu = Imu()
+        imu.orientation.x, imu.orientation.y, imu.orientation.z, imu.orientation.w = (
+            pitch_quaternion(q_base)
+        )
+        spin(1.0)  # discovery
+        pub_imu.publish(imu)
+        spin(0.2)
+        for k in range(50):
+            msg = messages.joint_state(
+                Time(sec=0, nanosec=10_000_000 * k),
+                list(robot.pose_joints) + ['JLWheel', 'JRWheel'],
+                list(joints) + [0.01 * k, 0.01 * k],
+            )
+            pub_joints.publish(msg)
+            spin(0.01)
+        spin(0.5)
+        executor.shutdown()
+        node.destroy_node()
+        peer.destroy_node()
+    finally:
+        rclpy.try_shutdown()
+    assert len(got[TF]) == 5  # stamps 0, 0.1, ..., 0.4 s
+    frames = RobotFrames()
+    children = {t.child_frame_id for t in got[TF][-1].transforms}
+    assert {t.child for t in frames.joint_transforms()} | {BASE_FOOTPRINT, BASE_LINK} == children
+    assert {t.child_frame_id for t in got[TF_STATIC][0].transforms} == {
+        t.child for t in frames.static_transforms()
+    }
+    markers = got[COM_MARKERS][-1].markers
+    assert {m.header.frame_id for m in markers} == {BASE_FOOTPRINT}
+    frames.set_joints(dict(zip(robot.pose_joints, joints)))
+    _, estimated, nominal = com_now(robot, frames, pitch_quaternion(q_base), joints, beta)
+    spheres = [m for m in markers if m.type == m.SPHERE]
+    assert spheres[0].pose.position.x == pytest.approx(estimated[0], abs=1e-9)
+    assert spheres[1].pose.position.x == pytest.approx(nominal[0], abs=1e-9)
+    assert abs(estimated[0] - nominal[0]) > 1e-3  # the beta received moved it

@@ -11,9 +11,10 @@ pytestmark = pytest.mark.ros
 
 rclpy = pytest.importorskip('rclpy')
 
+from krang_com_interfaces.action import MoveToNextPose  # noqa: E402
+from krang_com_interfaces.msg import MassModel  # noqa: E402
+from rclpy.action import ActionServer  # noqa: E402
 from rclpy.executors import SingleThreadedExecutor  # noqa: E402
-from std_msgs.msg import Float64MultiArray  # noqa: E402
-from std_srvs.srv import Trigger  # noqa: E402
 
 from krang_core import names  # noqa: E402
 from krang_ros import topics  # noqa: E402
@@ -21,32 +22,30 @@ from krang_ros.session_client import open_session_client  # noqa: E402
 from krang_ros.spin import spin_until_shutdown  # noqa: E402
 
 LATCHED_AFTER_S = 0.5  # the estimator's initial beta comes this late
-LEARNED_AFTER_S = 1.0  # the beta learned from the pose, after the next_pose call
+LEARNED_AFTER_S = 1.0  # the beta learned from the pose, after the move's result
 
 
 def test_latched_beta_arriving_late_is_not_taken_for_a_learned_one():
     context = rclpy.Context()
     rclpy.init(context=context)
     node = rclpy.create_node('fake_estimator_and_pose_server', context=context)
-    beta_pub = node.create_publisher(
-        Float64MultiArray, names.relative(names.BETA), topics.QOS[names.BETA]
-    )
+    beta_pub = node.create_publisher(MassModel, names.relative(names.BETA), topics.QOS[names.BETA])
     calls = []
 
     def publish_once(delay, value):
         def fire():
             timer.cancel()
-            beta_pub.publish(Float64MultiArray(data=[value]))
+            beta_pub.publish(MassModel(beta=[value]))
 
         timer = node.create_timer(delay, fire)
 
-    def next_pose(request, response):
+    def move(goal_handle):  # the balanced pose at once; the estimator learns from it later
         calls.append(time.monotonic())
         publish_once(LEARNED_AFTER_S, 2.0)
-        response.success, response.message = True, 'pose 1'
-        return response
+        goal_handle.succeed()
+        return MoveToNextPose.Result(success=True, message='pose 1')
 
-    node.create_service(Trigger, names.relative(names.NEXT_POSE), next_pose)
+    ActionServer(node, MoveToNextPose, names.relative(names.MOVE_TO_NEXT_POSE), move)
     publish_once(LATCHED_AFTER_S, 1.0)
     executor = SingleThreadedExecutor(context=context)
     executor.add_node(node)

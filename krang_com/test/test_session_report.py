@@ -1,5 +1,6 @@
 """The session figures: every mark of the timeline is in its legend, modes are bands, pose moves
-and learned poses are lines, and the figures are written (atomically) as PNGs."""
+and learned poses are lines, and the figures are written (atomically) as PNGs; from bags of
+today's types and of the older forms (krang_core.message_values) alike."""
 
 import numpy as np
 import pytest
@@ -8,6 +9,7 @@ from std_msgs.msg import Float64MultiArray
 
 from krang_bag.reader import read_float_arrays
 from krang_bag.session_report import mode_segments, read_modes, session_figures, timeline_figure
+from krang_adrc_controller.detector import BalancedPoint
 from krang_bag.writer import BagWriter
 from krang_model.robot import load_krang
 from krang_core import names
@@ -38,21 +40,47 @@ def test_mode_segments_merge_repeated_reports():
     assert mode_segments(np.array([]), [], 10.0) == []
 
 
-@pytest.fixture
-def bag(tmp_path):
-    return write_session(tmp_path / 'session.mcap')
+@pytest.fixture(params=['today', 'older'])
+def bag(tmp_path, request):
+    return write_session(tmp_path / 'session.mcap', forms=request.param)
 
 
-def write_session(path, betas=3):
-    """A session bag: wheel efforts, diagnostics, targets, learned poses and `betas` betas."""
+def learned_pose(robot, forms):
+    """A /balanced_pose message: a BalancedPose, or an older bag's JointState."""
+    n = len(robot.pose_joints)
+    if forms == 'today':
+        point = BalancedPoint(0.0, 0.0, np.zeros(n), q_base_std=0.0, n_samples=100, window_s=2.0)
+        return messages.balanced_pose(Time(), robot.pose_joints, point)
+    return messages.joint_state(
+        Time(), list(robot.pose_joints) + [names.BASE_PITCH], np.zeros(n + 1)
+    )
+
+
+def published_beta(robot, beta, forms):
+    """A /com_estimator/beta message: MassModel, or an older bag's labelled Float64MultiArray."""
+    if forms == 'today':
+        return messages.mass_model(Time(), robot.body_names, beta, source='map-online')
+    return messages.labelled_array(beta, robot.beta_labels())
+
+
+def write_session(path, betas=3, forms='today'):
+    """A session bag: wheel efforts, diagnostics, targets, learned poses and `betas` betas, the
+    learning topics in today's types or in the older `forms`."""
     robot = load_krang()
     s = 10**9
+    today = forms == 'today'
     with BagWriter(path) as w:
         w.add_topic(names.WHEEL_EFFORT_CMD, 'std_msgs/msg/Float64MultiArray')
         w.add_topic(names.DIAGNOSTICS, 'diagnostic_msgs/msg/DiagnosticArray')
         w.add_topic(names.POSE_TARGET, 'sensor_msgs/msg/JointState')
-        w.add_topic(names.BALANCED_POSE, 'sensor_msgs/msg/JointState')
-        w.add_topic(names.BETA, 'std_msgs/msg/Float64MultiArray')
+        w.add_topic(
+            names.BALANCED_POSE,
+            'krang_com_interfaces/msg/BalancedPose' if today else 'sensor_msgs/msg/JointState',
+        )
+        w.add_topic(
+            names.BETA,
+            'krang_com_interfaces/msg/MassModel' if today else 'std_msgs/msg/Float64MultiArray',
+        )
         for k in range(101):
             w.write_message(
                 names.WHEEL_EFFORT_CMD, Float64MultiArray(data=[0.1 * k, 0.0]), s + k * s // 10
@@ -75,21 +103,10 @@ def write_session(path, betas=3):
                 s + int(t * s),
             )
         for t in LEARNED:
-            w.write_message(
-                names.BALANCED_POSE,
-                messages.joint_state(
-                    Time(),
-                    list(robot.pose_joints) + [names.BASE_PITCH],
-                    np.zeros(len(robot.pose_joints) + 1),
-                ),
-                s + int(t * s),
-            )
+            w.write_message(names.BALANCED_POSE, learned_pose(robot, forms), s + int(t * s))
         for k in range(betas):
-            w.write_message(
-                names.BETA,
-                messages.labelled_array(robot.nominal_beta * (1 + 0.01 * k), robot.beta_labels()),
-                s + k * s,
-            )
+            beta = robot.nominal_beta * (1 + 0.01 * k)
+            w.write_message(names.BETA, published_beta(robot, beta, forms), s + k * s)
     return path
 
 
