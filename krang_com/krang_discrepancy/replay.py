@@ -12,9 +12,10 @@ Why short horizons (multiple shooting) and not one long rollout
     compares the predicted signals with the measured ones along the horizon. Errors cannot compound
     across windows; a missing effect shows up as a systematic prediction error.
 
-The model is ``krang_model.wip.WipDynamics`` itself, stepped by ``krang_model.wip.PitchBatch`` (its
-``step_pitch`` for large batches, in place): all windows and all parameter sets of a fit step at
-once, in cache-sized chunks on a few threads. The effects are those of
+The model is ``krang_model.wip.WipDynamics`` itself, stepped by its one integrator
+``step_pitch``: all windows and all parameter sets of a fit step at once, in place
+(``krang_model.wip.PitchBatch``: buffers, and sines and cosines carried between exact anchors), in
+cache-sized chunks on a few threads. The effects are those of
 ``krang_model.effects`` (``ModelTerms``); the commands reach the model as the drives apply them
 (``krang_model.drivetrain.HeldCommand``: held, delayed by the actuation delay). Poses are reduced
 with ``krang_model.wip.reduce_placements`` and payloads added with ``point_mass_beta``, as the
@@ -34,7 +35,7 @@ import numpy as np
 from krang_model.drivetrain import HeldCommand, stack
 from krang_model.effects import ModelTerms
 from krang_model.kinematics import body_placements
-from krang_model.wip import PitchBatch, WipBody, point_mass_beta, reduce_placements
+from krang_model.wip import PitchBatch, WipBody, WipDynamics, point_mass_beta, reduce_placements
 
 from .nominal import NominalModel
 from .phases import PHASES, label_phases
@@ -143,7 +144,7 @@ class Replay:
         self.select(phases)
         self.scales = None
         self.timing = {}
-        self.trig_anchor = 16  # PitchBatch: exact sines and cosines every this many sub-steps
+        self.trig_anchor = 16  # exact sines and cosines every this many sub-steps (PitchBatch)
         self.workers = cfg.workers or min(4, os.cpu_count() or 1)
 
     # ------------------------------------------------------------------ set-up helpers
@@ -395,7 +396,8 @@ class Replay:
         if trajectory:
             traj[:, :, 0] = np.stack([qb + bias, dqb, phi - qb, dphi - dqb], axis=-1)
         e_index = {int(s): i for i, s in enumerate(self.eval_steps)}
-        stepper = PitchBatch((P, S), prep['drive'], self.trig_anchor)
+        stepper = PitchBatch((P, S), self.trig_anchor)
+        dyn = None
         for j in range(J):
             jb = j if j < jb_last else jb_last
             if j == 0 or jb == j:  # the body moves (or the first step)
@@ -408,9 +410,8 @@ class Replay:
                 )
                 if prep['adjust']:
                     body = body.adjusted(com_shift=prep['dl'], inertia_add=prep['ia'])
-                stepper.set_body(body)
-                if j == 0:
-                    stepper.start(qb)
+                dyn = WipDynamics(body, prep['drive']) if dyn is None else dyn.with_body(body)
+                stepper.set_dynamics(dyn)
             tau = (tq_u[j] if didx is None else tq_u[j][didx]) * t_scale
             f_phi = f_qbase = None
             if prep['any_extra']:

@@ -2,11 +2,10 @@
 
 This module is the one statement of the WIP physics. The reduced plant (krang_sim.reduced_plant),
 the controller's design (``linearize``), the discrepancy replay and its named effects
-(krang_model.effects) all evaluate ``WipDynamics`` and step it with its one integrator
-(``step_pitch``; the replay's batches with ``PitchBatch``, its in-place form, which
-test/test_discrepancy_speed.py holds to it bit for bit); a new physical term is added here (its
-parameter in ``krang_model.drivetrain.Drivetrain``, its lines in ``pitch_accelerations`` and in
-``PitchBatch.step``) and nowhere else.
+(krang_model.effects) all evaluate ``WipDynamics.pitch_accelerations`` and step it with its one
+integrator, ``step_pitch`` (the replay's large batches in place, through ``PitchBatch``, which
+holds buffers and trigonometry and no physics); a new physical term is added here (its parameter
+in ``krang_model.drivetrain.Drivetrain``, its line in ``pitch_accelerations``) and nowhere else.
 
 With the body joints locked the robot is one rigid body on two wheels. Its state is the
 ground-referenced wheel angle phi (x = r phi, as the hardware's "x_wheel = encoders + IMU
@@ -27,9 +26,11 @@ torques and tau_c the wheels' Coulomb friction.
 Broadcasting. Every field of a ``WipBody`` and of a ``Drivetrain`` may be a float or a numpy array,
 and so may the state and the torques: a batch of poses, of parameter sets (one per row of a fit)
 and of states steps in one call. Python floats take the ``math`` path, which keeps one simulator
-step near a microsecond; arrays take the numpy path. Both paths run the same lines.
+step near a microsecond; arrays take the numpy path, in place in ``PitchBuffers``. Both paths run
+the same lines.
 """
 
+import copy
 import math
 from dataclasses import dataclass, fields, replace
 
@@ -164,12 +165,29 @@ def point_mass_beta(robot, beta, body, point, kg):
 _ndarray = np.ndarray
 
 
-def _is_array(*xs):
-    return any(isinstance(x, np.ndarray) for x in xs)
-
-
 def _nonzero(x):
     return bool(np.any(x)) if isinstance(x, np.ndarray) else x != 0.0
+
+
+class PitchBuffers:
+    """The work arrays of ``WipDynamics``'s pitch equations and integrator for one shape: given
+    as ``out``, every intermediate and result is written into them and nothing is allocated.
+    ``sin_theta`` ... ``cos_tilt`` hold the exact sines and cosines of the last evaluation that
+    computed them (``trig``: the four it used); ``a``-``d`` are scratch, ``m12`` the mass
+    matrix's coupling, ``f1``/``f2`` the generalised forces and then the accelerations, ``inc``
+    the last step's pitch increment, ``mask`` the caster contact."""
+
+    __slots__ = (
+        *('shape', 'trig', 'sin_theta', 'cos_theta', 'sin_tilt', 'cos_tilt'),
+        *('a', 'b', 'c', 'd', 'm12', 'f1', 'f2', 'inc', 'mask'),
+    )
+
+    def __init__(self, shape):
+        self.shape = tuple(shape)
+        self.trig = None
+        for name in self.__slots__[2:-1]:
+            setattr(self, name, np.empty(self.shape))
+        self.mask = np.empty(self.shape, bool)
 
 
 class WipDynamics:
@@ -178,79 +196,162 @@ class WipDynamics:
     State: [phi, q_base, phi', q_base', psi, psi'] (phi: ground-referenced wheel angle, psi: yaw).
     Inputs: left and right wheel torques at the wheels (N m, after the gearbox). `body` and `drive`
     may hold arrays (poses, parameter sets); everything broadcasts against the state.
-    """
+
+    ``pitch_accelerations`` states the pitch plane's equations once and ``step_pitch`` is the one
+    integrator around them. Both take floats (a simulator step: math functions and Python
+    operators, near a microsecond) or arrays, computed in place in ``PitchBuffers`` (``out``): the
+    float form of an assignment and its in-place form (a numpy ufunc into ``out``) stand on one
+    line, and the augmented assignments between them serve both (they rebind floats and update
+    arrays in place)."""
 
     def __init__(self, body, drive):
-        self.body = body
         self.drive = d = drive
-        sin = np.sin if _is_array(d.floor_slope) else math.sin
         self._j = d.reflected_rotor_inertia
-        self._m11 = (body.mass + d.wheel_mass) * d.wheel_radius**2 + d.wheel_inertia + self._j
-        self._mrl = body.mass * d.wheel_radius * body.com_distance
-        self._m22 = body.inertia_axle + self._j
-        self._mgl = body.mass * d.gravity * body.com_distance
-        self._grade = (body.mass + d.wheel_mass) * d.gravity * d.wheel_radius * sin(d.floor_slope)
-        half = 0.5 * d.track_width / d.wheel_radius
-        self._yaw_inertia = body.yaw_inertia + 2.0 * (d.wheel_inertia / 2 + self._j / 2) * half**2
+        sin = np.sin if isinstance(d.floor_slope, _ndarray) else math.sin
+        self._sin_slope = sin(d.floor_slope)
         self._yaw_arm = 0.5 * d.track_width / d.wheel_radius
+        self._slope = d.floor_slope
+        self._sloped = _nonzero(d.floor_slope)
         self._coulomb = _nonzero(d.coulomb_friction)
-        self._caster_pitch = d.caster_contact_pitch
-        self._numpy = _is_array(self._mrl, self.body.com_offset, d.floor_slope, d.coulomb_friction)
+        self._coulomb2 = 2.0 * d.coulomb_friction
+        self._ground = _nonzero(d.ground_viscous)
+        self._caster_pitch = cp = d.caster_contact_pitch
+        self._caster_max = float(cp.max()) if isinstance(cp, _ndarray) else cp
+        self._set_body(body)
 
-    def caster_torque(self, q_base, dq_base):
+    def with_body(self, body):
+        """The dynamics of another body on the same drive train (only the body's terms are
+        computed again: the replay's moving poses)."""
+        dyn = copy.copy(self)
+        dyn._set_body(body)
+        return dyn
+
+    def _set_body(self, body):
+        self.body = body
+        d, j = self.drive, self._j
+        self._m11 = (body.mass + d.wheel_mass) * d.wheel_radius**2 + d.wheel_inertia + j
+        self._mrl = body.mass * d.wheel_radius * body.com_distance
+        self._m22 = body.inertia_axle + j
+        self._m11m22 = self._m11 * self._m22
+        self._mgl = body.mass * d.gravity * body.com_distance
+        self._grade = (body.mass + d.wheel_mass) * d.gravity * d.wheel_radius * self._sin_slope
+        half = self._yaw_arm
+        self._yaw_inertia = body.yaw_inertia + 2.0 * (d.wheel_inertia / 2 + j / 2) * half**2
+        self._offset = body.com_offset
+        self._terms = (
+            *(self._offset, self._slope, self._coulomb2, self._grade, self._caster_pitch, j),
+            *(self._m11, self._mrl, self._m22, self._m11m22, self._mgl),
+            *(d.viscous_friction, d.ground_viscous, d.caster_stiffness, d.caster_damping),
+        )
+        self._numpy = any(isinstance(x, _ndarray) for x in self._terms)
+
+    def _buffers(self, *xs):
+        """New ``PitchBuffers`` of the shape the model's terms and `xs` broadcast to."""
+        return PitchBuffers(np.broadcast_shapes(*map(np.shape, (*self._terms, *xs))))
+
+    def caster_torque(self, q_base, dq_base, out=None):
         """The caster's unilateral penalty torque on the body (zero out of contact), at the pitch
         the caster geometry, the wheel radius and the floor slope give
-        (``Drivetrain.caster_contact_pitch``)."""
-        d = self.drive
-        pen = self._caster_pitch - q_base
-        if type(pen) is not _ndarray:
-            if pen <= 0.0:
-                return 0.0
-            return max(0.0, d.caster_stiffness * pen - d.caster_damping * dq_base)
-        touching = pen > 0.0
-        if not touching.any():
-            return 0.0
-        return np.where(
-            touching, np.maximum(0.0, d.caster_stiffness * pen - d.caster_damping * dq_base), 0.0
-        )
+        (``Drivetrain.caster_contact_pitch``). Floats, or into `out`'s arrays."""
+        o = out
+        if o is None and (self._numpy or type(q_base) is _ndarray or type(dq_base) is _ndarray):
+            o = self._buffers(q_base, dq_base)
+        return self._caster(q_base, dq_base, o)
 
-    def pitch_accelerations(self, q_base, dphi, dq_base, tau, f_phi=None, f_qbase=None):
-        """(phi'', q_base'') under the total wheel torque `tau`, plus optional extra generalised
-        forces on the wheel and the pitch equations (N m)."""
-        d = self.drive
-        if (
+    def _caster(self, q_base, dq_base, o):
+        """``caster_torque`` for floats (`o` None) or into the ``PitchBuffers`` `o`."""
+        floats = o is None
+        k, c = self.drive.caster_stiffness, self.drive.caster_damping
+        cp = self._caster_pitch
+        pen = cp - q_base if floats else np.subtract(cp, q_base, o.a)
+        touching = pen > 0.0 if floats else np.greater(pen, 0.0, o.mask)
+        torque = pen * k if floats else np.multiply(pen, k, o.a)
+        torque -= dq_base * c if floats else np.multiply(dq_base, c, o.b)
+        torque = (torque if torque > 0.0 else 0.0) if floats else np.maximum(0.0, torque, o.a)
+        torque *= touching
+        return torque
+
+    def pitch_accelerations(
+        self, q_base, dphi, dq_base, tau, f_phi=None, f_qbase=None, trig=None, out=None
+    ):
+        """(phi'', q_base'') of the equations of the module docstring under the total wheel
+        torque `tau` and optional extra generalised forces on the wheel and the pitch equations
+        (N m): the one statement of the pitch physics.
+
+        Floats, or arrays (new ones, of the broadcast shape); with `out` (``PitchBuffers`` of
+        that shape) in place, the results then being ``out.f1`` and ``out.f2``. `trig`: (sin
+        theta, cos theta, sin tilt, cos tilt) at q_base, theta = q_base + com_offset being the
+        CoM angle from vertical and tilt = theta + floor slope; computed exactly if not given
+        (with `out` into its arrays, ``out.trig``)."""
+        d, o = self.drive, out
+        if o is None and (
             self._numpy
             or type(q_base) is _ndarray
             or type(dphi) is _ndarray
             or type(dq_base) is _ndarray
             or type(tau) is _ndarray
         ):
-            sin, cos, tanh = np.sin, np.cos, np.tanh
+            o = self._buffers(q_base, dphi, dq_base, tau, f_phi, f_qbase)
+        floats = o is None
+        if trig is None:  # exact, at the CoM angle theta and at the tilt theta + floor slope
+            theta = q_base + self._offset if floats else np.add(q_base, self._offset, o.a)
+            sin_theta = math.sin(theta) if floats else np.sin(theta, o.sin_theta)
+            cos_theta = math.cos(theta) if floats else np.cos(theta, o.cos_theta)
+            sin_tilt, cos_tilt = sin_theta, cos_theta
+            if self._sloped:
+                tilt = theta + self._slope if floats else np.add(theta, self._slope, o.a)
+                sin_tilt = math.sin(tilt) if floats else np.sin(tilt, o.sin_tilt)
+                cos_tilt = math.cos(tilt) if floats else np.cos(tilt, o.cos_tilt)
+            if not floats:
+                o.trig = (sin_theta, cos_theta, sin_tilt, cos_tilt)
         else:
-            sin, cos, tanh = math.sin, math.cos, math.tanh
-        theta = q_base + self.body.com_offset
-        c = cos(theta + d.floor_slope)
-        s_slope = sin(theta + d.floor_slope)
-        rel = dphi - dq_base
+            sin_theta, _, sin_tilt, cos_tilt = trig
+        mrl = self._mrl
         # the wheels' friction against the body is a torque between the two, like the motors':
         # it enters the wheel and the pitch equations with opposite signs
-        internal = d.viscous_friction * rel
+        rel = dphi - dq_base if floats else np.subtract(dphi, dq_base, o.c)
+        visc = d.viscous_friction
+        internal = rel * visc if floats else np.multiply(rel, visc, o.d)
         if self._coulomb:
-            internal = internal + 2.0 * d.coulomb_friction * tanh(rel / 1e-2)
-        m12 = self._mrl * c - self._j
-        f1 = (
-            self._mrl * s_slope * dq_base * dq_base
-            - self._grade
-            + tau
-            - internal
-            - d.ground_viscous * dphi
-        )
-        f2 = self._mgl * sin(theta) - tau + internal + self.caster_torque(q_base, dq_base)
+            coulomb = math.tanh(rel / 1e-2) if floats else np.tanh(np.divide(rel, 1e-2, o.a), o.a)
+            coulomb *= self._coulomb2
+            internal += coulomb
+        # the mass matrix [[m11, m12], [m12, m22]]
+        m12 = mrl * cos_tilt if floats else np.multiply(mrl, cos_tilt, o.m12)
+        m12 -= self._j
+        # wheel: centripetal, slope, motors, friction
+        f1 = mrl * sin_tilt if floats else np.multiply(mrl, sin_tilt, o.f1)
+        f1 *= dq_base
+        f1 *= dq_base
+        f1 -= self._grade
+        f1 += tau
+        f1 -= internal
+        if self._ground:
+            gv = d.ground_viscous
+            f1 -= dphi * gv if floats else np.multiply(dphi, gv, o.a)
+        # pitch: gravity, motors, friction, caster
+        f2 = self._mgl * sin_theta if floats else np.multiply(self._mgl, sin_theta, o.f2)
+        f2 -= tau
+        f2 += internal
+        if (q_base if floats else np.min(q_base)) < self._caster_max:  # on the caster
+            f2 += self._caster(q_base, dq_base, o)
         if f_phi is not None:
-            f1 = f1 + f_phi
-            f2 = f2 + f_qbase
-        delta = self._m11 * self._m22 - m12 * m12
-        return (self._m22 * f1 - m12 * f2) / delta, (self._m11 * f2 - m12 * f1) / delta
+            f1 += f_phi
+            f2 += f_qbase
+        # solved for the accelerations
+        m11m22 = self._m11m22
+        det = (
+            m11m22 - m12 * m12 if floats else np.subtract(m11m22, np.multiply(m12, m12, o.a), o.a)
+        )
+        m12_f2 = m12 * f2 if floats else np.multiply(m12, f2, o.b)
+        m12_f1 = m12 * f1 if floats else np.multiply(m12, f1, o.c)
+        f1 *= self._m22
+        f1 -= m12_f2
+        f1 /= det
+        f2 *= self._m11
+        f2 -= m12_f1
+        f2 /= det
+        return f1, f2
 
     def yaw_acceleration(self, dpsi, tau_left, tau_right):
         """psi'' under the given wheel torques (the yaw is decoupled from the pitch plane)."""
@@ -267,7 +368,7 @@ class WipDynamics:
     def energy(self, state):
         """Kinetic + potential energy (J), for conservation checks (slope and caster excluded)."""
         phi, qb, dphi, dqb, psi, dpsi = state
-        cos = np.cos if self._numpy or _is_array(qb) else math.cos
+        cos = np.cos if self._numpy or isinstance(qb, _ndarray) else math.cos
         theta = qb + self.body.com_offset
         kinetic = (
             0.5 * self._m11 * dphi**2
@@ -277,16 +378,30 @@ class WipDynamics:
         )
         return kinetic + self._mgl * cos(theta)
 
-    def step_pitch(self, phi, q_base, dphi, dq_base, tau, dt, f_phi=None, f_qbase=None):
+    def step_pitch(
+        self, phi, q_base, dphi, dq_base, tau, dt, f_phi=None, f_qbase=None, trig=None, out=None
+    ):
         """One step of the pitch plane: (phi, q_base, phi', q_base') after `dt` under the total
-        wheel torque `tau` (and optional extra generalised forces, as ``pitch_accelerations``).
-        The one integrator of the model: semi-implicit Euler (velocities first), symplectic, one
-        force evaluation per step. Floats (a simulator step) or arrays (the replay: every window
-        and every parameter set at once)."""
-        ddphi, ddqb = self.pitch_accelerations(q_base, dphi, dq_base, tau, f_phi, f_qbase)
-        dphi = dphi + dt * ddphi
-        dq_base = dq_base + dt * ddqb
-        return phi + dt * dphi, q_base + dt * dq_base, dphi, dq_base
+        wheel torque `tau` (and optional extra generalised forces and sines and cosines, as
+        ``pitch_accelerations``). The one integrator of the model: semi-implicit Euler
+        (velocities first), symplectic, one force evaluation per step. Floats (a simulator step)
+        or arrays (new ones, of the broadcast shape); with `out` (``PitchBuffers``) the four state
+        arrays, of its shape, are updated in place (``PitchBatch``: the replay's batches)."""
+        o, floats = out, out is None
+        ddphi, ddqb = self.pitch_accelerations(q_base, dphi, dq_base, tau, f_phi, f_qbase, trig, o)
+        if o is None and type(ddphi) is _ndarray:  # arrays: new ones, stepped in place
+            phi, q_base, dphi, dq_base = (
+                np.array(np.broadcast_to(x, ddphi.shape), float)
+                for x in (phi, q_base, dphi, dq_base)
+            )
+        ddphi *= dt
+        dphi += ddphi
+        ddqb *= dt
+        dq_base += ddqb
+        phi += dphi * dt if floats else np.multiply(dphi, dt, o.a)
+        inc = dq_base * dt if floats else np.multiply(dq_base, dt, o.inc)
+        q_base += inc
+        return phi, q_base, dphi, dq_base
 
     def step(self, state, tau_left, tau_right, dt):
         """One step of the whole state: ``step_pitch`` and the decoupled yaw, integrated alike."""
@@ -319,149 +434,72 @@ class WipDynamics:
 
 
 class PitchBatch:
-    """``WipDynamics.step_pitch`` for large batches (the replay: parameter sets x windows): the
-    same accelerations and the same semi-implicit Euler, in place on (P, S) arrays, with the terms
-    that stay fixed along a horizon computed once (per body change) and no temporaries. In numpy's
-    float64 path a sine or cosine costs about 50 multiplies, so the CoM angle's sine and cosine are
-    carried by rotation through each step's angle increment (``_rotate``) and recomputed exactly
-    every ``anchor`` steps; with ``anchor=1`` every step is bit-identical to ``step_pitch``,
-    otherwise they agree to rounding (1e-14). Extra generalised forces are added as in
-    ``pitch_accelerations``.
+    """In-place stepping of a large batch (the replay: parameter sets x windows, (P, S) arrays)
+    with ``WipDynamics.step_pitch``: one set of ``PitchBuffers`` reused at every step, and the
+    sines and cosines the equations take computed exactly every ``anchor`` steps and carried by
+    rotation through each step's pitch increment in between (``_rotate``; in numpy's float64 path
+    a sine or cosine costs about 50 multiplies). With ``anchor=1`` every step is ``step_pitch``
+    bit for bit; otherwise they agree to rounding (1e-14). Buffers and trigonometry only: the
+    physics is the dynamics'.
 
-    ``set_body(body)`` (a ``WipBody`` of arrays broadcasting to the batch) before the first step
-    and whenever the body changes; ``start(q_base)`` sets the trigonometric state;
-    ``step(phi, q_base, dphi, dq_base, tau, dt, f_phi, f_qbase)`` updates the four state arrays in
-    place."""
+    ``set_dynamics(dyn)`` (a ``WipDynamics`` whose arrays broadcast to the shape) before the
+    first step and whenever the body changes; ``step(phi, q_base, dphi, dq_base, tau, dt, f_phi,
+    f_qbase)`` updates the four state arrays in place."""
 
-    def __init__(self, shape, drive, anchor: int = 16):
-        self.drive = d = drive
-        self.shape = shape
+    def __init__(self, shape, anchor: int = 16):
+        self.shape = tuple(shape)
         self.anchor = max(1, int(anchor))
-        self._j = d.reflected_rotor_inertia
-        self._slope = _nonzero(d.floor_slope)
-        self._coulomb = _nonzero(d.coulomb_friction)
-        self._ground = _nonzero(d.ground_viscous)
-        self._cf2 = 2.0 * d.coulomb_friction
-        self._cp = d.caster_contact_pitch
-        self._cp_max = float(np.max(self._cp))
-        buf = lambda: np.empty(shape)  # noqa: E731
-        self._s, self._c = buf(), buf()
-        self._s2, self._c2 = (buf(), buf()) if self._slope else (self._s, self._c)
-        self._rel, self._fr, self._m12, self._f1, self._f2 = buf(), buf(), buf(), buf(), buf()
-        self._a, self._b, self._dl = buf(), buf(), buf()
-        self._mask = np.empty(shape, bool)
-        self._off = None
+        self.buffers = PitchBuffers(self.shape)
+        self._dyn = None
+        self._offset = None
+        self._trig = None
         self._steps = 0
 
-    def set_body(self, body):
-        """The body terms (``WipDynamics.__init__``'s) for the coming steps; the CoM angle's
-        trigonometric state follows a change of the body's CoM offset."""
-        d = self.drive
-        mass = body.mass
-        self._m11 = (mass + d.wheel_mass) * d.wheel_radius**2 + d.wheel_inertia + self._j
-        self._mrl = mass * d.wheel_radius * body.com_distance
-        self._m22 = body.inertia_axle + self._j
-        self._mgl = mass * d.gravity * body.com_distance
-        sin = np.sin if _is_array(d.floor_slope) else math.sin
-        self._grade = (mass + d.wheel_mass) * d.gravity * d.wheel_radius * sin(d.floor_slope)
-        self._m11m22 = self._m11 * self._m22
-        off = np.broadcast_to(np.asarray(body.com_offset, float), self.shape)
-        if self._off is not None:
-            self._rotate(off - self._off)
-        self._off = np.array(off)
-
-    def start(self, q_base):
-        """The trigonometric state at the initial pitch (after ``set_body``)."""
-        self._exact(q_base)
-        self._steps = 0
-
-    def _exact(self, q_base):
-        th = np.add(q_base, self._off, out=self._a)
-        if self._slope:
-            tha = np.add(th, self.drive.floor_slope, out=self._b)
-            np.sin(tha, out=self._s2)
-            np.cos(tha, out=self._c2)
-        np.cos(th, out=self._c)
-        np.sin(th, out=self._s)
+    def set_dynamics(self, dyn):
+        """The dynamics of the coming steps; the carried sines and cosines follow a change of the
+        body's CoM offset (theta = q_base + com_offset)."""
+        offset = np.array(np.broadcast_to(dyn.body.com_offset, self.shape), float)
+        if self._trig is not None:
+            self._rotate(offset - self._offset)
+        self._offset = offset
+        self._dyn = dyn
 
     def _rotate(self, delta):
         """Advance the sines and cosines by the angle increments `delta`: Taylor series to the
         6th order, off by less than 5e-15 for increments up to 0.03 rad (a pitch rate of 15 rad/s
         over a 2 ms step) and 1e-11 up to 0.09 rad, until the next exact anchor. Each element's
         result depends on its own increment alone, not on the batch it is in."""
-        d2 = np.multiply(delta, delta, out=self._dl)
-        sd = np.multiply(d2, 1.0 / 120.0, out=self._a)
+        o = self.buffers
+        d2 = np.multiply(delta, delta, out=o.d)
+        sd = np.multiply(d2, 1.0 / 120.0, out=o.a)
         sd -= 1.0 / 6.0
         sd *= d2
         sd += 1.0
         sd *= delta  # sin(delta)
-        cm = np.multiply(d2, -1.0 / 720.0, out=self._b)
+        cm = np.multiply(d2, -1.0 / 720.0, out=o.b)
         cm += 1.0 / 24.0
         cm *= d2
         cm -= 0.5
         cm *= d2  # cos(delta) - 1
-        pairs = [(self._s, self._c)] + ([(self._s2, self._c2)] if self._slope else [])
-        for s, c in pairs:
-            ns = np.multiply(s, cm, out=self._rel)
-            ns += np.multiply(c, sd, out=self._m12)
-            nc = np.multiply(c, cm, out=self._fr)
-            nc -= np.multiply(s, sd, out=self._m12)
+        t = self._trig
+        for s, c in ((t[0], t[1]),) if t[2] is t[0] else ((t[0], t[1]), (t[2], t[3])):
+            ns = np.multiply(s, cm, out=o.c)
+            ns += np.multiply(c, sd, out=o.m12)
+            nc = np.multiply(c, cm, out=o.f1)
+            nc -= np.multiply(s, sd, out=o.m12)
             s += ns
             c += nc
 
     def step(self, phi, q_base, dphi, dq_base, tau, dt, f_phi=None, f_qbase=None):
-        d = self.drive
-        if self._steps % self.anchor == 0:
-            self._exact(q_base)
+        exact = self._steps % self.anchor == 0
+        trig = None if exact else self._trig
+        o = self.buffers
+        self._dyn.step_pitch(phi, q_base, dphi, dq_base, tau, dt, f_phi, f_qbase, trig, o)
+        if exact:
+            self._trig = o.trig
         self._steps += 1
-        rel = np.subtract(dphi, dq_base, out=self._rel)
-        internal = np.multiply(rel, d.viscous_friction, out=self._fr)
-        if self._coulomb:
-            t = np.divide(rel, 1e-2, out=self._a)
-            np.tanh(t, out=t)
-            t *= self._cf2
-            internal += t
-        m12 = np.multiply(self._mrl, self._c2, out=self._m12)
-        m12 -= self._j
-        f1 = np.multiply(self._mrl, self._s2, out=self._f1)
-        f1 *= dq_base
-        f1 *= dq_base
-        f1 -= self._grade
-        f1 += tau
-        f1 -= internal
-        if self._ground:
-            f1 -= np.multiply(dphi, d.ground_viscous, out=self._a)
-        f2 = np.multiply(self._mgl, self._s, out=self._f2)
-        f2 -= tau
-        f2 += internal
-        if q_base.min() < self._cp_max:  # somewhere on the caster (cp - q > 0 iff q < cp)
-            pen = np.subtract(self._cp, q_base, out=self._a)
-            touching = np.greater(pen, 0.0, out=self._mask)
-            ct = np.multiply(pen, d.caster_stiffness, out=self._a)
-            ct -= np.multiply(dq_base, d.caster_damping, out=self._b)
-            np.maximum(ct, 0.0, out=ct)
-            ct *= touching
-            f2 += ct
-        if f_phi is not None:
-            f1 += f_phi
-            f2 += f_qbase
-        delta = np.multiply(m12, m12, out=self._a)
-        np.subtract(self._m11m22, delta, out=delta)
-        dd = np.multiply(self._m22, f1, out=self._b)
-        dd -= np.multiply(m12, f2, out=self._dl)
-        dd /= delta
-        dd *= dt
-        dphi += dd
-        dd = np.multiply(f2, self._m11, out=self._b)
-        dd -= np.multiply(m12, f1, out=self._dl)
-        dd /= delta
-        dd *= dt
-        dq_base += dd
-        phi += np.multiply(dphi, dt, out=self._a)
-        inc = np.multiply(dq_base, dt, out=self._f1)
-        q_base += inc
-        if (self._steps % self.anchor) != 0:
-            self._rotate(inc)
+        if self._steps % self.anchor:
+            self._rotate(o.inc)
 
 
 #: step of the central differences in ``linearize`` (rad, rad/s, N m): the model is linear in the

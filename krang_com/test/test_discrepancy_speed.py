@@ -1,12 +1,14 @@
-"""The replay's fast path computes what the model's one integrator computes.
+"""The replay's fast path is the model's one integrator.
 
-``krang_model.wip.PitchBatch`` is ``WipDynamics.step_pitch`` for the replay's batches (terms
-hoisted, buffers reused, the CoM angle's sine and cosine carried by rotation between exact
-anchors): bit for bit with an exact anchor at every step, to rounding otherwise. A prediction does
-not depend on how its windows are chunked or on the threads that run the chunks, and the fits'
-Levenberg-Marquardt skips the Jacobian of a rejected step without changing its path.
+``krang_model.wip.PitchBatch`` steps the replay's batches with ``WipDynamics.step_pitch`` in place
+(``PitchBuffers``, the CoM angle's sine and cosine carried by rotation between exact anchors): the
+same equations as a simulator's float step and an array step, bit for bit with an exact anchor at
+every step, to rounding otherwise. A prediction does not depend on how its windows are chunked or
+on the threads that run the chunks, and the fits' Levenberg-Marquardt skips the Jacobian of a
+rejected step without changing its path.
 """
 
+import tracemalloc
 from dataclasses import replace
 
 import numpy as np
@@ -49,9 +51,8 @@ def _run(drive, body, state, tau, steps, anchor=None, force=None):
         for _ in range(steps):
             phi, qb, dphi, dqb = dyn.step_pitch(phi, qb, dphi, dqb, tau, 2e-3, *(f or ()))
         return phi, qb, dphi, dqb
-    stepper = PitchBatch(qb.shape, drive, anchor)
-    stepper.set_body(body)
-    stepper.start(qb)
+    stepper = PitchBatch(qb.shape, anchor)
+    stepper.set_dynamics(WipDynamics(body, drive))
     for _ in range(steps):
         stepper.step(phi, qb, dphi, dqb, tau, 2e-3, *(f or (None, None)))
     return phi, qb, dphi, dqb
@@ -67,6 +68,29 @@ def test_pitch_batch_is_step_pitch_bit_for_bit_with_exact_trigonometry(force):
         assert np.array_equal(a, b)
 
 
+def test_the_batch_steps_the_float_equations_bit_for_bit():
+    """Element by element, a simulator's float step (math functions, Python operators) and the
+    batch's in-place step run the one statement of the equations: friction, slope, ground
+    damping, caster contact and extra forces included."""
+    drive, body, state, tau = _batch(s=12, seed=5)
+    force = np.linspace(-2.0, 2.0, 12)[None] + np.zeros((3, 1))
+    got = _run(drive, body, state, tau, 40, anchor=1, force=force)
+    touching = 0
+    for p in range(3):
+        d = replace(drive, **{k: float(v[p, 0]) for k, v in vars(drive).items() if np.ndim(v)})
+        for i in range(12):
+            one = WipBody(*(float(np.broadcast_to(v, (3, 12))[p, i]) for v in vars(body).values()))
+            dyn = WipDynamics(one, d)
+            x = tuple(float(v[p, i]) for v in state)
+            f = float(force[p, i])
+            for _ in range(40):
+                touching += dyn.caster_torque(x[1], x[3]) > 0
+                x = dyn.step_pitch(*x, float(tau[0, i]), 2e-3, f, -f)
+            assert all(type(v) is float for v in x)
+            assert x == tuple(float(v[p, i]) for v in got)
+    assert touching > 0  # the caster's branch ran
+
+
 def test_pitch_batch_carries_sines_and_cosines_to_rounding():
     drive, body, state, tau = _batch(seed=3)
     want = _run(drive, body, state, tau, 150)
@@ -74,6 +98,48 @@ def test_pitch_batch_carries_sines_and_cosines_to_rounding():
     for a, b in zip(want, got):
         assert np.all(np.isfinite(a))
         np.testing.assert_allclose(b, a, rtol=0, atol=1e-11 * (1 + np.abs(a).max()))
+
+
+def test_the_carried_sines_and_cosines_follow_a_body_change():
+    """A new body mid-horizon (the replay's moving pose) turns the carried sines and cosines by
+    the change of the CoM offset, and the batch still agrees with exact steps to rounding."""
+    drive, body, state, tau = _batch(seed=6)
+    moved = replace(body, com_offset=body.com_offset + 0.03, com_distance=body.com_distance * 0.9)
+    want = [x.copy() for x in state]
+    for b in (body, moved):
+        dyn = WipDynamics(b, drive)
+        for _ in range(70):
+            want = dyn.step_pitch(*want, tau, 2e-3)
+    got = [x.copy() for x in state]
+    stepper = PitchBatch(got[1].shape, 16)
+    dyn = WipDynamics(body, drive)
+    for b in (body, moved):  # 70 steps: the change falls between two anchors
+        dyn = dyn.with_body(b)
+        stepper.set_dynamics(dyn)
+        for _ in range(70):
+            stepper.step(*got, tau, 2e-3)
+    for a, b in zip(want, got):
+        np.testing.assert_allclose(b, a, rtol=0, atol=1e-11 * (1 + np.abs(a).max()))
+
+
+def test_a_batch_step_allocates_no_arrays():
+    """The batch steps in its ``PitchBuffers``: no array of the batch's size is allocated (numpy's
+    own iteration buffers are at most 64 kB, an array of this batch is 960 kB)."""
+    drive, body, state, tau = _batch(s=40_000, seed=2)
+    phi, qb, dphi, dqb = (x.copy() for x in state)
+    f_phi = np.full(qb.shape, 0.5)
+    f_qbase = -f_phi
+    stepper = PitchBatch(qb.shape, 4)
+    stepper.set_dynamics(WipDynamics(body, drive))
+    assert np.any(qb < drive.caster_contact_pitch)  # the caster's branch runs too
+    tracemalloc.start()
+    try:
+        for _ in range(8):  # exact anchors and rotations
+            stepper.step(phi, qb, dphi, dqb, tau, 2e-3, f_phi, f_qbase)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak < qb.nbytes / 4
 
 
 @pytest.fixture(scope='module')
