@@ -24,10 +24,14 @@ Safety rules, all enforced here so the ROS shell cannot get them wrong:
   themselves;
 - a frozen DMU (sequence counter stuck, or values bit-identical for imu.frozen_after_s) counts as
   silent: its samples are dropped, not filtered or published;
-- `motion_allowed(now)` is False while a drive fault is latched, any required device is silent,
-  the IMU filter is not initialised, or an `inhibit` is set (e.g. by the node until the AMC
-  start-up succeeded); then
-  wheel commands are zero current and joint commands produce no frames;
+- `motion_allowed(now)` is False while a drive fault is latched, any required device is silent
+  (a PowerCube module only until it was first heard), the IMU filter is not initialised, or an
+  `inhibit` is set (e.g. by the node until the AMC start-up succeeded); then wheel commands are
+  zero current and joint commands produce no frames;
+- a PowerCube module that answered and then falls silent latches an arm fault
+  (arm_fault.ArmFaults), which does not stop the wheels: its joint stays in the joint state at
+  its last position (velocity 0), commands to it produce no frames, the other joints move, until
+  a recover finds every module answering;
 - an effort command older than `wheels.command_timeout_s` is replaced by zero current
   (`wheel_command_frames`), because an AMC drive holds its last current forever; the node sends
   the current frames from each command, and a watchdog timer sends zero current once the command
@@ -54,6 +58,7 @@ from typing import Callable
 
 import can
 
+from krang_can_bridge.arm_fault import ArmFaults
 from krang_can_bridge.commands import CommandFrames
 from krang_can_bridge.config import CanDevicesConfig
 from krang_can_bridge.diagnostics import BridgeDiagnostics
@@ -80,10 +85,11 @@ logger = logging.getLogger('krang_can_bridge')
 NMT_ID = 0x000
 NMT_BOOT_UP, NMT_OPERATIONAL = 0x00, 0x05  # DS301 NMT state byte of 0x700 + node
 NMT_STATE_NAMES = {0x04: 'STOPPED', 0x05: 'OPERATIONAL', 0x7F: 'PRE-OPERATIONAL'}
+MODULE_DEVICE = 'powercube'  # the device names of the PowerCube modules: powercube/joint/bus:id
 EMCY_BASE, SDO_RESPONSE_BASE, SDO_REQUEST_BASE, HEARTBEAT_BASE = 0x080, 0x580, 0x600, 0x700
 
 
-class BridgeCore(CommandFrames, BridgeDiagnostics):
+class BridgeCore(CommandFrames, BridgeDiagnostics, ArmFaults):
     """State and command logic of the CAN bridge (see the module docstring)."""
 
     def __init__(
@@ -146,10 +152,11 @@ class BridgeCore(CommandFrames, BridgeDiagnostics):
         pcfg = config.powercube
         self._poll_frames: list[BusFrame] | None = None
         self._modules: dict[tuple[str, int], ModuleState] = {}
+        self._arm_fault_modules: dict[tuple[str, int], str] = {}  # ArmFaults: key -> joint
         for joint in pcfg.joints:
             for m in joint.modules:
                 dev = Device(
-                    f'powercube/{joint.joint}/{m.bus}:{m.module_id}',
+                    f'{MODULE_DEVICE}/{joint.joint}/{m.bus}:{m.module_id}',
                     pcfg.required,
                     pcfg.silence_timeout_s,
                 )
@@ -485,11 +492,18 @@ class BridgeCore(CommandFrames, BridgeDiagnostics):
         """The reasons set by `inhibit`, by key."""
         return dict(self._inhibits)
 
+    def _silence_stops(self, device: Device, now: float) -> bool:
+        """Whether `device` is required and silent; a PowerCube module heard from and then silent
+        is an arm fault instead (arm_fault), which does not stop the wheels."""
+        if not (device.required and device.silent(now)):
+            return False
+        return device.last_seen is None or not device.name.startswith(f'{MODULE_DEVICE}/')
+
     def motion_allowed(self, now: float | None = None) -> bool:
         now = self._now(now)
         if self._fault or self._inhibits:
             return False
-        if any(d.required and d.silent(now) for d in self.devices):
+        if any(self._silence_stops(d, now) for d in self.devices):
             return False
         if self.config.imu.required and (
             self._imu_snapshot is None or not self._imu_snapshot.ready
@@ -498,22 +512,26 @@ class BridgeCore(CommandFrames, BridgeDiagnostics):
         return True
 
     # ---- state ----------------------------------------------------------------------------------
-    # A silent device's last reading is left out of the state, not republished under a fresh stamp:
-    # the controller then sees its input go stale and stops (its own stale_timeout_s), as the
-    # bridge does.
+    # A silent wheel drive's last reading is left out of the state, not republished under a fresh
+    # stamp: the controller then sees its input go stale and stops (its own stale_timeout_s), as
+    # the bridge does. A silent PowerCube module is an arm fault instead: its joint is held by the
+    # module, so it stays at its last position with velocity 0 and the controller balances on.
     def joint_state(self, now: float | None = None) -> JointStateSnapshot:
-        """Joints whose devices have all been heard from within their silence timeouts."""
+        """Body joints whose modules have all been heard from (a silent one at its last position,
+        velocity 0: see arm_fault), wheels heard from within their silence timeout."""
         now = self._now(now)
+        self._check_modules(now)
         names, pos, vel, eff = [], [], [], []
         for joint in self.config.powercube.joints:
             states = [self._modules[(m.bus, m.module_id)] for m in joint.modules]
-            if any(s.position is None or s.device.silent(now) for s in states):
+            if any(s.position is None for s in states):
                 continue
+            speeds = [0.0 if s.device.silent(now) else s.velocity for s in states]
             names.append(joint.joint)
             pos.append(sum(s.module.sign * s.position for s in states) / len(states))
             vel.append(
-                sum(s.module.sign * s.velocity for s in states) / len(states)
-                if all(s.velocity is not None for s in states)
+                sum(s.module.sign * v for s, v in zip(states, speeds)) / len(states)
+                if all(v is not None for v in speeds)
                 else math.nan
             )
             eff.append(math.nan)

@@ -147,10 +147,12 @@ class CommandFrames:
         """FRAMP moves to joint targets [rad] (URDF names), clamped; [] when motion is not allowed.
 
         Each commanded module gets TARGET_VEL and TARGET_ACC (the module type's limits) then
-        SET_MOTION FRAMP, like pcio_group_setpos. Unknown names (e.g. the wheels) and non-finite
-        targets are skipped and logged.
+        SET_MOTION FRAMP, like pcio_group_setpos. Unknown names (e.g. the wheels), non-finite
+        targets and joints with a module named in the arm fault (it holds where it is) are
+        skipped and logged.
         """
         now = self._now(now)
+        self._check_modules(now)
         if not self.motion_allowed(now):
             if targets:
                 self._log(
@@ -167,6 +169,12 @@ class CommandFrames:
                     f'joint command for unknown joint {name!r} ignored',
                     logging.INFO,
                     10.0,
+                )
+                continue
+            if self.arm_fault_blocks(joint):
+                self._log(
+                    f'armfault{name}',
+                    f'{name}: no command, its module is not answering (arm fault)',
                 )
                 continue
             try:

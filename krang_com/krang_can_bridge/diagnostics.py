@@ -1,6 +1,6 @@
-"""The CAN bridge core's /diagnostics reports: motion allowed or why not, commands rejected,
-frames, the drives' watchdog, each bus, drive, the IMU and each PowerCube module. A mixin of
-BridgeCore (krang_can_bridge.bridge), whose state it reads."""
+"""The CAN bridge core's /diagnostics reports: motion allowed or why not, the arm fault, commands
+rejected, frames, the drives' watchdog, each bus, drive, the IMU and each PowerCube module. A
+mixin of BridgeCore (krang_can_bridge.bridge), whose state it reads."""
 
 from __future__ import annotations
 
@@ -23,6 +23,7 @@ class BridgeDiagnostics:
     def diagnostics(self, now: float | None = None) -> list[DiagnosticReport]:
         now = self._now(now)
         c = self.counters
+        arm_reason, arm_joints = self.arm_fault(now)
         silent = [d for d in self.devices if d.silent(now)]
         allowed = self.motion_allowed(now)
         fault = (
@@ -39,7 +40,7 @@ class BridgeDiagnostics:
                     '; '.join(
                         fault
                         + list(self._inhibits.values())
-                        + [self._silence_text(d) for d in silent if d.required]
+                        + [self._silence_text(d) for d in silent if self._silence_stops(d, now)]
                     )
                     or 'IMU filter not initialised'
                 ),
@@ -51,6 +52,18 @@ class BridgeDiagnostics:
                 },
             )
         ]
+        reports.append(
+            DiagnosticReport(
+                'can_bridge: arm',
+                ERROR if arm_reason else OK,
+                f'arm fault latched: {arm_reason}; the wheels keep balancing, '
+                f'{", ".join(arm_joints)} held (not measured), no commands to it '
+                f'(call {BRIDGE_RECOVER} once every module answers)'
+                if arm_reason
+                else 'every arm module answering',
+                {'arm_fault': arm_reason, 'joints': ', '.join(arm_joints)},
+            )
+        )
         recent = c.last_rejection_at is not None and now - c.last_rejection_at <= REJECTION_WARN_S
         reports.append(
             DiagnosticReport(
@@ -174,12 +187,21 @@ class BridgeDiagnostics:
         )
         for st in self._modules.values():
             not_ok = st.short_state is not None and st.short_state & pc.SHORT_NOT_OK
-            level = STALE if st.device.silent(now) else (WARN if not_ok else OK)
+            silent_now = st.device.silent(now)
+            level = (
+                ERROR
+                if silent_now and st.device.last_seen is not None
+                else STALE
+                if silent_now
+                else (WARN if not_ok else OK)
+            )
             reports.append(
                 DiagnosticReport(
                     f'can_bridge: {st.device.name}',
                     level,
-                    'silent'
+                    'not answering (arm fault: its joint held at its last position)'
+                    if level == ERROR
+                    else 'silent'
                     if level == STALE
                     else (
                         'module reports NOT_OK (error, not homed or halted)' if not_ok else 'ok'

@@ -42,9 +42,12 @@ Topics:
 - publishes /can_bridge/drive_fault (krang_com_interfaces/DriveFault, latched): the latched drive
   fault, active with its reason, or clear (BridgeCore: a FAULT or EMCY of any drive stops both
   wheels; the frame that latches it sends zero current at once);
+- publishes /can_bridge/arm_fault (krang_com_interfaces/ArmFault, latched): a PowerCube module
+  that answered and fell silent, with its joints and the reason, or clear (BridgeCore: the wheels
+  keep balancing, the joint stays in /joint_states at its last position, no commands to it);
 - serves ~/recover (std_srvs/Trigger, /can_bridge/recover): DS402 fault reset and the enable
   sequence (the start-up again), then unlatches only if every drive reports OPERATION_ENABLED;
-  refused with the reason otherwise.
+  an arm fault is cleared only once every module answers; refused with the reason otherwise.
 
 /imu/data: orientation = rotation by q_base (hardware IMU pitch, positive = top tilting forward)
 about +y, the axle pointing left; angular_velocity.y = the filtered pitch rate; the other
@@ -75,7 +78,7 @@ from dataclasses import dataclass, field
 import can
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
-from krang_com_interfaces.msg import DriveFault
+from krang_com_interfaces.msg import ArmFault, DriveFault
 from rclpy._rclpy_pybind11 import RCLError
 from rclpy.node import Node
 from sensor_msgs.msg import Imu, JointState
@@ -268,7 +271,11 @@ class CanBridgeNode(Node):
         self.fault_pub = self.create_publisher(
             DriveFault, names.private(names.DRIVE_FAULT), topics.LATCHED
         )
+        self.arm_fault_pub = self.create_publisher(
+            ArmFault, names.private(names.ARM_FAULT), topics.LATCHED
+        )
         self.publish_fault()
+        self.publish_arm_fault()
         self.create_service(Trigger, '~/recover', self.on_recover)
         self.create_subscription(  # as bytes: the control path (krang_ros.wire)
             JointState,
@@ -288,7 +295,7 @@ class CanBridgeNode(Node):
         self.watchdog_timer = self.create_timer(
             1.0 / self.config.wheels.command_rate_hz, self.wheel_watchdog
         )
-        self.create_timer(1.0 / self.config.powercube.poll_rate_hz, self.runtime.poll_modules)
+        self.create_timer(1.0 / self.config.powercube.poll_rate_hz, self.poll_modules)
         self.create_timer(
             0.5 * self.config.imu.stream_toggle_retry_s, self.runtime.check_imu_stream
         )
@@ -353,6 +360,17 @@ class CanBridgeNode(Node):
         if reason is not None:
             self.fault_pub.publish(messages.drive_fault(self.get_clock().now().to_msg(), reason))
 
+    def publish_arm_fault(self) -> None:
+        """The latched arm fault on ARM_FAULT, whenever it changes (clear once at start-up)."""
+        fault = self.runtime.arm_fault_changed()
+        if fault is not None:
+            self.arm_fault_pub.publish(messages.arm_fault(self.get_clock().now().to_msg(), *fault))
+
+    def poll_modules(self) -> None:
+        """The PowerCube polls, and the arm fault a module's silence latched."""
+        self.runtime.poll_modules()
+        self.publish_arm_fault()
+
     def on_recover(self, request, response):
         """The recovery (BridgeRuntime.recover_keeping_alive). The other callbacks wait (rclpy's
         executor would starve them while a coroutine awaits a thread's result)."""
@@ -362,6 +380,7 @@ class CanBridgeNode(Node):
         else:
             self.get_logger().warning(f'recover: {response.message}')
         self.publish_fault()
+        self.publish_arm_fault()
         return response
 
     # ---- commands -------------------------------------------------------------------------------

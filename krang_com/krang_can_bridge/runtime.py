@@ -11,7 +11,7 @@ start-up, with the samples handed to a `publish` callable.
   refuses, counted, and a wheels' bus refusing them all for the command timeout stops motion;
 - the drives' start-up once the command loop runs steadily (`start_drive`: one verified run of one
   drive's sequence; `bring_up_drive`: that until it is done) and the recovery from a latched
-  fault (`recover`), both in threads because SDO transfers block;
+  drive fault or arm fault (`recover`), both in threads because SDO transfers block;
 - the diagnostics of all this.
 
 Held sample: the drives' TPDOs come at any phase of the DMU's period (free-running clocks), so a
@@ -22,6 +22,7 @@ the DMU sample pays only its publication). Once no DMU sample has come for 1.5 o
 (or the DMU runs slower than 1 / IMU_HOLD_MAX_S), wheel samples go out as they complete.
 
 The ROS node (krang_can_bridge.node) only wires this to topics, services, timers and parameters.
+Over 600 lines: these are one job, the bridge's threads around the core, sharing its lock.
 """
 
 from __future__ import annotations
@@ -153,6 +154,7 @@ class BridgeRuntime:
             d.joint: Throttled(logger.warning, STARTUP_WARN_PERIOD_S) for d in config.wheels.drives
         }
         self._published_fault: str | None = None
+        self._published_arm_fault: tuple[str, list[str]] | None = None
         self._joint_period = 1.0 / publish_rate_hz if publish_rate_hz > 0 else 0.0
         self._joints_published_at = -math.inf
         self._imu_at, self._imu_interval = -math.inf, math.inf  # arrivals of /imu/data samples
@@ -503,7 +505,35 @@ class BridgeRuntime:
         self._published_fault = reason
         return reason
 
+    def arm_fault_changed(self) -> tuple[str, list[str]] | None:
+        """The arm fault's (reason, joints) (('', []) when clear) if it changed since the last
+        call (the first call always returns it), else None."""
+        with self.lock:
+            fault = self.core.arm_fault(self.time.device_time())
+        if fault == self._published_arm_fault:
+            return None
+        self._published_arm_fault = fault
+        return fault
+
     def recover(self) -> tuple[bool, str]:
+        """The drives' recovery (`recover_drives`), then the arm's: once every PowerCube module
+        answers, the modules named in the arm fault get their start-up frames again and the
+        fault is cleared; refused with the reason otherwise."""
+        ok, text = self.recover_drives()
+        with self.lock:
+            reason, _ = self.core.arm_fault(self.time.device_time())
+            answering, why = self.core.arm_recover_status(self.time.device_time())
+            frames = self.core.arm_fault_startup_frames() if answering else []
+        if not ok or not reason:
+            return ok, text
+        if not answering:
+            return False, f'{text}; refused: {why}; arm fault still latched: {reason}'
+        self.send(frames)
+        with self.lock:
+            self.core.clear_arm_fault()
+        return True, f'{text}; arm recovered from: {reason}'
+
+    def recover_drives(self) -> tuple[bool, str]:
         """Every drive's start-up sequence again (DS402 fault reset and enable), then unlatch if
         all report OPERATION_ENABLED (BridgeCore.recover_status); refused with the reason
         otherwise."""

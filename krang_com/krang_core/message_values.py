@@ -105,3 +105,8 @@ def drive_fault_reason(msg):
     if hasattr(msg, 'active'):
         return str(msg.reason or 'drive fault') if msg.active else ''
     return str(msg.data)
+
+
+def arm_fault_reason(msg):
+    """The latched arm fault in an ArmFault; '' when clear."""
+    return str(msg.reason or 'arm fault') if msg.active else ''

@@ -13,6 +13,7 @@ DIAGNOSTICS = '/diagnostics'
 CLOCK = '/clock'  # ROS simulated time, published by sim_krang
 GROUND_TRUTH = '/sim_krang/ground_truth'  # the simulator's truth, for evaluation only
 DRIVE_FAULT = '/can_bridge/drive_fault'  # latched DriveFault
+ARM_FAULT = '/can_bridge/arm_fault'  # latched ArmFault: an arm module stopped answering
 MODE = '/adrc_controller/mode'  # latched ControllerMode
 BALANCE_CONVERGED = '/adrc_controller/balance_converged'  # latched Bool: balance estimate settled
 
@@ -28,7 +29,7 @@ NEXT_POSE = '/pose_server/next_pose'  # Trigger: starts the move of MOVE_TO_NEXT
 POSE_RESET = '/pose_server/reset'
 SAVE = '/com_estimator/save'
 ESTIMATOR_RESET = '/com_estimator/reset'
-BRIDGE_RECOVER = '/can_bridge/recover'  # std_srvs/Trigger: fault reset + enable, or why not
+BRIDGE_RECOVER = '/can_bridge/recover'  # std_srvs/Trigger: drive/arm fault recovery
 
 # Actions (krang_com_interfaces/action): the long calls, with feedback, result and cancel.
 STAND_UP_ACTION = '/adrc_controller/stand_up'  # StandUp

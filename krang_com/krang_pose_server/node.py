@@ -15,7 +15,10 @@ latched balance_converged is false a move holds its setpoint (at most max_pause_
 move, then the rest at slow_fraction of its speed: krang_pose_server.streaming); each pause is
 logged, and the next reply and the diagnostics give the pauses of the last move. A cancelled goal
 stops the move where it is: that setpoint becomes the target, commanded once more, and the
-controller balances the robot there."""
+controller balances the robot there. An arm fault (/can_bridge/arm_fault: an arm module stopped
+answering) stops a move the same way (the bridge sends nothing to the silent module, which holds
+by itself) and ends its goal with the reason; while it is latched, moves are refused with it until
+/can_bridge/recover clears it."""
 
 import math
 import sys
@@ -25,7 +28,7 @@ import numpy as np
 
 from diagnostic_msgs.msg import DiagnosticArray
 from krang_com_interfaces.action import MoveToNextPose
-from krang_com_interfaces.msg import BalancedPose, ControllerMode, MassModel
+from krang_com_interfaces.msg import ArmFault, BalancedPose, ControllerMode, MassModel
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.node import Node
 from sensor_msgs.msg import Imu, JointState
@@ -185,6 +188,10 @@ class PoseServer(Node):
         self.create_subscription(
             Bool, names.relative(names.BALANCE_CONVERGED), self.on_converged, topics.LATCHED
         )
+        self.arm_fault = ''  # the bridge's latched arm fault; '' when clear
+        self.create_subscription(
+            ArmFault, names.relative(names.ARM_FAULT), self.on_arm_fault, topics.LATCHED
+        )
         self.pause = PauseConfig(cfg.max_pause_s, cfg.slow_fraction)
         self.converged = None  # the controller's flag; unknown = do not wait
         self.stream_rate = cfg.stream_rate_hz
@@ -274,6 +281,28 @@ class PoseServer(Node):
     def on_converged(self, msg):
         self.converged = bool(msg.data)
 
+    def arm_refusal(self):
+        return f'{self.arm_fault}: recover with {names.BRIDGE_RECOVER}'
+
+    def on_arm_fault(self, msg):
+        """An arm module stopped answering: a move stops and holds where it is (as on cancel),
+        its goal ends with the reason; cleared: moves are accepted again."""
+        reason, was = message_values.arm_fault_reason(msg), self.arm_fault
+        self.arm_fault = reason
+        if not reason:
+            if was:
+                self.get_logger().info(f'arm fault cleared ({was}): moves accepted again')
+            return
+        if reason == was:
+            return
+        self.get_logger().error(f'arm fault: {self.arm_refusal()}')
+        stopped = 'the move had reached its target'
+        if self.move is not None:
+            done = self.stop_and_hold()
+            stopped = f'the move stopped at {done:.0%} of its path, holding there'
+        if self.goal is not None:
+            self.end_goal(False, f'{stopped}: {self.arm_refusal()}')
+
     def measured_joints(self):
         """The body joints of the newest /joint_states that has them all, among those waiting
         (the QoS depth: the last 10 samples); the last known ones if none of them has; None before
@@ -338,6 +367,8 @@ class PoseServer(Node):
                 f'refused: the robot is not balancing (controller mode: '
                 f'{self.mode or "unknown"}); stand it up first'
             )
+        if self.arm_fault:
+            return False, f'refused: {self.arm_refusal()}'
         if self.move is not None:
             return False, 'refused: a move is still under way'
         if self.goal is not None:
@@ -404,19 +435,25 @@ class PoseServer(Node):
     def stop_for_cancel(self, goal):
         """The move stops at its setpoint, which becomes the target: the robot holds that pose
         and the controller balances it there."""
-        move = self.move
-        if move is None:
+        if self.move is None:
             self.end_goal(False, 'cancelled: the move had reached its target', True)
             return
+        done = self.stop_and_hold()
+        self.end_goal(
+            False, f'cancelled: the move stopped at {done:.0%} of its path, holding there', True
+        )
+
+    def stop_and_hold(self):
+        """The move under way stops at its setpoint, which becomes the target, commanded once
+        more; returns the fraction of its path done."""
+        move = self.move
         self.last_move, self.move = move, None
         held = move.setpoint
         self.publish_target(held)
         self.command(held)
         done = 1.0 if move.move.duration <= 0 else move.progress_s / move.move.duration
-        self.get_logger().info(f'move cancelled at {done:.0%} of its path ({move.summary()})')
-        self.end_goal(
-            False, f'cancelled: the move stopped at {done:.0%} of its path, holding there', True
-        )
+        self.get_logger().info(f'move stopped at {done:.0%} of its path ({move.summary()})')
+        return done
 
     def on_balanced_pose(self, msg):
         goal = self.goal

@@ -6,7 +6,7 @@ import numpy as np
 from builtin_interfaces.msg import Time
 from builtin_interfaces.msg import Duration
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-from krang_com_interfaces.msg import BalancedPose, ControllerMode, DriveFault, MassModel
+from krang_com_interfaces.msg import ArmFault, BalancedPose, ControllerMode, DriveFault, MassModel
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray, Header, MultiArrayDimension
 
@@ -199,6 +199,11 @@ def controller_mode(stamp, name):
 def drive_fault(stamp, reason):
     """A DriveFault: active with its reason, or clear when reason is ''."""
     return DriveFault(header=_header(stamp), active=bool(reason), reason=reason)
+
+
+def arm_fault(stamp, reason, joints):
+    """An ArmFault: active with its reason and joints, or clear when reason is ''."""
+    return ArmFault(header=_header(stamp), active=bool(reason), joints=list(joints), reason=reason)
 
 
 def _header(stamp):

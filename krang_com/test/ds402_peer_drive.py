@@ -21,7 +21,16 @@ stays; SIGUSR2 removes the cause (the drive stays in FAULT until a fault reset).
   DS301 boot-up message, then NMT PRE-OPERATIONAL;
 - `freeze counter` / `freeze values` / `thaw`: the DMU (--dmu) goes on sending at its rate, either
   its last frames again (sequence counter stuck, same values) or the same values with an
-  advancing counter; `thaw` makes it live again.
+  advancing counter; `thaw` makes it live again;
+- `silence BUS:ID` / `answer BUS:ID`: that PowerCube module (--modules) stops answering (it goes
+  on holding its position, and still reports the motions it is sent) or answers again.
+
+With --modules BUS=CHANNEL:PORT:ID,ID,... (repeated) it is also the PowerCube modules on that bus
+(Amtec's protocol, docs/can.md): GET_PARAM ACT_FPOS 0x3C / ACT_FVEL 0x41 on 0x0C0 + id answered
+on 0x0A0 + id with the float32; SET_PARAM acknowledged [0x08][param][0]; SET_MOTION FRAMP 14 runs
+to its target at the TARGET_VEL 0x4F last set, acknowledged with the position and a short state;
+RESET acknowledged. Each FRAMP is printed (module, target), so a test sees which modules are
+commanded.
 
 With --dmu CHANNEL:PORT it is also a DMU on that bus: the angular-rate frame 0x40 and the
 acceleration frame 0x50 (int16 x, y, z, u8 status, u8 sequence, little-endian; docs/can.md) every
@@ -279,6 +288,74 @@ class Drive:
         ]
 
 
+class Module:
+    """A PowerCube module: position and the FRAMP it runs (module docstring)."""
+
+    def __init__(self, name, module_id, position):
+        self.name, self.id = name, module_id
+        self.position, self.target, self.speed, self.velocity = position, position, 0.5, 0.0
+        self.answering = True
+
+    def step(self, dt):
+        error = self.target - self.position
+        step = max(-self.speed * dt, min(self.speed * dt, error))
+        self.position += step
+        self.velocity = step / dt if dt > 0 else 0.0
+
+    def reply(self, data):
+        """The acknowledgement of one host frame's data, or None."""
+        cmd = data[0]
+        if cmd == 0x0A and len(data) == 2 and data[1] in (0x3C, 0x41):
+            value = self.position if data[1] == 0x3C else self.velocity
+            return bytes([0x0A, data[1]]) + struct.pack('<f', value)
+        if cmd == 0x08 and len(data) == 6:
+            if data[1] == 0x4F:
+                self.speed = struct.unpack('<f', data[2:6])[0]
+            return bytes([0x08, data[1], 0])
+        if cmd == 0x0B and len(data) == 6 and data[1] == 14:
+            self.target = struct.unpack('<f', data[2:6])[0]
+            emit(module=self.name, event='framp', target=self.target, answering=self.answering)
+            return bytes([0x0B, 14]) + struct.pack('<f', self.position) + bytes([0, 0])
+        if cmd == 0x00 and len(data) == 1:
+            return bytes([0x00])
+        return None
+
+
+class ModuleBus:
+    """The PowerCube modules of one bus, answering from their own thread."""
+
+    def __init__(self, name, channel, port, ids, lock):
+        self.bus = can.Bus(interface='udp_multicast', channel=channel, port=port)
+        self.modules = {i: Module(f'{name}:{i}', i, 0.01 * i) for i in ids}
+        self.lock, self.last = lock, time.monotonic()
+        threading.Thread(target=self.serve, daemon=True).start()
+
+    def serve(self):
+        while True:
+            try:
+                msg = self.bus.recv(0.1)
+            except Exception:  # noqa: BLE001 - the bus is shut down at exit
+                return
+            if msg is None or not 0x0C0 <= msg.arbitration_id <= 0x0FF:
+                continue
+            module = self.modules.get(msg.arbitration_id & 0x1F)
+            if module is None:
+                continue
+            with self.lock:
+                data = module.reply(bytes(msg.data))
+                answering = module.answering
+            if data is not None and answering:
+                self.bus.send(
+                    can.Message(arbitration_id=0x0A0 + module.id, data=data, is_extended_id=False)
+                )
+
+    def step(self, now):
+        with self.lock:
+            for module in self.modules.values():
+                module.step(now - self.last)
+        self.last = now
+
+
 class Dmu:
     """The DMU: 0x40 and 0x50 every period, live, or frozen as asked (module docstring)."""
 
@@ -330,6 +407,9 @@ def main():
     ap.add_argument('--dmu', help='CHANNEL:PORT of the DMU bus (none: no DMU)')
     ap.add_argument('--dmu-period-ms', type=float, default=5.0)
     ap.add_argument('--dmu-raw', help='six int16: rates x y z, accelerations x y z')
+    ap.add_argument(
+        '--modules', action='append', default=[], help='BUS=CHANNEL:PORT:ID,ID,... (repeated)'
+    )
     args = ap.parse_args()
     network = canopen.Network()
     network.connect(interface='udp_multicast', channel=args.channel, port=args.port)
@@ -343,6 +423,13 @@ def main():
         dmu_bus = can.Bus(interface='udp_multicast', channel=channel, port=int(port))
         raw = [int(x) for x in args.dmu_raw.split(',')]
         dmu = Dmu(dmu_bus, args.dmu_period_ms / 1000.0, raw)
+    module_lock, module_buses = threading.Lock(), {}
+    for item in args.modules:
+        name, where = item.split('=', 1)
+        channel, port, ids = where.rsplit(':', 2)
+        module_buses[name] = ModuleBus(
+            name, channel, int(port), [int(i) for i in ids.split(',')], module_lock
+        )
     requests, commands = [], []
     signal.signal(signal.SIGUSR1, lambda *_: requests.append('fault'))
     signal.signal(signal.SIGUSR2, lambda *_: requests.append('clear'))
@@ -369,8 +456,16 @@ def main():
                 elif dmu is not None and command.startswith(('freeze', 'thaw')):
                     dmu.mode = command.split()[1] if command != 'thaw' else 'live'
                     emit(event='dmu', mode=dmu.mode)
+                elif command.startswith(('silence ', 'answer ')):
+                    verb, where = command.split()
+                    name, module_id = where.rsplit(':', 1)
+                    with module_lock:
+                        module_buses[name].modules[int(module_id)].answering = verb == 'answer'
+                    emit(event=verb, module=where)
             if dmu is not None:
                 dmu.send(now)
+            for module_bus in module_buses.values():
+                module_bus.step(now)
             for drive in drives.values():
                 drive.watch(now)
             for drive in drives.values():
@@ -381,6 +476,8 @@ def main():
         network.disconnect()
         if dmu is not None:
             dmu.bus.shutdown()
+        for module_bus in module_buses.values():
+            module_bus.bus.shutdown()
     return 0
 
 

@@ -50,6 +50,7 @@ TYPES = {
     names.BETA: 'krang_com_interfaces/msg/MassModel',
     names.MODE: 'krang_com_interfaces/msg/ControllerMode',
     names.DRIVE_FAULT: 'krang_com_interfaces/msg/DriveFault',
+    names.ARM_FAULT: 'krang_com_interfaces/msg/ArmFault',
     ROBOT_DESCRIPTION: 'std_msgs/msg/String',
     TF: 'tf2_msgs/msg/TFMessage',
     TF_STATIC: 'tf2_msgs/msg/TFMessage',
@@ -102,6 +103,10 @@ def source_messages(robot):
         names.BETA: models,
         names.MODE: [messages.controller_mode(stamp, m) for m in ('sit', 'stand_up', 'balance')],
         names.DRIVE_FAULT: [messages.drive_fault(stamp, r) for r in ('left drive rebooted', '')],
+        names.ARM_FAULT: [
+            messages.arm_fault(stamp, 'arm module LJ2 not answering', ['LJ2']),
+            messages.arm_fault(stamp, '', []),
+        ],
         ROBOT_DESCRIPTION: [String(data=frames.urdf_text)],
         TF: [tf2_msgs.TFMessage(transforms=[transform_stamped(stamp, t) for t in moving])],
         TF_STATIC: [
@@ -118,7 +123,14 @@ def bag(robot, tmp_path_factory):
     """Written as the recorder writes: the CDR bytes rclpy serializes, under the installed
     definitions."""
     path = tmp_path_factory.mktemp('bag') / 'interfaces.mcap'
-    latched = {names.BETA, names.MODE, names.DRIVE_FAULT, ROBOT_DESCRIPTION, TF_STATIC}
+    latched = {
+        names.BETA,
+        names.MODE,
+        names.DRIVE_FAULT,
+        names.ARM_FAULT,
+        ROBOT_DESCRIPTION,
+        TF_STATIC,
+    }
     with BagWriter(path) as writer:
         for k, (topic, batch) in enumerate(source_messages(robot).items()):
             writer.add_topic(
@@ -161,6 +173,8 @@ def check(robot, topic, got):
             assert (a.mode, a.name) == (b.mode, b.name)
         elif topic == names.DRIVE_FAULT:
             assert (a.active, a.reason) == (b.active, b.reason)
+        elif topic == names.ARM_FAULT:
+            assert (a.active, list(a.joints), a.reason) == (b.active, list(b.joints), b.reason)
         elif topic == ROBOT_DESCRIPTION:
             assert a.data == b.data
         elif topic in (TF, TF_STATIC):

@@ -15,6 +15,10 @@ LocalNodes on a udp_multicast bus), a ROS probe in this process.
   at zero current within the IMU's silence timeout, no /imu/data, the reason in diagnostics.
 - A wheel bus whose send raises: one frame in four changes nothing; 200 ms or for good stops the
   drives through their watchdog, latched until a recover (refused while the bus refuses).
+- An arm module that stops answering while the wheels are driven (the peer's PowerCube modules):
+  the wheels stay driven, /can_bridge/arm_fault is latched with its joint, which stays in
+  /joint_states at its last position with velocity 0, moves still go to the other modules and
+  none to it, and recover is refused while it is silent and accepted once it answers.
 - The bridge runs as on the robot, under SCHED_FIFO, and the peer above it (BRIDGE_PRIORITY).
 - No parameters: the bridge takes the robot's SocketCAN map and, with no SocketCAN here, ends with
   one line naming can0 and the `ip link` command.
@@ -45,7 +49,7 @@ from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
 from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 from sensor_msgs.msg import Imu, JointState  # noqa: E402
-from krang_com_interfaces.msg import DriveFault  # noqa: E402
+from krang_com_interfaces.msg import ArmFault, DriveFault  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
 
 from krang_can_bridge.config import default_devices_file, load_devices, resolve_devices_file  # noqa: E402
@@ -55,7 +59,7 @@ from krang_cli.processes import NodeSet, child_setup  # noqa: E402
 from krang_model.drivetrain import drivetrain  # noqa: E402
 from krang_model.robot import load_krang  # noqa: E402
 from krang_core import names  # noqa: E402
-from krang_core.message_values import drive_fault_reason  # noqa: E402
+from krang_core.message_values import arm_fault_reason, drive_fault_reason  # noqa: E402
 from krang_ros import messages, topics  # noqa: E402
 
 
@@ -114,7 +118,7 @@ def peer_map(tmp_path):
 class Peer:
     """The peer drive process and the events it printed (see ds402_peer_drive.py)."""
 
-    def __init__(self, cfg, dmu_raw=None):
+    def __init__(self, cfg, dmu_raw=None, modules=False):
         bus = cfg.buses[cfg.wheels.bus]
         nodes = ','.join(f'{d.node_id}:{d.sign}' for d in cfg.wheels.drives)
         self.ids = {d.joint: d.node_id for d in cfg.wheels.drives}
@@ -126,6 +130,17 @@ class Peer:
                 f'{imu_bus.channel}:{imu_bus.options["port"]}',
                 '--dmu-raw=' + ','.join(str(v) for v in dmu_raw),
             ]
+        if modules:  # every PowerCube module of the map, on its bus
+            ids = {}
+            for joint in cfg.powercube.joints:
+                for m in joint.modules:
+                    ids.setdefault(m.bus, []).append(str(m.module_id))
+            for name, module_ids in ids.items():
+                b = cfg.buses[name]
+                dmu += [
+                    '--modules',
+                    f'{name}={b.channel}:{b.options["port"]}:' + ','.join(module_ids),
+                ]
         self.proc = subprocess.Popen(
             [
                 sys.executable,
@@ -598,6 +613,125 @@ def test_a_frozen_dmu_stops_both_wheels_within_its_silence_timeout(dmu_rig, free
     assert motion is not None and motion.level == b'\x02' and 'frozen' in motion.message
     peer.command('thaw')  # live again: silence is not latched, the samples count again
     assert probe.spin(10.0, lambda: both_driven(peer)), peer.events[-6:]
+
+
+class ArmProbe(Probe):
+    """The probe, also watching the arm fault and /joint_states and commanding joints."""
+
+    def __init__(self):
+        super().__init__()
+        self.arm_fault, self.arm_joints, self.joints = None, [], None
+        self.node.create_subscription(ArmFault, names.ARM_FAULT, self._on_arm, topics.LATCHED)
+        self.node.create_subscription(
+            JointState,
+            names.JOINT_STATES,
+            lambda m: setattr(self, 'joints', m),
+            topics.QOS[names.JOINT_STATES],
+        )
+        self.joint_cmd = self.node.create_publisher(
+            JointState, names.JOINT_POSITION_CMD, topics.QOS[names.JOINT_POSITION_CMD]
+        )
+
+    def _on_arm(self, msg):
+        self.arm_fault, self.arm_joints = arm_fault_reason(msg), list(msg.joints)
+
+    def joint(self, name):
+        """(position, velocity) of `name` in the last /joint_states, None if it is not there."""
+        m = self.joints
+        if m is None or name not in m.name:
+            return None
+        i = list(m.name).index(name)
+        return m.position[i], m.velocity[i]
+
+    def move(self, targets):
+        self.joint_cmd.publish(
+            messages.joint_state(Time(), list(targets), [float(v) for v in targets.values()])
+        )
+
+
+@pytest.fixture
+def arm_rig(peer_map, tmp_path):
+    """The rig with the peer's PowerCube modules answering, the modules required (a 0.5 s
+    silence timeout, as the wheels here)."""
+    path, _ = peer_map
+    data = yaml.safe_load(path.read_text())
+    data['powercube'].update(required=True, silence_timeout_s=0.5)
+    path.write_text(yaml.safe_dump(data))
+    cfg = load_devices(path)
+    peer = Peer(cfg, modules=True)
+    nodes = NodeSet([], log_dir=tmp_path / 'logs')
+    nodes.start('can_bridge', {'devices_file': path, 'thread_priority': BRIDGE_PRIORITY})
+    probe = ArmProbe()
+    try:
+        yield peer, probe, cfg
+    finally:
+        probe.close()
+        nodes.stop()
+        peer.close()
+
+
+def framps(peer, module, after):
+    with peer.lock:
+        return [
+            e['target']
+            for e in peer.events
+            if e.get('event') == 'framp' and e['module'] == module and e['t'] > after
+        ]
+
+
+@pytest.mark.timeout(120)
+def test_an_arm_module_that_stops_answering_leaves_the_wheels_driven(arm_rig):
+    peer, probe, cfg = arm_rig
+    silent, other = cfg.powercube.joint('LJ2').modules[0], cfg.powercube.joint('LJ1').modules[0]
+    silent_name = f'{silent.bus}:{silent.module_id}'
+    probe.command = (EFFORT_NM, EFFORT_NM)
+    # the modules are required: the wheels are driven only once they have all answered
+    assert probe.spin(30.0, lambda: both_driven(peer)), why_not_driven(peer, probe)
+    assert probe.spin(5.0, lambda: probe.arm_fault == '' and probe.joint('LJ2') is not None)
+    last = probe.joint('LJ2')[0]
+    assert last == pytest.approx(0.01 * silent.module_id * silent.sign)
+    silenced_at = time.monotonic()
+    peer.command(f'silence {silent_name}')
+    assert probe.spin(5.0, lambda: bool(probe.arm_fault)), probe.arm_fault
+    assert probe.arm_joints == ['LJ2'] and 'LJ2' in probe.arm_fault, probe.arm_fault
+    assert 'not answering' in probe.arm_fault
+    probe.spin(1.0)
+    # the wheels: driven all along
+    assert both_driven(peer), why_not_driven(peer, probe)
+    for joint in ('JLWheel', 'JRWheel'):
+        assert peer.first_zero_after(joint, silenced_at) is None, peer.events[-6:]
+    # the silent joint: in /joint_states at its last position, velocity 0
+    assert probe.joint('LJ2') == (pytest.approx(last), 0.0)
+    # moves: to the other module, none to the silent one
+    moved_at = time.monotonic()
+    assert probe.spin(
+        5.0,
+        lambda: (
+            probe.move({'LJ1': 0.2, 'LJ2': 0.3})
+            or framps(peer, f'{other.bus}:{other.module_id}', moved_at)
+        ),
+    ), 'no move reached the answering module'
+    assert framps(peer, silent_name, silenced_at) == []
+    probe.spin(1.5)
+    arm = probe.diag.get('can_bridge: arm')
+    assert arm is not None and arm.level == b'\x02' and 'LJ2' in arm.message, arm
+    refused = probe.recover()
+    assert not refused.success and 'not answering' in refused.message, refused.message
+    probe.spin(0.5)
+    assert probe.arm_fault and both_driven(peer)
+    peer.command(f'answer {silent_name}')
+    probe.spin(1.0)
+    assert probe.arm_fault, 'answering again cleared the arm fault without a recover'
+    accepted = probe.recover()
+    assert accepted.success, accepted.message
+    assert probe.spin(5.0, lambda: probe.arm_fault == '' and probe.arm_joints == [])
+    assert both_driven(peer), why_not_driven(peer, probe)
+    for joint in ('JLWheel', 'JRWheel'):
+        assert peer.first_zero_after(joint, silenced_at) is None, peer.events[-6:]
+    again = time.monotonic()
+    assert probe.spin(5.0, lambda: probe.move({'LJ2': 0.3}) or framps(peer, silent_name, again)), (
+        'the recovered module is not commanded'
+    )
 
 
 @pytest.mark.timeout(60)

@@ -2,8 +2,10 @@
 controller balances and while a move is under way, and a move stops when the controller leaves
 balance; a move holds its setpoint while the controller's balance_converged is false and goes on
 when it is true; the move_to_next_pose action gives feedback while it moves, ends with the next
-balanced pose, stops and holds where it is when cancelled, and says why when refused; every name
-moves with __ns."""
+balanced pose, stops and holds where it is when cancelled, and says why when refused; an arm
+fault (the bridge's latched /can_bridge/arm_fault) stops a move and holds it where it is, ends
+its goal with the reason and makes next_pose refuse until it is cleared; every name moves with
+__ns."""
 
 import math
 import subprocess
@@ -17,7 +19,7 @@ pytestmark = pytest.mark.ros
 rclpy = pytest.importorskip('rclpy')
 from action_msgs.msg import GoalStatus  # noqa: E402
 from krang_com_interfaces.action import MoveToNextPose  # noqa: E402
-from krang_com_interfaces.msg import BalancedPose, ControllerMode  # noqa: E402
+from krang_com_interfaces.msg import ArmFault, BalancedPose, ControllerMode  # noqa: E402
 from rclpy.action import ActionClient  # noqa: E402
 from rclpy.node import Node  # noqa: E402
 from sensor_msgs.msg import Imu, JointState  # noqa: E402
@@ -302,3 +304,55 @@ def test_move_to_next_pose_action(pose_server):
     held = np.array(probe.commands[-1].position)
     np.testing.assert_array_equal(probe.targets[-1].position, held)  # the held pose: the target
     assert 0.05 < np.max(np.abs(held)) and not np.allclose(held, res.target)
+
+
+def test_an_arm_fault_stops_the_move_and_refuses_the_next_until_cleared(pose_server):
+    """A fake bridge latches an arm fault during a move: the move stops and holds where it is
+    (the other joints commanded at that setpoint once more), the goal ends with the reason, and
+    next_pose and new goals are refused with it until the fault is cleared."""
+    _, node, context = pose_server
+    probe = Probe(node, context)
+    robot = load_krang()
+    arm = node.create_publisher(ArmFault, names.relative(names.ARM_FAULT), topics.LATCHED)
+    reason = 'arm module powercube/LJ2/can0:5 (LJ2) not answering'
+    assert probe.action.wait_for_server(timeout_sec=30.0), 'move_to_next_pose not served'
+    probe.pause(0.5)  # the server's readers matched
+    probe.joint_states.publish(
+        messages.joint_state(node.get_clock().now().to_msg(), robot.pose_joints, [0.0] * 16)
+    )
+    probe.mode('balance')
+    arm.publish(messages.arm_fault(node.get_clock().now().to_msg(), '', []))
+    probe.pause(0.5)
+    _, feedback, result = probe.send()
+    probe.spin_until(
+        lambda: result.done() or (feedback and feedback[-1].progress > 0.1), 10.0, 'progress'
+    )
+    assert not result.done(), result.result().result.message
+    arm.publish(messages.arm_fault(node.get_clock().now().to_msg(), reason, ['LJ2']))
+    status, res = probe.result(result, 10.0)
+    assert status == GoalStatus.STATUS_ABORTED and not res.success
+    assert reason in res.message and names.BRIDGE_RECOVER in res.message, res.message
+    assert 'stopped at' in res.message and 'holding there' in res.message, res.message
+    probe.pause(0.3)  # the held setpoint's command, which can come after the result
+    n = len(probe.commands)
+    probe.pause(1.0)
+    assert len(probe.commands) == n, 'the move went on after the arm fault'
+    held = np.array(probe.commands[-1].position)
+    np.testing.assert_array_equal(probe.targets[-1].position, held)  # the held pose: the target
+    assert 0.0 < np.max(np.abs(held)) and not np.allclose(held, res.target)
+
+    future = probe.next_pose.call_async(Trigger.Request())
+    probe.spin_until(future.done, 10.0, 'the next_pose answer')
+    refused = future.result()
+    assert not refused.success and reason in refused.message, refused.message
+    assert f'recover with {names.BRIDGE_RECOVER}' in refused.message
+    _, _, result = probe.send()
+    status, res = probe.result(result, 10.0)
+    assert status == GoalStatus.STATUS_ABORTED and reason in res.message, res.message
+    assert len(probe.commands) == n, 'a refused move commanded the joints'
+
+    arm.publish(messages.arm_fault(node.get_clock().now().to_msg(), '', []))
+    probe.pause(0.5)
+    future = probe.next_pose.call_async(Trigger.Request())
+    probe.spin_until(future.done, 10.0, 'the next_pose answer')
+    assert future.result().success, future.result().message
