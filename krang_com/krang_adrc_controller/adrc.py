@@ -304,11 +304,10 @@ class AdrcController:
 def drive_chain_overrides(drive: Drivetrain, nominal: Drivetrain) -> dict:
     """The controller parameters for a drive chain that differs from the nominal one (e.g. the
     ``ModelTerms.drive`` of an extended model of `krang discrepancy`): its torque fraction, its
-    dry friction and its viscous friction beyond the nominal's; with dry friction, the stand-up's
-    settle check on a low-passed rate (``modes.stand_rate_filter_s``, 1 s) and a slower
-    balance-point trim (``balance_point.time_constant_s``, 4 s): the friction the wheels stick
-    on reads to the balance-point observer as a CoM error of up to c / (m g l), about 10 mrad at
-    8 N m, and a 1 s trim turns that into a limit cycle."""
+    dry friction and its viscous friction beyond the nominal's; with dry friction, a slower
+    balance-point trim (``balance_point.time_constant_s``, 4 s). The shipped controller runs an
+    untold chain of this range too (its drive observer, balance_point.py); told, it need not
+    observe what it knows."""
     out = {
         'adrc.torque_fraction': float(drive.torque_constant / nominal.torque_constant),
         'adrc.coulomb_compensation_nm': float(drive.coulomb_friction),
@@ -317,6 +316,5 @@ def drive_chain_overrides(drive: Drivetrain, nominal: Drivetrain) -> dict:
         ),
     }
     if drive.coulomb_friction > 0:
-        out['modes.stand_rate_filter_s'] = 1.0
         out['balance_point.time_constant_s'] = 4.0
     return out

@@ -18,6 +18,17 @@ whatever the control does), so delta_hat = -f_hat / a, low-pass filtered over `t
 limited to `limit_rad`. The controller regulates theta - delta_hat instead of theta: it comes to
 rest at x_ref with the true CoM over the axle. The filter keeps this trim slow next to the balance
 dynamics (the ESO itself runs at the ADRC's bandwidth), so the LQR(q) design is not disturbed.
+
+The drive observer (``drive_observer``). A drive chain the controller is not told (a gearmotor:
+0.6-0.8 of the commanded torque, dry friction that sticks below its breakaway torque) is a second
+disturbance, and alone the theta channel reads it as CoM error: the trim then swings with the
+stick-slip and feeds it (a 180 mrad limit cycle in pitch at 0.75 / 4 N m / 3 N m s, no balanced
+point). The two disturbances load the channels differently: a torque about the axle on the body
+(CoM error, the arms' reaction) as gravity does, f = -(a_x, a) delta; a torque between wheels and
+body (the drive chain's error) as the motors do, f = (b_x, b) drive. A second ESO on the x
+channel, fed the same way, gives f_x; the 2 x 2 solve separates delta_hat from drive_hat, and the
+controller cancels drive_hat in the wheel torque (a disturbance observer on the drive chain,
+limited to ``drive_limit_nm``). On the nominal chain drive_hat stays near zero.
 """
 
 from __future__ import annotations
@@ -76,10 +87,28 @@ class ObserverConfig:
         default=0.3,
         metadata={'doc': '... and its ground speed below this, m/s'},
     )
+    drive_observer: bool = field(
+        default=True,
+        metadata={
+            'doc': "separate the drive chain's torque error (dry and viscous friction, a torque "
+            'shortfall: a torque between wheels and body) from the CoM error with a second '
+            'observer on the x channel, and cancel it in the wheel torque (false = every '
+            'disturbance reads as CoM error)'
+        },
+    )
+    drive_limit_nm: float = field(
+        default=40.0,
+        metadata={
+            'doc': '|drive torque error| the controller cancels, N m (both wheels): a gearmotor '
+            "chain's dry friction (2 x 8 N m) and shortfall, with room"
+        },
+    )
 
     def __post_init__(self):
         if self.place_tol_m <= 0 or self.place_speed_m_s <= 0:
             raise ValueError('balance_point.place_tol_m and place_speed_m_s must be positive')
+        if self.drive_limit_nm < 0:
+            raise ValueError('balance_point.drive_limit_nm must not be negative')
         if (
             self.time_constant_s <= 0
             or self.limit_rad <= 0
@@ -93,20 +122,31 @@ class ObserverConfig:
 
 
 class BalancePointObserver:
-    """delta_hat: the CoM-angle error of the current beta at the current pose (rad)."""
+    """delta_hat: the CoM-angle error of the current beta at the current pose (rad); with
+    ``drive_observer``, also drive_hat: the drive chain's torque error (N m, both wheels)."""
 
     def __init__(self, h: float, omega_o: float, config: ObserverConfig = ObserverConfig()):
         self.eso = ExtendedStateObserver(1.0, h, omega_o=omega_o)
+        self.eso_x = (
+            ExtendedStateObserver(1.0, h, omega_o=omega_o) if config.drive_observer else None
+        )
         self.time_constant = float(config.time_constant_s)
         self.limit = float(config.limit_rad)
+        self.drive_limit = float(config.drive_limit_nm)
         self.hold_s = float(config.hold_s)
         self.track_moves = bool(config.track_moves)
         self.converged_tol = float(config.converged_tol_rad)
         self.gap = math.inf  # low-passed (raw estimate - delta_hat), rad
         self.a = self.a_dx = self.a_dth = 0.0
         self.b = 1.0
+        self.ax = self.ax_dx = self.ax_dth = 0.0  # the x row (m/s^2)
+        self.bx = 1.0
+        self._det = 1.0
+        self._split = False  # the drive observer runs (a model with an x channel)
         self.delta = 0.0
+        self.drive = 0.0
         self._u_prev = 0.0
+        self._ux_prev = 0.0
 
     def set_model(self, a, b) -> None:
         """The linearisation of the current pose and beta (``GainCache.design``'s 'A' and 'B')."""
@@ -115,13 +155,27 @@ class BalancePointObserver:
         self.a_dx, self.a, self.a_dth = float(a[3][1]), float(a[3][2]), float(a[3][3])
         self.b = float(b[3])
         self.eso.set_b(self.b)
+        if self.eso_x is not None:
+            self.ax_dx, self.ax, self.ax_dth = float(a[1][1]), float(a[1][2]), float(a[1][3])
+            self.bx = float(b[1])
+            # f_x = -ax delta + bx drive, f_theta = -a delta + b drive: a torque about the axle
+            # on the body (CoM error, the arms' reaction) and one between wheels and body (the
+            # drive chain) load the two channels in different proportions
+            self._det = self.a * self.bx - self.ax * self.b
+            self._split = self.bx != 0 and abs(self._det) > 1e-9 * abs(self.a * self.bx)
+            if self._split:  # (a model without an x channel reads every disturbance as delta)
+                self.eso_x.set_b(self.bx)
 
-    def reset(self, theta: float, dtheta: float) -> None:
-        """Start at BALANCE entry, assuming the model right (delta_hat = 0)."""
+    def reset(self, theta: float, dtheta: float, x: float = 0.0, dx: float = 0.0) -> None:
+        """Start at BALANCE entry, assuming the model right (delta_hat = 0, drive_hat = 0)."""
         self.eso.reset(theta, dtheta)
+        if self.eso_x is not None:
+            self.eso_x.reset(x, dx)
         self.delta = 0.0
+        self.drive = 0.0
         self.gap = math.inf
         self._u_prev = 0.0
+        self._ux_prev = 0.0
 
     @property
     def converged(self) -> bool:
@@ -134,18 +188,30 @@ class BalancePointObserver:
         stays); at a new pose the best guess is that the CoM-angle error stays what it was."""
         if same_pose:
             self.eso.shift(delta_offset, -self.a * delta_offset)
+            if self._split:
+                self.eso_x.shift(0.0, -self.ax * delta_offset)
             self.delta += delta_offset
         else:
             self.eso.shift(delta_offset)
 
-    def update(self, theta: float, dt: float, hold: bool = False) -> float:
+    def update(self, theta: float, dt: float, hold: bool = False, x: float = 0.0) -> float:
         """One step with the measurement now; returns delta_hat. `hold`: keep delta_hat (the joints
-        move: their reaction torques are outside the model and would read as a disturbance)."""
+        move: their reaction torques are outside the model and would read as a disturbance).
+        `x`: the position (m), for the drive observer."""
         eso = self.eso
         eso.step(theta, self._u_prev, dt)
         f = eso.z[2]
-        if not hold:
+        ex = self.eso_x
+        if not self._split:
             target = -f / self.a
+        else:
+            ex.step(x, self._ux_prev, dt)
+            fx = ex.z[2]
+            target = (fx * self.b - f * self.bx) / self._det
+            drive = (self.a * fx - self.ax * f) / self._det
+            lim = self.drive_limit
+            self.drive = -lim if drive < -lim else (lim if drive > lim else drive)
+        if not hold:
             alpha = 1.0 - math.exp(-dt / self.time_constant)
             gap = target - self.delta
             self.delta += alpha * gap
@@ -157,3 +223,7 @@ class BalancePointObserver:
         """The torque applied from this step on, with the state it was applied in (held over the
         period): the ESO's input is the model's whole known part, in units of torque."""
         self._u_prev = tau + (self.a * theta + self.a_dx * dx + self.a_dth * dtheta) / self.b
+        if self._split:
+            self._ux_prev = (
+                tau + (self.ax * theta + self.ax_dx * dx + self.ax_dth * dtheta) / self.bx
+            )

@@ -23,7 +23,9 @@ One ``step(sample)`` per control period, in stages:
    beta))``, redone only when the pose or beta changes: a settled pose is compared with its
    reference every ``lqr.pose_check_period_s``; while the joints move, the CoM offset is refreshed
    every ``lqr.pose_update_period_s`` and the LQR every ``lqr.gain_update_period_s`` (both again
-   when motion stops). The spin PD of the hardware's BalLo mode is added per wheel. The
+   when motion stops). The drive chain's torque error the balance-point observer separates from
+   the CoM error (its drive observer) is cancelled on both wheels. The spin PD of the hardware's
+   BalLo mode is added per wheel. The
    balanced-pose detector (``detector.BalancedPoseDetector``) is fed at ``detector.rate_hz`` with
    the measured q_base, the pitch rate, the ground speed (m/s) and the theta-ESO's f_hat (rad/s^2;
    its noise does not depend on the pose, unlike the compensation torque's). It returns one point
@@ -442,7 +444,7 @@ class BalanceController(OperatorRequests, PoseDesign):
             self.psi_ref = psi
             self.adrc.reset((theta, x - self.x_ref, dth, dx))
             if self.balance_point is not None:
-                self.balance_point.reset(theta, dth)
+                self.balance_point.reset(theta, dth, x - self.x_ref, dx)
         else:
             self.detector.reset()
 
@@ -469,7 +471,7 @@ class BalanceController(OperatorRequests, PoseDesign):
         if self._balance_point_active:
             # regulate about the balance point the observer found (theta_c = 0 there)
             hold = not bp.track_moves and held
-            trim = bp.update(theta, dt, hold)
+            trim = bp.update(theta, dt, hold, x - self.x_ref)
             theta_c = theta - trim
             if not held:
                 converged = bool(  # a numpy bool would reach std_msgs/Bool as false
@@ -479,6 +481,11 @@ class BalanceController(OperatorRequests, PoseDesign):
                 )
         c = self.adrc.update(theta_c, x - self.x_ref, dt, dtheta=dth, dx=dx)
         il, ir = c.i_left, c.i_right
+        if self._balance_point_active and bp.drive:
+            # the drive chain's torque error, cancelled on both wheels alike
+            i_drive = -0.5 * bp.drive / self.k_motor
+            il += i_drive
+            ir += i_drive
         kp, kd, lim = self._spin
         if kp or kd:
             u_spin = -(kp * (psi - self.psi_ref) + kd * dpsi)

@@ -28,6 +28,8 @@ ACTIONS = {
 }
 ENDED = {GoalStatus.STATUS_SUCCEEDED, GoalStatus.STATUS_ABORTED, GoalStatus.STATUS_CANCELED}
 
+DISCOVERY_S = 30.0  # the longest wait for an action server to be discovered
+
 
 class SessionError(RuntimeError):
     """The session could not continue (a node is missing, the robot did not balance, ...)."""
@@ -171,7 +173,9 @@ class SessionClient(Node):
         accepted; the ActionGoal. A refused goal is accepted and ended at once, its result says
         why (krang_ros.actions)."""
         client = self.actions[name]
-        self.spin_until(client.server_is_ready, timeout, f'action {name}')
+        # discovery of an action's five entities can take longer than a service's on a busy
+        # graph: wait for it at least DISCOVERY_S, then `timeout` for the answer
+        self.spin_until(client.server_is_ready, max(timeout, DISCOVERY_S), f'action {name}')
         goal_id = UUID(uuid=list(uuid.uuid4().bytes))
         sent = ActionGoal(name, goal_id)
         self.goals[sent.key] = sent

@@ -105,3 +105,35 @@ def test_the_place_thresholds_must_be_positive():
     for bad in ({'place_tol_m': 0.0}, {'place_speed_m_s': -0.1}):
         with pytest.raises(ValueError):
             ObserverConfig(**bad)
+
+
+def test_the_drive_observer_tells_a_drive_torque_from_a_com_error():
+    """The x channel's observer separates a torque between wheels and body (the drive chain's
+    friction or shortfall, loading x and theta as the motors do) from the CoM error (loading them
+    as gravity does): on the WIP's linear model of the Table II pose, under LQR, with a CoM error
+    of 20 mrad and a drive chain taking 6 N m, delta_hat -> 20 mrad and drive_hat -> -6 N m."""
+    amat = np.array(
+        [[0, 1, 0, 0], [0, -0.0135, -2.4846, 0.0036], [0, 0, 0, 1], [0, 0.0255, 12.629, -0.0068]]
+    )
+    bvec = np.array([0.0, 0.0359, 0.0, -0.0679])
+    gain = np.array([-51.955, -116.558, -629.134, -197.345])  # tau = -gain . state
+    delta, drive = 0.02, -6.0
+    aug = np.zeros((6, 6))
+    aug[:4, :4] = amat
+    aug[:4, 4] = bvec
+    aug[:4, 5] = bvec * drive - amat[:, 2] * delta
+    e = expm(aug * H)
+    obs = BalancePointObserver(H, 20.0, ObserverConfig(time_constant_s=0.5))
+    obs.set_model(amat, bvec)
+    state = np.array([0.0, 0.0, 0.05, 0.0])
+    obs.reset(state[2], state[3], state[0], state[1])
+    for _ in range(int(15.0 / H)):
+        trim = obs.update(state[2], H, x=state[0])
+        tau = -gain @ (state - np.array([0.0, 0.0, trim, 0.0]))
+        obs.applied(tau, state[2], state[1], state[3])
+        state = (e @ np.r_[state, tau, 1.0])[:4]
+    assert obs.delta == pytest.approx(delta, abs=2e-4)
+    assert obs.drive == pytest.approx(drive, abs=0.05)
+    off = BalancePointObserver(H, 20.0, ObserverConfig(drive_observer=False))
+    off.set_model(amat, bvec)
+    assert off.drive == 0.0 and off.eso_x is None

@@ -62,6 +62,7 @@ def outcome(res):
     return 'caught on the caster'
 
 
+@pytest.mark.slow
 def test_first_move_on_generated_truths_is_bounded(robot):
     outcomes = []
     for seed in SEEDS:

@@ -194,6 +194,7 @@ def test_the_baseline_gap_is_matched_phase_for_phase():
     assert phase_matched_gap(sits, right, {}) == pytest.approx(raw)  # an older baseline file
 
 
+@pytest.mark.slow
 def test_baseline_chain_of_two_names_what_changed_in_physical_units(tmp_path):
     """A: slope 0.02 rad (its own run). B = A + torque constant 0.8 x, judged against A: names
     the torque constant as N m/A, its file holds slope + Kt. C = B + 5 kg on the left gripper,

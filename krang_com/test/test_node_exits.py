@@ -254,7 +254,9 @@ def test_signals_while_the_node_stops_do_not_interrupt_the_stop():
 
 
 @pytest.mark.ros
-@pytest.mark.parametrize('signum', [signal.SIGINT, signal.SIGTERM])
+@pytest.mark.parametrize(
+    'signum', [signal.SIGINT, pytest.param(signal.SIGTERM, marks=pytest.mark.slow)]
+)
 def test_bringup_sim_without_record_exits_cleanly(signum, tmp_path):
     proc = subprocess.Popen(
         [

@@ -97,7 +97,6 @@ def test_drive_chain_overrides_from_an_extended_model(robot, tmp_path):
             'adrc.torque_fraction': 0.58,
             'adrc.coulomb_compensation_nm': 8.0,
             'adrc.viscous_compensation_nm_s': 3.0,
-            'modes.stand_rate_filter_s': 1.0,
             'balance_point.time_constant_s': 4.0,
         }
     )

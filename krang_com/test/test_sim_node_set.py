@@ -127,6 +127,7 @@ def balancing_robot(tmp_path):
         yield robot
 
 
+@pytest.mark.slow
 @pytest.mark.timeout(240)
 def test_unpaced_simulation_keeps_balancing(tmp_path):
     """real_time_factor 0: no pacing, only the lockstep. The robot balances on: it stays in BALANCE
