@@ -20,6 +20,7 @@ from std_srvs.srv import Trigger  # noqa: E402
 from krang_core import names  # noqa: E402
 from krang_core.message_values import arm_fault_reason  # noqa: E402
 from krang_ros import topics  # noqa: E402
+from krang_ros.session_client import DISCOVERY_S  # noqa: E402
 from test_sim_node_set import balancing_robot, silence  # noqa: E402, F401
 
 
@@ -40,7 +41,8 @@ def test_a_silent_arm_module_leaves_the_robot_balancing(balancing_robot):  # noq
         lambda m: arm.update(reason=arm_fault_reason(m), joints=list(m.joints)),
         topics.LATCHED,
     )
-    client.spin_until(lambda: arm.get('reason') == '', 10.0, 'the clear arm fault')
+    # the latched state reaches a new reader once discovery matched it (krang_ros.session_client)
+    client.spin_until(lambda: arm.get('reason') == '', DISCOVERY_S, 'the clear arm fault')
     assert client.mode == 'balance'
     observer.safe_stop_at = None  # the one before the enable does not count
     silence(client, 'LJ2')
