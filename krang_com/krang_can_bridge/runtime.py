@@ -170,6 +170,7 @@ class BridgeRuntime:
         self._verify_startup = True
         self.startup_thread = threading.Thread(target=self._startup_worker, daemon=True)
         self.watchdog_thread = threading.Thread(target=self._watchdog_worker, daemon=True)
+        self._beat_at = -math.inf  # monotonic time of the last watchdog frames sent in full
 
     # ---- threads ------------------------------------------------------------------------------
     def start(self, retry_s: float, pump=None, on_frame=None) -> None:
@@ -301,16 +302,19 @@ class BridgeRuntime:
         logger.error(f'CAN receive on {bus} stopped: {exc}')
 
     # ---- send -----------------------------------------------------------------------------------
-    def send(self, frames: list[BusFrame]) -> None:
-        """Send each frame; a refused one (a full transmit queue, a bus-off controller) is
-        counted and its run of failures timed (bus_io.SendFailures). Once every send on the
-        wheels' bus has failed for wheels.command_timeout_s, motion is inhibited (zero current is
-        then what the bridge tries to send; the drives' watchdog stops them anyway once the beat
-        has not gone out for its timeout); the first frame that goes out again lifts it."""
+    def send(self, frames: list[BusFrame]) -> bool:
+        """Send each frame (True when every one went out); a refused one (a full transmit
+        queue, a bus-off controller) is counted and its run of failures timed
+        (bus_io.SendFailures). Once every send on the wheels' bus has failed for
+        wheels.command_timeout_s, motion is inhibited (zero current is then what the bridge tries
+        to send; the drives' watchdog stops them anyway once the beat has not gone out for its
+        timeout); the first frame that goes out again lifts it."""
+        all_sent = True
         for bus, msg in frames:
             try:
                 self.buses[bus].send(msg, timeout=self._send_timeout)
             except can.CanError as exc:
+                all_sent = False
                 error = f'{type(exc).__name__}: {exc}'
                 failing_for = self.send_failures.failed(bus, error, time.monotonic())
                 self._warn_send(f'send on {bus} failed: {error}')
@@ -326,6 +330,7 @@ class BridgeRuntime:
                     logger.warning(f'send on {bus} works again after {ended:.3f} s of failures')
                     if bus == self.config.wheels.bus:
                         self._inhibit_sends(bus, None)
+        return all_sent
 
     def _inhibit_sends(self, bus: str, reason: str | None) -> None:
         with self.lock:
@@ -392,7 +397,25 @@ class BridgeRuntime:
             due = max(due + period, time.monotonic())
             with self.lock:
                 frames = self.core.watchdog_frames(self.time.device_time())
-            self.send(frames)
+            if frames and self.send(frames):
+                self._beat_at = time.monotonic()
+
+    def await_beat(self) -> None:
+        """Block until a watchdog frame has gone out after this call (a start-up step: the drive's
+        heartbeat consumer, just configured, watches only from the first beat it receives);
+        StartupNotVerified if none does within recover_timeout_s. Not when no watchdog thread
+        runs (composed, or a runtime not started)."""
+        if not (self._verify_startup and self.watchdog_thread.is_alive()):
+            return
+        asked = time.monotonic()
+        deadline = asked + self._recover_timeout
+        while self._beat_at <= asked:
+            if time.monotonic() > deadline or self._stop.is_set():
+                raise StartupNotVerified(
+                    f'no watchdog frame went out within {self._recover_timeout} s of configuring '
+                    'the drive watchdog: the drive is not enabled'
+                )
+            time.sleep(0.002)
 
     # ---- drive start-up and recovery ------------------------------------------------------------
     def start_drive(self, drive: WheelDriveConfig) -> list[str]:
@@ -406,7 +429,7 @@ class BridgeRuntime:
             boots = self.core.wheel_state(drive.joint).boots
         with self._sdo_lock:
             mismatches = self._run_startup(
-                self.network, drive, self.config.wheels, self._sdo_timeout
+                self.network, drive, self.config.wheels, self._sdo_timeout, armed=self.await_beat
             )
         if not mismatches and self._verify_startup:
             self._verify_enabled(drive.joint, boots)

@@ -707,6 +707,9 @@ def test_startup_reads_the_watchdog_back_before_it_enables_the_drive():
     assert ('check', 0x1016, 1, consumer) in keys[:verified]
     assert ('check', 0x6007, 0, wd.abort_connection_option) in keys[:verified]
     assert verified < keys.index(('nmt', 0, 0, 0x01))  # before the NMT start and the enable
+    # the consumer watches from its first beat: none is enabled before a beat went out
+    armed = [s.action for s in steps].index('armed')
+    assert verified < armed < min(i for i, k in enumerate(keys) if k[1] == 0x6040)
 
 
 def test_a_drive_whose_watchdog_does_not_take_is_never_enabled():

@@ -232,7 +232,7 @@ class Startup:
     def __init__(self, script, then=None):
         self.script, self.then, self.calls = list(script), then, []
 
-    def __call__(self, network, drive, wheels, sdo_timeout_s):
+    def __call__(self, network, drive, wheels, sdo_timeout_s, armed=None):
         self.calls.append(drive.joint)
         step = self.script.pop(0) if len(self.script) > 1 else self.script[0]
         if isinstance(step, Exception):

@@ -317,8 +317,12 @@ def startup_sequence(drive: WheelDriveConfig, wheels: WheelsConfig) -> list[Star
         StartupStep('check', s.index, s.subindex, s.value, f'{s.what} (read back)')
         for s in watchdog + timer
     ]
+    steps += [StartupStep('verified', what='constants and written objects as the config says')]
+    if wheels.watchdog.mechanism != 'none':
+        # a heartbeat consumer (or life guarding) watches only from the first beat it receives
+        # after it was configured: no enable before one has gone out
+        steps += [StartupStep('armed', what='a watchdog frame sent after it was written')]
     steps += [
-        StartupStep('verified', what='constants and written objects as the config says'),
         StartupStep('write', CONTROLWORD, 0, CW_SHUTDOWN, 'shutdown'),
         StartupStep('write', CONTROLWORD, 0, CW_RESET_FAULT, 'reset fault'),
         StartupStep('nmt', value=NMT_START, what='start'),
@@ -335,6 +339,7 @@ def run_startup(
     drive: WheelDriveConfig,
     wheels: WheelsConfig,
     sdo_timeout_s: float = 0.3,
+    armed=None,
 ) -> list[str]:
     """Execute `startup_sequence` through canopen (blocking SDO transfers; run it off the ROS
     executor).
@@ -343,7 +348,8 @@ def run_startup(
     and the config (the codecs use the config values, so a mismatch means wrong currents or no
     watchdog: the caller must treat it as an error); after any, the drive is left disabled.
     Raises canopen's SdoCommunicationError / SdoAbortedError when the drive does not answer or
-    refuses a write.
+    refuses a write. `armed` (no arguments) blocks at the 'armed' step until a watchdog frame has
+    gone out after it was called, and raises if none does.
     """
     dictionary = object_dictionary(drive)
     node = canopen.RemoteNode(drive.node_id, dictionary)
@@ -355,6 +361,9 @@ def run_startup(
             if step.action == 'verified':
                 if mismatches:
                     break
+            elif step.action == 'armed':
+                if armed is not None:
+                    armed()
             elif step.action == 'nmt':
                 node.nmt.send_command(step.value)
             elif step.action == 'write':
