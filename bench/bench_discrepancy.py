@@ -11,8 +11,10 @@ would, with the whole library, plots and report.
 --csv runs the workflow on a hardware log instead (e.g. balancing_runs/table2/beta190_trial0.csv).
 --validate prints the per-effect validation table of docs/discrepancy.md instead (the settings of
 krang_com/test/test_discrepancy.py: 22 s records, seed 3, one hidden effect each, plus no effect).
---hidden runs krang_discrepancy.synthetic.VALIDATION_SUITE (no-effect seeds and noise levels,
-small effects, pairs, effects outside the library): answer, values, 2-sigma coverage, false names.
+--hidden [--plant reduced|mujoco] runs krang_discrepancy.synthetic.VALIDATION_SUITE (no-effect
+seeds and noise levels, small effects, pairs, effects outside the library), or with --plant mujoco
+its MUJOCO_SUITE (records of the full-body plant): answer, values, 2-sigma coverage, false names,
+and for an unexplained answer the partial correction and the rules that fired.
 --null N runs N no-effect records (seeds 101.., noise x0.5, x1, x2) and counts false names: the
 selection rule's false-positive rate on records.
 --gap-null N [--design suite|30hz|long] [--seed S] the gap test's null distribution
@@ -25,9 +27,14 @@ hardware's (default pose delay); 30 s records that sit down at the end, at the d
 --verdicts N [--seed S] runs N in-library records with known truth (verdict_cases: one or two
 library effects at drawn sizes, or none; seeds from 7001) through the workflow and counts how
 often each rule of the verdict fires (verdict.RULES) and how many are answered unexplained.
+--plant mujoco makes them with the full-body plant; --poses held without the pose programme.
+--closed-loop N [--seed S] [--plant reduced|mujoco] the closed-loop rule (closed_loop_stand_up) on
+N records made under the 2018 controller with known truth (seeds from 7401): does it refuse the
+true model, or the workflow's?
 --real KIT [--stride S] runs the baseline on all Table II runs of the kit at KIT
 (balancing_runs/table2) and judges one new-tyre run against it (stride 0.1 s unless given), with
-wall and CPU time, peak memory and a reference measured in the same run.
+wall and CPU time (the process, its threads and its worker processes), the peak memory of all of
+them together, the load average and a reference measured in the same run.
 """
 
 import argparse
@@ -57,17 +64,25 @@ def main(argv=None):
     ap.add_argument('--gap-null', type=int, default=0, metavar='N')
     ap.add_argument('--verdicts', type=int, default=0, metavar='N')
     ap.add_argument('--design', default='suite', choices=('suite', '30hz', 'long'))
+    ap.add_argument('--plant', default='reduced', choices=('reduced', 'mujoco'))
+    ap.add_argument('--poses', default='programme', choices=('programme', 'held'))
+    ap.add_argument('--closed-loop', type=int, default=0, metavar='N')
     args = ap.parse_args(argv)
+    if args.closed_loop:
+        seed = args.seed if args.seed != 1 else 7401
+        return closed_loop_rates(args.closed_loop, seed, args.plant)
     if args.gap_null:
         return gap_null(args.gap_null, args.seed if args.seed != 1 else 1001, args.design)
     if args.verdicts:
-        return verdicts(args.verdicts, args.seed if args.seed != 1 else 7001)
+        return verdicts(
+            args.verdicts, args.seed if args.seed != 1 else 7001, args.plant, args.poses
+        )
     if args.validate:
         return validate(args.seed if args.seed != 1 else 3)
     if args.null:
         return null_records(args.null, args.seed if args.seed != 1 else 101)
     if args.hidden:
-        return hidden()
+        return hidden(args.plant)
     if args.real:
         return real(Path(args.real), args.stride if args.stride is not None else 0.1)
 
@@ -180,7 +195,10 @@ def validate(seed):
 
 
 def hidden_case(case, seconds=22.0):
-    """Run one VALIDATION_SUITE case; returns a dict with the answer and the checks."""
+    """Run one VALIDATION_SUITE (or MUJOCO_SUITE) case; returns a dict with the answer and the
+    checks. An eighth field gives more keywords of ``simulate_record`` (the plant, the pose
+    programme, plant options). The replay's pose delay is the reduced plant's (it re-reduces a
+    moving pose every 20 ms, §9 of docs/discrepancy.md); the MuJoCo plant has no such lag."""
     import math
     from dataclasses import replace
     from krang_discrepancy.replay import ReplayConfig
@@ -189,7 +207,10 @@ def hidden_case(case, seconds=22.0):
     from krang_model.effects import library
     from krang_sim.sensors import SensorNoise
 
-    cid, fx, um, seed, noise_k, truth, equivalents = case
+    cid, fx, um, seed, noise_k, truth, equivalents = case[:7]
+    extra = dict(case[7]) if len(case) > 7 else {}
+    plant = extra.get('plant', 'reduced')
+    delay = 0.01 if plant == 'reduced' else 0.0
     base = SensorNoise()
     noise = replace(
         base,
@@ -205,11 +226,12 @@ def hidden_case(case, seconds=22.0):
         sit_down=False,
         unmodelled=Unmodelled(**um),
         noise=noise,
+        **extra,
     )
     with tempfile.TemporaryDirectory() as out:
         t0 = time.perf_counter()
         res = run_discrepancy(
-            [rec], out, plots=False, replay_config=ReplayConfig(pose_delay_s=0.01, stride_s=0.1)
+            [rec], out, plots=False, replay_config=ReplayConfig(pose_delay_s=delay, stride_s=0.1)
         )
         secs = time.perf_counter() - t0
     js = res['json']
@@ -219,28 +241,35 @@ def hidden_case(case, seconds=22.0):
         expected = set(truth)
         right = set(named) == expected
     else:
-        expected = {'none'} if not um and not fx else {'unexplained', *equivalents}
+        hidden_any = um or fx or extra.get('plant_options')
+        expected = {'unexplained', *equivalents} if hidden_any else {'none'}
         answer = (
             js['effect'] if js['effect'] in ('none', 'unexplained') else '+'.join(sorted(named))
         )
         right = answer in expected
-    checks = []
-    for name, parameter in truth.items():
-        # the suite states parameters (a torque constant's scale); the report gives values
-        true = next(e for e in library() if e.name == name).display(parameter)[0]
-        if name in named:
-            e = named[name]
-            err = e['value'] - true
-            checks.append(
-                {
-                    'effect': name,
-                    'true': true,
-                    'value': e['value'],
-                    'sigma': e['uncertainty'],
-                    'rel_err': err / true,
-                    'z': err / e['uncertainty'] if e['uncertainty'] else math.inf,
-                }
-            )
+    partial = {e['effect']: e for e in js.get('partial') or []}
+
+    def checks_of(found):
+        out = []
+        for name, parameter in truth.items():
+            # the suite states parameters (a torque constant's scale); the report gives values
+            true = next(e for e in library() if e.name == name).display(parameter)[0]
+            if name in found:
+                e = found[name]
+                err = e['value'] - true
+                out.append(
+                    {
+                        'effect': name,
+                        'true': true,
+                        'value': e['value'],
+                        'sigma': e['uncertainty'],
+                        'rel_err': err / true,
+                        'z': err / e['uncertainty'] if e['uncertainty'] else math.inf,
+                    }
+                )
+        return out
+
+    checks = checks_of(named)
     false = sorted(set(named) - set(truth)) if truth else (sorted(named) if right is False else [])
     return {
         'case': cid,
@@ -253,27 +282,45 @@ def hidden_case(case, seconds=22.0):
         'rules': js.get('rules_fired', {}),
         'dropped_changing': sorted(js.get('dropped_changing', {})),
         'reason': js.get('reason', ''),
+        # an `unexplained` answer's partial correction: the library's effects fitted anyway
+        'partial': sorted(partial),
+        'partial_right': bool(partial) and set(partial) == set(truth),
+        'partial_checks': checks_of(partial),
+        'gap_test': (js.get('gap_test') or {}).get('gap'),
+        'lift_off_gap_s': (js.get('closed_loop') or {}).get('lift_off_gap_s'),
     }
 
 
-def hidden():
-    from krang_discrepancy.synthetic import VALIDATION_SUITE
+def hidden(plant='reduced'):
+    """The suite of the plant: VALIDATION_SUITE (reduced) or MUJOCO_SUITE. With an `unexplained`
+    answer the partial correction and its values are shown too, and the rules that fired."""
+    from krang_discrepancy.synthetic import MUJOCO_SUITE, VALIDATION_SUITE
 
     rows = []
-    print('| case | answer | right | values (rel. error, z = error/sigma) | gap | s |')
-    print('|---|---|---|---|---|---|')
-    for case in VALIDATION_SUITE:
+    print(
+        '| case | answer | right | values (rel. error, z = error/sigma) | partial correction | '
+        'rules fired | gap | s |'
+    )
+    print('|---|---|---|---|---|---|---|---|')
+    for case in VALIDATION_SUITE if plant == 'reduced' else MUJOCO_SUITE:
         r = hidden_case(case)
         rows.append(r)
-        vals = '; '.join(
-            f'{c["effect"]} {c["value"]:.4g} ({c["rel_err"]:+.1%}, z {c["z"]:+.1f})'
-            for c in r['checks']
-        )
+        vals = _values(r['checks'])
+        part = '+'.join(r['partial']) or '-'
+        if r['partial_checks']:
+            part += ': ' + _values(r['partial_checks'])
+        fired = ', '.join(k for k, v in r['rules'].items() if v) or '-'
         print(
             f'| {r["case"]} | {r["answer"]} | {"yes" if r["right"] else "**no**"} | {vals} | '
-            f'{r["gap"][0]:.3g} -> {r["gap"][1]:.3g} | {r["seconds"]:.1f} |',
+            f'{part} | {fired} | {r["gap"][0]:.3g} -> {r["gap"][1]:.3g} | {r["seconds"]:.1f} |',
             flush=True,
         )
+    part = [c for r in rows for c in r['partial_checks']]
+    print(
+        f'unexplained {sum(r["answer"] == "unexplained" for r in rows)}/{len(rows)}, with the '
+        f'truth as the partial correction {sum(r["partial_right"] for r in rows)}; its values '
+        f'within 5 %: {sum(abs(c["rel_err"]) <= 0.05 for c in part)}/{len(part)}'
+    )
     checks = [c for r in rows for c in r['checks']]
     print(
         f'named right {sum(r["right"] for r in rows)}/{len(rows)}; values within 5 %: '
@@ -283,6 +330,12 @@ def hidden():
         f'({", ".join(n for r in rows for n in r["false_names"]) or "-"})'
     )
     return 0
+
+
+def _values(checks):
+    return '; '.join(
+        f'{c["effect"]} {c["value"]:.4g} ({c["rel_err"]:+.1%}, z {c["z"]:+.1f})' for c in checks
+    )
 
 
 def null_records(n, first_seed):
@@ -321,9 +374,10 @@ VERDICT_SIZES = {
 }
 
 
-def verdict_cases(n, first_seed):
+def verdict_cases(n, first_seed, plant='reduced', poses='programme'):
     """n in-library records with known truth: one library effect (two in every third record, none
-    in every seventh) at a size drawn from ``VERDICT_SIZES``; seed = first_seed + i."""
+    in every seventh) at a size drawn from ``VERDICT_SIZES``; seed = first_seed + i; made by
+    `plant`, with the suite's pose programme or the poses held (``poses``)."""
     import numpy as np
 
     keys = sorted(VERDICT_SIZES)
@@ -343,26 +397,41 @@ def verdict_cases(n, first_seed):
             fx.pop('payload@rGripper')
         noise = (0.5, 1.0, 2.0)[i % 3]
         truth = {key.split('@')[0]: v for key, v in fx.items()}
+        extra = {'plant': plant, **({'programme': ()} if poses == 'held' else {})}
         cases.append(
-            (f'seed {seed}: {fx or "none"}, noise x{noise:g}', fx, {}, seed, noise, truth, ())
+            (
+                f'seed {seed}: {fx or "none"}, noise x{noise:g}',
+                fx,
+                {},
+                seed,
+                noise,
+                truth,
+                (),
+                extra,
+            )
         )
     return cases
 
 
-def verdicts(n, first_seed):
+def verdicts(n, first_seed, plant='reduced', poses='programme'):
     """The verdict's rules on in-library records with known truth (``verdict_cases``): how often
     each rule fires, and the false-``unexplained`` rate (an in-library record answered
     ``unexplained``), with its 95 % upper bound."""
     from krang_discrepancy.verdict import RULES
 
     rows = []
-    for case in verdict_cases(n, first_seed):
+    for case in verdict_cases(n, first_seed, plant, poses):
         r = hidden_case(case)
         rows.append(r)
         fired = ', '.join(k for k, v in r['rules'].items() if v) or '-'
+        part = ''
+        if r['answer'] == 'unexplained':
+            part = f'; partial {"+".join(r["partial"]) or "-"} {_values(r["partial_checks"])}'
         print(
-            f'{r["case"]}: {r["answer"]} ({"right" if r["right"] else "WRONG"}); rules fired: '
-            f'{fired}; dropped (changing): {", ".join(r["dropped_changing"]) or "-"}; '
+            f'{r["case"]}: {r["answer"]} ({"right" if r["right"] else "WRONG"}) '
+            f'{_values(r["checks"])}{part}; rules fired: '
+            f'{fired}; dropped (changing): {", ".join(r["dropped_changing"]) or "-"}; gap test '
+            f'{r["gap_test"] or math.nan:.3f}; lift-off gap {r["lift_off_gap_s"]}; '
             f'{r["seconds"]:.1f} s',
             flush=True,
         )
@@ -375,7 +444,132 @@ def verdicts(n, first_seed):
         print(f'  {rule}: fired on {k}/{m} ({_upper(k, m)})')
     k = sum(bool(r['dropped_changing']) for r in rows)
     print(f'  a changing partner dropped on {k}/{m}')
+    k = sum(r['partial_right'] for r in rows)
+    print(f'  answered unexplained with the truth as the partial correction: {k}/{m}')
+    checks = [c for r in rows for c in r['checks']]
+    print(
+        f'  values of the named effects within 5 %: '
+        f'{sum(abs(c["rel_err"]) <= 0.05 for c in checks)}/{len(checks)}, within 2 sigma: '
+        f'{sum(abs(c["z"]) <= 2 for c in checks)}/{len(checks)}'
+    )
     return 0
+
+
+def closed_loop_rates(n, first_seed, plant):
+    """The closed-loop rule (``verdict.closed_loop_fails``, rule ``closed_loop_stand_up``) on
+    records whose truth is known, made as the hardware logs were: the 2018 controller
+    (``closed_loop_check.hardware_2018_config``: the paper-era stand PD at 30 Hz), 24 s (sit 1 s,
+    stand, hold the pose; long enough for the rest interval), one library effect drawn from
+    ``VERDICT_SIZES`` (none in every fourth record), made by `plant`. As on beta_16 (and in
+    test_discrepancy_closed_loop.py) the controller's beta puts the CoM 17 mm forward of the
+    true robot's and the pose sits at a CoM angle of -0.09 rad for it, so the robot leaves the
+    caster only as the stand PD's current builds up (the lift-off depends on the drive train).
+    ``run_discrepancy`` replays a synthetic record under the controller that
+    ``simulate_record`` uses by default, so here the check is called with the 2018 controller
+    explicitly, on (a) the TRUE model (the rule's own false rate: a right model refused) and (b)
+    the workflow's extended model (its answer on the record, without the closed-loop stage)."""
+    import numpy as np
+
+    from krang_discrepancy.closed_loop_check import closed_loop_check, hardware_2018_config
+    from krang_discrepancy.extended_model import load_extended_model
+    from krang_discrepancy.nominal import NominalModel
+    from krang_discrepancy.replay import ReplayConfig
+    from krang_discrepancy.report import run_discrepancy
+    from krang_discrepancy.synthetic import simulate_record
+    from krang_discrepancy.verdict import MAX_LIFT_OFF_GAP_S, closed_loop_fails
+    from krang_model.effects import model_terms
+    from krang_sim.scenarios import TABLE2_POSE, shifted_beta, stand_pose
+
+    keys = (
+        'torque_constant',
+        'wheel_coulomb_friction',
+        'wheel_viscous_friction',
+        'rolling_resistance',
+        'wheel_radius',
+        'actuation_delay',
+        'floor_slope',
+        'imu_pitch_bias',
+    )
+    cfg = hardware_2018_config()
+    model = NominalModel.default()
+    ctl_beta = shifted_beta(model.robot, model.beta, TABLE2_POSE, 0.017)
+    pose = stand_pose(model.robot, ctl_beta, target_theta_rad=-0.09)
+    fires_true = fires_named = named_right = 0
+    for i in range(n):
+        seed = first_seed + i
+        rng = np.random.default_rng(seed)
+        fx = {}
+        if i % 4 != 3:
+            key = keys[int(rng.integers(len(keys)))]
+            lo, hi, signed = VERDICT_SIZES[key]
+            v = float(rng.uniform(lo, hi))
+            fx[key] = -v if signed and rng.random() < 0.5 else v
+        rec = simulate_record(
+            fx,
+            seconds=24.0,
+            seed=seed,
+            start_pose=pose,
+            programme=(),
+            excitation_a=0.0,
+            sit_down=False,
+            controller_config=cfg,
+            controller_beta=ctl_beta,
+            plant=plant,
+        )
+        truth = model_terms(fx, model.terms())
+        with tempfile.TemporaryDirectory() as out:
+            t0 = time.perf_counter()
+            res = run_discrepancy(
+                [rec],
+                out,
+                plots=False,
+                replay_config=ReplayConfig(stride_s=0.1),
+                closed_loop=False,
+            )
+            named = load_extended_model(Path(out) / 'extended_model.yaml')
+            closed = closed_loop_check(
+                [rec],
+                model,
+                truth,
+                named,
+                controller_config=cfg,
+                controller_beta=ctl_beta,
+                others={'nominal': model.terms()},
+            )
+            secs = time.perf_counter() - t0
+        js = res['json']
+        items = js.get('effects') or ([js] if js['effect'] not in ('none', 'unexplained') else [])
+        answer = js['effect'] if not items else '+'.join(e['effect'] for e in items)
+        right = {e['effect'] for e in items} == set(fx) or (not fx and answer == 'none')
+        # the verdict reads the extended model's lift-off gap: [nominal, model] pairs
+        gap_true, gap_named = closed['lift_off_gap_s']
+        f_true = closed_loop_fails({'lift_off_gap_s': [None, gap_true]})
+        f_named = closed_loop_fails({'lift_off_gap_s': [None, gap_named]})
+        fires_true += f_true
+        fires_named += f_named
+        named_right += right
+        run = closed['runs'][0]
+        lift = {k: run[k].get('lift_off_s') for k in ('measured', 'before', 'after', 'nominal')}
+        print(
+            f'seed {seed}: {fx or "none"} -> {answer} ({"right" if right else "WRONG"}); '
+            f'lift-off (s) measured {_f(lift["measured"])}, true model {_f(lift["before"])}, '
+            f'named model {_f(lift["after"])}, nominal {_f(lift["nominal"])}; measured '
+            f'balanced {run["measured"]["balanced"]}, true {run["before"]["balanced"]}, named '
+            f'{run["after"]["balanced"]}; rule fires on the true model {f_true}, on the named '
+            f'{f_named}; {secs:.1f} s',
+            flush=True,
+        )
+    print(
+        f'{n} records ({plant} plant, 2018 controller): closed_loop_stand_up (lift-off within '
+        f'{MAX_LIFT_OFF_GAP_S:g} s, at rest balanced) fires on the TRUE model '
+        f"{fires_true}/{n} ({_upper(fires_true, n)}), on the workflow's model {fires_named}/{n} "
+        f'({_upper(fires_named, n)}); the workflow named the truth on {named_right}/{n}'
+    )
+    return 0
+
+
+def _f(v):
+    return '-' if v is None else f'{v:.3f}'
 
 
 def _upper(k, n):
@@ -449,10 +643,13 @@ def gap_null(n, first_seed, design):
 
 
 def real(kit, stride):
-    """The Table II baseline (all 20 runs pooled) and one new-tyre run judged against it, as
-    `krang discrepancy` runs them (no plots): wall and CPU time (this process, all threads),
-    peak memory, and the CPU time in units of one nominal prediction of every baseline window
-    measured in the same run (a figure that the machine's load does not change)."""
+    """The Table II baseline (all 20 runs pooled) and one new-tyre run judged against it
+    (one_gain_beta128_trial1), as `krang discrepancy` runs them (no plots): wall and CPU time
+    (this process, all threads, and its worker processes), peak memory (this process, and at most
+    that of the largest worker per worker), the machine's load average, and the CPU time in units
+    of one nominal prediction of every baseline window measured in the same run (a figure that
+    the machine's load does not change)."""
+    import os
     import resource
 
     from krang_discrepancy.loaders import load_measured
@@ -464,9 +661,13 @@ def real(kit, stride):
     runs = kit / 'balancing_runs'
 
     def clock():
-        r = resource.getrusage(resource.RUSAGE_SELF)
-        return time.perf_counter(), r.ru_utime + r.ru_stime
+        cpu = 0.0
+        for who in (resource.RUSAGE_SELF, resource.RUSAGE_CHILDREN):
+            r = resource.getrusage(who)
+            cpu += r.ru_utime + r.ru_stime
+        return time.perf_counter(), cpu
 
+    print('load average at the start: ' + ', '.join(f'{x:.2f}' for x in os.getloadavg()))
     model = NominalModel.default()
     unit_rp = Replay(load_measured([runs / 'table2']), model, cfg)
     w0, c0 = clock()
@@ -478,13 +679,16 @@ def real(kit, stride):
         f'(stride {stride:g} s): {w1 - w0:.2f} s wall, {unit:.2f} s CPU'
     )
     del unit_rp
+    sampler = _MemorySampler()
     with tempfile.TemporaryDirectory() as out:
         w0, c0 = clock()
         a = run_discrepancy(
             [runs / 'table2'], Path(out) / 'table2', replay_config=cfg, plots=False
         )
         w1, c1 = clock()
-        new = sorted((runs / 'new_tire').glob('*.csv'))[0]
+        new = runs / 'new_tire' / 'one_gain_beta128_trial1.csv'
+        if not new.exists():
+            new = sorted((runs / 'new_tire').glob('*.csv'))[0]
         b = run_discrepancy(
             [new],
             Path(out) / 'new',
@@ -493,7 +697,7 @@ def real(kit, stride):
             baseline=Path(out) / 'table2' / 'extended_model.yaml',
         )
         w2, c2 = clock()
-    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    sampler.stop()
     for label, res, wall, cpu in (
         ('baseline: all Table II runs', a, w1 - w0, c1 - c0),
         (f'judged: {new.name} against it', b, w2 - w1, c2 - c1),
@@ -502,8 +706,63 @@ def real(kit, stride):
             f'{label}: {wall:.1f} s wall, {cpu:.1f} s CPU ({cpu / unit:.0f} x the reference); '
             + json.dumps(_brief(res['json']))
         )
-    print(f'peak memory {peak:.0f} MB; workers {a["replay"].workers}')
+    print(
+        f'peak memory of this process and its workers together {sampler.peak / 2**20:.0f} MB '
+        f'(sampled every {sampler.period:g} s; this process alone '
+        f'{resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MB); '
+        f'{a["replay"].workers} threads and worker processes'
+    )
+    print('load average at the end: ' + ', '.join(f'{x:.2f}' for x in os.getloadavg()))
     return 0
+
+
+class _MemorySampler:
+    """The largest resident memory of this process and its child processes together, sampled
+    from /proc every `period` s in a thread (ru_maxrss of children counts the parent's pages a
+    child had before it replaced its image)."""
+
+    def __init__(self, period=0.2):
+        import os
+        import threading
+
+        self.period, self.peak = period, 0
+        self._stop = threading.Event()
+        self._pid = os.getpid()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _rss(self, pid):
+        try:
+            with open(f'/proc/{pid}/status') as f:
+                kb = next(int(line.split()[1]) for line in f if line.startswith('VmRSS:'))
+        except (OSError, StopIteration, ValueError):
+            return 0
+        return 1024 * kb
+
+    def _children(self, pid):
+        import glob
+
+        out = []
+        for path in glob.glob(f'/proc/{pid}/task/*/children'):
+            try:
+                with open(path) as f:
+                    out += [int(c) for c in f.read().split()]
+            except OSError:
+                pass
+        return out
+
+    def _run(self):
+        while not self._stop.wait(self.period):
+            pids, total = [self._pid], 0
+            while pids:
+                pid = pids.pop()
+                total += self._rss(pid)
+                pids += self._children(pid)
+            self.peak = max(self.peak, total)
+
+    def stop(self):
+        self._stop.set()
+        self._thread.join()
 
 
 def _brief(js):

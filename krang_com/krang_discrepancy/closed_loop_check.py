@@ -32,14 +32,19 @@ from __future__ import annotations
 
 import csv
 import math
+import os
+import pickle
 from pathlib import Path
 
 import numpy as np
 
 from krang_adrc_controller.metrics import BalancingRun, physical_metrics, run_from_record
+from krang_model.robot import load_krang
 from krang_sim.closed_loop import ClosedLoop
 
+from .nominal import NominalModel
 from .synthetic import record_controller_config
+from .workers import Workers
 
 #: a commanded current above this (A, either wheel) is the stand command: sitting, the 2018
 #: ground PD commands under 0.1 A
@@ -239,6 +244,113 @@ def simulate_run(record, model, terms, *, controller_config=None, controller_bet
     return sim, stand_metrics(sim, model.drive)
 
 
+def _simulate_job(job):
+    """``simulate_run`` in a worker process: (record, robot or None for ``load_krang()``, beta,
+    drive, terms, controller config, controller beta, seed)."""
+    rec, robot, beta, drive, terms, cfg, ctl_beta, seed = job
+    model = NominalModel(robot if robot is not None else load_krang(), beta, drive)
+    return simulate_run(
+        rec, model, terms, controller_config=cfg, controller_beta=ctl_beta, seed=seed
+    )
+
+
+#: the replays go to worker processes when the records give at least this much simulated time
+#: (s, the nominal and the extended model together): about twice what a worker costs to start
+WORKER_MIN_S = 240.0
+
+
+class ClosedLoopRuns:
+    """The closed-loop replays of ``closed_loop_check``, started as soon as a model is known
+    (``submit``) and collected when needed (``results``). Each replay is one Python loop of
+    1 ms physics steps, about a second of CPU for a Table II run, and independent of every other:
+    with `workers` > 1 and at least `min_replayed_s` to simulate they run in that many worker
+    interpreters (``workers.Workers``, about 200 MB each) beside the fits of the calling process,
+    so that ``run_discrepancy`` starts the nominal model's replays before it names anything. The
+    results are the in-process ones (the same code and seeds); a model that cannot be pickled (an
+    effect with a Python formula) replays in-process, and so does any replay whose worker
+    failed."""
+
+    def __init__(
+        self,
+        records,
+        model,
+        *,
+        controller_config=None,
+        controller_beta=None,
+        seed=0,
+        workers=1,
+        min_replayed_s=WORKER_MIN_S,
+    ):
+        self.records = [
+            r for r in records if controller_config is not None or r.kind in KNOWN_CONTROLLERS
+        ]
+        self.model = model
+        self._opts = (controller_config, controller_beta, seed)
+        # a worker costs about 2 s of CPU to start, a replay about 1 s per minute simulated
+        replayed = 2.0 * sum(min(r.duration, MAX_AFTER_S) for r in self.records)
+        self.parallel = int(workers) > 1 and replayed >= min_replayed_s
+        self.workers = max(1, min(int(workers), len(self.records)))
+        self._pool = None
+        self._jobs = {}  # label -> (terms, [Future or None per record])
+
+    def submit(self, label: str, terms) -> None:
+        """Start the replays of every record with the model `terms` (in the workers, when there
+        are any and the model can go there)."""
+        if label in self._jobs and self._jobs[label][0] is terms:
+            return
+        futures = [None] * len(self.records)
+        if self.parallel:
+            robot = None if self.model.robot is load_krang() else self.model.robot
+            jobs = [
+                (rec, robot, self.model.beta, self.model.drive, terms, *self._opts)
+                for rec in self.records
+            ]
+            try:
+                pickle.dumps(jobs[0])
+            except Exception:  # a Python formula in the terms: replayed in-process
+                jobs = None
+            if jobs is not None:
+                if self._pool is None:
+                    self._pool = Workers(self.workers)
+                futures = [self._pool.submit(_simulate_job, j) for j in jobs]
+        self._jobs[label] = (terms, futures)
+
+    def results(self, label: str, terms) -> list:
+        """[(BalancingRun, stand_metrics)] per record for the model `terms` (submitted now if it
+        was not, under this label)."""
+        self.submit(label, terms)
+        cfg, ctl_beta, seed = self._opts
+        out = []
+        for rec, fut in zip(self.records, self._jobs[label][1]):
+            if fut is not None:
+                try:
+                    out.append(fut.result())
+                    continue
+                except Exception:  # a worker that failed: the replay runs here instead
+                    pass
+            out.append(
+                simulate_run(
+                    rec,
+                    self.model,
+                    terms,
+                    controller_config=cfg,
+                    controller_beta=ctl_beta,
+                    seed=seed,
+                )
+            )
+        return out
+
+    def close(self) -> None:
+        if self._pool is not None:
+            self._pool.close()
+            self._pool = None
+
+
+def default_workers() -> int:
+    """Processes for the closed-loop replays: the machine's cores, at most 4."""
+    return min(4, os.cpu_count() or 1)
+
+
 #: the figures the closed-loop gap compares, measured against simulated
 GAP_KEYS = (
     'lift_off_s',
@@ -291,6 +403,7 @@ def closed_loop_check(
     seed=0,
     keep_traces=True,
     others=None,
+    runs: ClosedLoopRuns | None = None,
 ) -> dict:
     """Replay every record in closed loop with the `before` (nominal) and `after` (extended)
     ``ModelTerms``; records whose controller is unknown (not in ``KNOWN_CONTROLLERS``, no
@@ -298,36 +411,39 @@ def closed_loop_check(
     alike (candidates). Returns {'runs': [{name, measured, before, after, label...}], 'gap':
     {'before', 'after', label...} (``_gap``), 'traces': {name: {'measured'|'before'|'after'|label:
     (t - stand command, q_base)}}, 'definitions'}; 'lift_off_gap_s' [before, after]: the lift-off
-    figure the verdict reads (``lift_off_gap``)."""
-    runs, traces = [], {}
+    figure the verdict reads (``lift_off_gap``). `runs`: the replays, some perhaps started
+    already (``ClosedLoopRuns`` of the same records, model and options; default: in-process)."""
+    if runs is None:
+        runs = ClosedLoopRuns(
+            records,
+            model,
+            controller_config=controller_config,
+            controller_beta=controller_beta,
+            seed=seed,
+        )
     models = {'before': before, 'after': after, **(others or {})}
+    for key, terms in models.items():
+        runs.submit(key, terms)
+    done = {key: runs.results(key, terms) for key, terms in models.items()}
+    entries, traces = [], {}
     meas_all, sims = [], {k: [] for k in models}
-    for rec in records:
-        if controller_config is None and rec.kind not in KNOWN_CONTROLLERS:
-            continue
+    for i, rec in enumerate(runs.records):
         meas_run = run_of_record(rec)
         meas = stand_metrics(meas_run, model.drive)
         entry = {'name': rec.name, 'measured': meas}
         tr = {'measured': _trace(meas_run, meas)}
-        for key, terms in models.items():
-            sim_run, sim = simulate_run(
-                rec,
-                model,
-                terms,
-                controller_config=controller_config,
-                controller_beta=controller_beta,
-                seed=seed,
-            )
+        for key in models:
+            sim_run, sim = done[key][i]
             entry[key] = sim
             sims[key].append(sim)
             tr[key] = _trace(sim_run, sim)
-        runs.append(entry)
+        entries.append(entry)
         meas_all.append(meas)
         if keep_traces:
             traces[rec.name] = tr
     gap = {k: _gap(meas_all, sims[k]) for k in models}
     return {
-        'runs': runs,
+        'runs': entries,
         'gap': gap,
         'lift_off_gap_s': [lift_off_gap(gap['before']), lift_off_gap(gap['after'])],
         'traces': traces,

@@ -170,9 +170,10 @@ def batched_fit(replay, base, jobs, wsets, max_iter=25, tol=1e-3, evaluate=None)
     _evaluate_jobs = evaluate or _evaluate
     for j in jobs:
         j.trial = j.x.copy()
-    _evaluate_jobs(replay, base, jobs, wsets)
+    _evaluate_jobs(replay, base, [j for j in jobs if j.res is None], wsets)
     for j in jobs:
-        j.res, j.jac = j.trial_res, j.trial_jac
+        if j.res is None:  # else known at the start (``fit_candidates``' fold fits)
+            j.res, j.jac = j.trial_res, j.trial_jac
         j.cost, j.grad, j.hess = _cost_grad_hess(j.res, j.jac)
         j.step = _newton(j)
     for _ in range(max_iter):
@@ -264,11 +265,30 @@ def scan(replay, base, effects, windows, n=9, with_loss=False, extra=None):
         grid = scan_grid(e, base, n, () if extra is None else extra[i])
         grids.append(grid)
         terms += [apply_effects(base, [e], [g]) for g in grid]
-    pred = replay.predict(terms, w)
-    flat = replay.window_loss(replay.measured[w][None] - pred).mean(axis=1)
+    flat = mean_losses(replay, terms, w)
     loss = np.split(flat, np.cumsum([g.size for g in grids])[:-1])
     best = [float(g[int(np.argmin(v))]) for g, v in zip(grids, loss)]
     return (best, [float(v.min()) for v in loss]) if with_loss else best
+
+
+#: parameter sets x windows per prediction of ``mean_losses``: its arrays of predictions and
+#: residuals stay near 100 MB each (a scan predicts about 115 sets: at every sample of the Table
+#: II logs, 53 278 windows, 590 MB each at once)
+LOSS_BATCH_ELEMENTS = 1_000_000
+
+
+def mean_losses(replay, terms, w) -> np.ndarray:
+    """Mean window loss on the windows `w` of each parameter set of `terms`, predicted in
+    batches of sets (a set's prediction does not depend on the others predicted with it)."""
+    step = max(1, LOSS_BATCH_ELEMENTS // max(1, len(w)))
+    return np.concatenate(
+        [
+            replay.window_loss(
+                replay.measured[w][None] - replay.predict(terms[i : i + step], w)
+            ).mean(axis=1)
+            for i in range(0, len(terms), step)
+        ]
+    )
 
 
 def joint_step(replay, base, selected: Fit, partners, windows, lengths=(1.0, 4.0, 16.0, 64.0)):
@@ -316,7 +336,7 @@ def joint_step(replay, base, selected: Fit, partners, windows, lengths=(1.0, 4.0
         for f, pts in zip(partners, points)
         for p in pts
     ]
-    loss = replay.window_loss(replay.measured[w][None] - replay.predict(terms, w)).mean(axis=1)
+    loss = mean_losses(replay, terms, w)
     loss = loss.reshape(len(partners), len(lengths))
     best = np.argmin(loss, axis=1)
     return (
@@ -356,15 +376,19 @@ def fit_candidates(
         full_jobs.append(FitJob(list(effs), 0, x, lo, hi, fd_steps(effs, x, lo, hi)))
     batched_fit(replay, base, full_jobs, wsets, max_iter=cfg.max_nfev)
     jobs = []
+    n_full = wsets[0].size
     for fj in full_jobs:
         jobs.append(fj)
         x = interior(fj.x, fj.lo, fj.hi, margin=1e-4)
+        h = fd_steps(fj.effects, x, fj.lo, fj.hi)
         for ws in range(1, cfg.folds + 1):
-            jobs.append(
-                FitJob(
-                    fj.effects, ws, x.copy(), fj.lo, fj.hi, fd_steps(fj.effects, x, fj.lo, fj.hi)
-                )
-            )
+            job = FitJob(fj.effects, ws, x.copy(), fj.lo, fj.hi, h)
+            if np.array_equal(x, fj.x) and np.array_equal(h, fj.h) and fj.jac is not None:
+                # the full fit's residual and Jacobian at this point, on the fold's windows: the
+                # prediction of a window does not depend on the others predicted with it
+                rows = (folds[wsets[0]] != ws - 1).repeat(fj.res.size // n_full)
+                job.res, job.jac = fj.res[rows], fj.jac[rows]
+            jobs.append(job)
     batched_fit(replay, base, [j for j in jobs if j.wset > 0], wsets, max_iter=cfg.max_nfev)
     n = cfg.folds + 1
     # held-out: each window predicted by the fit of the fold that did not see it (only there)

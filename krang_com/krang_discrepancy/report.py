@@ -33,7 +33,12 @@ import yaml
 from krang_model.effects import apply_effects, library
 from krang_model.files import atomic_open
 
-from .closed_loop_check import closed_loop_check, closed_loop_json
+from .closed_loop_check import (
+    ClosedLoopRuns,
+    closed_loop_check,
+    closed_loop_json,
+    default_workers,
+)
 from .consistency import per_record_values, per_third_values
 from .contract import contract, with_verdict
 from .extended_model import load_extended_model, plain, write_extended_model
@@ -119,6 +124,53 @@ def run_discrepancy(
     base = model.terms() if base_doc is None else load_extended_model(baseline, model.terms())
     timing['load_s'] = time.perf_counter() - t
     say(f'loaded {len(records)} record(s), {sum(r.duration for r in records):.1f} s of data')
+    # the nominal model's closed-loop replays need nothing the naming finds: they start now,
+    # in worker processes beside the fits (``ClosedLoopRuns``)
+    workers = (replay_config or ReplayConfig()).workers or default_workers()
+    sims = ClosedLoopRuns(records, model, workers=workers) if closed_loop else None
+    if sims is not None:
+        sims.submit('before', base)
+    try:
+        return _workflow(
+            records,
+            model,
+            base,
+            base_doc,
+            baseline,
+            out_dir,
+            sims,
+            timing,
+            say,
+            replay_config=replay_config,
+            phases=phases,
+            candidates=candidates,
+            naming_config=naming_config,
+            plots=plots,
+        )
+    finally:
+        if sims is not None:
+            sims.close()
+
+
+def _workflow(
+    records,
+    model,
+    base,
+    base_doc,
+    baseline,
+    out_dir,
+    sims,
+    timing,
+    say,
+    *,
+    replay_config,
+    phases,
+    candidates,
+    naming_config,
+    plots,
+) -> dict:
+    """``run_discrepancy`` once the records and the model are known; `sims` the closed-loop
+    replays (None: no closed-loop check)."""
     t = time.perf_counter()
     replay = Replay(records, model, replay_config, phases)
     timing['replay_setup_s'] = time.perf_counter() - t
@@ -176,6 +228,14 @@ def run_discrepancy(
         )
         moving = changing_partners(result, drift)
     timing['structure_s'] = time.perf_counter() - t
+    ypath = out_dir / 'extended_model.yaml'
+    sources = [r.source or r.name for r in records]
+    write_extended_model(
+        ypath, result.selected, model, sources=sources, base=base, baseline=base_doc
+    )
+    ext_terms = load_extended_model(ypath, model.terms())
+    if sims is not None:  # the extended model's closed-loop replays run beside the rest
+        sims.submit('after', ext_terms)
     t = time.perf_counter()
     per_record = per_record_values(replay, base, result.selected, result.config)
     timing['per_record_s'] = time.perf_counter() - t
@@ -183,12 +243,6 @@ def run_discrepancy(
     if split:
         say(f'per-record values disagree beyond their uncertainty: {", ".join(split)}')
     t = time.perf_counter()
-    ypath = out_dir / 'extended_model.yaml'
-    sources = [r.source or r.name for r in records]
-    write_extended_model(
-        ypath, result.selected, model, sources=sources, base=base, baseline=base_doc
-    )
-    ext_terms = load_extended_model(ypath, model.terms())
     r0 = replay.residuals([base])[0]
     r1 = replay.residuals([ext_terms])[0]
     gaps_yaml = {'before': gap_metrics(replay, r0), 'after': gap_metrics(replay, r1)}
@@ -218,9 +272,9 @@ def run_discrepancy(
     sitting = sitting_offset(replay, extended_terms(base, result.selected))
     excess = gap_test(replay, r1)
     closed = None
-    if closed_loop:
+    if sims is not None:
         t_cl = time.perf_counter()
-        closed = closed_loop_check(records, model, base, ext_terms)
+        closed = closed_loop_check(records, model, base, ext_terms, runs=sims)
         timing['closed_loop_s'] = time.perf_counter() - t_cl
         if closed['runs']:
             say(

@@ -14,8 +14,8 @@ wheel-to-body viscous and Coulomb friction, rolling resistance, wheel radius, gr
 slope), payloads and ``inertia_add``; it refuses (``UnsupportedTerm``) what only the reduced
 equations can express (``extra_forces``, ``com_shift``) and drive-train fields that the URDF and
 true_beta fix here. The reduced model's caster penalty and yaw friction have no counterpart: the
-caster and the tyres are contacts. Sensor-side terms and the command delay are the sensor
-model's (``krang_sim.sensors``).
+caster and the tyres are contacts. The command delay is the drives' stage in front of every
+plant (``krang_sim.sensors.CommandDelay``); sensor-side terms are the sensor model's.
 
 Conventions are krang_model's (krang_model/README.md): MuJoCo's world is frame 0 (x along the
 first heading, z up from the floor), the Base is placed by ``krang_model.com.base_to_frame0``,
@@ -36,6 +36,7 @@ from krang_model.effects import ModelTerms
 from krang_model.wip import point_mass_beta
 
 from .plant import Motion, Plant, Truth, UnsupportedTerm, register_plant
+from .sensors import CommandDelay
 
 try:
     import mujoco
@@ -379,6 +380,8 @@ class MujocoPlant(Plant):
         self.joint_targets = joints.copy()
         self._ramping = False
         self.applied_current = (0.0, 0.0)
+        self._current_cmd = (0.0, 0.0)
+        self._delay = CommandDelay(self.terms.actuation_delay, self.dt)
         self._wheel_zero = -pitch  # encoders read as the reduced plant's (phi = 0 at the start)
         self._x = 0.0
         self._xy = d.qpos[:2].copy()
@@ -401,8 +404,13 @@ class MujocoPlant(Plant):
 
     # --- commands -------------------------------------------------------------------------------
     def command_currents(self, left_a, right_a):
+        self._current_cmd = (float(left_a), float(right_a))
+        if not self._delay.active:
+            self._apply_current(self._current_cmd)
+
+    def _apply_current(self, current):
         lim = self.drive.current_limit
-        self.applied_current = (min(max(left_a, -lim), lim), min(max(right_a, -lim), lim))
+        self.applied_current = (min(max(current[0], -lim), lim), min(max(current[1], -lim), lim))
         self.data.ctrl[self._motor_ctrl] = self.applied_current
 
     def command_joints(self, targets):
@@ -412,7 +420,16 @@ class MujocoPlant(Plant):
 
     # --- physics --------------------------------------------------------------------------------
     def step(self, n=1):
-        m, d, n = self.model, self.data, int(n)
+        n = int(n)
+        if self._delay.active:  # the delayed current changes from one physics step to the next
+            for _ in range(n):
+                self._apply_current(self._delay.push(self._current_cmd))
+                self._step(1)
+            return
+        self._step(n)
+
+    def _step(self, n):
+        m, d = self.model, self.data
         while n > 0 and self._ramping:
             # the setpoints advance every servo period, held in between
             k = min(n, self._servo_steps)

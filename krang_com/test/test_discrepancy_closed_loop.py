@@ -9,16 +9,20 @@ run (the kit; skipped without it), all of them under the slow mark.
 """
 
 import math
+from dataclasses import replace
 from types import SimpleNamespace
 
+import numpy as np
 import pytest
 
 from krang_discrepancy.closed_loop_check import (
     LIFT_RAD,
+    ClosedLoopRuns,
     closed_loop_check,
     hardware_2018_config,
     stand_metrics,
     run_of_record,
+    with_caster_friction,
 )
 from krang_discrepancy.loaders import load_csv_record
 from krang_discrepancy.nominal import NominalModel
@@ -112,6 +116,35 @@ def test_the_true_model_reproduces_the_lift_off_and_a_large_shortfall_is_refused
     assert not closed_loop_fails(closed)
     assert decide(sel, quiet, gaps, False, closed=closed)[0] == 'named'
     assert not closed_loop_fails(None)
+
+
+def test_the_replays_in_worker_processes_are_the_in_process_ones(setting):
+    """``ClosedLoopRuns`` with two worker processes (what ``run_discrepancy`` starts beside its
+    fits) gives the in-process replays bit for bit; a model with a Python formula (caster
+    friction) cannot go to a worker and is left to replay in-process."""
+    rec, cfg, true_robot, ctl_beta = setting
+    recs = [rec, replace(rec, name='second')]
+    models = {
+        'before': model_terms({'torque_constant': 0.8}, true_robot.terms()),
+        'after': model_terms({'torque_constant': 0.3}, true_robot.terms()),
+    }
+    opts = {'controller_config': cfg, 'controller_beta': ctl_beta}
+    serial = closed_loop_check(recs, true_robot, *models.values(), **opts)
+    runs = ClosedLoopRuns(recs, true_robot, workers=2, min_replayed_s=0.0, **opts)
+    try:
+        runs.submit('before', models['before'])
+        assert all(f is not None for f in runs._jobs['before'][1])  # in the workers
+        parallel = closed_loop_check(recs, true_robot, *models.values(), runs=runs, **opts)
+        runs.submit('formula', with_caster_friction(true_robot.terms(), 0.3))
+        assert all(f is None for f in runs._jobs['formula'][1])  # in-process
+    finally:
+        runs.close()
+    assert parallel['runs'] == serial['runs']
+    assert parallel['gap'] == serial['gap']
+    for name in ('second', rec.name):
+        for key in ('measured', 'before', 'after'):
+            for a, b in zip(parallel['traces'][name][key], serial['traces'][name][key]):
+                assert np.array_equal(a, b)
 
 
 def test_lift_off_is_the_last_departure_from_the_caster(model, setting):

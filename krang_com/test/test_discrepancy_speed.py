@@ -166,6 +166,14 @@ def test_a_prediction_does_not_depend_on_chunks_or_threads(record):
     whole = one.predict(sets, max_elements=10**9)
     assert np.array_equal(one.predict(sets, max_elements=500), whole)
     assert np.array_equal(two.predict(sets, max_elements=500), whole)
+    # the windows near the caster go in chunks of their own, whatever order they are asked in
+    assert one._near_caster.any() and not one._near_caster.all()
+    order = np.random.default_rng(0).permutation(len(one))
+    assert np.array_equal(two.predict(sets, order, max_elements=500), whole[:, order])
+    traj = two.predict(sets[:2], order, trajectory=True)
+    whole_traj = one.predict(sets[:2], trajectory=True, max_elements=10**9)
+    for got, want in zip(traj, whole_traj):
+        assert np.array_equal(got, want[:, order])
     # each parameter set as it would come out of a batch of its own
     for p, terms in enumerate(sets):
         assert np.array_equal(one.predict([terms])[0], whole[p])

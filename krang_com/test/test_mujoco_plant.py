@@ -114,6 +114,30 @@ def test_current_limit_clamps(robot, truth):
     assert p.motion().applied_current == (lim, -lim)
 
 
+def test_an_actuation_delay_applies_each_current_that_much_later(robot, truth):
+    """The drives' delay stands in front of this plant as of every plant: a delayed plant under a
+    current sequence moves exactly as an undelayed one under the same sequence started 20 steps
+    later (20 ms at 1 ms steps)."""
+    rng = np.random.default_rng(3)
+    currents = rng.uniform(-12.0, 12.0, size=(60, 2))
+    delayed = make_plant(
+        'mujoco',
+        robot,
+        truth,
+        TABLE2_POSE,
+        terms=replace(ModelTerms.nominal(drivetrain(robot)), actuation_delay=0.02),
+    )
+    shifted = make_plant('mujoco', robot, truth, TABLE2_POSE)
+    for k, (left, right) in enumerate(currents):
+        delayed.command_currents(left, right)
+        shifted.command_currents(*(currents[k - 20] if k >= 20 else (0.0, 0.0)))
+        delayed.step(1)
+        shifted.step(1)
+        assert delayed.motion().applied_current == shifted.motion().applied_current
+    assert np.array_equal(delayed.data.qpos, shifted.data.qpos)
+    assert np.abs(delayed.data.qvel).max() > 0.0  # the currents did move the robot
+
+
 def test_torque_constant_scales_the_push(robot, truth):
     """On the caster the robot is a cart under the wheel torque: travel is proportional to Kt."""
     nominal = drivetrain(robot)
