@@ -144,6 +144,7 @@ class BalancePointObserver:
         self._det = 1.0
         self._split = False  # the drive observer runs (a model with an x channel)
         self.delta = 0.0
+        self.raw = 0.0  # the unfiltered estimate of the CoM-angle error, rad
         self.drive = 0.0
         self._u_prev = 0.0
         self._ux_prev = 0.0
@@ -166,12 +167,15 @@ class BalancePointObserver:
             if self._split:  # (a model without an x channel reads every disturbance as delta)
                 self.eso_x.set_b(self.bx)
 
-    def reset(self, theta: float, dtheta: float, x: float = 0.0, dx: float = 0.0) -> None:
-        """Start at BALANCE entry, assuming the model right (delta_hat = 0, drive_hat = 0)."""
-        self.eso.reset(theta, dtheta)
+    def reset(
+        self, theta: float, dtheta: float, x: float = 0.0, dx: float = 0.0, delta: float = 0.0
+    ) -> None:
+        """Start (at BALANCE entry, at a stand-up's lift-off) with the CoM-angle error `delta`
+        (0: the model right; a failed stand-up's estimate) and no drive torque error."""
+        self.eso.reset(theta, dtheta, -self.a * delta)
         if self.eso_x is not None:
-            self.eso_x.reset(x, dx)
-        self.delta = 0.0
+            self.eso_x.reset(x, dx, -self.ax * delta if self._split else 0.0)
+        self.delta = self.raw = float(delta)
         self.drive = 0.0
         self.gap = math.inf
         self._u_prev = 0.0
@@ -211,6 +215,7 @@ class BalancePointObserver:
             drive = (self.a * fx - self.ax * f) / self._det
             lim = self.drive_limit
             self.drive = -lim if drive < -lim else (lim if drive > lim else drive)
+        self.raw = target
         if not hold:
             alpha = 1.0 - math.exp(-dt / self.time_constant)
             gap = target - self.delta

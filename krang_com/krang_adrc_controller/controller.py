@@ -63,6 +63,7 @@ from .lqr import GainCache, LqrConfig, LqrDesigner
 from .modes import Mode, ModeInputs, ModeMachine, ModesConfig, SafetyConfig
 from .requests import OperatorRequests
 from .samples import ControlOutput, ControlSample
+from .stand import StandUp
 
 NODE_NAME = 'adrc_controller'
 
@@ -161,7 +162,9 @@ class BalanceController(OperatorRequests, PoseDesign):
         self._caster_limit = drive.caster_pitch + cfg.safety.caster_margin_rad
         self._place = (cfg.balance_point.place_tol_m, cfg.balance_point.place_speed_m_s)
         self._caster_since: float | None = None
-        self._on_caster = False  # caught on the caster in BALANCE: sit (modes.py)
+        self._on_caster = False  # caught on the caster in BALANCE or STAND_UP: sit (modes.py)
+        self.stand = StandUp(cfg.modes, cfg.safety, drive.caster_pitch, self.h)
+        self._stand_gains = [self._ground_scale * g for g in cfg.modes.stand_gains]
         self._pose_check_every = max(1, int(round(cfg.lqr.pose_check_period_s * cfg.rate_hz)))
         self.enabled = bool(cfg.modes.start_enabled)
         self._auto_stand = cfg.modes.auto_stand
@@ -273,8 +276,8 @@ class BalanceController(OperatorRequests, PoseDesign):
         self._t_prev = t
         # 2. safety, 3. mode
         mode_before = self.modes.mode
-        if mode_before is Mode.STAND_UP or mode_before is Mode.BALANCE:
-            self._safety(t, dx, qb, mode_before, finite)
+        if mode_before is Mode.STAND_UP or mode_before is Mode.BALANCE or self.stand.tries:
+            self._safety(t, dx, qb, mode_before, finite)  # (SIT after a caught stand-up too)
         if (
             mode_before is Mode.BALANCE
             and self._steady
@@ -300,7 +303,10 @@ class BalanceController(OperatorRequests, PoseDesign):
         elif ground_gains is None:
             il = ir = 0.0
         else:
-            il, ir = self._ground_law(ground_gains, t, mode, qb, theta, x, dx, dth, psi, dpsi)
+            th = theta
+            if mode is Mode.STAND_UP:  # the stand PD about the stand-up's estimate (stand.py)
+                th -= self._stand_watch(t, qb, theta, x, dx, dth, dt)
+            il, ir = self._ground_law(ground_gains, t, mode, qb, th, x, dx, dth, psi, dpsi)
         fl = fr = 0.0
         ic, v0, iv = self._coulomb
         if (ic or iv) and (mode is Mode.BALANCE or mode is Mode.STAND_UP):
@@ -310,8 +316,11 @@ class BalanceController(OperatorRequests, PoseDesign):
             il += fl
             ir += fr
         il, ir, clamped = self._clamp(il, ir)
+        self.stand.last_current = 0.5 * (il + ir)
         k = self.k_motor
-        if mode is Mode.BALANCE and self._balance_point_active:
+        if (mode is Mode.BALANCE and self._balance_point_active) or (
+            mode is Mode.STAND_UP and self.stand.lifted_t is not None and self.balance_point
+        ):
             # the torque that reaches the wheels past the friction the compensation expects
             self.balance_point.applied((il + ir - fl - fr) * k, theta, dx, dth)
         out = ControlOutput(
@@ -338,10 +347,16 @@ class BalanceController(OperatorRequests, PoseDesign):
         return out
 
     def _safety(self, t, dx, qb, mode, finite) -> None:
-        """Our stops in STAND_UP/BALANCE: a runaway speed, a stand-up that does not settle; and
-        the caster catch in BALANCE (sit where the robot is, auto_stand suspended)."""
+        """Our stops in STAND_UP/BALANCE (and SIT after a caught stand-up): a runaway speed, a
+        stand-up that does not settle; the caster catches of STAND_UP (stand.py) and BALANCE (sit
+        where the robot is, auto_stand suspended)."""
         max_speed, timeout = self._safety_limits
         catch = self.config.safety.caster_catch_s
+        if mode is Mode.STAND_UP and finite and self.stand.caught(t, qb):
+            self._on_caster = True  # SIT; once out of tries until the operator's stand_up
+            self._sit_requested = self._sit_requested or self.stand.exhausted
+            self._stop_reason = self.stand.why()
+            self._requests()
         if catch and mode is Mode.BALANCE and finite:
             if qb >= self._caster_limit:
                 self._caster_since = None
@@ -356,7 +371,9 @@ class BalanceController(OperatorRequests, PoseDesign):
                 )
                 self._requests()
         why = None
-        if max_speed and abs(dx) > max_speed and finite:
+        if mode is Mode.SIT and self.stand.still_rolling(t):
+            why = f'still rolling on its caster {self.stand.stop_s:g} s after a caught stand-up'
+        elif max_speed and abs(dx) > max_speed and finite:
             why = f'speed {dx:.2f} m/s above max_speed_m_s'
         elif timeout and mode is Mode.STAND_UP and t - self._t_stand > timeout:
             why = f'stand-up not settled within {timeout:g} s'
@@ -378,6 +395,7 @@ class BalanceController(OperatorRequests, PoseDesign):
             and mode_before is Mode.SIT
             and not self._sit_requested
             and (self._auto_stand or self._stand_once)
+            and self.stand.ready(t, dx, sample.pitch_rate)
         )
         if stale or not finite:
             last_t = -math.inf
@@ -425,6 +443,7 @@ class BalanceController(OperatorRequests, PoseDesign):
         self._refused = False
         if mode is Mode.STAND_UP:
             self._t_stand = t
+            self.stand.enter()
         if mode is Mode.SIT_DOWN:
             self._sit_from = (t, theta - self._offset)  # the IMU pitch now
         if mode is Mode.SIT and self._on_caster:
@@ -442,9 +461,11 @@ class BalanceController(OperatorRequests, PoseDesign):
         if mode is Mode.BALANCE:
             self._t_balance = t
             self.psi_ref = psi
-            self.adrc.reset((theta, x - self.x_ref, dth, dx))
+            # a retried stand-up's estimate of the CoM-angle error (0 on a first try)
+            trim = self.stand.balanced() if self._balance_point_active else 0.0
+            self.adrc.reset((theta - trim, x - self.x_ref, dth, dx))
             if self.balance_point is not None:
-                self.balance_point.reset(theta, dth, x - self.x_ref, dx)
+                self.balance_point.reset(theta, dth, x - self.x_ref, dx, delta=trim)
         else:
             self.detector.reset()
 
@@ -513,6 +534,19 @@ class BalanceController(OperatorRequests, PoseDesign):
                 events.append(f'balanced_point: q_base={point.q_base:.5f}')
         return il, ir, c.fhat_x, c.fhat_theta, c.saturated, trim, point, converged
 
+    def _stand_watch(self, t, qb, theta, x, dx, dth, dt) -> float:
+        """STAND_UP: from lift-off the balance-point observer watches (stand.py); returns the
+        CoM angle the stand PD regulates to."""
+        stand, bp = self.stand, self.balance_point
+        if bp is None or not stand.enabled:
+            return 0.0
+        if stand.lifts_off(t, qb):
+            bp.reset(theta, dth, x - self.x_ref, dx, delta=stand.trim)
+        if stand.lifted_t is not None:
+            bp.update(theta, dt, False, x - self.x_ref)
+            stand.watch(t, bp.raw)
+        return stand.reference(qb, theta)
+
     def _keeps_place(self, x, dx) -> bool:
         """The robot stays near its position reference and slow (the flag during a move)."""
         tol, speed = self._place
@@ -538,6 +572,8 @@ class BalanceController(OperatorRequests, PoseDesign):
         gs = self._ground_scale
         u_th = gs * (g[0] * e_th + g[1] * dth)
         u_x = gs * (g[2] * ((x - self.x_ref) / r) + g[3] * (dx / r))
+        if mode is Mode.SIT and self.stand.tries:  # the robot may roll on its caster
+            u_th, u_x = self.stand.after_catch(u_th, u_x, qb, dth, dx, self._stand_gains)
         u_spin = -(g[4] * (psi - self.psi_ref) + g[5] * dpsi)
         lim = modes.spin_limit_a
         u_spin = -lim if u_spin < -lim else (lim if u_spin > lim else u_spin)

@@ -23,7 +23,9 @@ thresholds in ``ModesConfig`` and ``SafetyConfig``:
 * Optional: BALANCE/STAND_UP -> SAFE_STOP when |theta| exceeds fall_angle_rad (off by default:
   not in the authors' code).
 * Ours: BALANCE -> SIT when the caller reports the body resting on its caster (``on_caster``,
-  ``SafetyConfig.caster_catch_s``): the robot sits where it is instead of running away.
+  ``SafetyConfig.caster_catch_s``): the robot sits where it is instead of running away. The
+  same from STAND_UP once the body had lifted off (``ModesConfig.stand_tries``; the caller's
+  stand.py decides when SIT stands up again).
 
 Each mode carries the PD current gains of its controller (th, dth, x, dx, psi, dpsi) in A/rad and
 A/(rad/s) (01-balance-kore.cpp); BALANCE says 'adrc'. ``pd_currents`` applies such gains like
@@ -107,6 +109,59 @@ class ModesConfig:
             "(0 = from the start): a stand-up that settles by the hardware's rate is unchanged"
         ),
     )
+    stand_tries: int = field(
+        default=3,
+        metadata=_doc(
+            'stand-ups that fall back on the caster after lift-off before the robot stays in '
+            'SIT (ours; 0 = no caster catch in STAND_UP, as on the hardware). A caught try goes '
+            'to SIT and slows down on its caster instead of being pushed along it at full '
+            'current; the next try regulates about the CoM-angle error the balance-point '
+            'observer saw while the body was off the caster (stand.py)'
+        ),
+    )
+    stand_liftoff_rad: float = field(
+        default=0.01,
+        metadata=_doc(
+            "lift-off: IMU pitch this far above the caster's contact pitch, rad (from then on "
+            'the observer watches and the caster catch is armed)'
+        ),
+    )
+    stand_retry_rest_s: float = field(
+        default=1.0,
+        metadata=_doc('after a caught stand-up, stand again once at rest this long, s'),
+    )
+    stand_catch_hover_rad: float = field(
+        default=0.001,
+        metadata=_doc(
+            'after a caught stand-up, while the robot rolls forward, a pitch PI holds the body '
+            "this far above the caster's contact (plus safety.caster_margin_rad), rad: it "
+            "decelerates the robot as far as its CoM lean allows and cancels the chain's drag, "
+            'which would otherwise tip the body forward off the caster'
+        ),
+    )
+    stand_catch_hover_ki: float = field(
+        default=3000.0,
+        metadata=_doc(
+            "... the PI's integral gain, A/(rad s) (its proportional and rate gains are the "
+            "stand gains'); it starts from the current at the catch"
+        ),
+    )
+    stand_catch_stop_s: float = field(
+        default=20.0,
+        metadata=_doc(
+            '... and SAFE_STOP if the robot still rolls forward this long after the catch, s '
+            '(0 = never): the PI decelerates by g times the CoM lean behind the axle, nearly '
+            'nothing for a robot that balances within a few mrad of its caster'
+        ),
+    )
+    stand_catch_brake_a: float = field(
+        default=2.0,
+        metadata=_doc(
+            "after a caught stand-up, once the robot has slowed down, SIT's ground PD brakes "
+            'with at most this per wheel, A: the full brake pitches a body whose CoM lies a '
+            'few degrees behind the axle forward off its caster'
+        ),
+    )
     sit_waist_min_rad: float = field(
         default=2.61799, metadata=_doc('sit down only with the waist above this, rad (150 deg)')
     )
@@ -154,6 +209,19 @@ class ModesConfig:
                 raise ValueError(f'modes.{name} needs 6 gains (th, dth, x, dx, psi, dpsi)')
         if len(self.spin_gains) != 2:
             raise ValueError('modes.spin_gains needs (psi, dpsi)')
+        if (
+            self.stand_tries < 0
+            or self.stand_liftoff_rad <= 0
+            or self.stand_retry_rest_s < 0
+            or self.stand_catch_brake_a < 0
+            or self.stand_catch_hover_rad < 0
+            or self.stand_catch_hover_ki < 0
+            or self.stand_catch_stop_s < 0
+        ):
+            raise ValueError(
+                'modes.stand_tries, stand_retry_rest_s and stand_catch_* must not be negative, '
+                'stand_liftoff_rad must be positive'
+            )
 
 
 @dataclass(frozen=True)
@@ -186,7 +254,8 @@ class SafetyConfig:
             'BALANCE -> SIT when the IMU pitch has stayed within caster_margin_rad of the caster '
             "contact this long, s (0 = off): the pose's true balance pitch lies beyond the caster "
             '(a CoM error during a pose move), and balancing on would push the robot along on its '
-            'caster at full current until max_speed_m_s'
+            'caster at full current until max_speed_m_s. STAND_UP -> SIT likewise after lift-off '
+            '(modes.stand_tries)'
         ),
     )
     caster_margin_rad: float = field(
@@ -227,7 +296,7 @@ class ModeInputs:
     sit_request: bool = False
     stop_request: bool = False
     reset_request: bool = False
-    on_caster: bool = False  # BALANCE only: the body rests on its caster
+    on_caster: bool = False  # BALANCE, STAND_UP (after lift-off): the body rests on its caster
 
 
 @dataclass
@@ -353,6 +422,8 @@ class ModeMachine:
             entered = self._go(Mode.SAFE_STOP, events, 'fall angle exceeded')
         elif self.mode is Mode.BALANCE and u.on_caster:
             entered = self._go(Mode.SIT, events, 'caster contact while balancing')
+        elif self.mode is Mode.STAND_UP and u.on_caster:
+            entered = self._go(Mode.SIT, events, 'fell back on the caster while standing up')
         elif self.mode is Mode.SIT:
             if u.stand_request:
                 why = self.stand_refusal(u.theta_com)

@@ -27,6 +27,7 @@ class OperatorRequests:
             self._fault = None
             self._stop_requested = False
             self._sit_requested = False
+            self.stand.grant()
             self._reset_pending = True
             self._refused = False
         self._requests()
@@ -64,6 +65,7 @@ class OperatorRequests:
             return Reply(False, f'refused: {why}')
         self._stand_once = True
         self._sit_requested = False
+        self.stand.grant()  # a stand-up that gave up after its tries gets them again
         self._refused = False
         return Reply(True, 'started: standing up (the mode topic reports stand_up, then balance)')
 

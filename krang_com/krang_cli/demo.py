@@ -14,11 +14,10 @@ from krang_model.beta import load_beta, save_beta
 from krang_model.robot import load_krang
 from krang_model.files import write_text
 from krang_ros.entry import interrupt
-from krang_sim.plant import plant_terms
 from krang_sim.session_config import session_devices_file, sim_truth_file
 from krang_sim.truths import generate_truth
 
-from .bringup import start_node_set
+from .bringup import add_sim_robot_arguments, sim_robot_overrides, start_node_set
 from .composed import ComposedSimulation, CompositionError
 from .node_set import STOP_ORDER
 from .common import print_json
@@ -87,28 +86,7 @@ def register(subparsers):
         default=0,
         help="seed of the simulator's and CAN devices' noise (default 0)",
     )
-    p.add_argument(
-        '--plant',
-        choices=('reduced', 'mujoco'),
-        default=None,
-        help="the simulated robot's physics (sim_krang's `plant`; default sim_params.yaml's, "
-        'the reduced model)',
-    )
-    p.add_argument(
-        '--plant-model',
-        metavar='EXTENDED_MODEL.yaml',
-        default=None,
-        help='the simulated robot is the one an extended model of `krang discrepancy` describes '
-        "(its effects and values; sim_krang's `plant_model`)",
-    )
-    p.add_argument(
-        '--effects',
-        nargs='+',
-        metavar='KEY=VALUE',
-        default=None,
-        help="the true robot's effects (krang_model.effects), on top of --plant-model, e.g. "
-        'torque_constant=0.75 wheel_coulomb_friction=4 wheel_viscous_friction=3',
-    )
+    add_sim_robot_arguments(p)
     p.add_argument(
         '--processes',
         action='store_true',
@@ -131,10 +109,10 @@ def run(args):
     if bag.exists():
         bag.unlink()
     robot = load_krang()
-    try:  # a bad --plant-model or --effects fails here, in one line, before any node starts
-        plant_terms(robot, args.effects or (), args.plant_model)
-    except (KeyError, ValueError, OSError) as err:
-        log.error('krang demo: --plant-model / --effects: %s', err)
+    try:
+        sim_robot = sim_robot_overrides(args, robot)
+    except ValueError as err:
+        log.error('krang demo: %s', err)
         return 2
     if args.truth_seed is not None:
         truth = generate_truth(robot, args.truth_seed)
@@ -153,16 +131,11 @@ def run(args):
             'seed': args.seed,
             'real_time_factor': 0.0,
             'true_beta': str(Path(truth_file).resolve()),
+            **sim_robot,
         },
         'can_bridge': {'devices_file': devices},
         'com_estimator': {'output': beta_file, 'method': args.method},
     }
-    if args.plant:
-        overrides['sim_krang']['plant'] = args.plant
-    if args.plant_model:
-        overrides['sim_krang']['plant_model'] = str(Path(args.plant_model).resolve())
-    if args.effects:
-        overrides['sim_krang']['effects'] = list(args.effects)
     sigint = signal.signal(signal.SIGINT, interrupt)  # Ctrl-C: the report says so (below)
     started = time.monotonic()
     client = context = nodes = composed = None

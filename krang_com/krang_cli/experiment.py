@@ -39,6 +39,7 @@ from typing import Callable
 
 import krang_cli
 
+from .bringup import add_plant_argument, add_sim_robot_arguments
 from .common import print_json
 
 # ----------------------------------------------------------------------------- registry
@@ -99,39 +100,6 @@ def register(subparsers):
         if callable(hook) and hook is not register_experiment:
             hook(sub)
     p.set_defaults(func=lambda args: (p.print_help(), 2)[1])
-
-
-# ----------------------------------------------------------------------------- the plant
-
-
-def _plant_arg(p):
-    p.add_argument(
-        '--plant',
-        choices=('reduced', 'mujoco'),
-        default='reduced',
-        help="the simulated robot's physics: the controller's reduced model or the full-body "
-        'MuJoCo Krang (krang_sim.plant; default reduced)',
-    )
-
-
-def _true_robot_args(p):
-    """--plant, --plant-model and --effects: the physics and the drive chain of the simulated
-    robot."""
-    _plant_arg(p)
-    p.add_argument(
-        '--plant-model',
-        default=None,
-        metavar='EXTENDED_MODEL.yaml',
-        help='the simulated robot is the one an extended model of `krang discrepancy` describes',
-    )
-    p.add_argument(
-        '--effects',
-        nargs='+',
-        metavar='KEY=VALUE',
-        default=(),
-        help="the true robot's effects (krang_model.effects) on top of --plant-model, e.g. "
-        'torque_constant=0.75 wheel_coulomb_friction=4 wheel_viscous_friction=3',
-    )
 
 
 # ----------------------------------------------------------------------------- adrc-vs-lqr
@@ -242,7 +210,7 @@ def _table2_args(p):
         'extended_model.yaml, e.g. from the hardware Table II runs), to compare the simulated '
         'table with the hardware',
     )
-    _plant_arg(p)
+    add_plant_argument(p)
     p.add_argument(
         '--json', action='store_true', help='print the table as JSON on the last stdout line'
     )
@@ -263,7 +231,7 @@ def _run_table2(args):
         betas=args.betas,
         paper_era_pd=args.paper_era_pd,
         extended_model=args.plant_model,
-        plant=args.plant,
+        plant=args.plant or 'reduced',
     )
     result = table2.run(params)
     print(table2.report(result, args.out))
@@ -300,7 +268,7 @@ def _many_truths_args(p):
         help='pose selection: the meta-learned list, adaptive, or both (default)',
     )
     p.add_argument('--method', default='map-online', help='estimator (default map-online)')
-    _true_robot_args(p)
+    add_sim_robot_arguments(p)
     p.add_argument(
         '--json', action='store_true', help='print a JSON summary as the last stdout line'
     )
@@ -316,9 +284,9 @@ def _run_many_truths(args):
         selections=selections,
         method=args.method,
         progress=True,
-        plant=args.plant,
+        plant=args.plant or 'reduced',
         plant_model=args.plant_model,
-        effects=tuple(args.effects),
+        effects=tuple(args.effects or ()),
     )
     result = many_truths.run(params)
     print(many_truths.report(result, args.out))

@@ -68,12 +68,14 @@ REST_SPEED_RAD_S = 0.5
 #: number of 1 ms physics steps, so 33 ms
 HARDWARE_RATE_HZ = 1000.0 / 33.0
 #: the paper-era stand PD (the kit's gains.txt), held for the whole run as in the 2018 runs;
-#: neither our stops nor our balance-point observer (the 2018 code had none)
+#: neither our stops, our stand-up's caster catch nor our balance-point observer (the 2018 code
+#: had none)
 HARDWARE_2018 = {
     'rate_hz': HARDWARE_RATE_HZ,
     'detector.rate_hz': HARDWARE_RATE_HZ,
     'modes.stand_gains': (250.0, 40.0, 4.0, 10.0, 0.0, 0.0),
     'modes.stand_settle_s': 1e9,
+    'modes.stand_tries': 0,
     'safety.stand_timeout_s': 0.0,
     'safety.max_speed_m_s': 0.0,
     'balance_point.enabled': False,

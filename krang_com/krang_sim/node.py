@@ -191,6 +191,10 @@ class SimKrangNode(Node):
                 f'robot {len(self.robot.pose_joints)} body joints'
             )
         q_base = cfg.initial_q_base
+        # what the simulated robot is, for its log line and /diagnostics
+        self.plant_name = cfg.plant
+        described = [f'extended model {cfg.plant_model}'] if cfg.plant_model else []
+        self.true_robot = ', '.join(described + list(cfg.effects)) or 'nominal'
         self.rate = cfg.physics_rate_hz
         self.feedback_every = max(1, round(self.rate / cfg.feedback_rate_hz))
         self.factor = cfg.real_time_factor
@@ -301,8 +305,8 @@ class SimKrangNode(Node):
             self.thread.start()
         truth = self.sim.truth()
         self.get_logger().info(
-            f'simulated Krang ({cfg.plant} plant): truth {truth_file}, sitting at q_base '
-            f'{truth.q_base:+.3f} rad, true balance '
+            f'simulated Krang ({cfg.plant} plant, {self.true_robot}): truth {truth_file}, '
+            f'sitting at q_base {truth.q_base:+.3f} rad, true balance '
             f'{truth.balance_pitch:+.3f} rad, {self.rate:.0f} Hz physics '
             f'at {self.factor:g}x real time{", lockstep" if self.lockstep else ""}, '
             f'buses {sorted(self.buses)}'
@@ -476,6 +480,8 @@ class SimKrangNode(Node):
             silent, since = sorted(self.devices.silent), self.silent_since
             armed_at = self.first_armed_at
         values = {
+            'plant': self.plant_name,
+            'true_robot': self.true_robot,
             'q_base': f'{qb:+.4f}',
             'true_balance_pitch': f'{bal:+.4f}',
             'frames_sent': self.sent_frames,

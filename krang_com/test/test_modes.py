@@ -198,3 +198,72 @@ def test_pd_currents_by_hand():
     assert (left, right) == (30.0, -30.0)
     left, right = pd_currents(STAND_GAINS, (1.0, 0, 0, 0, 0, 0), **lim)
     assert (left, right) == (49.0, 49.0)
+
+
+def test_a_stand_up_back_on_its_caster_sits_with_a_reason():
+    m = machine()
+    standing(m)
+    out = m.step(inp(0.1, imu_pitch=-101.5 * DEG, on_caster=True))
+    assert out.mode is Mode.SIT and out.entered and out.controller == 'ground_pd'
+    assert 'caster' in out.events[0]
+
+
+def test_the_stand_up_catch_arms_at_lift_off_and_retries_a_bounded_number_of_times():
+    from krang_adrc_controller.stand import StandUp
+
+    caster = drivetrain(load_krang()).caster_pitch
+    modes, safety = ModesConfig(stand_tries=2), SafetyConfig()
+    stand = StandUp(modes, safety, caster, 0.002)
+    stand.enter()
+    # sitting on the caster before lift-off is no fall-back
+    assert not any(stand.caught(0.01 * k, caster) for k in range(100))
+    assert stand.lifts_off(1.0, caster + 2 * modes.stand_liftoff_rad)
+    for k in range(100):  # the observer's estimate while lifted
+        stand.watch(1.0 + 0.01 * k, -0.06)
+    assert stand.reference(caster + 0.1, 0.0) == 0.0  # a first try: the model's balance
+    caught = [stand.caught(2.0 + 0.01 * k, caster) for k in range(30)]
+    assert sum(caught) == 1 and not stand.exhausted
+    assert stand.trim == pytest.approx(-0.06)
+    # the next try waits for rest, then regulates about the estimate once lifted
+    assert not stand.ready(3.0, 0.3, 0.0)
+    assert not stand.ready(3.1, 0.0, 0.0)
+    assert stand.ready(3.11 + modes.stand_retry_rest_s, 0.0, 0.0)
+    stand.enter()
+    offset = 1.66  # theta - q_base: the model's CoM offset; on the caster theta = -0.1028
+    assert stand.reference(caster, caster + offset) == 0.0  # before lift-off: the full error
+    stand.lifts_off(5.0, caster + 0.1)
+    # blended in as the body rises to the estimated balance pitch, then the whole estimate
+    assert stand.reference(caster + 0.02, caster + 0.02 + offset) == pytest.approx(
+        -0.06 * 0.02 / (-0.06 - caster - offset)
+    )
+    assert stand.reference(caster + 0.1, caster + 0.1 + offset) == pytest.approx(-0.06)
+    stand.last_current = 20.0  # pressing the body onto its caster when it is caught
+    assert sum(stand.caught(6.0 + 0.01 * k, caster) for k in range(30)) == 1
+    assert stand.exhausted  # the controller then stays in SIT until the operator's stand_up
+    stand.grant()
+    assert not stand.exhausted and stand.trim == pytest.approx(-0.06)
+    # a retried stand-up that reaches BALANCE hands its own estimate over, and the tries are
+    # granted again; a first try hands over nothing (as without the catch)
+    stand.enter()
+    stand.lifts_off(9.0, caster + 0.1)
+    for k in range(100):
+        stand.watch(9.0 + 0.01 * k, -0.05)
+    assert stand.balanced() == pytest.approx(-0.05) and stand.tries == 0 and stand.trim == 0.0
+    stand.enter()
+    stand.lifts_off(11.0, caster + 0.1)
+    for k in range(100):
+        stand.watch(11.0 + 0.01 * k, -0.05)
+    assert stand.balanced() == 0.0
+    # after a catch: while rolling forward a pitch PI, from the current at the catch, holds
+    # the body just above its caster; once stopped the brake is limited
+    gains = STAND_GAINS
+    stand.tries, stand.last_current = 0, 20.0
+    stand.enter()
+    stand.lifts_off(7.0, caster + 0.1)
+    assert sum(stand.caught(8.0 + 0.01 * k, caster) for k in range(30)) == 1
+    u_th, u_x = stand.after_catch(0.0, -30.0, stand.hover_pitch, 0.0, 0.5, gains)
+    assert u_x == 0.0 and u_th == pytest.approx(20.0)
+    u_th, _ = stand.after_catch(0.0, -30.0, stand.hover_pitch + 0.01, 0.0, 0.5, gains)
+    assert u_th > 20.0 + gains[0] * 0.01  # lifting: pushed back, and the integral grows
+    u_th, u_x = stand.after_catch(0.0, -30.0, caster, 0.0, 0.0, gains)
+    assert (u_th, u_x) == (0.0, -modes.stand_catch_brake_a)
