@@ -17,10 +17,10 @@ from krang_ros.entry import interrupt
 from krang_sim.session_config import session_devices_file, sim_truth_file
 from krang_sim.truths import generate_truth
 
-from .bringup import add_sim_robot_arguments, sim_robot_overrides, start_node_set
+from .bringup import start_node_set
 from .composed import ComposedSimulation, CompositionError
 from .node_set import STOP_ORDER
-from .common import print_json
+from .common import add_sim_robot_arguments, print_json, sim_robot_overrides
 
 log = logging.getLogger('krang.demo')
 BETA_FILE = 'beta.yaml'  # the learned beta in the output directory

@@ -39,8 +39,7 @@ from typing import Callable
 
 import krang_cli
 
-from .bringup import add_plant_argument, add_sim_robot_arguments
-from .common import print_json
+from .common import add_plant_argument, add_sim_robot_arguments, print_json
 
 # ----------------------------------------------------------------------------- registry
 
