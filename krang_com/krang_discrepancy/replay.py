@@ -84,7 +84,7 @@ class Replay:
         self.records = list(records) if isinstance(records, (list, tuple)) else [records]
         d = model.drive
         self._recs = []
-        starts, t_start, rec_id, phase, inits, meas, near = [], [], [], [], [], [], []
+        starts, t_start, rec_id, phase, inits, meas = [], [], [], [], [], []
         self._h = None
         for ri, rec in enumerate(self.records):
             h, n_steps, step_samples, eval_samples = self._grid(rec.period)
@@ -119,7 +119,6 @@ class Replay:
             for e in eval_off:
                 ok &= np.all(np.isfinite(sig[ks + e]), axis=1)
             ks, ph = ks[ok], ph[ok]
-            near.append(win_min[ok] < d.caster_pitch + NEAR_CASTER_RAD)
             starts.append(ks)
             t_start.append(rec.t[ks])
             rec_id.append(np.full(ks.size, ri))
@@ -135,8 +134,6 @@ class Replay:
         self.win_phase = np.concatenate(phase)
         self.init = np.concatenate(inits)  # (S, 4) measured state at the start
         self.measured = np.concatenate(meas)  # (S, E, 4)
-        # windows whose prediction may reach the caster go in chunks of their own (``predict``)
-        self._near_caster = np.concatenate(near)
         self.eval_tau = self.eval_steps * self._h
         # sub-step times (S, J+1) and body-table interpolation
         self.sub_t = self.win_t[:, None] + self._h * np.arange(self._n_steps + 1)[None]
@@ -316,11 +313,8 @@ class Replay:
         arrays then stay in the processor's cache (per element and step about 20 ns of CPU at
         16k-64k elements, 33 ns at 300k). The chunks run on ``workers`` threads (numpy releases
         the interpreter lock in its array operations); every element's result is independent of
-        the chunk and the thread it runs in. So the chunks are cut to suit the work: at least
-        one per worker when the batch is large enough (a single run's windows, one parameter
-        set), and the windows that come near the caster in chunks of their own (only a chunk
-        whose pitch reaches the caster computes its contact: a quarter of the Table II windows
-        sit, the rest never touch it)."""
+        the chunk and the thread it runs in. So there is at least one chunk per worker when the
+        batch is large enough (a single run's windows, one parameter set)."""
         t_start = time.perf_counter()
         if isinstance(terms_list, ModelTerms):
             terms_list = [terms_list]
@@ -330,10 +324,7 @@ class Replay:
         chunk = max(1, max_elements // p)
         if self.workers > 1 and sel.size * p >= self.workers * MIN_CHUNK_ELEMENTS:
             chunk = min(chunk, -(-sel.size // self.workers))
-        near = self._near_caster[sel]
-        pos = np.arange(sel.size)
-        groups = [pos[~near], pos[near]] if near.any() and not near.all() else [pos]
-        parts = [sel[g[i : i + chunk]] for g in groups for i in range(0, g.size, chunk)] or [sel]
+        parts = [sel[i : i + chunk] for i in range(0, sel.size, chunk)] or [sel]
         run = lambda s: self._predict_chunk(prep, s, trajectory)  # noqa: E731
         if len(parts) > 1 and self.workers > 1:
             results = list(_pool(self.workers).map(run, parts))
@@ -350,9 +341,6 @@ class Replay:
             if trajectory
             else join(results)
         )
-        if len(groups) > 1:  # back to the order of `sel`
-            back = np.argsort(np.concatenate(groups), kind='stable')
-            out = (out[0][:, back], out[1][:, back]) if trajectory else out[:, back]
         return out
 
     def _prepare(self, terms_list) -> dict:
@@ -488,9 +476,6 @@ _POOLS = {}
 #: a batch is split over the workers when it has at least this many elements (parameter sets x
 #: windows) per worker: below it, the threads' hand-over costs more than the arithmetic
 MIN_CHUNK_ELEMENTS = 2000
-#: windows whose measured pitch comes this close to the caster's (rad) may reach it in a
-#: prediction (``predict``'s chunks); any other window may too, its chunk then computes the contact
-NEAR_CASTER_RAD = 0.1
 #: bytes of arrays each of the body and torque caches keeps: per variant an array of every
 #: window's sub-steps (18k windows x 153 sub-steps: 22 MB a body field or a delay)
 CACHE_BYTES = 300e6
