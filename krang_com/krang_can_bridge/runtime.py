@@ -213,6 +213,9 @@ class BridgeRuntime:
         any."""
         if self._stop.is_set():  # closing: the drives' reaction to our silence is expected
             return None
+        if not self.time.known():  # simulation, before its clock: no time to put the frame at
+            self._notify_sdo(bus, msg)  # an SDO answer needs none (the start-up's transfers)
+            return None
         with self.lock:
             now = arrived = self.time.frame_time()
             self.time.frame_seen(now)
@@ -249,13 +252,17 @@ class BridgeRuntime:
             if not self._publish(sample_out.topic, sample_out.message):
                 return None  # shutting down under this thread; close() follows
             self.published[sample_out.topic] += 1
+        self._notify_sdo(bus, msg)
+        return out if out is not None and out.topic == names.IMU else None
+
+    def _notify_sdo(self, bus: str, msg: can.Message) -> None:
+        """An SDO response, to the start-up's transfers (canopen's network)."""
         if (
             bus == self.config.wheels.bus
             and not msg.is_error_frame
-            and msg.arbitration_id in self.network.subscribers  # SDO responses, for the start-up
+            and msg.arbitration_id in self.network.subscribers
         ):
             self.network.notify(msg.arbitration_id, msg.data, msg.timestamp)
-        return out if out is not None and out.topic == names.IMU else None
 
     def _imu_due(self, now: float) -> bool:
         """Whether the DMU streams: its last sample came less than 1.5 of its intervals before

@@ -41,6 +41,14 @@ class TimeBase:
         self.newest_frame = self.frame_time()
         self.stamp_offset = 0.0 if self.simulated else time.time() - time.monotonic()
 
+    def known(self) -> bool:
+        """Whether the devices' time exists yet: always on the robot; in simulation once the
+        simulator's clock reached this process (ROS time 0 means no /clock message yet). A frame
+        stamped before that would be stamped 0, and the clock's first reading, the simulator's
+        time since it started, would then make every device heard so far look silent since
+        (an arm fault for every PowerCube module at start-up, under load)."""
+        return not self.simulated or self.frame_time() > 0.0
+
     def device_time(self) -> float:
         if not self.simulated:
             return self.frame_time()

@@ -1,5 +1,6 @@
 """Shared fixtures: the real robot data (skipped when absent) and ROS isolation per test run."""
 
+import itertools
 import os
 import random
 from pathlib import Path
@@ -12,10 +13,24 @@ CHECKOUT = REPO.parent  # the repository: krang_com/, krang_com_interfaces/, ben
 # Single-threaded OpenBLAS before numpy is imported, as every node and `krang` run
 # (krang_ros/entry.py).
 os.environ.setdefault('OPENBLAS_NUM_THREADS', '1')
-# Every test process gets its own DDS domain and stays on localhost, so parallel runs never
-# cross-talk.
+# DDS stays on localhost, and every test module of a run gets a domain of its own
+# (ros_domain_per_module), so parallel runs never cross-talk and no module's nodes meet the ones
+# an earlier module left behind or is still stopping. A ROS_DOMAIN_ID set by the user is kept.
 os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
-os.environ.setdefault('ROS_DOMAIN_ID', str(random.Random(os.getpid()).randint(1, 100)))
+_USER_DOMAIN = 'ROS_DOMAIN_ID' in os.environ
+_FIRST_DOMAIN = random.Random(os.getpid()).randrange(100)
+_modules = itertools.count()
+os.environ.setdefault('ROS_DOMAIN_ID', str(1 + _FIRST_DOMAIN))
+
+
+@pytest.fixture(scope='module', autouse=True)
+def ros_domain_per_module():
+    """The next of the domains 1-100 for this module (its nodes and its own contexts)."""
+    if _USER_DOMAIN:
+        yield
+        return
+    os.environ['ROS_DOMAIN_ID'] = str(1 + (_FIRST_DOMAIN + next(_modules)) % 100)
+    yield
 
 
 def krang_data_dir():

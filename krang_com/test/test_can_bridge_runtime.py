@@ -168,6 +168,32 @@ def test_time_base_in_simulation_checks_at_most_the_slack_past_the_newest_frame(
     assert base.stamp_seconds(3.0) == 3.0
 
 
+def test_frames_before_the_simulators_clock_are_not_put_at_time_zero():
+    """In simulation the bridge may hear the devices before the simulator's first /clock
+    message (ROS time 0 until then). Stamped 0, the modules' answers looked silent since the
+    clock's first reading, the simulator's time since its start: an arm fault for every module at
+    start-up. Frames before the clock are left out; the first ones after it count."""
+    rig = Rig()
+    try:
+        rig.t = 0.0  # no /clock message yet
+        module = CFG.powercube.joint('LJ2').modules[0]
+        answer = msg(0x0A0 + module.module_id, bytes([0x0A, 0x3C]) + struct.pack('<f', 0.25))
+        assert not rig.runtime.time.known()
+        rig.frame(module.bus, answer)
+        rig.wheels()
+        assert rig.published == []
+        rig.t = 3.0  # the clock's first reading: the simulator has run for 3 s
+        assert rig.runtime.time.known()
+        rig.wheels()
+        assert rig.runtime.core.arm_fault(rig.runtime.time.device_time()) == ('', [])
+        rig.frame(module.bus, answer)  # heard from now on; silent only past its timeout
+        rig.wheels(dt=CFG.powercube.silence_timeout_s + 0.01)
+        reason, joints = rig.runtime.core.arm_fault(rig.runtime.time.device_time())
+        assert joints == ['LJ2'], reason
+    finally:
+        rig.close()
+
+
 def start_streaming(rig):
     for _ in range(CFG.imu.kalman.init_samples + 50):
         rig.dmu(DMU_PERIOD)
