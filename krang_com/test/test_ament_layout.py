@@ -4,6 +4,7 @@ installed executable comes up from install/ with the installed configuration; pa
 rosdep key for every import; the launch files start what `krang bringup` starts."""
 
 import ast
+import dataclasses
 import os
 import subprocess
 import sys
@@ -15,7 +16,7 @@ from pathlib import Path
 import pytest
 
 from conftest import REPO
-from krang_cli.node_set import node_set, params_files
+from krang_cli.node_set import file_parameter, node_set, params_files
 from krang_ros.entry import NODE_MODULES
 
 NODES = tuple(sorted(NODE_MODULES))
@@ -106,38 +107,89 @@ def test_every_import_has_a_rosdep_key():
 def fake_launch_modules():
     """Stand-ins for launch and launch_ros (not installable here) that record what a launch file
     builds, so the launch files can be compared with `krang bringup`."""
-    launch = types.ModuleType('launch')
-    launch_ros = types.ModuleType('launch_ros')
-    actions = types.ModuleType('launch_ros.actions')
+    modules = {
+        name: types.ModuleType(name)
+        for name in (
+            'launch',
+            'launch.actions',
+            'launch.substitutions',
+            'launch_ros',
+            'launch_ros.actions',
+            'launch_ros.parameter_descriptions',
+        )
+    }
 
     class LaunchDescription(list):
         pass
 
-    class Node(dict):
-        def __init__(self, **kwargs):
-            super().__init__(kwargs)
+    class Record(dict):
+        def __init__(self, *args, **kwargs):
+            super().__init__(kwargs, args=args)
 
-    launch.LaunchDescription = LaunchDescription
-    actions.Node = Node
-    launch_ros.actions = actions
-    return {'launch': launch, 'launch_ros': launch_ros, 'launch_ros.actions': actions}
+    class LaunchConfiguration(str):
+        pass
+
+    modules['launch'].LaunchDescription = LaunchDescription
+    modules['launch.actions'].DeclareLaunchArgument = type('DeclareLaunchArgument', (Record,), {})
+    modules['launch.substitutions'].LaunchConfiguration = LaunchConfiguration
+    modules['launch_ros.actions'].Node = type('Node', (Record,), {})
+    modules['launch_ros.parameter_descriptions'].ParameterValue = type(
+        'ParameterValue', (Record,), {}
+    )
+    return modules
+
+
+def launch_actions(launch_file, monkeypatch):
+    """What `generate_launch_description()` of `launch_file` builds, split into the declared
+    arguments (name -> DeclareLaunchArgument) and the nodes."""
+    for name, module in fake_launch_modules().items():
+        monkeypatch.setitem(sys.modules, name, module)
+    monkeypatch.delitem(sys.modules, 'krang_ros.launch_set', raising=False)
+    namespace = {'__file__': str(REPO / 'launch' / launch_file)}
+    exec(compile((REPO / 'launch' / launch_file).read_text(), launch_file, 'exec'), namespace)
+    actions = namespace['generate_launch_description']()
+    declared = {a['args'][0]: a for a in actions if type(a).__name__ == 'DeclareLaunchArgument'}
+    return declared, [a for a in actions if type(a).__name__ == 'Node']
 
 
 @pytest.mark.parametrize('launch_file, sim', [('robot.launch.py', False), ('sim.launch.py', True)])
 def test_launch_files_start_what_bringup_starts(launch_file, sim, monkeypatch):
-    for name, module in fake_launch_modules().items():
-        monkeypatch.setitem(sys.modules, name, module)
-    namespace = {'__file__': str(REPO / 'launch' / launch_file)}
-    exec(compile((REPO / 'launch' / launch_file).read_text(), launch_file, 'exec'), namespace)
-    actions = namespace['generate_launch_description']()
-    launched = [(a['executable'], tuple(a['parameters'])) for a in actions]
-    assert all(a['package'] == 'krang_com' for a in actions)
-    assert launched == [(s.executable, s.params_files) for s in node_set(sim)]
+    declared, nodes = launch_actions(launch_file, monkeypatch)
+    files = [
+        (a['executable'], tuple(p for p in a['parameters'] if isinstance(p, str))) for a in nodes
+    ]
+    assert all(a['package'] == 'krang_com' for a in nodes)
+    assert files == [(s.executable, s.params_files) for s in node_set(sim)]
     # the parameter files are the ones krang bringup passes, and they exist
-    assert all(p == params_files(sim) for _, p in launched)
+    assert all(p == params_files(sim) for _, p in files)
     assert all(Path(f).is_file() for f in params_files(sim))
     expected = {'can_bridge', 'adrc_controller', 'pose_server', 'com_estimator', 'state_publisher'}
-    assert {e for e, _ in launched} == expected | ({'sim_krang'} if sim else set())
+    assert {e for e, _ in files} == expected | ({'sim_krang'} if sim else set())
+    assert bool(declared) == sim  # the robot's launch file has no simulated robot to choose
+
+
+def test_sim_launch_arguments_choose_the_plant(monkeypatch):
+    """`ros2 launch krang_com sim.launch.py plant:=mujoco plant_model:=F`: the arguments default
+    to what the parameter files give, reach sim_krang only, after its files (so they win), and
+    are sim_krang's own parameters (`krang bringup --sim --plant --plant-model`)."""
+    from krang_sim.node import SimNodeParams
+
+    declared, nodes = launch_actions('sim.launch.py', monkeypatch)
+    assert set(declared) == {'plant', 'plant_model'}
+    assert declared['plant']['default_value'] == file_parameter('sim_krang', 'plant', sim=True)
+    assert declared['plant_model']['default_value'] == ''
+    assert all(d['description'] for d in declared.values())
+    assert set(declared) <= {f.name for f in dataclasses.fields(SimNodeParams)}
+    for node in nodes:
+        chosen = [p for p in node['parameters'] if isinstance(p, dict)]
+        if node['executable'] != 'sim_krang':
+            assert not chosen
+            continue
+        assert isinstance(node['parameters'][-1], dict)  # last: wins over the files
+        values = chosen[0]
+        assert set(values) == set(declared)
+        for name, value in values.items():  # a string even when empty (no YAML guess)
+            assert value['args'] == (name,) and value['value_type'] is str
 
 
 @pytest.fixture(scope='module')
