@@ -33,7 +33,7 @@ the stand-up, while the balance point still moved the robot, gave points 2.3-3 m
 pitch) and the batch-means standard
 error of the mean pitch is below ``stationary_se_max``, the window mean is a point too, emitted
 with that standard error (so the learner weighs it as it deserves). A robot that does settle gives
-its strict point first (2 s against 8 s).
+its strict point first (2 s against 16 s).
 
 Thresholds are ``DetectorConfig``: our choices, except pitch_rate_max = 0.03 rad/s, the hardware's
 "standing still" rate threshold (docs/control.md).
@@ -95,8 +95,12 @@ class DetectorConfig:
     )
 
     stationary_window_s: float = field(
-        default=8.0,
-        metadata={'doc': 'stationary window of a robot in a small limit cycle, s (0 = off)'},
+        default=16.0,
+        metadata={
+            'doc': 'stationary window of a robot in a small limit cycle, s (0 = off): four or '
+            'more cycles of the 3-4 s one a 0.6 torque and 8 N m of Coulomb friction give, whose '
+            'mean then has a standard error the bounds below admit'
+        },
     )
     stationary_speed_max: float = field(
         default=0.15, metadata={'doc': '|ground speed| bound at every sample of it, m/s'}

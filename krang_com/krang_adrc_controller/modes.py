@@ -20,8 +20,9 @@ thresholds in ``ModesConfig`` and ``SafetyConfig``:
 * Any mode -> SAFE_STOP on a stop request or stale sensor data (newest sample older than
   stale_timeout_s). SAFE_STOP commands zero wheel torque and stays latched until a reset request
   arrives with fresh data and no stop request; the robot then restarts in SIT.
-* Optional: BALANCE/STAND_UP -> SAFE_STOP when |theta| exceeds fall_angle_rad (off by default:
-  not in the authors' code).
+* Ours: BALANCE/STAND_UP -> SAFE_STOP when |theta| exceeds fall_angle_rad (0.6 rad; not in the
+  authors' code): a robot that fell (seen on the full-body plant: forward onto its front, wheels
+  stalled by their friction) is otherwise held at the current limit for as long as it lies.
 * Ours: BALANCE -> SIT when the caller reports the body resting on its caster (``on_caster``,
   ``SafetyConfig.caster_catch_s``): the robot sits where it is instead of running away. The
   same from STAND_UP once the body had lifted off (``ModesConfig.stand_tries``; the caller's
@@ -234,10 +235,11 @@ class SafetyConfig:
         default=0.1, metadata=_doc('SAFE_STOP when the newest sensor sample is older than this, s')
     )
     fall_angle_rad: float = field(
-        default=0.0,
+        default=0.6,
         metadata=_doc(
-            'SAFE_STOP when |theta| exceeds this in STAND_UP/BALANCE, rad (0 = off, as on the '
-            'hardware)'
+            'SAFE_STOP when |theta| exceeds this in STAND_UP/BALANCE, rad (0 = off, as in the '
+            "2018 code): a body this far off its balance has fallen, and BALANCE would hold the "
+            'saturated current into it'
         ),
     )
     stand_timeout_s: float = field(

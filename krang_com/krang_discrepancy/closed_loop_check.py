@@ -78,6 +78,7 @@ HARDWARE_2018 = {
     'modes.stand_tries': 0,
     'safety.stand_timeout_s': 0.0,
     'safety.max_speed_m_s': 0.0,
+    'safety.fall_angle_rad': 0.0,
     'balance_point.enabled': False,
 }
 #: the record kinds whose controller the check knows (``controller_for``)

@@ -603,3 +603,22 @@ def test_sixteen_pose_session_learns_like_the_hardware(robot, true_beta, krang_d
     assert abs(sim_delta) < 0.5 * abs(
         bt - balance_pitch(robot, TABLE2_POSE[None], robot.nominal_beta)[0]
     )
+
+
+@pytest.mark.parametrize('plant', ['reduced', 'mujoco'])
+def test_a_robot_that_falls_is_stopped_not_held_at_the_current_limit(robot, plant):
+    """A kick the controller cannot catch (4 rad/s of pitch rate): the body falls, and the fall
+    angle (safety.fall_angle_rad, 0.6 rad of CoM angle) ends BALANCE in SAFE_STOP with zero
+    current. Without it, a robot that fell forward on the full-body plant, its wheels stalled by a
+    gearmotor's friction, was held at 49 A for as long as it lay."""
+    true_beta = load_beta(config_path('sim_true_beta.yaml'), robot)
+    loop = ClosedLoop(robot, true_beta, true_beta, TABLE2_POSE, plant=plant, seed=1, log_rate_hz=0)
+    loop.run(0.5)
+    loop.controller.set_enabled(True)
+    assert loop.run(15.0, until=lambda o: o.mode == 'balance')
+    loop.run(2.0)
+    loop.schedule(Disturbance(loop.sim.t, 'kick', 4.0))
+    assert loop.run(4.0, until=lambda o: o.mode == 'safe_stop')
+    assert any('fall angle exceeded' in e for _, e in loop.events)
+    loop.run(0.1)
+    assert loop.last_output.current_left == 0.0 and loop.last_output.current_right == 0.0

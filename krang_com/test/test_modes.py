@@ -170,13 +170,17 @@ def test_stale_sensors_stop_and_block_reset():
     assert m.step(inp(1.3, reset_request=True)).mode is Mode.SIT
 
 
-def test_optional_fall_guard():
+def test_fall_guard():
     m = machine(SafetyConfig(fall_angle_rad=0.5), stand_settle_s=0.0)
     balancing(m)
     assert m.step(inp(1.0, imu_pitch=-90 * DEG, theta_com=0.49)).mode is Mode.BALANCE
     assert m.step(inp(1.1, imu_pitch=-90 * DEG, theta_com=-0.51)).mode is Mode.SAFE_STOP
-    # off by default
+    # on by default, at 0.6 rad; 0 turns it off (the 2018 code had none)
     m = machine(stand_settle_s=0.0)
+    balancing(m)
+    assert m.step(inp(1.0, imu_pitch=-90 * DEG, theta_com=0.59)).mode is Mode.BALANCE
+    assert m.step(inp(1.1, imu_pitch=-90 * DEG, theta_com=0.61)).mode is Mode.SAFE_STOP
+    m = machine(SafetyConfig(fall_angle_rad=0.0), stand_settle_s=0.0)
     balancing(m)
     assert m.step(inp(1.0, imu_pitch=-90 * DEG, theta_com=1.0)).mode is Mode.BALANCE
 

@@ -156,21 +156,36 @@ def _stream(det, seconds, q_mean, amplitude, period, speed_amp, drift=0.0, rate_
 def test_a_robot_in_a_small_limit_cycle_gives_its_mean_pitch():
     """A sticking drive chain keeps the robot in a limit cycle of a few mrad: the strict window
     never fills; the stationary window gives the mean pitch, with its standard error."""
-    det = BalancedPoseDetector(DetectorConfig())
-    points = _stream(det, 12.0, -1.5, 0.003, 2.5, 0.05)
+    cfg = DetectorConfig()
+    seconds = cfg.stationary_window_s + 4.0
+    points = _stream(BalancedPoseDetector(cfg), seconds, -1.5, 0.003, 2.5, 0.05)
     assert len(points) == 1
     p = points[0]
     assert abs(p.q_base + 1.5) < 5e-4
     assert 0 < p.q_base_se < 1e-3
-    assert p.window_s == pytest.approx(8.0, abs=0.05)
+    assert p.window_s == pytest.approx(cfg.stationary_window_s, abs=0.05)
+
+
+def test_a_wider_limit_cycle_gives_its_mean_with_an_honest_standard_error():
+    """30 mrad of amplitude (the gear-hard chain's cycles are 20-30 mrad from peak to peak):
+    the window is not a whole number of cycles, so its mean is off, by no more than twice the
+    standard error the point carries (the learner weighs it by that)."""
+    cfg = DetectorConfig()
+    for period in (2.5, 3.1, 3.85):
+        (p,) = _stream(
+            BalancedPoseDetector(cfg), cfg.stationary_window_s + 4, -1.5, 0.03, period, 0.05
+        )
+        assert abs(p.q_base + 1.5) <= 2.0 * p.q_base_se, (period, p.q_base + 1.5, p.q_base_se)
 
 
 def test_a_drifting_or_wide_limit_cycle_gives_no_point():
-    assert not _stream(BalancedPoseDetector(DetectorConfig()), 12.0, -1.5, 0.003, 2.5, 0.05, 0.02)
-    assert not _stream(BalancedPoseDetector(DetectorConfig()), 12.0, -1.5, 0.003, 2.5, 0.3)
-    assert not _stream(BalancedPoseDetector(DetectorConfig()), 12.0, -1.5, 0.02, 2.5, 0.05)
+    cfg = DetectorConfig()
+    seconds = cfg.stationary_window_s + 4.0
+    assert not _stream(BalancedPoseDetector(cfg), seconds, -1.5, 0.003, 2.5, 0.05, 0.02)
+    assert not _stream(BalancedPoseDetector(cfg), seconds, -1.5, 0.003, 2.5, 0.3)
+    assert not _stream(BalancedPoseDetector(cfg), seconds, -1.5, 0.1, 2.5, 0.05)
     off = DetectorConfig(stationary_window_s=0.0)
-    assert not _stream(BalancedPoseDetector(off), 12.0, -1.5, 0.003, 2.5, 0.05)
+    assert not _stream(BalancedPoseDetector(off), seconds, -1.5, 0.003, 2.5, 0.05)
 
 
 def test_a_settling_robot_still_gives_its_strict_point_first():

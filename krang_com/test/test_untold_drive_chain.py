@@ -36,7 +36,9 @@ def _balance(robot, chain, **overrides):
     truth = generate_truth(robot, TRUTH_SEED, TruthRecipe()).beta
     beta0 = robot.nominal_beta
     cfg = load_controller_config(overrides=overrides)
-    run = run_balance(robot, truth, beta0, joints=stand_pose(robot, beta0), seconds=24.0,
+    # the stand-up (about 6 s) and the detector's stationary window, with room
+    seconds = 10.0 + cfg.detector.stationary_window_s
+    run = run_balance(robot, truth, beta0, joints=stand_pose(robot, beta0), seconds=seconds,
                       terms=chain, controller_config=cfg)  # fmt: skip
     e = run.extra
     last = run.t > run.t[-1] - 6.0
