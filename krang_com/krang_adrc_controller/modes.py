@@ -238,7 +238,7 @@ class SafetyConfig:
         default=0.6,
         metadata=_doc(
             'SAFE_STOP when |theta| exceeds this in STAND_UP/BALANCE, rad (0 = off, as in the '
-            "2018 code): a body this far off its balance has fallen, and BALANCE would hold the "
+            '2018 code): a body this far off its balance has fallen, and BALANCE would hold the '
             'saturated current into it'
         ),
     )
