@@ -3,9 +3,12 @@ as processes on their udp_multicast buses, in lockstep (krang_sim/node.py: the p
 the wheel command that answers each sample), at the configured real-time factor (1: real time) and
 unpaced (0: as fast as the control path answers); then the same three nodes composed in this
 process as `krang demo` runs them (krang_cli/composed.py), with its ratio to the unpaced processes.
-Also prints the lockstep's waits and misses and the wall time per sample.
+Also prints the lockstep's waits and misses and the wall time per sample. `--plant` picks the
+simulated robot's physics (sim_krang's `plant`): the controller's reduced model or the full-body
+MuJoCo Krang.
 
     .venv/bin/python bench/bench_sim_speed.py [--seconds 15] [--factors 1 0] [--rate-hz 500]
+        [--plant reduced|mujoco]
 """
 
 import argparse
@@ -17,6 +20,7 @@ import yaml
 from diagnostic_msgs.msg import DiagnosticArray
 from rosgraph_msgs.msg import Clock
 
+from krang_cli.common import add_plant_argument
 from krang_cli.composed import ComposedSimulation
 from krang_cli.node_set import params_files
 from krang_cli.processes import NodeSet, WorkingDir
@@ -32,24 +36,25 @@ SIM_RATE_HZ = yaml.safe_load(open(config_path('sim_params.yaml')))['sim_krang'][
 ]
 
 
-def rate_overrides(rate_hz):
+def node_overrides(rate_hz, plant):
     """Per node: the parameters that put the sample and control rate at `rate_hz` (None: the
-    configured one)."""
+    configured one) and sim_krang's physics at `plant`."""
+    sim = {'plant': plant}
     if rate_hz is None:
-        return {}, {}, {}
+        return sim, {}, {}
     return (
-        {'feedback_rate_hz': rate_hz, 'clock_rate_hz': rate_hz},
+        {**sim, 'feedback_rate_hz': rate_hz, 'clock_rate_hz': rate_hz},
         {'imu_sample_period_s': 1.0 / rate_hz},
         {'rate_hz': rate_hz},
     )
 
 
-def measure(tmp, factor, seconds, rate_hz=None):
+def measure(tmp, factor, seconds, rate_hz=None, plant='reduced'):
     """Simulated seconds per wall second while balancing, and sim_krang's figures: lockstep
     misses, seconds waiting for the answer per wall second, real-time slips (paced, each a stall
     of more than its max_lag_s that the simulated time gave up) (node logs under `tmp`)."""
     devices = session_devices_file(tmp)
-    sim, bridge, controller = rate_overrides(rate_hz)
+    sim, bridge, controller = node_overrides(rate_hz, plant)
     nodes = NodeSet(params_files(sim=True, extra=()), log_dir=os.path.join(tmp, 'logs'))
     nodes.start('sim_krang', {'devices_file': devices, 'real_time_factor': factor, **sim})
     nodes.start('can_bridge', {'devices_file': devices, **bridge})
@@ -96,11 +101,11 @@ def measure(tmp, factor, seconds, rate_hz=None):
         nodes.stop()
 
 
-def measure_composed(tmp, seconds, rate_hz=None):
+def measure_composed(tmp, seconds, rate_hz=None, plant='reduced'):
     """Simulated seconds per wall second while balancing, composed (no recorder, pose server and
     estimator idle; node logs under `tmp`)."""
     devices = str(session_devices_file(tmp, virtual=True))
-    sim, bridge, controller = rate_overrides(rate_hz)
+    sim, bridge, controller = node_overrides(rate_hz, plant)
     composed = ComposedSimulation(
         {
             'sim_krang': {'devices_file': devices, **sim},
@@ -141,30 +146,33 @@ def main():
         default=None,
         help=f'sample and control rate (default: config/sim_params.yaml, {SIM_RATE_HZ:g} Hz)',
     )
+    add_plant_argument(parser)
     args = parser.parse_args()
     os.environ.setdefault('ROS_DOMAIN_ID', str(130 + os.getpid() % 50))
     os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
     rate = args.rate_hz or SIM_RATE_HZ
+    plant = args.plant or 'reduced'
     unpaced = None
     for factor in args.factors:
         with WorkingDir('krang_sim_speed_') as work:
             ratio, misses, waiting, slips, mode = measure(
-                work.path, factor, args.seconds, args.rate_hz
+                work.path, factor, args.seconds, args.rate_hz, plant
             )
         unpaced = ratio if factor == 0 else unpaced
         print(
             f'processes, real_time_factor {factor:g}: {ratio:.2f}x real time while balancing at '
-            f'{rate:g} Hz (mode {mode}; {1e3 / (ratio * rate):.2f} ms wall per sample, of which '
-            f'{1e3 * waiting / (ratio * rate):.2f} ms waiting for the answer; lockstep misses '
-            f'{misses}' + (f', real-time slips {slips})' if factor > 0 else ')'),
+            f'{rate:g} Hz on the {plant} plant (mode {mode}; {1e3 / (ratio * rate):.2f} ms wall '
+            f'per sample, of which {1e3 * waiting / (ratio * rate):.2f} ms waiting for the '
+            f'answer; lockstep misses {misses}'
+            + (f', real-time slips {slips})' if factor > 0 else ')'),
             flush=True,
         )
     with WorkingDir('krang_sim_speed_') as work:
-        ratio, mode = measure_composed(work.path, args.seconds, args.rate_hz)
+        ratio, mode = measure_composed(work.path, args.seconds, args.rate_hz, plant)
     against = f', {ratio / unpaced:.2f}x the unpaced processes' if unpaced else ''
     print(
-        f'composed: {ratio:.2f}x real time while balancing at {rate:g} Hz (mode {mode}; '
-        f'{1e3 / (ratio * rate):.2f} ms wall per sample{against})'
+        f'composed: {ratio:.2f}x real time while balancing at {rate:g} Hz on the {plant} plant '
+        f'(mode {mode}; {1e3 / (ratio * rate):.2f} ms wall per sample{against})'
     )
 
 

@@ -9,7 +9,8 @@ rewrites the sections it reruns (every one, or those named by --only) and keeps 
 other section, and everything outside the markers, as it is: one benchmark can be rerun alone. A
 benchmark that fails, or whose output cannot be read, leaves its section as it was, and the report
 ends with exit code 1 naming it. --check only reads the file and says whether every section is
-there (no benchmark runs).
+there (no benchmark runs). A section with plants runs its benchmark once per simulated plant
+(`--plant P`) and sets the figures of the plants side by side.
 
 Figures come from a benchmark's JSON line (``--json``) where it has one. Where it has none yet,
 they come from the lines it prints, read by a pattern per figure (the ``read_*`` functions below);
@@ -54,7 +55,8 @@ class ReportError(RuntimeError):
 class Section:
     """One benchmark's section. `argv` runs from the repository root ('PY': this interpreter,
     'KRANG': the krang command, 'OUT': a temporary directory); `read` turns one run's stdout into
-    a figures dict, `table` the figures of all runs into markdown lines."""
+    a figures dict, `table` the figures of all runs into markdown lines. With `plants`, the
+    benchmark runs once per plant with `--plant P` added, and `table` gets {plant: runs}."""
 
     name: str
     title: str
@@ -65,16 +67,19 @@ class Section:
     runs: int = 1
     json_mode: bool = False  # the benchmark prints its figures as JSON
     env: dict = field(default_factory=dict)
+    plants: tuple = ()  # sim_krang's `plant` values to run the benchmark on, side by side
 
     def command(self):
         """The command as the document shows it."""
         words = {'PY': PY, 'KRANG': 'krang', 'OUT': 'DIR'}
-        return ' '.join(words.get(a, a) for a in self.argv)
+        plant = ['--plant', 'P'] if self.plants else []
+        return ' '.join(words.get(a, a) for a in self.argv + plant)
 
-    def argv_to_run(self, out_dir):
+    def argv_to_run(self, out_dir, plant=None):
         words = {'PY': [sys.executable], 'KRANG': [sys.executable, '-m', 'krang_cli.main']}
         words['OUT'] = [str(out_dir)]
-        return [w for a in self.argv for w in words.get(a, [a])]
+        plant = ['--plant', plant] if plant else []
+        return [w for a in self.argv for w in words.get(a, [a])] + plant
 
 
 # ---- reading a benchmark's output ------------------------------------------------------------
@@ -453,37 +458,92 @@ def read_sim_speed(out):
         'processes': {float(m[0]): [float(m[1]), float(m[2]), int(m[4])] for m in procs},
         'composed': grab(r'^composed: ([\d.]+)x real time', out),
         'composed_ms': grab(r'^composed: .*?([\d.]+) ms wall per sample', out),
+        'rate_hz': grab(r'^composed: .*? at ([\d.]+) Hz', out),
     }
 
 
-def table_sim_speed(runs):
-    factors = sorted({f for r in runs for f in r['processes']}, reverse=True)
+PLANT_LABELS = {'reduced': 'reduced', 'mujoco': 'MuJoCo'}
+PLANTS = tuple(PLANT_LABELS)
+# what differs between the plants, and why (docs/mujoco.md)
+PLANTS_DIFFER = (
+    "The reduced plant integrates the controller's own model (the locked pose as one rigid body "
+    'on the axle, `krang_model/wip.py`); the MuJoCo plant is the full body from the URDF at 1 kHz '
+    "physics, with the wheels and the caster on the floor by contact and the arms' momentum "
+    '([mujoco.md](mujoco.md)): physics the controller was not designed from, at about ten times '
+    'the CPU per physics step (the WIP simulation and MuJoCo sections above), a difference that '
+    'grows with the physics steps per control sample: 10 at 100 Hz, 2 at 500 Hz.'
+)
+
+
+def per_plant(by_plant, figure):
+    """One cell per plant: `figure(runs)` of each plant's runs."""
+    return [figure(runs) for runs in by_plant.values()]
+
+
+def plant_header(by_plant, what):
+    return [f'{what}: {PLANT_LABELS.get(p, p)}' for p in by_plant]
+
+
+def table_sim_speed(by_plant, goal=''):
+    """A row per way of running the node set, its figures per plant side by side; `goal` is the
+    composed node set's goal (a column of its own when given)."""
+    factors = sorted(
+        {f for runs in by_plant.values() for r in runs for f in r['processes']}, reverse=True
+    )
     body = []
     for f in factors:
-        got = [r['processes'][f] for r in runs if f in r['processes']]
+
+        def got(runs, i, f=f):
+            return [r['processes'][f][i] for r in runs if f in r['processes']]
+
         what = 'processes, paced (real_time_factor 1)' if f else 'processes, unpaced (0)'
         if f not in (0.0, 1.0):
             what = f'processes, real_time_factor {f:g}'
         body.append(
             [
                 what,
-                span([g[0] for g in got], unit='×'),
-                span([g[1] for g in got]),
-                span([g[2] for g in got], '{:.0f}'),
+                *per_plant(by_plant, lambda runs: span(got(runs, 0), unit='×')),
+                *per_plant(by_plant, lambda runs: span(got(runs, 1))),
+                *per_plant(by_plant, lambda runs: span(got(runs, 2), '{:.0f}')),
             ]
+            + ([''] if goal else [])
         )
     body.append(
         [
             'composed (one process, as `krang demo`)',
-            span(col(runs, 'composed'), unit='×'),
-            span(col(runs, 'composed_ms')),
-            '–',
+            *per_plant(by_plant, lambda runs: span(col(runs, 'composed'), unit='×')),
+            *per_plant(by_plant, lambda runs: span(col(runs, 'composed_ms'))),
+            *per_plant(by_plant, lambda runs: '–'),
         ]
+        + ([goal] if goal else [])
     )
-    return rows(
-        ['node set while balancing', 'real-time factor', 'ms wall per sample', 'lockstep misses'],
-        body,
-    )
+    header = [
+        'node set while balancing',
+        *plant_header(by_plant, 'real-time factor'),
+        *plant_header(by_plant, 'ms wall per sample'),
+        *plant_header(by_plant, 'lockstep misses'),
+    ]
+    return rows(header + (['goal'] if goal else []), body) + [
+        '',
+        ' '.join([PLANTS_DIFFER, *composed_against(by_plant)]),
+    ]
+
+
+def composed_against(by_plant):
+    """How the composed node set's speed on each plant compares with the first plant's, and the
+    extra wall time per sample against the physics steps a sample takes (1 kHz physics)."""
+    (first, ref), *others = by_plant.items()
+    said = []
+    for plant, runs in others:
+        ratio = span([r['composed'] / b['composed'] for r, b in zip(runs, ref)])
+        extra = span([r['composed_ms'] - b['composed_ms'] for r, b in zip(runs, ref)], '{:+.2f}')
+        steps = span([1e3 / r['rate_hz'] for r in runs], '{:.0f}')
+        said.append(
+            f'Composed, the {PLANT_LABELS.get(plant, plant)} plant runs at {ratio}× the '
+            f"{PLANT_LABELS.get(first, first)} plant's speed, {extra} ms wall time per sample "
+            f'({steps} physics steps a sample).'
+        )
+    return said
 
 
 def read_demo(out):
@@ -492,20 +552,28 @@ def read_demo(out):
     return fig
 
 
-def table_demo(runs):
+def table_demo(by_plant):
     mm = 1e3
+
+    def error(runs):
+        before = span([r['com_error_before_m'] * mm for r in runs], '{:.1f}')
+        after = span([r['com_error_after_m'] * mm for r in runs], '{:.2f}')
+        return f'{before} → {after} mm'
+
     return rows(
-        ['figure', 'value'],
+        ['figure', *(f'{PLANT_LABELS.get(p, p)} plant' for p in by_plant)],
         [
-            ['wall time', span(col(runs, 'wall_s'), '{:.1f}', ' s')],
-            ['poses learned', span(col(runs, 'poses'), '{:.0f}')],
             [
-                'forward CoM error before → after',
-                f'{span([r["com_error_before_m"] * mm for r in runs], "{:.1f}")} → '
-                f'{span([r["com_error_after_m"] * mm for r in runs], "{:.1f}")} mm',
+                'wall time',
+                *per_plant(by_plant, lambda runs: span(col(runs, 'wall_s'), '{:.1f}', ' s')),
             ],
+            [
+                'poses learned',
+                *per_plant(by_plant, lambda runs: span(col(runs, 'poses'), '{:.0f}')),
+            ],
+            ['forward CoM error before → after', *per_plant(by_plant, error)],
         ],
-    )
+    ) + ['', PLANTS_DIFFER]
 
 
 SECTIONS = [
@@ -624,14 +692,17 @@ SECTIONS = [
         read_sim_speed,
         table_sim_speed,
         about='sim_krang, can_bridge and adrc_controller in lockstep while balancing '
-        '([simulation.md](simulation.md)).',
+        '([simulation.md](simulation.md)), on each plant (P).',
+        plants=PLANTS,
     ),
     Section(
         'sim_speed_500',
         "The simulated node set at 500 Hz (the robot's rate)",
         ['PY', 'bench/bench_sim_speed.py', '--factors', '0', '--rate-hz', '500'],
         read_sim_speed,
-        table_sim_speed,
+        lambda by_plant: table_sim_speed(by_plant, goal='≥ 1×'),
+        about='As above, with the sample and control rate at 500 Hz.',
+        plants=PLANTS,
     ),
     Section(
         'demo',
@@ -640,18 +711,19 @@ SECTIONS = [
         read_demo,
         table_demo,
         json_mode=True,
-        about='The composed node set with the default truth and seed; the learned beta is the '
-        'same to the bit in every run.',
+        about='The composed node set with the default truth and seed, on each plant (P); a '
+        'plant learns the same beta to the bit in every run.',
+        plants=PLANTS,
     ),
 ]
 BY_NAME = {s.name: s for s in SECTIONS}
 
 
 # ---- running and writing ------------------------------------------------------------------------
-def run_once(section):
+def run_once(section, plant=None):
     """stdout of one run of the section's benchmark (raises ReportError when it fails)."""
     with tempfile.TemporaryDirectory(prefix='krang_report_') as tmp:
-        argv = section.argv_to_run(tmp)
+        argv = section.argv_to_run(tmp, plant)
         t0 = time.monotonic()
         proc = subprocess.run(
             argv, cwd=ROOT, capture_output=True, text=True, env={**os.environ, **section.env}
@@ -659,17 +731,42 @@ def run_once(section):
         wall = time.monotonic() - t0
     if proc.returncode != 0:
         tail = '\n'.join(proc.stderr.strip().splitlines()[-5:])
-        raise ReportError(f'{section.command()} exited with {proc.returncode}:\n{tail}')
+        on = f' (P: {plant})' if plant else ''
+        raise ReportError(f'{section.command()}{on} exited with {proc.returncode}:\n{tail}')
     return proc.stdout + f'\nWALL {wall:.3f}\n'
 
 
-def render(section, runs):
-    """The markdown of one section, markers included."""
+def run_section(section, runs):
+    """The figures of `runs` runs of the section (a list, or {plant: list} with plants), and the
+    machine's 1-minute load average as each run started (timings on a shared machine)."""
+    loads = []
+
+    def one(plant=None):
+        loads.append(os.getloadavg()[0])
+        return section.read(run_once(section, plant))
+
+    if not section.plants:
+        return [one() for _ in range(runs)], loads
+    return {p: [one(p) for _ in range(runs)] for p in section.plants}, loads
+
+
+def render(section, runs, loads=()):
+    """The markdown of one section, markers included (`loads`: see run_section)."""
     lines = [f'<!-- bench: {section.name} -->', f'## {section.title}', '']
     if section.about:
         lines += [section.about, '']
-    lines += [f'`{section.command()}`', '']
+    command = f'`{section.command()}`'
+    if section.plants:
+        command += ', P: ' + ', '.join(f'`{p}`' for p in section.plants)
+    lines += [command, '']
     lines += section.table(runs)
+    if loads:
+        lines += [
+            '',
+            'Load average (1 min) as each run started: '
+            + ', '.join(f'{x:.1f}' for x in loads)
+            + f' ({os.cpu_count()} cores).',
+        ]
     lines += ['<!-- /bench: ' + section.name + ' -->', '']
     return '\n'.join(lines) + '\n'
 
@@ -734,8 +831,8 @@ def main(argv=None):
     for s in [BY_NAME[n] for n in args.only] if args.only else SECTIONS:
         print(f'{s.name}: {s.command()}', flush=True)
         try:
-            runs = [s.read(run_once(s)) for _ in range(args.runs or s.runs)]
-            blocks[s.name] = render(s, runs)
+            runs, loads = run_section(s, args.runs or s.runs)
+            blocks[s.name] = render(s, runs, loads)
         except (ReportError, ValueError, KeyError) as exc:
             failed.append(s.name)
             print(f'{s.name}: {exc}; its section is kept as it was', file=sys.stderr)
