@@ -17,7 +17,7 @@ from krang_model.config import config_path  # noqa: E402
 from krang_model.drivetrain import drivetrain  # noqa: E402
 from krang_model.effects import ModelTerms  # noqa: E402
 from krang_model.robot import load_krang  # noqa: E402
-from krang_sim.mujoco_plant import MujocoPlant  # noqa: E402
+from krang_sim.mujoco_plant import ARRIVED_RAD, MujocoPlant  # noqa: E402
 from krang_sim.plant import UnsupportedTerm, make_plant  # noqa: E402
 
 #: the upper-body pose of the paper's Table II runs, where the simulated truth sits on its caster
@@ -218,6 +218,8 @@ def test_arms_move_at_module_speed_and_push_the_base(robot, truth):
     assert not p.joints_moving
     assert np.all(peak <= 1.03 * robot.velocity_limit)
     assert peak[0] > 0.95 * robot.velocity_limit[0]  # it did reach the waist's speed
+    assert np.allclose(p.joints, target, atol=ARRIVED_RAD)  # arrived: within ARRIVED_RAD
+    p.step(500)  # and the servos settle on the target
     assert np.allclose(p.joints, target, atol=2e-4)
     moved = p.truth().x_m - x0
     assert abs(moved) > 0.05  # the body rolled back while the upper body leaned forward
