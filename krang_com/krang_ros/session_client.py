@@ -175,7 +175,10 @@ class SessionClient(Node):
         client = self.actions[name]
         # discovery of an action's five entities can take longer than a service's on a busy
         # graph: wait for it at least DISCOVERY_S, then `timeout` for the answer
-        self.spin_until(client.server_is_ready, max(timeout, DISCOVERY_S), f'action {name}')
+        try:
+            self.spin_until(client.server_is_ready, max(timeout, DISCOVERY_S), f'action {name}')
+        except SessionError as err:
+            raise SessionError(f'{err}; the graph shows {self.action_graph(name)}') from None
         goal_id = UUID(uuid=list(uuid.uuid4().bytes))
         sent = ActionGoal(name, goal_id)
         self.goals[sent.key] = sent
@@ -195,6 +198,19 @@ class SessionClient(Node):
         sent.handle = handle
         sent.result = handle.get_result_async()
         return sent
+
+    def action_graph(self, name):
+        """What the graph shows of action `name`'s entities: a server is ready for this client
+        only once all five match (its three services and the status and feedback topics)."""
+        base = f'{name}/_action/'
+        parts = [
+            f'{s} servers {self.count_services(base + s)}'
+            for s in ('send_goal', 'cancel_goal', 'get_result')
+        ]
+        parts += [
+            f'{t} publishers {self.count_publishers(base + t)}' for t in ('status', 'feedback')
+        ]
+        return ', '.join(parts)
 
     def result(self, goal, timeout):
         """The Result of an ActionGoal, once it has ended (within `timeout`)."""

@@ -66,3 +66,31 @@ def test_latched_beta_arriving_late_is_not_taken_for_a_learned_one():
         spinner.join(5.0)
         executor.shutdown()
         node.destroy_node()
+
+
+def test_a_server_not_ready_is_described_by_what_the_graph_shows():
+    """A stand_up that times out says which of the action's five entities the graph shows: none
+    before a server exists, all five once one does (a server half in the graph was seen once, and
+    the timeout alone could not tell)."""
+    from krang_com_interfaces.action import StandUp
+
+    client, client_context = open_session_client()
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    node = rclpy.create_node('fake_controller', context=context)
+    try:
+        none = client.action_graph(names.STAND_UP_ACTION)
+        assert none == (
+            'send_goal servers 0, cancel_goal servers 0, get_result servers 0, '
+            'status publishers 0, feedback publishers 0'
+        )
+        ActionServer(node, StandUp, names.STAND_UP_ACTION, lambda handle: StandUp.Result())
+        client.spin_until(
+            lambda: '0' not in client.action_graph(names.STAND_UP_ACTION), 30.0, 'the server'
+        )
+        assert client.action_graph(names.STAND_UP_ACTION) == none.replace('0', '1')
+    finally:
+        client.close()
+        rclpy.try_shutdown(context=client_context)
+        node.destroy_node()
+        rclpy.try_shutdown(context=context)
