@@ -6,7 +6,6 @@ published. `--processes` (a process per node, the lockstep of `krang bringup --s
 slow set."""
 
 import json
-import os
 import subprocess
 import sys
 from collections import Counter
@@ -22,16 +21,11 @@ pytestmark = pytest.mark.ros
 
 
 def run_demo(out, *args, timeout=420):
-    """`krang demo --out OUT ARGS...` in its own DDS domain; returns its JSON summary."""
-    env = dict(
-        os.environ,
-        ROS_DOMAIN_ID=str(150 + os.getpid() % 80),
-        ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST',
-    )
+    """`krang demo --out OUT ARGS...` in the test module's DDS domain (conftest.py); returns its
+    JSON summary, or fails with the tails of its output and node logs."""
     result = subprocess.run(
         [sys.executable, '-m', 'krang_cli.main', 'demo', '--out', str(out), *args],
         cwd=REPO,
-        env=env,
         capture_output=True,
         text=True,
         timeout=timeout,

@@ -4,7 +4,6 @@ DDS, composed, and real CAN frames on in-process buses) and `krang bringup --sim
 the controller was not designed from: it must still stand up, balance, learn and never
 safe-stop, and the learned beta must be closer to the hidden truth than the nominal model."""
 
-import json
 import signal
 import subprocess
 import sys
@@ -12,8 +11,8 @@ import time
 
 import pytest
 
-from conftest import REPO
 from krang_cli.main import build_parser
+from test_end_to_end import run_demo
 
 POSES = 2  # the cheap run (12 poses: docs/simulation.md)
 
@@ -49,22 +48,6 @@ def test_bringup_gives_sim_krang_the_plant(monkeypatch, tmp_path):
         assert args.func(args) == 2 and not started, bad
 
 
-def run_demo(out, *args, timeout=600):
-    """`krang demo --out OUT ARGS...` in this test run's DDS domain (conftest.py): (JSON
-    summary, wall s)."""
-    started = time.monotonic()
-    result = subprocess.run(
-        [sys.executable, '-m', 'krang_cli.main', 'demo', '--out', str(out), *args],
-        cwd=REPO,
-        capture_output=True,
-        text=True,
-        timeout=timeout,
-    )
-    wall = time.monotonic() - started
-    assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
-    return json.loads(result.stdout.strip().splitlines()[-1]), wall
-
-
 def session_record(bag):
     """From a demo's bag: the controller's modes in order, sim_krang's plant, the largest
     distance the axle travelled from where it started (the ground truth, m)."""
@@ -93,7 +76,9 @@ def session_record(bag):
 def test_demo_on_the_mujoco_plant_stands_up_and_learns(tmp_path):
     """The composed demo on the MuJoCo plant: stands up, learns every pose, never safe-stops,
     stays within a wheel travel no balanced session comes near, and ends closer to the truth."""
-    summary, wall = run_demo(tmp_path, '--plant', 'mujoco', '--poses', str(POSES))
+    started = time.monotonic()
+    summary = run_demo(tmp_path, '--plant', 'mujoco', '--poses', str(POSES), timeout=600)
+    wall = time.monotonic() - started
     modes, plant, travel = session_record(tmp_path / 'session.mcap')
     assert plant == {'mujoco'}
     assert summary['poses'] == POSES, summary
@@ -110,7 +95,9 @@ def test_demo_on_the_mujoco_plant_stands_up_and_learns(tmp_path):
 def test_demo_processes_on_the_mujoco_plant_learn(tmp_path):
     """`krang demo --plant mujoco --processes`: a process per node over multicast CAN buses, the
     simulator in lockstep with the control path (about 70 s for 3 poses)."""
-    summary, wall = run_demo(tmp_path, '--plant', 'mujoco', '--processes', '--poses', '3')
+    started = time.monotonic()
+    summary = run_demo(tmp_path, '--plant', 'mujoco', '--processes', '--poses', '3', timeout=600)
+    wall = time.monotonic() - started
     modes, plant, travel = session_record(tmp_path / 'session.mcap')
     assert plant == {'mujoco'}
     assert summary['poses'] == 3, summary
