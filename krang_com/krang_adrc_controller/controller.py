@@ -39,7 +39,8 @@ axle (adrc.py). The balance-point observer (balance_point.py) estimates delta an
 regulates theta - delta_hat, so the robot rests at x_ref. Either rest is what the detector needs:
 its q_base is the true balance pitch whatever the beta. ``rezero_x_on_balance`` (default off)
 reproduces the 2018 code's reset of the x reference at every mode change; off, the ADRC keeps the
-stand-up's reference and the handover does not move the robot a second time.
+stand-up's reference (the stand PD rests near the LQR's own equilibrium for the CoM error, so the
+handover has no jump), except after a retried stand-up (stand.py, "Hand over").
 """
 
 from __future__ import annotations
@@ -456,13 +457,15 @@ class BalanceController(OperatorRequests, PoseDesign):
             self._stop_reason = None
         self._on_caster = False
         self._caster_since = None
-        if mode is Mode.STAND_UP or (mode is Mode.BALANCE and self.config.rezero_x_on_balance):
+        # a retried stand-up's estimate of the CoM-angle error (0 on a first try); a retry hands
+        # over where it stands (stand.py, "Hand over")
+        balance = mode is Mode.BALANCE
+        trim = self.stand.balanced() if balance and self._balance_point_active else 0.0
+        if mode is Mode.STAND_UP or (balance and (self.config.rezero_x_on_balance or trim)):
             self.x_ref, self.psi_ref = x, psi
         if mode is Mode.BALANCE:
             self._t_balance = t
             self.psi_ref = psi
-            # a retried stand-up's estimate of the CoM-angle error (0 on a first try)
-            trim = self.stand.balanced() if self._balance_point_active else 0.0
             self.adrc.reset((theta - trim, x - self.x_ref, dth, dx))
             if self.balance_point is not None:
                 self.balance_point.reset(theta, dth, x - self.x_ref, dx, delta=trim)

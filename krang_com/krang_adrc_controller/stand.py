@@ -33,7 +33,11 @@ more truths fail that way.
   caught tries the robot stays in SIT with auto_stand suspended until the operator's stand_up
   (or set_enabled), which grants the tries again.
 * *Hand over.* A retried stand-up that reaches BALANCE starts BALANCE's observer at its estimate
-  instead of at zero (a first try is handed over as without the catch).
+  instead of at zero, and BALANCE's x reference is where the robot is then: the retry's stand PD
+  came to rest wherever it stood about the estimate, and with no CoM-angle term left to balance
+  that offset, driving back to where the retry began would lean the robot back towards the
+  caster it has just fallen on (truth 7509 on a gearmotor chain: the caster 0.55 s after the
+  handover). A first try is handed over as without the catch.
 
 Not used (docs/control.md): the drive observer's torque cancelled inside the stand PD (a 2 s limit
 cycle of +-80 mrad with the PD's soft gains), the estimate fed into the PD live on the first try

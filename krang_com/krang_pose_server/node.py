@@ -35,6 +35,7 @@ from sensor_msgs.msg import Imu, JointState
 from std_msgs.msg import Bool
 from std_srvs.srv import Trigger
 
+from krang_model.com import balance_pitch
 from krang_model.config import config_path
 from krang_model.poses import load_poses
 from krang_model.robot import KRANG_POSE_COLUMNS, load_krang
@@ -47,7 +48,7 @@ from krang_ros.spin import Polled, run_node, take_latest, take_waiting, without_
 
 from .pool import PosePool
 from .selection import CRITERIA, AdaptiveSelector
-from .sequence import PoseSequence, StraightLineMove
+from .sequence import MAX_BALANCE_RATE_RAD_S, PoseSequence, StraightLineMove
 from .streaming import MoveStreamer, PauseConfig
 
 
@@ -76,6 +77,11 @@ class PoseServerParams:
     speed_fraction: float = _doc(
         0.8, "moves run at this fraction of the joints' speed limits, (0, 1]"
     )
+    max_balance_rate_rad_s: float = _doc(
+        MAX_BALANCE_RATE_RAD_S,
+        'a move is slowed so that the balance pitch its path predicts (with the current beta) '
+        'moves at most this fast, rad/s; 0 = the joint speed alone',
+    )
     stream_rate_hz: float = _doc(20.0, 'rate of the streamed joint targets during a move, > 0')
     max_pause_s: float = _doc(
         PauseConfig.max_pause_s,
@@ -101,9 +107,11 @@ class PoseServerParams:
             and self.sigma_pitch_rad > 0
             and self.pool_size >= 1
             and self.settle_s >= 0
+            and self.max_balance_rate_rad_s >= 0
         ):
             raise ValueError(
-                'stream_rate_hz and sigma_pitch_rad must be > 0, pool_size >= 1, settle_s >= 0'
+                'stream_rate_hz and sigma_pitch_rad must be > 0, pool_size >= 1, settle_s and '
+                'max_balance_rate_rad_s >= 0'
             )
 
 
@@ -134,6 +142,7 @@ class PoseServer(Node):
         self.sequence = PoseSequence.from_csv(poses_file, self.robot, KRANG_POSE_COLUMNS)
         self.selection = cfg.selection
         self.speed_fraction = cfg.speed_fraction
+        self.max_balance_rate = cfg.max_balance_rate_rad_s
         self.selector = None
         self.posterior = None  # (beta, covariance or None) from /com_estimator/beta
         self.chosen = 0
@@ -380,7 +389,15 @@ class PoseServer(Node):
         if goal is None:
             return False, text
         start = goal if start is None else start
-        plan = StraightLineMove.plan(start, goal, self.robot.velocity_limit, self.speed_fraction)
+        beta = self.robot.nominal_beta if self.posterior is None else self.posterior[0]
+        plan = StraightLineMove.plan(
+            start,
+            goal,
+            self.robot.velocity_limit,
+            self.speed_fraction,
+            balance=lambda joints: balance_pitch(self.robot, joints, beta),
+            max_balance_rate=self.max_balance_rate,
+        )
         self.move = MoveStreamer(plan, self.pause)
         self.target = np.array(goal, dtype=float)
         self.last_tick = self.now()

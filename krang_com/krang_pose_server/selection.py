@@ -13,7 +13,10 @@ r_c), so the expected reduction of the mean squared forward error over the refer
 or, with criterion='d-optimal', the information gain log(1 + g_c^T Sigma g_c / r_c). The cost of
 the move is its time at the pose server's joint speed (StraightLineMove, every joint arriving at
 once) plus the settle time of a balanced point, and the chosen pose is the one with the most gain
-per second: argmax gain_c / (settle_s + move_s_c). The reference poses are the pool itself (safe,
+per second: argmax gain_c / (settle_s + move_s_c). The time the pose server's pace adds where a
+move sweeps the balance pitch fast (``sequence.MAX_BALANCE_RATE_RAD_S``) is not counted: the
+moves that shift the CoM most are the informative ones, and a cost for that shift steered the
+choice away from them (docs/learning.md). The reference poses are the pool itself (safe,
 balanced poses stand for the poses the robot will use).
 
 Caster margin. The pool is balanced under the nominal model, but the robot balances where the
@@ -40,7 +43,7 @@ import numpy as np
 from krang_model.com import PoseMoments
 from krang_model.drivetrain import drivetrain
 
-from .sequence import move_times
+from .sequence import PATH_SEGMENTS, move_times, path_points
 
 CRITERIA = ('forward', 'd-optimal')
 
@@ -79,7 +82,7 @@ class AdaptiveSelector:
         reference_joints=None,
         caster_margin_rad=0.1,
         margin_sigmas=2.0,
-        path_points=8,
+        path_points=PATH_SEGMENTS,
         caster_pitch=None,
         path_check=None,
     ):
@@ -117,13 +120,11 @@ class AdaptiveSelector:
     def path_margins(self, beta, covariance, current_joints):
         """(margin at the start, lowest margin on each candidate's path) (scalar, (N,)): the
         predicted balance pitch less margin_sigmas of its std, above the caster pitch, rad."""
-        start = np.asarray(current_joints, dtype=float)
-        u = np.linspace(0.0, 1.0, self.path_points + 1)
-        paths = start + u[:, None, None] * (self.pool - start)[None]  # (P + 1, N, n_joints)
+        paths = path_points(current_joints, self.pool, self.path_points)  # (P + 1, N, n_joints)
         q, sd = predicted_pitch(
             self.robot, paths.reshape(-1, self.pool.shape[1]), beta, covariance
         )
-        lower = (q - self.margin_sigmas * sd - self.caster_pitch).reshape(len(u), -1)
+        lower = (q - self.margin_sigmas * sd - self.caster_pitch).reshape(len(paths), -1)
         return float(lower[0, 0]), lower[1:].min(axis=0)
 
     def scores(self, beta, covariance, current_joints, sigma_pitch_rad=None):

@@ -28,7 +28,8 @@ from krang_adrc_controller.metrics import BalancingRun
 from krang_adrc_controller.modes import MODE_CODES
 from krang_model.drivetrain import drivetrain
 from krang_model.effects import ModelTerms
-from krang_pose_server.sequence import StraightLineMove
+from krang_model.com import balance_pitch
+from krang_pose_server.sequence import MAX_BALANCE_RATE_RAD_S, StraightLineMove
 from krang_pose_server.streaming import MoveStreamer, PauseConfig
 
 from .plant import Plant, make_plant
@@ -149,9 +150,17 @@ class ClosedLoop:
         """The controller's sample of the plant now (the sensor model's fast path)."""
         return self.sensors.control_sample(self.plant)
 
-    def start_move(self, goal, speed_fraction=0.8, rate_hz=20.0, pause=PauseConfig()):
+    def start_move(
+        self,
+        goal,
+        speed_fraction=0.8,
+        rate_hz=20.0,
+        pause=PauseConfig(),
+        max_balance_rate=MAX_BALANCE_RATE_RAD_S,
+    ):
         """Start the pose server's move to `goal` (StraightLineMove from the current joint
-        targets, streamed at `rate_hz` by krang_pose_server.streaming.MoveStreamer, paused on the
+        targets, its pace set by the joints' speed and by the balance pitch the controller's beta
+        predicts, streamed at `rate_hz` by krang_pose_server.streaming.MoveStreamer, paused on the
         controller's balance_converged as `pause` says; None = never pause). rate_hz=0: the goal
         at once (each joint dashes at its own top speed). Returns the planned duration, s."""
         plant = self.plant
@@ -160,8 +169,14 @@ class ClosedLoop:
         if not rate_hz:
             plant.command_joints(goal)
             return 0.0
+        beta = self.controller.beta
         move = StraightLineMove.plan(
-            plant.joint_targets, goal, self.robot.velocity_limit, speed_fraction
+            plant.joint_targets,
+            goal,
+            self.robot.velocity_limit,
+            speed_fraction,
+            balance=lambda joints: balance_pitch(self.robot, joints, beta),
+            max_balance_rate=max_balance_rate,
         )
         self.streamer = MoveStreamer(move, pause or PauseConfig())
         self._pause_on_flag = pause is not None

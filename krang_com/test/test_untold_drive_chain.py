@@ -155,3 +155,38 @@ def test_a_stand_up_out_of_tries_sits_at_rest_until_the_operator_asks_again(robo
     ok = loop.run(16.0, until=lambda o: o.mode == 'balance')
     print([ev[:100] for _, ev in loop.events[len(events) :]])
     assert ok
+
+
+def test_a_retried_stand_up_hands_over_where_it_stands(robot):
+    """Truth 7509 on the untold gearmotor chain balances only 25 mrad above its caster in the stand
+    pose. Its first stand-up is caught; the retry, standing about the observer's estimate, comes
+    to rest 25 cm from where it began. BALANCE starts about that same estimate, so no CoM-angle
+    term balances that offset: driving back to the retry's start would lean the robot back onto
+    its caster (it did, 0.55 s after the handover). The handover of a retry therefore takes the
+    robot's place as the x reference, and it keeps balancing there, clear of the caster."""
+    from krang_model.drivetrain import drivetrain
+    from krang_sim.closed_loop import ClosedLoop
+
+    truth = generate_truth(robot, 7509, TruthRecipe()).beta
+    beta0 = robot.nominal_beta
+    loop = ClosedLoop(robot, truth, beta0, stand_pose(robot, beta0),
+                      controller_config=load_controller_config(),
+                      terms=terms_from_strings(robot, campaign.CHAINS['gearmotor']))  # fmt: skip
+    ctl = loop.controller
+    loop.run(0.5)
+    ctl.set_enabled(True)
+    assert loop.run(30.0, until=lambda o: o.mode == 'balance')
+    events = [ev for _, ev in loop.events]
+    assert any(ev.startswith('stand_up->sit') for ev in events), 'the first try was not caught'
+    t_handover, x_handover = loop.plant.t, loop.last_output.x
+    assert ctl.x_ref == pytest.approx(x_handover, abs=1e-9)
+    loop.run(10.0)
+    assert ctl.mode.value == 'balance', loop.events[-3:]
+    t = np.asarray(loop.log['t'])
+    after = t > t_handover
+    q = np.asarray(loop.log['q_base_true'])[after]
+    print('closest to the caster (mrad):', 1e3 * (q.min() - drivetrain(robot).caster_pitch))
+    assert q.min() > drivetrain(robot).caster_pitch + 0.005
+    x = np.asarray(loop.log['x_true_m'])[after]
+    print('largest excursion from the handover (m):', np.abs(x - x[0]).max())
+    assert np.abs(x - x[0]).max() < 0.1
