@@ -191,11 +191,12 @@ class PosePool:
 
     def path_clear(self, start, goal, beta=None, points=16) -> bool:
         """True when the straight joint line from `start` to `goal` (the pose server's move) stays
-        free of self- and floor collision at `points` poses along it, each at the balance pitch
-        `beta` (default the pool's) predicts: the robot balances through the move, so a path
-        between two safe poses can still drive a gripper into the floor on the way."""
+        free of self- and floor collision at `points` poses along it, the goal included, each at
+        the balance pitch `beta` (default the pool's) predicts: the robot balances through the
+        move, so a path between two safe poses can still drive a gripper into the floor on the
+        way, and a pose that is safe at the pool's balance pitch need not be at the robot's."""
         start, goal = np.asarray(start, dtype=float), np.asarray(goal, dtype=float)
-        u = np.linspace(0.0, 1.0, int(points) + 1)[1:-1]
+        u = np.linspace(0.0, 1.0, int(points) + 1)[1:]
         if u.size == 0:
             return True
         path = start + u[:, None] * (goal - start)

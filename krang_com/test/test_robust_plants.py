@@ -19,6 +19,7 @@ from krang_adrc_controller.detector import BalancedPoseDetector, DetectorConfig
 from krang_cli.main import build_parser
 from krang_discrepancy.extended_model import FORMAT
 from krang_experiments import campaign
+from krang_model.com import balance_pitch
 from krang_model.drivetrain import drivetrain
 from krang_model.robot import load_krang
 from krang_pose_server.pool import PosePool
@@ -219,6 +220,35 @@ def test_a_path_through_the_floor_is_refused(robot, pose_pool):
     choice = sel.choose(beta, np.eye(beta.size) * 1e-4, start)
     assert choice.index == len(candidates) - 1
     assert sel.refused <= 5
+
+
+def test_a_goal_that_the_current_beta_puts_on_the_floor_is_refused(robot, pose_pool):
+    """A pool pose is safe at the balance pitch of the pool's beta, but the robot balances where
+    its true CoM puts it. The 20th move of a MuJoCo session (truth 7506, nominal chain): with the
+    true beta the goal balances 64 mrad further forward than with the nominal one, and its left
+    gripper touches the floor there; every pose inside the path is clear. The robot ran away at
+    the current limit when the gripper landed. The path check includes the goal."""
+    from krang_sim.truths import TruthRecipe, generate_truth
+
+    start = np.array(
+        [1.045, 1.0699, -2.8625, 1.4985, 0.9672, -0.4726, -1.6327, 0.0893,
+         2.0382, -1.8715, -1.0598, -0.0014, 1.2987, -0.5222, -0.3719, 2.9079]
+    )  # fmt: skip
+    goal = np.array(
+        [2.4768, 1.2052, -1.3314, 0.1297, -0.5599, 0.7375, -1.7127, 1.4203,
+         1.3402, -2.0427, -0.779, -1.0295, 1.8012, -0.2758, 0.487, 2.7062]
+    )  # fmt: skip
+    truth = generate_truth(robot, 7506, TruthRecipe()).beta
+    q_goal = balance_pitch(robot, np.stack([goal]), truth)[0]
+    q_nominal = balance_pitch(robot, np.stack([goal]), robot.nominal_beta)[0]
+    assert q_goal - q_nominal == pytest.approx(0.064, abs=0.002)
+    assert pose_pool.checker.is_free(q_nominal, goal)
+    assert ('lGripper_0', 'floor') in pose_pool.checker.colliding_pairs(q_goal, goal)
+    inside = start + np.linspace(0.0, 1.0, 17)[1:-1, None] * (goal - start)
+    q_inside = balance_pitch(robot, inside, truth)
+    assert all(pose_pool.checker.is_free(q, j) for q, j in zip(q_inside, inside))
+    assert not pose_pool.path_clear(start, goal, truth)
+    assert pose_pool.path_clear(start, goal, robot.nominal_beta)
 
 
 @pytest.mark.parametrize('plant', ['reduced', 'mujoco'])
