@@ -31,10 +31,12 @@ often each rule of the verdict fires (verdict.RULES) and how many are answered u
 --closed-loop N [--seed S] [--plant reduced|mujoco] the closed-loop rule (closed_loop_stand_up) on
 N records made under the 2018 controller with known truth (seeds from 7401): does it refuse the
 true model, or the workflow's?
---real KIT [--stride S] runs the baseline on all Table II runs of the kit at KIT
+--real KIT [--stride S] [--out DIR] runs the baseline on all Table II runs of the kit at KIT
 (balancing_runs/table2) and judges one new-tyre run against it (stride 0.1 s unless given), with
-wall and CPU time (the process, its threads and its worker processes), the peak memory of all of
-them together, the load average and a reference measured in the same run.
+wall and CPU time (the process, its threads and its worker processes), the parameter sets predicted
+(in how many batched predictions, and as element sub-steps), the peak memory of all of them
+together, the load average and a reference measured in the same run; --out keeps their outputs
+(DIR/table2, DIR/new).
 """
 
 import argparse
@@ -60,6 +62,7 @@ def main(argv=None):
     ap.add_argument('--validate', action='store_true')
     ap.add_argument('--hidden', action='store_true')
     ap.add_argument('--real', metavar='KIT', default=None)
+    ap.add_argument('--out', metavar='DIR', default=None)
     ap.add_argument('--null', type=int, default=0, metavar='N')
     ap.add_argument('--gap-null', type=int, default=0, metavar='N')
     ap.add_argument('--verdicts', type=int, default=0, metavar='N')
@@ -84,7 +87,11 @@ def main(argv=None):
     if args.hidden:
         return hidden(args.plant)
     if args.real:
-        return real(Path(args.real), args.stride if args.stride is not None else 0.1)
+        return real(
+            Path(args.real),
+            args.stride if args.stride is not None else 0.1,
+            None if args.out is None else Path(args.out),
+        )
 
     from krang_discrepancy.loaders import load_csv_record
     from krang_discrepancy.replay import ReplayConfig
@@ -642,9 +649,10 @@ def gap_null(n, first_seed, design):
     return 0
 
 
-def real(kit, stride):
+def real(kit, stride, keep=None):
     """The Table II baseline (all 20 runs pooled) and one new-tyre run judged against it
-    (one_gain_beta128_trial1), as `krang discrepancy` runs them (no plots): wall and CPU time
+    (one_gain_beta128_trial1), as `krang discrepancy` runs them (no plots; their outputs in
+    `keep`/table2 and `keep`/new when given, to compare answers): wall and CPU time
     (this process, all threads, and its worker processes), peak memory (this process, and at most
     that of the largest worker per worker), the machine's load average, and the CPU time in units
     of one nominal prediction of every baseline window measured in the same run (a figure that
@@ -654,7 +662,7 @@ def real(kit, stride):
 
     from krang_discrepancy.loaders import load_measured
     from krang_discrepancy.nominal import NominalModel
-    from krang_discrepancy.replay import Replay, ReplayConfig
+    from krang_discrepancy.replay import PREDICTED, Replay, ReplayConfig
     from krang_discrepancy.report import run_discrepancy
 
     cfg = ReplayConfig(stride_s=stride)
@@ -665,14 +673,20 @@ def real(kit, stride):
         for who in (resource.RUSAGE_SELF, resource.RUSAGE_CHILDREN):
             r = resource.getrusage(who)
             cpu += r.ru_utime + r.ru_stime
-        return time.perf_counter(), cpu
+        return (
+            time.perf_counter(),
+            cpu,
+            PREDICTED['sets'],
+            PREDICTED['calls'],
+            PREDICTED['element_steps'],
+        )
 
     print('load average at the start: ' + ', '.join(f'{x:.2f}' for x in os.getloadavg()))
     model = NominalModel.default()
     unit_rp = Replay(load_measured([runs / 'table2']), model, cfg)
-    w0, c0 = clock()
+    w0, c0, *_ = clock()
     unit_rp.predict([model.terms()])
-    w1, c1 = clock()
+    w1, c1, *_ = clock()
     unit = c1 - c0
     print(
         f'reference: one nominal prediction of the {len(unit_rp)} baseline windows '
@@ -680,12 +694,13 @@ def real(kit, stride):
     )
     del unit_rp
     sampler = _MemorySampler()
-    with tempfile.TemporaryDirectory() as out:
-        w0, c0 = clock()
+    with tempfile.TemporaryDirectory() as tmp:
+        out = Path(tmp) if keep is None else keep
+        w0, c0, s0, n0, e0 = clock()
         a = run_discrepancy(
             [runs / 'table2'], Path(out) / 'table2', replay_config=cfg, plots=False
         )
-        w1, c1 = clock()
+        w1, c1, s1, n1, e1 = clock()
         new = runs / 'new_tire' / 'one_gain_beta128_trial1.csv'
         if not new.exists():
             new = sorted((runs / 'new_tire').glob('*.csv'))[0]
@@ -696,15 +711,16 @@ def real(kit, stride):
             plots=False,
             baseline=Path(out) / 'table2' / 'extended_model.yaml',
         )
-        w2, c2 = clock()
+        w2, c2, s2, n2, e2 = clock()
     sampler.stop()
-    for label, res, wall, cpu in (
-        ('baseline: all Table II runs', a, w1 - w0, c1 - c0),
-        (f'judged: {new.name} against it', b, w2 - w1, c2 - c1),
+    for label, res, wall, cpu, sets, calls, elements in (
+        ('baseline: all Table II runs', a, w1 - w0, c1 - c0, s1 - s0, n1 - n0, e1 - e0),
+        (f'judged: {new.name} against it', b, w2 - w1, c2 - c1, s2 - s1, n2 - n1, e2 - e1),
     ):
         print(
-            f'{label}: {wall:.1f} s wall, {cpu:.1f} s CPU ({cpu / unit:.0f} x the reference); '
-            + json.dumps(_brief(res['json']))
+            f'{label}: {wall:.1f} s wall, {cpu:.1f} s CPU ({cpu / unit:.0f} x the reference), '
+            f'{sets} parameter sets in {calls} batched predictions, '
+            f'{elements / 1e9:.3f} billion element sub-steps; ' + json.dumps(_brief(res['json']))
         )
     print(
         f'peak memory of this process and its workers together {sampler.peak / 2**20:.0f} MB '

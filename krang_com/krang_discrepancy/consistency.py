@@ -9,7 +9,16 @@ import numpy as np
 
 from krang_model.effects import ModelTerms, apply_effects
 
-from .fitting import Fit, FitJob, batched_fit, cluster_cov, fd_steps, interior, start_value
+from .fitting import (
+    Fit,
+    FitJob,
+    batched_fit,
+    cluster_cov,
+    fd_steps,
+    interior,
+    start_value,
+    window_clusters,
+)
 from .replay import Replay
 
 
@@ -55,9 +64,7 @@ def split_values(replay: Replay, base: ModelTerms, fit: Fit, cfg, groups, names)
     )
     e_per = replay.measured.shape[1] * replay.measured.shape[2]
     idx = np.concatenate(wsets)
-    clusters = (
-        np.floor(replay.win_t[idx] / cfg.cluster_s).astype(int) + 100000 * replay.win_record[idx]
-    )
+    clusters = window_clusters(replay, cfg.cluster_s)[idx]
     out = {'groups': [names[g] for g in labels], 'effects': {}, 'method': 'joint'}
     for job, e in zip(jobs, effs):
         cov = cluster_cov(job.jac, job.res, clusters, e_per)

@@ -4,8 +4,9 @@
 (``PitchBuffers``, the CoM angle's sine and cosine carried by rotation between exact anchors): the
 same equations as a simulator's float step and an array step, bit for bit with an exact anchor at
 every step, to rounding otherwise. A prediction does not depend on how its windows are chunked or
-on the threads that run the chunks, and the fits' Levenberg-Marquardt skips the Jacobian of a
-rejected step without changing its path.
+on the threads that run the chunks, nor on the other parameter sets of its batch (a set asked for
+twice is predicted once); the fits' Levenberg-Marquardt skips the Jacobian of a rejected step,
+and the prediction of a step that repeats one it has just rejected, without changing its path.
 """
 
 import tracemalloc
@@ -14,7 +15,14 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from krang_discrepancy.fitting import FitJob, batched_fit, fd_steps, interior
+from krang_discrepancy.fitting import (
+    FitJob,
+    batched_fit,
+    fd_steps,
+    interior,
+    mean_losses,
+    start_value,
+)
 from krang_discrepancy.nominal import NominalModel
 from krang_discrepancy.replay import Replay, ReplayConfig
 from krang_discrepancy.synthetic import simulate_record
@@ -208,3 +216,55 @@ def test_skipping_the_jacobian_of_rejected_steps_keeps_the_fit(record):
     assert fast.nfev <= slow.nfev
     truth = model_terms({'floor_slope': 0.01}, base)
     assert abs(fast.x[0] - truth.drive.floor_slope) < 1e-3
+
+
+def test_a_parameter_set_asked_for_twice_is_predicted_once(record):
+    """A scan's grids each hold the model they start from: equal parameter sets in one batch are
+    predicted once and the answer is the one each would get on its own, bit for bit."""
+    model = NominalModel.default()
+    lib = {e.key: e for e in library()}
+    base = model.terms()
+    rp = Replay([record], model, ReplayConfig(stride_s=0.1, workers=1))
+    kt = apply_effects(base, [lib['torque_constant']], [0.8])
+    zeros = [apply_effects(base, [e], [start_value(e, base)]) for e in library()]
+    sets = [base, kt, *zeros, kt.copy()]
+    got = rp.predict(sets)
+    assert rp.timing['predict_sets'] < len(sets)
+    for p, terms in enumerate(sets):
+        assert np.array_equal(got[p], rp.predict([terms])[0])
+    traj = rp.predict([base, kt, base], trajectory=True)
+    for got_x, want_x in zip(traj, rp.predict([base, kt], trajectory=True)):
+        assert np.array_equal(got_x, want_x[[0, 1, 0]])
+    # the scans' mean losses, each distinct set predicted once
+    rp.set_scales(rp.residuals([base])[0])
+    w = np.flatnonzero(rp.active)
+    each = [mean_losses(rp, [terms], w)[0] for terms in sets]
+    assert np.array_equal(mean_losses(rp, sets, w), np.array(each))
+
+
+def test_a_repeated_rejected_step_is_not_predicted_again(record, monkeypatch):
+    """At convergence a fit tries nearly the same step several times over while its damping
+    grows: a step within ``REPEAT_STEP`` of one just rejected by more than ``REPEAT_MARGIN``
+    counts as rejected without a prediction, and the fit takes the same path."""
+    from krang_discrepancy import fitting
+
+    model = NominalModel.default()
+    rp = Replay([record], model, ReplayConfig(stride_s=0.1, workers=1))
+    base = model.terms()
+    rp.set_scales(rp.residuals([base])[0])
+    lib = {e.key: e for e in library()}
+    effs = [lib['floor_slope'], lib['torque_constant']]
+    lo = np.array([e.bounds[0] for e in effs])
+    hi = np.array([e.bounds[1] for e in effs])
+    x = interior(np.array([0.0, 0.9]), lo, hi)
+    wsets = [np.flatnonzero(rp.active)]
+    jobs = {}
+    for margin in (np.inf, 1e-6):  # never a repeat; every near-repeat rejected by a margin
+        monkeypatch.setattr(fitting, 'REPEAT_MARGIN', margin)
+        job = FitJob(list(effs), 0, x.copy(), lo, hi, fd_steps(effs, x, lo, hi))
+        batched_fit(rp, base, [job], wsets)
+        jobs[margin] = job
+    every, skipping = jobs[np.inf], jobs[1e-6]
+    assert np.array_equal(skipping.x, every.x)
+    assert skipping.iters == every.iters
+    assert skipping.nfev < every.nfev
