@@ -109,8 +109,12 @@ def settle_garbage_collector():
 
 def run(executable, argv=None):
     """Run the node `executable`. A signal while its module imports ends it at once; a later one
-    unwinds it (rclpy's handlers chain to ours), with STOP_DEADLINE_S for its clean stop."""
+    unwinds it (rclpy's handlers chain to ours), with STOP_DEADLINE_S for its clean stop. A crash
+    writes the threads' stacks to stderr (faulthandler)."""
     argv = sys.argv[1:] if argv is None else list(argv)
+    # a crash in a C extension (a segfault, an abort) leaves every thread's Python stack in the
+    # node's log instead of only its exit code
+    faulthandler.enable()
     signal.signal(signal.SIGINT, _exit_now)
     signal.signal(signal.SIGTERM, _exit_now)
     ros_args = argv[argv.index('--ros-args') :] if '--ros-args' in argv else []

@@ -162,6 +162,31 @@ def test_a_stop_that_hangs_ends_at_the_deadline(signum):
     assert 'Timeout (0:00:01)!' in out and 'in main' in out, out
 
 
+CRASHING_NODE = """
+import ctypes, sys, types
+from krang_ros import entry
+def main(args):
+    print('spinning', flush=True)
+    ctypes.string_at(0)  # a segfault, as a C extension's bug would give
+""" + run_as_node('crashing_node', 'main')
+
+
+def test_a_node_that_crashes_leaves_its_stack_in_its_log():
+    """A segfault in a node (a C extension's) ends it with SIGSEGV's exit code and the Python
+    stack of every thread in its output, down to the call that crashed."""
+    proc = subprocess.run(
+        [sys.executable, '-c', CRASHING_NODE],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        timeout=30,
+    )
+    out = proc.stdout
+    assert proc.returncode == -signal.SIGSEGV, out
+    assert 'Fatal Python error: Segmentation fault' in out, out
+    assert 'in main' in out and 'in run' in out, out
+
+
 CHURNING_NODE = """
 import sys, time, types
 from rclpy.node import Node
