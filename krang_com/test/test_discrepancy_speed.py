@@ -186,11 +186,11 @@ def test_a_prediction_does_not_depend_on_chunks_or_threads(record):
         assert np.array_equal(one.predict([terms])[0], whole[p])
 
 
-def test_skipping_the_jacobian_of_rejected_steps_keeps_the_fit(record):
-    """The cost is evaluated first and the Jacobian only at an accepted point: the same path as
-    evaluating both at every trial point, with fewer predictions."""
+def slope_and_kt_fit(record, config):
+    """The replay of `record` and the start of a fit of the floor slope and the torque constant
+    from (0, 0.9) on its active windows: (model, replay, base, effects, lo, hi, x, window sets)."""
     model = NominalModel.default()
-    rp = Replay([record], model, ReplayConfig(stride_s=0.1, pose_delay_s=0.01))
+    rp = Replay([record], model, config)
     base = model.terms()
     rp.set_scales(rp.residuals([base])[0])
     lib = {e.key: e for e in library()}
@@ -198,7 +198,15 @@ def test_skipping_the_jacobian_of_rejected_steps_keeps_the_fit(record):
     lo = np.array([e.bounds[0] for e in effs])
     hi = np.array([e.bounds[1] for e in effs])
     x = interior(np.array([0.0, 0.9]), lo, hi)
-    wsets = [np.flatnonzero(rp.active)]
+    return model, rp, base, effs, lo, hi, x, [np.flatnonzero(rp.active)]
+
+
+def test_skipping_the_jacobian_of_rejected_steps_keeps_the_fit(record):
+    """The cost is evaluated first and the Jacobian only at an accepted point: the same path as
+    evaluating both at every trial point, with fewer predictions."""
+    model, rp, base, effs, lo, hi, x, wsets = slope_and_kt_fit(
+        record, ReplayConfig(stride_s=0.1, pose_delay_s=0.01)
+    )
     fast = FitJob(list(effs), 0, x.copy(), lo, hi, fd_steps(effs, x, lo, hi))
     batched_fit(rp, base, [fast], wsets)
 
@@ -248,16 +256,9 @@ def test_a_repeated_rejected_step_is_not_predicted_again(record, monkeypatch):
     counts as rejected without a prediction, and the fit takes the same path."""
     from krang_discrepancy import fitting
 
-    model = NominalModel.default()
-    rp = Replay([record], model, ReplayConfig(stride_s=0.1, workers=1))
-    base = model.terms()
-    rp.set_scales(rp.residuals([base])[0])
-    lib = {e.key: e for e in library()}
-    effs = [lib['floor_slope'], lib['torque_constant']]
-    lo = np.array([e.bounds[0] for e in effs])
-    hi = np.array([e.bounds[1] for e in effs])
-    x = interior(np.array([0.0, 0.9]), lo, hi)
-    wsets = [np.flatnonzero(rp.active)]
+    _, rp, base, effs, lo, hi, x, wsets = slope_and_kt_fit(
+        record, ReplayConfig(stride_s=0.1, workers=1)
+    )
     jobs = {}
     for margin in (np.inf, 1e-6):  # never a repeat; every near-repeat rejected by a margin
         monkeypatch.setattr(fitting, 'REPEAT_MARGIN', margin)
