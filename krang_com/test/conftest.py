@@ -19,17 +19,20 @@ os.environ.setdefault('OPENBLAS_NUM_THREADS', '1')
 os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
 _USER_DOMAIN = 'ROS_DOMAIN_ID' in os.environ
 _FIRST_DOMAIN = random.Random(os.getpid()).randrange(100)
-_modules = itertools.count()
+_domains = itertools.count()
 os.environ.setdefault('ROS_DOMAIN_ID', str(1 + _FIRST_DOMAIN))
+
+
+def next_ros_domain():
+    """Move this process (and what it starts from now on) to the next of the domains 1-100."""
+    if not _USER_DOMAIN:
+        os.environ['ROS_DOMAIN_ID'] = str(1 + (_FIRST_DOMAIN + next(_domains)) % 100)
 
 
 @pytest.fixture(scope='module', autouse=True)
 def ros_domain_per_module():
     """The next of the domains 1-100 for this module (its nodes and its own contexts)."""
-    if _USER_DOMAIN:
-        yield
-        return
-    os.environ['ROS_DOMAIN_ID'] = str(1 + (_FIRST_DOMAIN + next(_modules)) % 100)
+    next_ros_domain()
     yield
 
 

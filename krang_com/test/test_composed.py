@@ -19,6 +19,7 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy  # noqa: E
 from std_msgs.msg import Float64MultiArray  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
 
+from conftest import next_ros_domain  # noqa: E402
 from krang_cli.composed import ComposedSimulation  # noqa: E402
 from krang_ros.spin import run_ready  # noqa: E402
 from krang_sim.session_config import session_devices_file  # noqa: E402
@@ -65,7 +66,11 @@ def test_dds_delivers_within_a_process_before_publish_returns(profile):
 
 def balance(tmp_path, seed, seconds=3.0):
     """A composition stands the robot up and balances `seconds` of simulated time; then the
-    simulated time, the robot's state and the drives' currents."""
+    simulated time, the robot's state and the drives' currents. Each on a DDS domain of its own:
+    a composition started right after another in the same process once found its controller's
+    stand_up action never ready, the graph listing three servers of it, the two closed ones too
+    (as `krang demo` does, one composition a process)."""
+    next_ros_domain()
     devices = str(session_devices_file(tmp_path, virtual=True))
     composed = ComposedSimulation(
         {
