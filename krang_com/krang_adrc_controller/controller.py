@@ -58,6 +58,7 @@ from krang_core import params
 
 from .adrc import AdrcConfig, AdrcController
 from .balance_point import ObserverConfig
+from .caster import CasterContact
 from .design import PoseDesign
 from .detector import BalancedPoint, BalancedPoseDetector, DetectorConfig
 from .lqr import GainCache, LqrConfig, LqrDesigner
@@ -160,9 +161,10 @@ class BalanceController(OperatorRequests, PoseDesign):
             cfg.adrc.coulomb_speed_rad_s,
             cfg.adrc.viscous_compensation_nm_s / self.k_motor,
         )
-        self._caster_limit = drive.caster_pitch + cfg.safety.caster_margin_rad
+        self._caster = CasterContact(
+            drive.caster_pitch + cfg.safety.caster_margin_rad, cfg.safety.caster_catch_s
+        )
         self._place = (cfg.balance_point.place_tol_m, cfg.balance_point.place_speed_m_s)
-        self._caster_since: float | None = None
         self._on_caster = False  # caught on the caster in BALANCE or STAND_UP: sit (modes.py)
         self.stand = StandUp(cfg.modes, cfg.safety, drive.caster_pitch, self.h)
         self._stand_gains = [self._ground_scale * g for g in cfg.modes.stand_gains]
@@ -170,6 +172,8 @@ class BalanceController(OperatorRequests, PoseDesign):
         self.enabled = bool(cfg.modes.start_enabled)
         self._auto_stand = cfg.modes.auto_stand
         self._stand_once = False  # an operator's stand_up(), consumed in SIT
+        # the stand-up under way is the operator's: a caught try re-arms it (stand.py, "Retry")
+        self._stand_asked = False
         self._fault: str | None = None  # a drive fault reported by the bridge, latched
         self._stop_requested = False
         self._sit_requested = False
@@ -225,6 +229,13 @@ class BalanceController(OperatorRequests, PoseDesign):
     @property
     def stale_timeout_s(self) -> float:
         return self.config.safety.stale_timeout_s
+
+    def stand_estimate(self) -> tuple[int, float] | None:
+        """After a caught stand-up (stand.py): (its tries so far, the CoM-angle error it
+        estimated, rad, which the next try regulates about and the pose server re-poses by);
+        None otherwise (no catch since the last BALANCE)."""
+        stand = self.stand
+        return (stand.tries, stand.trim) if stand.tries else None
 
     def set_beta(self, beta) -> None:
         """New estimate: the CoM reference (theta offset) and LQR(q) follow at once."""
@@ -357,18 +368,17 @@ class BalanceController(OperatorRequests, PoseDesign):
             self._on_caster = True  # SIT; once out of tries until the operator's stand_up
             self._sit_requested = self._sit_requested or self.stand.exhausted
             self._stop_reason = self.stand.why()
+            if self._stand_asked and not self.stand.exhausted:
+                self._stand_once = True  # the operator's stand_up goes on through its tries
             self._requests()
+        caster = self._caster
         if catch and mode is Mode.BALANCE and finite:
-            if qb >= self._caster_limit:
-                self._caster_since = None
-            elif self._caster_since is None:
-                self._caster_since = t
-            elif t - self._caster_since >= catch and not self._on_caster:
+            if caster.update(t, qb) and not self._on_caster:
                 self._on_caster = True
                 self._sit_requested = True
                 self._stop_reason = (
-                    f'caster contact: IMU pitch {qb:+.4f} rad below '
-                    f'{self._caster_limit:+.4f} for {catch:g} s'
+                    f'caster contact: IMU pitch {caster.pitch:+.4f} rad (low-passed) below '
+                    f'{caster.limit:+.4f} for {catch:g} s'
                 )
                 self._requests()
         why = None
@@ -396,7 +406,9 @@ class BalanceController(OperatorRequests, PoseDesign):
             and mode_before is Mode.SIT
             and not self._sit_requested
             and (self._auto_stand or self._stand_once)
-            and self.stand.ready(t, dx, sample.pitch_rate)
+            and self.stand.ready(
+                t, dx, sample.pitch_rate, sample.joints_moving or sample.move_pending
+            )
         )
         if stale or not finite:
             last_t = -math.inf
@@ -426,6 +438,7 @@ class BalanceController(OperatorRequests, PoseDesign):
             self._requests()
         if stand and self._stand_once and mo.mode is not Mode.SIT:
             self._stand_once = False
+            self._stand_asked = True
         events = []
         for e in mo.events:
             if e.startswith('stand_refused'):
@@ -442,6 +455,8 @@ class BalanceController(OperatorRequests, PoseDesign):
 
     def _enter(self, mode, t, theta, x, dx, psi, dth, events) -> None:
         self._refused = False
+        if mode is Mode.BALANCE or mode is Mode.SAFE_STOP:
+            self._stand_asked = False
         if mode is Mode.STAND_UP:
             self._t_stand = t
             self.stand.enter()
@@ -449,14 +464,13 @@ class BalanceController(OperatorRequests, PoseDesign):
             self._sit_from = (t, theta - self._offset)  # the IMU pitch now
         if mode is Mode.SIT and self._on_caster:
             self._on_caster = False
-            self._caster_since = None
             events.append(f'sit reason: {self._stop_reason}')
             self._stop_reason = None
         if mode is Mode.SAFE_STOP and self._stop_reason:
             events.append(f'stop reason: {self._stop_reason}')
             self._stop_reason = None
         self._on_caster = False
-        self._caster_since = None
+        self._caster.reset()
         # a retried stand-up's estimate of the CoM-angle error (0 on a first try); a retry hands
         # over where it stands (stand.py, "Hand over")
         balance = mode is Mode.BALANCE

@@ -3,7 +3,8 @@ each waits for, and how it ends, from the modes and events of the controller's s
 node feeds it each step that changed something and turns an ending into the action's result.
 
 - stand_up ends in success when the controller balances, and fails when the mode machine refuses
-  the stand or the controller goes anywhere else (a safe stop, a sit-down).
+  the stand or the controller goes anywhere else (a safe stop, a sit-down). A try caught back on
+  the caster is retried (stand.py) and the goal goes on; it fails when the tries are used up.
 - sit_down ends in success on the caster (sit), and fails on a refused sit or a safe stop.
 - Cancelling a stand-up sits the robot back down when it can (`sitting_back`): the goal ends,
   cancelled, on the caster.
@@ -12,6 +13,8 @@ node feeds it each step that changed something and turns an ending into the acti
 from __future__ import annotations
 
 from dataclasses import dataclass
+
+from .stand import EXHAUSTED
 
 STAND_UP = 'stand_up'
 SIT_DOWN = 'sit_down'
@@ -43,7 +46,12 @@ class OperatorGoal:
                 return Ending(True, 'balancing')
             if mode == 'sit':
                 why = _refusal(events, 'stand_refused')
-                return None if why is None else Ending(False, f'refused: {why}')
+                if why is not None:
+                    return Ending(False, f'refused: {why}')
+                why = _refusal(events, 'sit reason')
+                if why is not None and why.endswith(EXHAUSTED):
+                    return Ending(False, why)
+                return None
             if mode == 'sit_down':
                 return Ending(False, 'a sit-down was requested while standing up')
             return None

@@ -262,7 +262,10 @@ class SafetyConfig:
     )
     caster_margin_rad: float = field(
         default=0.003,
-        metadata=_doc("caster contact: IMU pitch below the caster's contact pitch plus this, rad"),
+        metadata=_doc(
+            "caster contact: the IMU pitch, low-passed over 20 ms (caster.py), below the caster's "
+            'contact pitch plus this, rad'
+        ),
     )
 
     def __post_init__(self):

@@ -20,9 +20,11 @@ actions ~/stand_up (StandUp) and ~/sit_down (SitDown) give feedback while the mo
 and their result when it gets there or leaves (krang_adrc_controller.goals, krang_ros.actions).
 Their callbacks and the feedback timer are a callback group of their own, and the control step
 only hands them the steps with events. An active can_bridge/drive_fault forces a safe stop.
-Topics are relative (joint_states, imu/data, wheel_effort_cmd, balanced_pose, diagnostics, ...),
-so the node moves with __ns; its services, actions and ~/mode, ~/balance_converged move with
-__node too.
+A stand-up caught back on its caster publishes the controller's estimate of the CoM-angle error
+on the latched ~/stand_estimate (StandEstimate), stamped as the mode change to sit, for the pose
+server's re-pose before the retry. Topics are relative (joint_states, imu/data, wheel_effort_cmd,
+balanced_pose, diagnostics, ...), so the node moves with __ns; its services, actions and ~/mode,
+~/balance_converged, ~/stand_estimate move with __node too.
 """
 
 import sys
@@ -30,7 +32,13 @@ import sys
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
 from krang_com_interfaces.action import SitDown, StandUp
-from krang_com_interfaces.msg import BalancedPose, ControllerMode, DriveFault, MassModel
+from krang_com_interfaces.msg import (
+    BalancedPose,
+    ControllerMode,
+    DriveFault,
+    MassModel,
+    StandEstimate,
+)
 from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.node import Node
@@ -118,6 +126,7 @@ class AdrcControllerNode(Node):
         self.samples_t = 0.0  # when the callback stepping the samples began (krang_ros.trace)
         self.mode = None
         self.converged = None
+        self.caught = 0  # the caught stand-up tries last published on ~/stand_estimate
         qos = topics.QOS
 
         def publisher(kind, name, private=False, profile=None):
@@ -129,6 +138,7 @@ class AdrcControllerNode(Node):
         self.diag_pub = publisher(DiagnosticArray, names.DIAGNOSTICS)
         self.mode_pub = publisher(ControllerMode, names.MODE, True, topics.LATCHED)
         self.converged_pub = publisher(Bool, names.BALANCE_CONVERGED, True, topics.LATCHED)
+        self.stand_estimate_pub = publisher(StandEstimate, names.STAND_ESTIMATE, True)
         # Every imu/data sample steps the control law (the observer sees each measurement), but
         # only the newest one waiting sends a command: on_imu takes the queue (topics.STEPPED
         # keeps 50) in one wake, so a burst of samples from the bridge costs no late commands.
@@ -481,13 +491,16 @@ class AdrcControllerNode(Node):
                 trace.record('step', stamp, self.samples_t, trace.now())
         for event in out.events:
             self.get_logger().info(event)
+        mode_stamp = None
         if out.mode != self.mode:
             self.get_logger().info(f'mode {self.mode} -> {out.mode}')
             self.mode = out.mode
-            self.mode_pub.publish(
-                messages.controller_mode(self.get_clock().now().to_msg(), out.mode)
-            )
+            mode_stamp = self.get_clock().now().to_msg()
+            self.mode_pub.publish(messages.controller_mode(mode_stamp, out.mode))
             self.publish_diagnostics()  # a mode change at once, not at the next 1 Hz report
+        estimate = self.controller.stand_estimate()
+        if (0 if estimate is None else estimate[0]) != self.caught:
+            self.publish_stand_estimate(estimate, mode_stamp)
         if out.events and self.goals:  # every mode change has its event
             self.judge_goals(out)
         if out.balance_converged != self.converged:
@@ -505,6 +518,28 @@ class AdrcControllerNode(Node):
                 f'(standard error {point.q_base_se:.5f}; the IMU filter: '
                 f'{point.q_base_filter:+.4f})'
             )
+
+    def publish_stand_estimate(self, estimate, stamp):
+        """A new catch (tries since the last BALANCE went up) on ~/stand_estimate, stamped as the
+        step's mode change (`stamp`, None if none): the pose server acts on an estimate no older
+        than the controller's mode. None (BALANCE reached, or the tries granted again) only
+        resets the count."""
+        self.caught = 0 if estimate is None else estimate[0]
+        if estimate is None:
+            return
+        tries, error = estimate
+        ctl = self.controller
+        tries_max = ctl.stand.tries_max
+        window = (ctl.modes.stand_error_min, ctl.modes.stand_error_max)
+        self.stand_estimate_pub.publish(
+            messages.stand_estimate(
+                stamp or self.get_clock().now().to_msg(), tries, tries_max, error, window
+            )
+        )
+        self.get_logger().info(
+            f'stand-up caught (try {tries} of {tries_max}): CoM-angle error estimate '
+            f'{error:+.4f} rad, published on {names.private(names.STAND_ESTIMATE)}'
+        )
 
     def publish_diagnostics(self):
         out = self.last_output

@@ -24,6 +24,7 @@ class OperatorRequests:
         if self.enabled:
             self._auto_stand = self.config.modes.auto_stand if stand is None else bool(stand)
             self._stand_once = False
+            self._stand_asked = False
             self._fault = None
             self._stop_requested = False
             self._sit_requested = False

@@ -14,8 +14,9 @@ more truths fail that way.
   right within about 0.2 s of lift-off on a chain the controller is not told (gear-hard, truth
   7300: -65..-71 mrad against the true -62). Its mean from ``WATCH_SETTLE_S`` after lift-off is
   the try's estimate.
-* *Catch.* Back on the caster after lift-off (IMU pitch within ``safety.caster_margin_rad`` of
-  the contact for ``safety.caster_catch_s``, the rule of BALANCE's catch): STAND_UP -> SIT.
+* *Catch.* Back on the caster after lift-off (the low-passed IMU pitch within
+  ``safety.caster_margin_rad`` of the contact for ``safety.caster_catch_s``, the rule of
+  BALANCE's catch, caster.py): STAND_UP -> SIT.
 * *Slow down on the caster.* The robot is then rolling forward at up to 0.8 m/s, and cutting the
   current, or SIT's brake, tips it forward off the caster: the chain's drag (up to 60 N m at
   that speed) and the brake pitch the body up, and its CoM lies only 20-60 mrad behind the axle
@@ -26,10 +27,15 @@ more truths fail that way.
   over, its brake limited to ``modes.stand_catch_brake_a``. Not stopped within
   ``modes.stand_catch_stop_s``: SAFE_STOP (the deceleration is g times the CoM's lean behind the
   axle on the caster, 0.06 m/s^2 for a truth that balances 6 mrad above it).
-* *Retry.* Once the robot has rested (wheels and pitch still) for ``modes.stand_retry_rest_s``,
-  SIT stands up again. After lift-off the stand PD regulates theta minus the estimate, blended in
-  as the body rises from the caster to the estimated balance pitch (the full error first: it is
-  the torque that lifts the body against the chain's dry friction). After ``modes.stand_tries``
+* *Re-pose.* The pose server reads the estimate (``BalanceController.stand_estimate``) and moves
+  the waist so that the CoM, corrected by it, lies where the stand pose meant it to
+  (``krang_pose_server.stand_pose.restand_pose``): a CoM only a few mrad behind the axle on the
+  caster can neither balance clear of the caster nor brake the rolling robot.
+* *Retry.* Once the robot has rested (wheels, pitch and joints still, the re-pose's target
+  reached) for ``modes.stand_retry_rest_s``, SIT stands up again. After lift-off the stand PD
+  regulates theta minus the estimate, blended in as the body rises from the caster to the
+  estimated balance pitch (the full error first: it is the torque that lifts the body against
+  the chain's dry friction). After ``modes.stand_tries``
   caught tries the robot stays in SIT with auto_stand suspended until the operator's stand_up
   (or set_enabled), which grants the tries again.
 * *Hand over.* A retried stand-up that reaches BALANCE starts BALANCE's observer at its estimate
@@ -47,12 +53,16 @@ overshoots).
 
 from __future__ import annotations
 
+from .caster import CasterContact
+
 #: the observer's ESO (20 rad/s) settles in about 3 / 20 s after its reset at lift-off
 WATCH_SETTLE_S = 0.2
 #: a caught robot counts as stopped below this forward ground speed, m/s
 STOPPED_M_S = 0.01
 #: ... and as at rest for a retry below this |ground speed|, m/s
 REST_M_S = 0.02
+#: how the reason of the last caught try ends (the stand_up goal ends on it)
+EXHAUSTED = 'auto stand suspended'
 
 
 class StandUp:
@@ -78,7 +88,7 @@ class StandUp:
         self._caught_t = 0.0
         self.stop_s = modes.stand_catch_stop_s
         self._sum = [0.0, 0]  # raw estimates since lift-off + WATCH_SETTLE_S
-        self._caster_since: float | None = None
+        self._contact = CasterContact(self.caster_limit, self.catch_s)
         self._rest_since: float | None = None
 
     @property
@@ -98,7 +108,7 @@ class StandUp:
         """STAND_UP entered."""
         self.lifted_t = None
         self._sum = [0.0, 0]
-        self._caster_since = None
+        self._contact.reset()
         self._hover = None
 
     def balanced(self) -> float:
@@ -139,30 +149,26 @@ class StandUp:
         failed, and the next one (if any) regulates about this try's estimate."""
         if not self.enabled or self.lifted_t is None or not self.catch_s:
             return False
-        if q_base >= self.caster_limit:
-            self._caster_since = None
-            return False
-        if self._caster_since is None:
-            self._caster_since = t
-            return False
-        if t - self._caster_since < self.catch_s:
+        if not self._contact.update(t, q_base):
             return False
         if self._sum[1]:
             self.trim = self._sum[0] / self._sum[1]
         self.tries += 1
         self.lifted_t = None
+        self._contact.reset()
         self._rest_since = None
         self._hover = self.last_current
         self._caught_t = t
         return True
 
-    def ready(self, t: float, dx: float, dtheta: float) -> bool:
+    def ready(self, t: float, dx: float, dtheta: float, moving: bool = False) -> bool:
         """May SIT stand up again? At once before any catch; after one, once wheels and pitch have
-        been still (|dx| < REST_M_S, |pitch rate| < modes.balance_rate_max) for
+        been still (|dx| < REST_M_S, |pitch rate| < modes.balance_rate_max) and the joints have
+        not been `moving` (the pose server's re-pose, its target not reached) for
         stand_retry_rest_s."""
         if not self.tries:
             return True
-        if not abs(dx) < REST_M_S or not abs(dtheta) < self.rest_rate:
+        if moving or not abs(dx) < REST_M_S or not abs(dtheta) < self.rest_rate:
             self._rest_since = None
             return False
         if self._rest_since is None:
@@ -194,4 +200,4 @@ class StandUp:
             f'fell back on its caster after lift-off (try {self.tries} of {self.tries_max}; '
             f'CoM-angle error estimate {self.trim:+.4f} rad)'
         )
-        return why + ('; auto stand suspended' if self.exhausted else '')
+        return why + (f'; {EXHAUSTED}' if self.exhausted else '')

@@ -16,6 +16,7 @@ DRIVE_FAULT = '/can_bridge/drive_fault'  # latched DriveFault
 ARM_FAULT = '/can_bridge/arm_fault'  # latched ArmFault: an arm module stopped answering
 MODE = '/adrc_controller/mode'  # latched ControllerMode
 BALANCE_CONVERGED = '/adrc_controller/balance_converged'  # latched Bool: balance estimate settled
+STAND_ESTIMATE = '/adrc_controller/stand_estimate'  # latched StandEstimate: a caught stand-up
 
 BASE_PITCH = 'base_pitch'  # the extra "joint" of /balanced_pose in older bags (JointState)
 WHEEL_JOINTS = ('JLWheel', 'JRWheel')

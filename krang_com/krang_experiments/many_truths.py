@@ -107,6 +107,8 @@ def session(robot, true_beta, selection, params, pool=None, held_out=None, pose_
         'failures': [list(f) for f in res.failures],
         'safe_stops': res.safe_stops,
         'travel_m': list(res.travel_m),
+        'hold_travel_m': list(res.hold_travel_m),
+        'stand_travel_m': res.stand_travel_m,
         'refused_paths': getattr(chooser, 'refused', 0),
         'timings': res.timings,
         'sim_s': res.sim_s,

@@ -6,19 +6,23 @@ second of move and settle, given the estimator's mass model and its covariance o
 /com_estimator/beta (krang_pose_server.selection). selection 'fixed': the meta-learned list
 poses_file in order (the paper's method).
 
-Two ways start the same move (start_move): the action ~/move_to_next_pose (MoveToNextPose:
-feedback while it moves, the balanced pose that ends it as the result, cancel) and the service
-~/next_pose (Trigger: answers once the move has started). Both are refused unless the controller
-balances (its latched mode topic) and while a move is under way (or, for a goal, waits for its
-balanced pose); a move stops where it is if the controller leaves balance. While the controller's
-latched balance_converged is false a move holds its setpoint (at most max_pause_s in total per
-move, then the rest at slow_fraction of its speed: krang_pose_server.streaming); each pause is
-logged, and the next reply and the diagnostics give the pauses of the last move. A cancelled goal
-stops the move where it is: that setpoint becomes the target, commanded once more, and the
-controller balances the robot there. An arm fault (/can_bridge/arm_fault: an arm module stopped
-answering) stops a move the same way (the bridge sends nothing to the silent module, which holds
-by itself) and ends its goal with the reason; while it is latched, moves are refused with it until
-/can_bridge/recover clears it."""
+Two ways start the same move (start_move): the action ~/move_to_next_pose (MoveToNextPose: feedback
+while it moves, the balanced pose that ends it as the result, cancel) and the service ~/next_pose
+(Trigger: answers once the move has started). Both are refused unless the controller balances (its
+latched mode topic) and while a move is under way (or, for a goal, waits for its balanced pose); a
+move stops and holds where it is (as on cancel) if the controller leaves balance. While the
+controller's latched balance_converged is false a move holds its setpoint (at most max_pause_s in
+total per move, then the rest at slow_fraction of its speed: krang_pose_server.streaming); each
+pause is logged, and the next reply and the diagnostics give the pauses of the last move. A
+cancelled goal stops the move where it is: that setpoint becomes the target, commanded once more,
+and the controller balances the robot there. An arm fault (/can_bridge/arm_fault: an arm module
+stopped answering) stops a move the same way (the bridge sends nothing to the silent module, which
+holds by itself) and ends its goal with the reason; while it is latched, moves are refused with it
+until /can_bridge/recover clears it.
+
+After a stand-up caught back on its caster the waist is re-posed by the controller's estimate
+(repose.py): a move that does not wait for balance_converged (the robot sits) and stops and holds
+where it is if the controller leaves sit."""
 
 import math
 import sys
@@ -28,7 +32,13 @@ import numpy as np
 
 from diagnostic_msgs.msg import DiagnosticArray
 from krang_com_interfaces.action import MoveToNextPose
-from krang_com_interfaces.msg import ArmFault, BalancedPose, ControllerMode, MassModel
+from krang_com_interfaces.msg import (
+    ArmFault,
+    BalancedPose,
+    ControllerMode,
+    MassModel,
+    StandEstimate,
+)
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.node import Node
 from sensor_msgs.msg import Imu, JointState
@@ -47,6 +57,7 @@ from krang_ros.params import declare
 from krang_ros.spin import Polled, run_node, take_latest, take_waiting, without_qos_events
 
 from .pool import PosePool
+from .repose import ReposeAfterCaughtStand
 from .selection import CRITERIA, AdaptiveSelector
 from .sequence import MAX_BALANCE_RATE_RAD_S, PoseSequence, StraightLineMove
 from .streaming import MoveStreamer, PauseConfig
@@ -93,6 +104,11 @@ class PoseServerParams:
         'after max_pause_s of pauses the rest of the move runs at this fraction of its speed, '
         '(0, 1]',
     )
+    repose_after_caught_stand: bool = _doc(
+        True,
+        "after a stand-up caught back on its caster, move the waist by the controller's "
+        'CoM-angle error estimate (its stand_estimate) before it retries',
+    )
 
     def __post_init__(self):
         PauseConfig(self.max_pause_s, self.slow_fraction)  # checks them
@@ -133,7 +149,7 @@ class MoveGoal:
     pitch: float = math.nan
 
 
-class PoseServer(Node):
+class PoseServer(ReposeAfterCaughtStand, Node):
     def __init__(self, **kwargs):
         super().__init__('pose_server', **kwargs)
         self.robot = load_krang()
@@ -148,6 +164,7 @@ class PoseServer(Node):
         self.chosen = 0
         self.expected_gain = math.nan  # of the pose start_move chose last [m]
         self.mode = None  # the controller's, from its latched mode topic
+        self.mode_stamp = None  # ... and that message's stamp
         if self.selection == 'adaptive':
             self.selector = self._make_selector(cfg)
         else:
@@ -197,6 +214,14 @@ class PoseServer(Node):
         self.create_subscription(
             Bool, names.relative(names.BALANCE_CONVERGED), self.on_converged, topics.LATCHED
         )
+        self.stand_estimate = None  # a caught stand-up's StandEstimate, until acted on
+        if cfg.repose_after_caught_stand:
+            self.create_subscription(
+                StandEstimate,
+                names.relative(names.STAND_ESTIMATE),
+                self.on_stand_estimate,
+                qos[names.STAND_ESTIMATE],
+            )
         self.arm_fault = ''  # the bridge's latched arm fault; '' when clear
         self.create_subscription(
             ArmFault, names.relative(names.ARM_FAULT), self.on_arm_fault, topics.LATCHED
@@ -206,6 +231,7 @@ class PoseServer(Node):
         self.stream_rate = cfg.stream_rate_hz
         self.measured = None
         self.move = None  # the MoveStreamer under way
+        self.reposing = False  # ... is the re-pose of a sitting robot (no balance to wait for)
         self.target = None  # the pose of the last move started
         self.last_move = None  # ... and the one before, for its pauses
         self.last_tick = None
@@ -278,14 +304,22 @@ class PoseServer(Node):
         )
 
     def on_mode(self, msg):
-        self.mode = message_values.mode_name(msg)
-        if self.mode == 'balance':
+        self.mode, self.mode_stamp = message_values.mode_name(msg), msg.header.stamp
+        if self.move is not None and self.reposing:
+            if self.mode != 'sit':
+                self.get_logger().warning(f'controller left sit ({self.mode}): the re-pose stops')
+                self.stop_and_hold()
             return
-        if self.move is not None:
-            self.get_logger().warning(f'controller left balance ({self.mode}): the move stops')
-            self.move = None
-        if self.goal is not None:
-            self.end_goal(False, f'the controller left balance ({self.mode}): the move stopped')
+        if self.mode != 'balance':
+            if self.move is not None:
+                self.get_logger().warning(f'controller left balance ({self.mode}): the move stops')
+                self.stop_and_hold()
+            if self.goal is not None:
+                self.end_goal(
+                    False, f'the controller left balance ({self.mode}): the move stopped'
+                )
+        if self.mode == 'sit':
+            self.repose_if_due()
 
     def on_converged(self, msg):
         self.converged = bool(msg.data)
@@ -327,7 +361,10 @@ class PoseServer(Node):
         return self.get_clock().now().nanoseconds * 1e-9
 
     def stream_move(self):
-        """At stream_rate_hz: the move's next setpoint, the goal's feedback and its cancel."""
+        """At stream_rate_hz: the move's next setpoint, the goal's feedback and its cancel (and
+        a re-pose waiting for the first /joint_states)."""
+        if self.stand_estimate is not None:
+            self.repose_if_due()
         goal = self.goal
         if goal is not None and goal.cancel_requested:
             self.stop_for_cancel(goal)
@@ -338,7 +375,8 @@ class PoseServer(Node):
                 self.publish_feedback(goal, 1.0, False)
             return
         now = self.now()
-        event = move.advance(max(now - self.last_tick, 0.0), self.converged is not False)
+        balanced = self.reposing or self.converged is not False
+        event = move.advance(max(now - self.last_tick, 0.0), balanced)
         self.last_tick = now
         if event == 'pause':
             self.get_logger().info(
@@ -388,7 +426,17 @@ class PoseServer(Node):
         )
         if goal is None:
             return False, text
-        start = goal if start is None else start
+        plan = self.begin_move(goal if start is None else start, goal)
+        message = f'{text} (a move of {plan.duration:.1f} s)'
+        if self.last_move is not None:
+            message += f'; the last move: {self.last_move.summary()}'
+        self.get_logger().info(f'commanding {message}')
+        return True, message
+
+    def begin_move(self, start, goal, reposing=False):
+        """The straight-line move from `start` to `goal`, planned and streamed from now (its
+        first setpoint at once); `reposing`: a sitting robot's re-pose, which does not wait for
+        balance_converged. Returns its plan."""
         beta = self.robot.nominal_beta if self.posterior is None else self.posterior[0]
         plan = StraightLineMove.plan(
             start,
@@ -398,16 +446,12 @@ class PoseServer(Node):
             balance=lambda joints: balance_pitch(self.robot, joints, beta),
             max_balance_rate=self.max_balance_rate,
         )
-        self.move = MoveStreamer(plan, self.pause)
+        self.move, self.reposing = MoveStreamer(plan, self.pause), reposing
         self.target = np.array(goal, dtype=float)
         self.last_tick = self.now()
         self.publish_target(goal)
         self.stream_move()
-        message = f'{text} (a move of {plan.duration:.1f} s)'
-        if self.last_move is not None:
-            message += f'; the last move: {self.last_move.summary()}'
-        self.get_logger().info(f'commanding {message}')
-        return True, message
+        return plan
 
     def publish_target(self, joints):
         self.target_pub.publish(

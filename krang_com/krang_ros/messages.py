@@ -6,7 +6,14 @@ import numpy as np
 from builtin_interfaces.msg import Time
 from builtin_interfaces.msg import Duration
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-from krang_com_interfaces.msg import ArmFault, BalancedPose, ControllerMode, DriveFault, MassModel
+from krang_com_interfaces.msg import (
+    ArmFault,
+    BalancedPose,
+    ControllerMode,
+    DriveFault,
+    MassModel,
+    StandEstimate,
+)
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray, Header, MultiArrayDimension
 
@@ -193,6 +200,19 @@ def controller_mode(stamp, name):
     """A ControllerMode for a mode name ('sit', 'balance', ...: krang_adrc_controller.modes)."""
     return ControllerMode(
         header=_header(stamp), mode=getattr(ControllerMode, name.upper()), name=name
+    )
+
+
+def stand_estimate(stamp, tries, tries_max, com_angle_error, window):
+    """A StandEstimate: a caught stand-up's try count and CoM-angle error estimate (rad), and the
+    stand `window` (min, max) it refers to (rad)."""
+    return StandEstimate(
+        header=_header(stamp),
+        tries=int(tries),
+        tries_max=int(tries_max),
+        com_angle_error=float(com_angle_error),
+        stand_window_min=float(window[0]),
+        stand_window_max=float(window[1]),
     )
 
 

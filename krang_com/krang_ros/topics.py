@@ -40,6 +40,7 @@ QOS = {
     names.BETA: LATCHED,
     names.COM: DEFAULT,
     names.POSE_TARGET: LATCHED,
+    names.STAND_ESTIMATE: LATCHED,
     names.DIAGNOSTICS: DEFAULT,
     names.CLOCK: LATEST,
     names.GROUND_TRUTH: DEFAULT,

@@ -30,6 +30,7 @@ from krang_model.drivetrain import drivetrain
 from krang_model.effects import ModelTerms
 from krang_model.com import balance_pitch
 from krang_pose_server.sequence import MAX_BALANCE_RATE_RAD_S, StraightLineMove
+from krang_pose_server.stand_pose import restand_pose
 from krang_pose_server.streaming import MoveStreamer, PauseConfig
 
 from .plant import Plant, make_plant
@@ -78,6 +79,9 @@ class ClosedLoop:
     here) and for the sensor model (IMU bias, encoder offsets); `noise`: the sensors'
     ``SensorNoise`` (None: the hardware's); `plant_options`: more keywords of the plant.
 
+    `restand`: the pose server's re-pose after a caught stand-up (``restand_pose``, its
+    ``repose_after_caught_stand`` parameter).
+
     Hooks for scenarios (None: none): ``sample_hook(sample) -> sample`` sees each sample before
     the controller; ``command_hook(t, sample, output, (il, ir)) -> (il, ir)`` may change the
     currents sent to the drives, after the controller and the scheduled disturbances."""
@@ -98,6 +102,7 @@ class ClosedLoop:
         seed: int = 0,
         log_rate_hz: float = 30.0,
         plant_options: dict | None = None,
+        restand: bool = True,
     ):
         self.robot = robot
         terms = terms if terms is not None else ModelTerms.nominal(drivetrain(robot))
@@ -138,6 +143,8 @@ class ClosedLoop:
         self.moves: list[MoveStreamer] = []  # every move streamed, for its pauses
         self._stream = (0.0, 0.0, 0)  # (start, period, ticks sent)
         self._pause_on_flag = True
+        self.restand = restand
+        self._caught = 0  # the controller's caught stand-up tries the pose server has seen
         self.sample_hook = None
         self.command_hook = None
 
@@ -196,6 +203,23 @@ class ClosedLoop:
         self.plant.command_joints(st.setpoint)
         if st.done:
             self.streamer = None
+
+    def _repose(self, com_angle_error):
+        """The pose server after a caught stand-up: the waist re-posed by the controller's
+        estimate, streamed without pausing (the robot sits)."""
+        ctl, joints = self.controller, self.plant.joint_targets
+        window = (ctl.modes.stand_error_min, ctl.modes.stand_error_max)
+        pose = restand_pose(self.robot, ctl.beta, joints, com_angle_error, window)
+        if pose is None or self.streamer is not None:
+            return
+        self.events.append(
+            (
+                self.plant.t,
+                f'pose server: re-posing the waist {joints[0]:.3f} -> {pose[0]:.3f} rad after a '
+                f'caught stand-up (CoM-angle error estimate {com_angle_error:+.4f} rad)',
+            )
+        )
+        self.start_move(pose, pause=None)
 
     def schedule(self, *disturbances: Disturbance):
         self.disturbances.extend(disturbances)
@@ -256,6 +280,12 @@ class ClosedLoop:
                     sample.move_pending = True
             out = ctl.step(sample, now=plant.t)
             self.control_steps += 1
+            if self.restand:
+                est = ctl.stand_estimate()
+                if (0 if est is None else est[0]) != self._caught:
+                    self._caught = 0 if est is None else est[0]
+                    if est is not None:
+                        self._repose(est[1])
             il, ir = out.current_left, out.current_right
             if self._extra_current[2] > plant.t:
                 il += self._extra_current[0]

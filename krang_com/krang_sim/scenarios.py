@@ -32,8 +32,8 @@ from krang_adrc_controller.metrics import BalancingRun
 from krang_adrc_controller.modes import MODE_CODES
 from krang_com_estimator import make_estimator
 from krang_model.com import balance_pitch
-from krang_model.drivetrain import drivetrain
 from krang_model.effects import ModelTerms
+from krang_pose_server.stand_pose import stand_pose as pose_server_stand_pose
 from krang_pose_server.streaming import PauseConfig
 
 from .closed_loop import ClosedLoop
@@ -180,7 +180,13 @@ class SessionResult:
     failures: list = field(default_factory=list)
     loop: object = None
     poses: np.ndarray = None  # the commanded poses (the chooser's picks, if adaptive)
-    travel_m: list = field(default_factory=list)  # per move: largest wheel excursion (m)
+    # the wheels' largest excursion (m): per move from where its joints began to move until its
+    # point; per move while it was held before its joints moved (the first move's hold is the
+    # stand-up's, so 0); the stand-up, from where the robot sat until the first move's joints
+    # moved (the lift-off, a caught try's roll and re-pose, the return to its reference)
+    travel_m: list = field(default_factory=list)
+    hold_travel_m: list = field(default_factory=list)
+    stand_travel_m: float = 0.0
 
     @property
     def safe_stops(self) -> int:
@@ -192,38 +198,19 @@ class SessionResult:
         return self.betas[-1]
 
 
+#: the CoM angle on the caster an operator stands the robot up with: the middle of the
+#: controller's stand window (modes.stand_error_min_rad .. stand_error_max_rad), rad
+STAND_THETA_RAD = -6.0 * math.pi / 180.0
+
+
 def stand_pose(
-    robot,
-    beta_est,
-    base=TABLE2_POSE,
-    target_theta_rad=-6.0 * math.pi / 180.0,
-    caster_pitch=None,
-    waist_range=(1.5, 2.88),
+    robot, beta_est, base=TABLE2_POSE, target_theta_rad=STAND_THETA_RAD, caster_pitch=None
 ):
-    """`base` with the waist set so that, sitting on the caster, the CoM angle the ESTIMATED beta
-    predicts is `target_theta_rad` (the middle of the stand window): a pose the controller agrees
-    to stand up in. Uses only the estimate (as an operator would). Bisection; theta on the caster
-    decreases as the waist opens."""
-    caster = drivetrain(robot).caster_pitch if caster_pitch is None else caster_pitch
-    base = np.array(base, dtype=float)
-
-    def theta_sit(w):
-        p = base.copy()
-        p[0] = w
-        return caster - balance_pitch(robot, p[None], beta_est)[0]
-
-    lo, hi = waist_range
-    if not theta_sit(lo) <= target_theta_rad <= theta_sit(hi):
-        return base
-    for _ in range(40):
-        mid = 0.5 * (lo + hi)
-        if theta_sit(mid) < target_theta_rad:
-            lo = mid
-        else:
-            hi = mid
-    out = base.copy()
-    out[0] = 0.5 * (lo + hi)
-    return out
+    """`base` (the Table II pose) with the waist set so that, sitting on the caster, the CoM angle
+    the ESTIMATED beta predicts is `target_theta_rad` (the middle of the stand window): a pose the
+    controller agrees to stand up in, chosen as an operator would
+    (``krang_pose_server.stand_pose.stand_pose``)."""
+    return pose_server_stand_pose(robot, beta_est, base, target_theta_rad, caster_pitch)
 
 
 def run_online_session(
@@ -288,7 +275,14 @@ def run_online_session(
     wall = time.perf_counter()
     loop.run(0.5)
     ctl.set_enabled(True)
-    ok = loop.run(stand_timeout_s, until=lambda o: o.mode == 'balance')
+    x_sit = loop.last_output.x
+    stand_span = [x_sit, x_sit]  # lowest, highest wheel position (m)
+
+    def stood(o):
+        stand_span[0], stand_span[1] = min(stand_span[0], o.x), max(stand_span[1], o.x)
+        return o.mode == 'balance'
+
+    ok = loop.run(stand_timeout_s, until=stood)
     if not ok:
         raise RuntimeError(
             f'online session: the robot did not stand up within {stand_timeout_s} s '
@@ -297,7 +291,7 @@ def run_online_session(
     stood = loop.plant.t
     betas = [np.array(learner.beta, float)]
     points, idx, timings, true_pitch, failures, chosen = [], [], [], [], [], []
-    travel = []  # per move: the wheels' largest excursion from where the move began (m)
+    travel, hold_travel = [], []  # per move (SessionResult.travel_m, hold_travel_m)
     bar = None
     if progress:
         from tqdm import tqdm
@@ -316,20 +310,27 @@ def run_online_session(
             loop.start_move(pose, speed_fraction, stream_rate_hz, pause)
             moved = [None]
             x0 = loop.last_output.x
-            span = [x0, x0]  # the wheels' ground position: lowest, highest (m)
+            # the wheels' ground position (m): where the joints began to move, and the lowest
+            # and highest while held (or, for the first move, since the robot sat) and since
+            held = stand_span if i == 0 else [x0, x0]
+            span = [None, None, None]
 
-            def done(o, moved=moved, span=span):
+            def done(o, moved=moved, span=span, held=held):
                 if moved[0] is None and loop.streamer is None and not loop.plant.joints_moving:
                     moved[0] = loop.plant.t
-                if o.x < span[0]:
-                    span[0] = o.x
-                elif o.x > span[1]:
-                    span[1] = o.x
+                if span[0] is None:
+                    streamer = loop.streamer
+                    if streamer is not None and streamer.progress_s == 0.0:
+                        held[0], held[1] = min(held[0], o.x), max(held[1], o.x)
+                        return o.mode != 'balance'
+                    span[:] = [o.x, o.x, o.x]
+                span[1], span[2] = min(span[1], o.x), max(span[2], o.x)
                 return o.balanced_point is not None or o.mode != 'balance'
 
             got = loop.run(pose_timeout_s, until=done)
             out = loop.last_output
-            travel.append(max(x0 - span[0], span[1] - x0))
+            travel.append(0.0 if span[0] is None else max(span[0] - span[1], span[2] - span[0]))
+            hold_travel.append(0.0 if i == 0 else max(x0 - held[0], held[1] - x0))
             if out.mode != 'balance':
                 failures.append((i, f'left balance: {out.mode}'))
                 break
@@ -359,6 +360,7 @@ def run_online_session(
                     'total_s': t1 - t0,
                     'paused_s': paused,
                     'travel_m': travel[-1],
+                    'hold_travel_m': hold_travel[-1],
                     'ok': True,
                 }
             )
@@ -381,4 +383,6 @@ def run_online_session(
         loop,
         np.array(chosen) if adaptive else poses,
         travel,
+        hold_travel,
+        max(x_sit - stand_span[0], stand_span[1] - x_sit),
     )

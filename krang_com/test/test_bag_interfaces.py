@@ -51,6 +51,7 @@ TYPES = {
     names.MODE: 'krang_com_interfaces/msg/ControllerMode',
     names.DRIVE_FAULT: 'krang_com_interfaces/msg/DriveFault',
     names.ARM_FAULT: 'krang_com_interfaces/msg/ArmFault',
+    names.STAND_ESTIMATE: 'krang_com_interfaces/msg/StandEstimate',
     ROBOT_DESCRIPTION: 'std_msgs/msg/String',
     TF: 'tf2_msgs/msg/TFMessage',
     TF_STATIC: 'tf2_msgs/msg/TFMessage',
@@ -107,6 +108,9 @@ def source_messages(robot):
             messages.arm_fault(stamp, 'arm module LJ2 not answering', ['LJ2']),
             messages.arm_fault(stamp, '', []),
         ],
+        names.STAND_ESTIMATE: [
+            messages.stand_estimate(stamp, k, 3, -0.1044 / k, (-0.20944, 0.0)) for k in (1, 2)
+        ],
         ROBOT_DESCRIPTION: [String(data=frames.urdf_text)],
         TF: [tf2_msgs.TFMessage(transforms=[transform_stamped(stamp, t) for t in moving])],
         TF_STATIC: [
@@ -128,6 +132,7 @@ def bag(robot, tmp_path_factory):
         names.MODE,
         names.DRIVE_FAULT,
         names.ARM_FAULT,
+        names.STAND_ESTIMATE,
         ROBOT_DESCRIPTION,
         TF_STATIC,
     }
@@ -175,6 +180,9 @@ def check(robot, topic, got):
             assert (a.active, a.reason) == (b.active, b.reason)
         elif topic == names.ARM_FAULT:
             assert (a.active, list(a.joints), a.reason) == (b.active, list(b.joints), b.reason)
+        elif topic == names.STAND_ESTIMATE:
+            values = ('tries', 'tries_max', 'com_angle_error', 'stand_window_min')
+            assert [getattr(a, v) for v in values] == [getattr(b, v) for v in values]
         elif topic == ROBOT_DESCRIPTION:
             assert a.data == b.data
         elif topic in (TF, TF_STATIC):

@@ -204,11 +204,11 @@ def test_standard_error_of_a_swaying_window_is_not_the_white_noise_one():
     assert standard_error(sway)[0] > 3.0 * standard_error(white)[0]
 
 
-#: wheel travel bound per pose (move and settle) over full 12-pose sessions with the start model
-#: 2.5 cm off (test_twelve_poses_with_the_model_two_and_a_half_centimetres_off): 0.10-1.98 m
-#: measured on truths 7400-7402 with pausing moves, the most on the first move (it pauses at
-#: BALANCE entry, where the robot stands 1.2 m from its reference, and goes back there before the
-#: move goes on); 0.09-1.50 m before moves paused
+#: the stand-up's wheel excursion bound with the start model 2.5 cm off
+#: (test_twelve_poses_with_the_model_two_and_a_half_centimetres_off): the stand PD rests about
+#: 1 m from its reference, and the robot goes back there while the first move is held (measured
+#: 1.24, 1.21, 0.99 m on truths 7400-7402; their moves 0.09-1.37 m, the first the longest: it
+#: resumes before the return has ended)
 SESSION_TRAVEL_FAR_M = 2.0
 
 
@@ -252,19 +252,25 @@ def adaptive_session_off_model(robot, pool, seed, n_poses, **kw):
 def test_twelve_poses_with_the_model_two_and_a_half_centimetres_off(robot):
     """With the start model 2.5 cm forward of the truth (the real robot's size) at the
     stand pose, the online session (adaptive selection, map-online) balances through every one
-    of 12 moves on generated truths: 12 points, no safe stop, no caster catch, and a wheel travel
-    of at most SESSION_TRAVEL_FAR_M per pose."""
+    of 12 moves on generated truths: 12 points, no safe stop, no caster catch, each move's wheel
+    excursion (held and moving) within the campaign's bound, and the stand-up's (with the
+    return to its reference while the first move is held) within SESSION_TRAVEL_FAR_M."""
+    from krang_experiments.campaign import TRAVEL_LIMIT_M
     from krang_pose_server.pool import generate_pool
 
     pool = generate_pool(1000, seed=7, robot=robot).joints
     for seed in (7400, 7401, 7402):
         res = adaptive_session_off_model(robot, pool, seed, 12)
         events = [e for _, e in res.loop.events]
-        travel = travel_per_pose(res)
-        print(f'truth {seed}: {len(res.points)} poses, travel per pose {np.round(travel, 2)} m')
+        moves = np.maximum(res.travel_m, res.hold_travel_m)
+        print(
+            f'truth {seed}: {len(res.points)} poses, stand-up {res.stand_travel_m:.2f} m, '
+            f'moves {np.round(moves, 2)} m (with settling: {np.round(travel_per_pose(res), 2)})'
+        )
         assert not any(e.startswith(('stop reason', 'sit reason')) for e in events), events[-5:]
         assert len(res.points) == 12 and not res.failures
-        assert travel.max() <= SESSION_TRAVEL_FAR_M
+        assert moves.max() < TRAVEL_LIMIT_M
+        assert res.stand_travel_m <= SESSION_TRAVEL_FAR_M
 
 
 def excursion_per_move(res, robot):

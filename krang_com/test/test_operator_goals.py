@@ -2,6 +2,7 @@
 (krang_adrc_controller.goals; over real processes: test_controller_services.py)."""
 
 from krang_adrc_controller.goals import SIT_DOWN, STAND_UP, Ending, OperatorGoal
+from krang_adrc_controller.modes import ModesConfig, SafetyConfig
 
 
 def test_a_stand_up_ends_balancing_or_says_why_not():
@@ -18,6 +19,19 @@ def test_a_stand_up_ends_balancing_or_says_why_not():
     assert stopped == Ending(False, 'safe stop: operator halt')
     sat = OperatorGoal(STAND_UP, 0.0).after_step('sit_down', ['stand_up->sit_down: sit request'])
     assert not sat.success and 'sit-down' in sat.message
+
+
+def test_a_stand_up_goes_on_through_its_caught_tries_and_fails_when_they_are_used_up():
+    from krang_adrc_controller.stand import StandUp
+
+    stand = StandUp(ModesConfig(stand_tries=2), SafetyConfig(), -1.76, 0.002)
+    goal = OperatorGoal(STAND_UP, 0.0)
+    caught = ['stand_up->sit: fell back on the caster while standing up']
+    stand.tries = 1
+    assert goal.after_step('sit', caught + [f'sit reason: {stand.why()}']) is None
+    stand.tries = 2
+    ending = goal.after_step('sit', caught + [f'sit reason: {stand.why()}'])
+    assert ending == Ending(False, stand.why()) and 'try 2 of 2' in ending.message
 
 
 def test_a_cancelled_stand_up_ends_cancelled_on_the_caster():
