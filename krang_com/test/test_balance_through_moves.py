@@ -325,14 +325,15 @@ def test_moves_pause_and_stray_less_with_the_model_two_and_a_half_centimetres_of
 
 @pytest.mark.slow
 @pytest.mark.timeout(1800)
-def test_pausing_shortens_the_adaptive_moves_with_the_model_two_and_a_half_centimetres_off(robot):
+def test_pausing_keeps_the_first_adaptive_move_near_its_reference_with_the_model_off(robot):
     """Three adaptive moves (map-online, start model 2.5 cm off) with and without pausing, on
     truths not used for the thresholds: pausing keeps the first move nearer its position
-    reference and shortens the wheel travel of the later moves, which start at the reference
-    (measured on 7400 / 7401: first-move excursion 1.24 / 1.21 m against 2.13 / 2.15 m; travel
-    of moves 2-3 0.5 + 0.86 / 0.49 + 0.88 m against 0.49 + 1.10 / 0.5 + 1.10 m). The first
-    move's travel from where the robot stood up is longer with pausing (1.98 against 1.19 m):
-    the robot goes back to its reference during the pause."""
+    reference (measured on 7400 / 7401: excursion 1.24 / 1.21 m against 1.75 / 1.75 m). The
+    later moves start at the reference and are paced (krang_pose_server.sequence), so they travel
+    alike either way (moves 2-3: 0.41 + 0.61 / 0.41 + 0.60 m against 0.40 + 0.58 / 0.41 + 0.59
+    m). The first pose's travel from where the robot stood up is longer with pausing (2.34 / 2.31
+    against 1.19 / 1.17 m): the robot goes back to its reference during the pause, which the
+    sessions count as the stand-up's."""
     from krang_pose_server.pool import generate_pool
 
     pool = generate_pool(1000, seed=7, robot=robot).joints
@@ -349,4 +350,4 @@ def test_pausing_shortens_the_adaptive_moves_with_the_model_two_and_a_half_centi
         )
         assert res.timings[0]['paused_s'] > 1.0
         assert exc[0] < exc0[0] - 0.5
-        assert travel[1:].sum() < travel0[1:].sum() - 0.1
+        assert abs(travel[1:].sum() - travel0[1:].sum()) < 0.1
