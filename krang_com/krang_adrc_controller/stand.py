@@ -35,9 +35,9 @@ more truths fail that way.
   reached) for ``modes.stand_retry_rest_s``, SIT stands up again. After lift-off the stand PD
   regulates theta minus the estimate, blended in as the body rises from the caster to the
   estimated balance pitch (the full error first: it is the torque that lifts the body against
-  the chain's dry friction). After ``modes.stand_tries``
-  caught tries the robot stays in SIT with auto_stand suspended until the operator's stand_up
-  (or set_enabled), which grants the tries again.
+  the chain's dry friction). An operator's stand_up goes on through the tries as auto_stand
+  does. After ``modes.stand_tries`` caught tries the robot stays in SIT with auto_stand suspended
+  until the operator's stand_up (or set_enabled), which grants the tries again.
 * *Hand over.* A retried stand-up that reaches BALANCE starts BALANCE's observer at its estimate
   instead of at zero, and BALANCE's x reference is where the robot is then: the retry's stand PD
   came to rest wherever it stood about the estimate, and with no CoM-angle term left to balance

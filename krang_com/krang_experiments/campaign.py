@@ -30,6 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from krang_bag.session_report import held_out_configurations
+from krang_model.com import com_error
 from krang_model.files import save_figure, write_text
 from krang_model.robot import load_krang
 from krang_pose_server.pool import PosePool
@@ -127,9 +128,10 @@ def run(params: Params | None = None, on_cell=None) -> dict:
                     res = many_truths.session(
                         robot, truths[seed].beta, 'adaptive', cp, pool, held_out, pose_pool
                     )
-                except RuntimeError as err:  # did not stand up
+                except RuntimeError as err:  # did not stand up: its error is the start's
+                    start = com_error(robot, robot.nominal_beta, truths[seed].beta, held_out)
                     res = {
-                        'curve_m': [],
+                        'curve_m': [start],
                         'learned': 0,
                         'failures': [[-1, str(err)]],
                         'safe_stops': int('safe_stop' in str(err)),

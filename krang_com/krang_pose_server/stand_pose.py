@@ -23,8 +23,8 @@ import numpy as np
 from krang_model.com import balance_pitch
 from krang_model.drivetrain import drivetrain
 
-#: the waist angles a stand pose may use, rad (Krang's waist range is wider; these keep the torso
-#: over the base)
+#: the waist angles a stand pose or a re-pose may use, rad (the URDF's upper limit; the waist
+#: reaches down to 0, far beyond any stand pose)
 WAIST_RANGE = (1.5, 2.88)
 #: a re-pose keeps the predicted CoM angle this fraction of the stand window above its lower edge
 WINDOW_EDGE = 0.1

@@ -294,6 +294,17 @@ def test_campaign_short(tmp_path):
     assert (tmp_path / 'campaign.png').exists() and (tmp_path / 'campaign.json').exists()
 
 
+def test_a_run_that_did_not_stand_up_counts_against_the_goals():
+    """A cell that never stood up counts with its error before learning (the campaign records
+    that), so the worst of its group is that error and the goals are not met."""
+    learned = {'curve_m': [13e-3, 2e-3, 0.9e-3], 'learned': 2, 'failures': [], 'travel_m': [0.5]}
+    fell = {'curve_m': [14e-3], 'learned': 0, 'failures': [[-1, 'did not stand up']]}
+    cells = {('reduced', 'nominal', 1): learned, ('reduced', 'nominal', 2): fell}
+    v = campaign.summarise(cells, 2)['reduced/nominal']
+    assert (v['complete'], v['worst_final_m'], v['goals_met']) == (1, 14e-3, False)
+    assert v['median_final_m'] == pytest.approx(0.5 * (0.9e-3 + 14e-3))
+
+
 @pytest.mark.slow
 @pytest.mark.timeout(4 * 3600)
 def test_campaign_full(tmp_path):
