@@ -73,7 +73,12 @@ class Fit:
 
 
 def _soft_l1(z2):
-    return 2.0 * (np.sqrt(1.0 + z2) - 1.0)
+    return _soft_l1_of_root(np.sqrt(1.0 + z2))
+
+
+def _soft_l1_of_root(root):
+    """The soft-L1 loss from sqrt(1 + z^2), which its gradient weights reuse."""
+    return 2.0 * (root - 1.0)
 
 
 @dataclass
@@ -146,7 +151,7 @@ def _evaluate(replay, base, jobs, wsets, need_jac=True):
 
 def _cost_grad_hess(res, jac):
     root = np.sqrt(1.0 + res**2)
-    cost = float(np.sum(2.0 * (root - 1.0)))  # _soft_l1, bit for bit
+    cost = float(np.sum(_soft_l1_of_root(root)))
     if jac is None:
         return cost, None, None
     w1 = 1.0 / root  # rho'(z^2): gradient weights
