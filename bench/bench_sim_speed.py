@@ -16,7 +16,6 @@ import os
 import time
 
 import rclpy
-import yaml
 from diagnostic_msgs.msg import DiagnosticArray
 from rosgraph_msgs.msg import Clock
 
@@ -24,28 +23,22 @@ from krang_cli.common import add_plant_argument
 from krang_cli.composed import ComposedSimulation
 from krang_cli.node_set import params_files
 from krang_cli.processes import NodeSet, WorkingDir
-from krang_model.config import config_path
 from krang_core import names
 from krang_ros import topics
 from krang_ros.session_client import open_session_client
 from krang_ros.spin import Polled, take_latest
-from krang_sim.session_config import session_devices_file
-
-SIM_RATE_HZ = yaml.safe_load(open(config_path('sim_params.yaml')))['sim_krang']['ros__parameters'][
-    'feedback_rate_hz'
-]
+from krang_sim.session_config import rate_overrides, session_devices_file, sim_rate_hz
 
 
 def node_overrides(rate_hz, plant):
     """Per node: the parameters that put the sample and control rate at `rate_hz` (None: the
-    configured one) and sim_krang's physics at `plant`."""
-    sim = {'plant': plant}
-    if rate_hz is None:
-        return sim, {}, {}
+    configured one; krang_sim.session_config.rate_overrides) and sim_krang's physics at
+    `plant`."""
+    rates = rate_overrides(rate_hz)
     return (
-        {**sim, 'feedback_rate_hz': rate_hz, 'clock_rate_hz': rate_hz},
-        {'imu_sample_period_s': 1.0 / rate_hz},
-        {'rate_hz': rate_hz},
+        {'plant': plant, **rates.get('sim_krang', {})},
+        rates.get('can_bridge', {}),
+        rates.get('adrc_controller', {}),
     )
 
 
@@ -144,13 +137,13 @@ def main():
         '--rate-hz',
         type=float,
         default=None,
-        help=f'sample and control rate (default: config/sim_params.yaml, {SIM_RATE_HZ:g} Hz)',
+        help=f'sample and control rate (default: config/sim_params.yaml, {sim_rate_hz():g} Hz)',
     )
     add_plant_argument(parser)
     args = parser.parse_args()
     os.environ.setdefault('ROS_DOMAIN_ID', str(130 + os.getpid() % 50))
     os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
-    rate = args.rate_hz or SIM_RATE_HZ
+    rate = args.rate_hz or sim_rate_hz()
     plant = args.plant or 'reduced'
     unpaced = None
     for factor in args.factors:

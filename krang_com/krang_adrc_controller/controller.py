@@ -39,8 +39,8 @@ axle (adrc.py). The balance-point observer (balance_point.py) estimates delta an
 regulates theta - delta_hat, so the robot rests at x_ref. Either rest is what the detector needs:
 its q_base is the true balance pitch whatever the beta. ``rezero_x_on_balance`` (default off)
 reproduces the 2018 code's reset of the x reference at every mode change; off, the ADRC keeps the
-stand-up's reference (the stand PD rests near the LQR's own equilibrium for the CoM error, so the
-handover has no jump), except after a retried stand-up (stand.py, "Hand over").
+stand-up's reference, except where the balance-point observer watched the stand-up: BALANCE then
+starts at its estimate, where the robot stands, as the 2018 code did (stand.py, "Hand over").
 """
 
 from __future__ import annotations
@@ -471,8 +471,8 @@ class BalanceController(OperatorRequests, PoseDesign):
             self._stop_reason = None
         self._on_caster = False
         self._caster.reset()
-        # a retried stand-up's estimate of the CoM-angle error (0 on a first try); a retry hands
-        # over where it stands (stand.py, "Hand over")
+        # the stand-up's estimate of the CoM-angle error (0 if the observer did not watch it):
+        # BALANCE starts at it, where the robot stands (stand.py, "Hand over")
         balance = mode is Mode.BALANCE
         trim = self.stand.balanced() if balance and self._balance_point_active else 0.0
         if mode is Mode.STAND_UP or (balance and (self.config.rezero_x_on_balance or trim)):

@@ -8,11 +8,14 @@ thresholds in ``ModesConfig`` and ``SafetyConfig``:
   [stand_error_min_rad, stand_error_max_rad] = [-10 deg, 0 deg]; otherwise the request is refused.
 * STAND_UP -> BALANCE when IMU pitch > balance_imu_min_rad (-101 deg) and |thetadot| <
   balance_rate_max (0.03 rad/s) have held *continuously* for stand_settle_s. The hardware counts
-  "> 100 iterations"; at the paper's 0.0333 s loop that is 3.33 s, the default. (The 2018 code
-  counted iterations without resetting the counter; a continuous duration is the safe reading
-  and does not depend on the loop rate.) Once STAND_UP has lasted stand_rate_filter_after_s
-  (5 s), a rate low-passed over stand_rate_filter_s (1 s) below the threshold counts too: a drive
-  chain with dry friction holds the robot in a limit cycle of a few mrad whose rate crosses
+  "> 100 iterations", 3.33 s at the paper's 0.0333 s loop. (The 2018 code counted iterations
+  without resetting the counter; a continuous duration is the safe reading and does not depend
+  on the loop rate.) The default is 1 s: BALANCE starts at the stand-up's own estimate of the
+  CoM-angle error, where the robot stands (stand.py, "Hand over"), so a longer wait only keeps
+  the soft stand PD in charge, and on a weak drive chain the PD limit-cycles (docs/control.md).
+  Once STAND_UP has lasted stand_rate_filter_after_s (5 s), a rate low-passed over
+  stand_rate_filter_s (1 s) below the threshold counts too: a drive chain with dry friction
+  holds the robot in a limit cycle of a few mrad whose rate crosses
   0.03 rad/s every cycle, so it would never settle by the instantaneous rate (a 0.6 torque
   fraction with 8 N m of dry friction per wheel timed out after 20 s).
 * STAND_UP/BALANCE -> SIT_DOWN on a sit request only if the waist is above sit_waist_min_rad
@@ -55,6 +58,10 @@ def _doc(text):
     return {'doc': text}
 
 
+#: the 2018 hardware's settle time before BALANCE: "> 100 iterations" of its 30 Hz loop, s
+HARDWARE_STAND_SETTLE_S = 3.33
+
+
 @dataclass(frozen=True)
 class ModesConfig:
     """Mode guards and the PD gains of the modes (parameters ``modes.*``). PD gains are (th, dth,
@@ -92,8 +99,10 @@ class ModesConfig:
         metadata=_doc('... and |pitch rate| below this, rad/s, continuously for stand_settle_s'),
     )
     stand_settle_s: float = field(
-        default=3.33,
-        metadata=_doc('settle time before BALANCE, s (100 loops of the 30 Hz hardware)'),
+        default=1.0,
+        metadata=_doc(
+            f'settle time before BALANCE, s (the 2018 hardware: {HARDWARE_STAND_SETTLE_S} s)'
+        ),
     )
     stand_rate_filter_s: float = field(
         default=1.0,

@@ -38,12 +38,14 @@ more truths fail that way.
   the chain's dry friction). An operator's stand_up goes on through the tries as auto_stand
   does. After ``modes.stand_tries`` caught tries the robot stays in SIT with auto_stand suspended
   until the operator's stand_up (or set_enabled), which grants the tries again.
-* *Hand over.* A retried stand-up that reaches BALANCE starts BALANCE's observer at its estimate
-  instead of at zero, and BALANCE's x reference is where the robot is then: the retry's stand PD
-  came to rest wherever it stood about the estimate, and with no CoM-angle term left to balance
-  that offset, driving back to where the retry began would lean the robot back towards the
-  caster it has just fallen on (truth 7509 on a gearmotor chain: the caster 0.55 s after the
-  handover). A first try is handed over as without the catch.
+* *Hand over.* A stand-up that reaches BALANCE starts BALANCE's observer at its estimate instead
+  of at zero, and BALANCE's x reference is where the robot is then. The stand PD came to rest
+  wherever it stood about its reference, and with no CoM-angle term left to balance that offset,
+  driving back to where the stand-up began would lean the robot back towards its caster (truth
+  7509's retry on a gearmotor chain: the caster 0.55 s after the handover). Handed over at zero,
+  BALANCE first regulates about the model's balance pitch while its observer learns the error:
+  a truth balancing 34 mrad above its caster in the stand pose (7416) then fell back onto it
+  1.3 s after the handover.
 
 Not used (docs/control.md): the drive observer's torque cancelled inside the stand PD (a 2 s limit
 cycle of +-80 mrad with the PD's soft gains), the estimate fed into the PD live on the first try
@@ -112,9 +114,9 @@ class StandUp:
         self._hover = None
 
     def balanced(self) -> float:
-        """STAND_UP -> BALANCE: the CoM-angle error BALANCE's observer starts at (after a caught
-        try, this try's estimate; 0 on a first try); the tries are granted again."""
-        trim = self._sum[0] / self._sum[1] if self._sum[1] and self.trim else self.trim
+        """STAND_UP -> BALANCE: the CoM-angle error BALANCE's observer starts at (this try's
+        estimate; a caught try's if this one was not watched); the tries are granted again."""
+        trim = self._sum[0] / self._sum[1] if self._sum[1] else self.trim
         self.tries = 0
         self.trim = 0.0
         return trim

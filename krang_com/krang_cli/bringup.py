@@ -2,6 +2,8 @@
 
 import logging
 
+from krang_sim.session_config import rate_overrides, sim_rate_hz
+
 from .common import add_sim_robot_arguments, sim_robot_overrides
 from .node_set import RECORDER, SIM_NODE, STOP_ORDER, node_set, params_files
 from .processes import NodeSet, wait_forever
@@ -26,6 +28,7 @@ def register(subparsers):
         '--sim', action='store_true', help='start sim_krang and use the simulated buses'
     )
     add_sim_robot_arguments(p, ' (with --sim)')
+    add_rate_argument(p, ' (with --sim)')
     p.add_argument(
         '--params',
         action='append',
@@ -40,6 +43,31 @@ def register(subparsers):
     p.set_defaults(func=run)
 
 
+def add_rate_argument(p, note=''):
+    """--rate-hz: the simulated node set's sample and control rate (`krang demo`, `krang bringup
+    --sim`)."""
+    p.add_argument(
+        '--rate-hz',
+        type=float,
+        default=None,
+        metavar='HZ',
+        help='sample and control rate of the simulated robot and its controller, Hz (default: '
+        f"config/sim_params.yaml, {sim_rate_hz():g} Hz). 500 is the robot's rate and costs wall "
+        'time: composed (`krang demo`) the node set runs at about 1x real time there and a demo '
+        'takes about 2.5x as long as at 100 Hz; as processes on 2 cores it falls to about 0.5x '
+        'real time. The physics rate (1000 Hz) must be a whole multiple of it' + note,
+    )
+
+
+def with_rate(overrides, rate_hz):
+    """`overrides` (node -> {param: value}) with the parameters of `rate_hz`
+    (krang_sim.session_config.rate_overrides; None: unchanged); ValueError for a bad rate."""
+    merged = dict(overrides)
+    for node, params in rate_overrides(rate_hz).items():
+        merged[node] = {**merged.get(node, {}), **params}
+    return merged
+
+
 def start_node_set(sim, extra_params=(), record=None, log_dir=None, env=None, overrides=None):
     """Start the nodes; `overrides` maps node -> {param: value} given on the command line."""
     overrides = dict(overrides or {})
@@ -52,18 +80,24 @@ def start_node_set(sim, extra_params=(), record=None, log_dir=None, env=None, ov
 
 
 def run(args):
-    overrides = {}
-    if args.plant or args.plant_model or args.effects:
-        if not args.sim:
-            log.error('krang bringup: --plant, --plant-model and --effects need --sim')
-            return 2
+    robot_options = args.plant or args.plant_model or args.effects
+    if (robot_options or args.rate_hz is not None) and not args.sim:
+        log.error('krang bringup: --plant, --plant-model, --effects and --rate-hz need --sim')
+        return 2
+    try:
+        overrides = with_rate({}, args.rate_hz)
+    except ValueError as err:
+        log.error('krang bringup: --rate-hz %s', err)
+        return 2
+    if robot_options:
         from krang_model.robot import load_krang
 
         try:
-            overrides[SIM_NODE] = sim_robot_overrides(args, load_krang())
+            robot = sim_robot_overrides(args, load_krang())
         except ValueError as err:
             log.error('krang bringup: %s', err)
             return 2
+        overrides[SIM_NODE] = {**overrides.get(SIM_NODE, {}), **robot}
     nodes = start_node_set(args.sim, args.params, args.record, args.log_dir, overrides=overrides)
     try:
         code = wait_forever(nodes)

@@ -14,10 +14,10 @@ from krang_model.beta import load_beta, save_beta
 from krang_model.robot import load_krang
 from krang_model.files import write_text
 from krang_ros.entry import interrupt
-from krang_sim.session_config import session_devices_file, sim_truth_file
+from krang_sim.session_config import session_devices_file, sim_rate_hz, sim_truth_file
 from krang_sim.truths import generate_truth
 
-from .bringup import start_node_set
+from .bringup import add_rate_argument, start_node_set, with_rate
 from .composed import ComposedSimulation, CompositionError
 from .node_set import STOP_ORDER
 from .common import add_sim_robot_arguments, print_json, sim_robot_overrides
@@ -87,6 +87,7 @@ def register(subparsers):
         help="seed of the simulator's and CAN devices' noise (default 0)",
     )
     add_sim_robot_arguments(p)
+    add_rate_argument(p)
     p.add_argument(
         '--processes',
         action='store_true',
@@ -103,6 +104,11 @@ def run(args):
 
     from krang_ros.session_client import SessionError, open_session_client
 
+    try:
+        with_rate({}, args.rate_hz)  # a bad rate: refused before anything is written
+    except ValueError as err:
+        log.error('krang demo: --rate-hz %s', err)
+        return 2
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     bag = out / 'session.mcap'
@@ -125,17 +131,20 @@ def run(args):
     devices = str(session_devices_file(out, virtual=not args.processes))
     beta_file = str((out / BETA_FILE).resolve())
     # unpaced: the simulator runs in lockstep with the control path, as fast as it answers
-    overrides = {
-        'sim_krang': {
-            'devices_file': devices,
-            'seed': args.seed,
-            'real_time_factor': 0.0,
-            'true_beta': str(Path(truth_file).resolve()),
-            **sim_robot,
+    overrides = with_rate(
+        {
+            'sim_krang': {
+                'devices_file': devices,
+                'seed': args.seed,
+                'real_time_factor': 0.0,
+                'true_beta': str(Path(truth_file).resolve()),
+                **sim_robot,
+            },
+            'can_bridge': {'devices_file': devices},
+            'com_estimator': {'output': beta_file, 'method': args.method},
         },
-        'can_bridge': {'devices_file': devices},
-        'com_estimator': {'output': beta_file, 'method': args.method},
-    }
+        args.rate_hz,
+    )
     sigint = signal.signal(signal.SIGINT, interrupt)  # Ctrl-C: the report says so (below)
     started = time.monotonic()
     client = context = nodes = composed = None
@@ -189,6 +198,7 @@ def run(args):
         'true_beta': str(truth_source),
         'true_beta_row': args.row,
         'seed': args.seed,
+        'rate_hz': args.rate_hz or sim_rate_hz(),
         'bag': str(bag),
     }
     write_report(out, result, curve, lateral, figures, message_counts(bag), wall, args, failure)
@@ -209,6 +219,7 @@ def write_report(out, result, curve, lateral, figures, counts, wall, args, failu
         f'- hidden truth: `{result["true_beta"]}`'
         + (f' row {result["true_beta_row"]}' if result['true_beta_row'] is not None else '')
         + f' (copied to `true_beta.yaml`); simulator seed {result["seed"]}',
+        f"- sample and control rate: {result['rate_hz']:g} Hz (the robot's: 500 Hz)",
         "- mean forward CoM error (the paper's |x_com| at the true balance pitch) against "
         'the hidden true model, over 2000 held-out configurations: '
         f'**{1000 * result["com_error_before_m"]:.2f} mm before, '

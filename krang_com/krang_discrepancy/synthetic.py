@@ -16,7 +16,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from krang_adrc_controller.controller import ControllerConfig
-from krang_adrc_controller.modes import MODE_CODES
+from krang_adrc_controller.modes import HARDWARE_STAND_SETTLE_S, MODE_CODES
 from krang_model.beta import load_beta
 from krang_model.config import config_path
 from krang_model.drivetrain import drivetrain
@@ -48,11 +48,13 @@ STAND_WINDOW_EXTRA_RAD = 0.1
 def record_controller_config(overrides: dict | None = None) -> ControllerConfig:
     """The controller the synthetic records are made with: the dataclass defaults, not
     config/controller.yaml (test data must not change when the deployed controller is retuned);
-    the paper's law as on the hardware runs (no balance-point observer); the stand window
-    ``STAND_WINDOW_EXTRA_RAD`` wider; then `overrides` (dotted names)."""
+    the paper's law and the stand-up's settle time as on the hardware runs (no balance-point
+    observer, 3.33 s); the stand window ``STAND_WINDOW_EXTRA_RAD`` wider; then `overrides`
+    (dotted names)."""
     base = ControllerConfig()
     values = {
         'balance_point.enabled': False,
+        'modes.stand_settle_s': HARDWARE_STAND_SETTLE_S,
         'modes.stand_error_min_rad': base.modes.stand_error_min_rad - STAND_WINDOW_EXTRA_RAD,
     }
     values.update(overrides or {})

@@ -42,7 +42,8 @@ def scenario(
 ):
     """Stand up from the caster (enable at 0.5 s), balance; at `kick_at_s` a push (+kick_rad_s on
     the body's pitch rate); at `pose_at_s` the waist opens from 2.755 to 2.3 rad. Per phase: rest
-    position (mean of the last 3 s) and the prediction x_ref - F_th0 delta / F_x0, max excursion
+    position (mean of the last 3 s), the controller's x reference and the prediction
+    x_ref - F_th0 delta / F_x0, max excursion
     from the rest, overshoot, settle time (2 cm band), max tilt from the true balance pitch,
     peak/RMS current."""
     over = {'adrc.use_disturbance_rejection': bool(disturbance_rejection)}
@@ -85,6 +86,7 @@ def scenario(
                 'theta_error_rad': delta,
                 'x_rest_predicted_m': pred,
                 'balance_trim_rad': ctl.last_output.balance_trim,
+                'x_ref_m': ctl.x_ref,
             }
         )
     lg = {k: np.asarray(v, float) for k, v in loop.log.items()}

@@ -1,5 +1,6 @@
-"""Per-session files for the simulated robot: a device map on private multicast ports, so that two
-sessions (a demo and a test run, say) on one machine never hear each other's CAN frames."""
+"""Per-session settings of the simulated robot: a device map on private multicast ports, so that
+two sessions (a demo and a test run, say) on one machine never hear each other's CAN frames, and
+the node parameters of a sample and control rate other than the configured one (`--rate-hz`)."""
 
 import random
 from pathlib import Path
@@ -19,10 +20,46 @@ def resolve_config_file(name, default):
     return path if path.is_absolute() or path.exists() else config_path(name)
 
 
+def _sim_krang_params():
+    return load_config('sim_params.yaml')['sim_krang']['ros__parameters']
+
+
 def sim_truth_file():
     """The hidden true beta `krang bringup --sim` / `krang demo` simulate (sim_params.yaml)."""
-    params = load_config('sim_params.yaml')['sim_krang']['ros__parameters']
+    params = _sim_krang_params()
     return resolve_config_file(params.get('true_beta'), 'sim_true_beta.yaml')
+
+
+def sim_rate_hz():
+    """The configured sample and control rate of the simulated node set (sim_params.yaml)."""
+    return float(_sim_krang_params()['feedback_rate_hz'])
+
+
+def rate_overrides(rate_hz):
+    """Per node: the parameters that run the simulated node set at `rate_hz` instead of the
+    configured rate (None: {}, the configured rate). They move together: sim_krang takes one
+    sample per control step and publishes /clock with each sample (the bridge's device time
+    follows the samples); the bridge times the emulated DMU's stream by `imu_sample_period_s`,
+    which must be the simulator's sample period; adrc_controller steps once per sample. The
+    physics steps at sim_params.yaml's `physics_rate_hz`, so a sample must fall on a physics
+    step: a rate that does not divide it raises ValueError (one line)."""
+    if rate_hz is None:
+        return {}
+    physics = float(_sim_krang_params()['physics_rate_hz'])
+    rate = float(rate_hz)
+    if not rate > 0:
+        raise ValueError(f'{rate:g} Hz: a sample rate must be positive')
+    steps = physics / rate
+    if steps < 1 or abs(steps - round(steps)) > 1e-9 * steps:
+        raise ValueError(
+            f'{rate:g} Hz: the physics rate ({physics:g} Hz) must be a whole multiple of the '
+            'sample rate (e.g. 500, 250 or 100 Hz)'
+        )
+    return {
+        'sim_krang': {'feedback_rate_hz': rate, 'clock_rate_hz': rate},
+        'can_bridge': {'imu_sample_period_s': 1.0 / rate},
+        'adrc_controller': {'rate_hz': rate},
+    }
 
 
 def session_devices_file(directory, port=None, virtual=False, wheels=None):

@@ -190,3 +190,60 @@ def test_a_retried_stand_up_hands_over_where_it_stands(robot):
     x = np.asarray(loop.log['x_true_m'])[after]
     print('largest excursion from the handover (m):', np.abs(x - x[0]).max())
     assert np.abs(x - x[0]).max() < 0.1
+
+
+@pytest.mark.parametrize('plant', ['reduced', 'mujoco'])
+def test_a_first_stand_up_hands_over_where_it_stands(robot, plant):
+    """Truth 7416 balances 34 mrad above its caster in the stand pose (nominal chain). Its first
+    stand-up is not caught. Handed over at zero, BALANCE regulated about the model's balance
+    pitch, 71 mrad forward of the true one, while its observer learned the error, and the
+    robot fell back onto its caster 1.3 s after the handover. Handed over at the stand-up's
+    own estimate, where it stands, it keeps balancing clear of the caster catch's margin (its
+    closest: 9 mrad above the caster, against the catch's 3) and gives a point."""
+    from krang_model.com import balance_pitch
+    from krang_model.drivetrain import drivetrain
+
+    truth = generate_truth(robot, 7416, TruthRecipe()).beta
+    beta0 = robot.nominal_beta
+    joints = stand_pose(robot, beta0)
+    caster = drivetrain(robot).caster_pitch
+    run = run_balance(robot, truth, beta0, joints=joints, seconds=24.0, plant=plant,
+                      controller_config=load_controller_config())  # fmt: skip
+    events = [ev for _, ev in run.extra['events']]
+    assert not any('fell back' in ev or 'caster contact' in ev for ev in events), events
+    assert run.extra['final_mode'] == 'balance' and run.extra['stood_up'], events
+    t_handover = run.extra['mode_times']['balance']
+    t = np.asarray(run.t)
+    q = np.asarray(run.extra['q_base_true'])
+    after = t > t_handover
+    print('closest to the caster after the handover (mrad):', 1e3 * (q[after].min() - caster))
+    assert q[after].min() > caster + load_controller_config().safety.caster_margin_rad
+    # and the detector's point is the true balance pitch
+    assert run.extra['points'], 'no balanced point within 24 s'
+    true_pitch = balance_pitch(robot, joints[None], truth)[0]
+    assert abs(run.extra['points'][0].q_base - true_pitch) < 0.003
+
+
+def test_a_weak_chain_stand_up_hands_over_before_its_pd_wobbles(robot):
+    """Gear-hard truth 7304 (torque 0.6 of the commanded, 8 N m dry and 8 N m s viscous friction
+    per wheel, untold): the soft stand PD limit-cycles about the balance. With the 2018
+    hardware's settle time (3.33 s of |pitch rate| < 0.03 rad/s without a break) STAND_UP never
+    hands over and the stand-up times out; with the shipped 1 s it hands over within a few
+    seconds and BALANCE, starting at the stand-up's estimate, holds the robot."""
+    from krang_adrc_controller.modes import HARDWARE_STAND_SETTLE_S
+
+    truth = generate_truth(robot, 7304, TruthRecipe()).beta
+    beta0 = robot.nominal_beta
+    terms = terms_from_strings(robot, campaign.CHAINS['gear-hard'])
+    joints = stand_pose(robot, beta0)
+    runs = {}
+    for settle in (1.0, HARDWARE_STAND_SETTLE_S):
+        cfg = load_controller_config(overrides={'modes.stand_settle_s': settle})
+        runs[settle] = run_balance(
+            robot, truth, beta0, joints=joints, seconds=24.0, terms=terms, controller_config=cfg
+        )
+    shipped, hardware = runs[1.0].extra, runs[HARDWARE_STAND_SETTLE_S].extra
+    assert load_controller_config().modes.stand_settle_s == 1.0
+    assert shipped['final_mode'] == 'balance' and shipped['stood_up']
+    assert shipped['mode_times']['balance'] < 6.0
+    assert 'balance' not in hardware['mode_times'], hardware['mode_times']
