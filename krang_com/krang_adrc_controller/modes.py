@@ -15,9 +15,9 @@ thresholds in ``ModesConfig`` and ``SafetyConfig``:
   the soft stand PD in charge, and on a weak drive chain the PD limit-cycles (docs/control.md).
   Once STAND_UP has lasted stand_rate_filter_after_s (5 s), a rate low-passed over
   stand_rate_filter_s (1 s) below the threshold counts too: a drive chain with dry friction
-  holds the robot in a limit cycle of a few mrad whose rate crosses
-  0.03 rad/s every cycle, so it would never settle by the instantaneous rate (a 0.6 torque
-  fraction with 8 N m of dry friction per wheel timed out after 20 s).
+  holds the robot in a limit cycle of a few mrad whose rate crosses 0.03 rad/s every cycle, so
+  it would never settle by the instantaneous rate (a 0.6 torque fraction with 8 N m of dry
+  friction per wheel timed out after 20 s).
 * STAND_UP/BALANCE -> SIT_DOWN on a sit request only if the waist is above sit_waist_min_rad
   (150 deg); SIT_DOWN -> SIT once the IMU pitch is below sit_imu_limit_rad (-103 deg).
 * Any mode -> SAFE_STOP on a stop request or stale sensor data (newest sample older than
