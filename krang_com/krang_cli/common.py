@@ -3,6 +3,8 @@
 import json
 from pathlib import Path
 
+from krang_sim.session_config import rate_overrides, sim_rate_hz
+
 
 def print_json(payload):
     """Machine-readable result: always the last line of stdout."""
@@ -58,3 +60,28 @@ def sim_robot_overrides(args, robot):
     if args.effects:
         overrides['effects'] = list(args.effects)
     return overrides
+
+
+def add_rate_argument(p, note=''):
+    """--rate-hz: the simulated node set's sample and control rate (`krang demo`, `krang bringup
+    --sim`)."""
+    p.add_argument(
+        '--rate-hz',
+        type=float,
+        default=None,
+        metavar='HZ',
+        help='sample and control rate of the simulated robot and its controller, Hz (default: '
+        f"config/sim_params.yaml, {sim_rate_hz():g} Hz). 500 is the robot's rate and costs wall "
+        'time: composed (`krang demo`) the node set runs at about 1x real time there and a demo '
+        'takes about 2.5x as long as at 100 Hz; as processes on 2 cores it falls to about 0.5x '
+        'real time. The physics rate (1000 Hz) must be a whole multiple of it' + note,
+    )
+
+
+def with_rate(overrides, rate_hz):
+    """`overrides` (node -> {param: value}) with the parameters of `rate_hz`
+    (krang_sim.session_config.rate_overrides; None: unchanged); ValueError for a bad rate."""
+    merged = dict(overrides)
+    for node, params in rate_overrides(rate_hz).items():
+        merged[node] = {**merged.get(node, {}), **params}
+    return merged

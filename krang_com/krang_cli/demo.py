@@ -17,10 +17,16 @@ from krang_ros.entry import interrupt
 from krang_sim.session_config import session_devices_file, sim_rate_hz, sim_truth_file
 from krang_sim.truths import generate_truth
 
-from .bringup import add_rate_argument, start_node_set, with_rate
+from .bringup import start_node_set
 from .composed import ComposedSimulation, CompositionError
 from .node_set import STOP_ORDER
-from .common import add_sim_robot_arguments, print_json, sim_robot_overrides
+from .common import (
+    add_rate_argument,
+    add_sim_robot_arguments,
+    print_json,
+    sim_robot_overrides,
+    with_rate,
+)
 
 log = logging.getLogger('krang.demo')
 BETA_FILE = 'beta.yaml'  # the learned beta in the output directory
