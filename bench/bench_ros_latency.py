@@ -72,7 +72,6 @@ import argparse
 import glob
 import json
 import os
-import random
 import select
 import subprocess
 import sys
@@ -90,7 +89,7 @@ from krang_cli.processes import NodeSet, WorkingDir, child_setup, is_real_time
 from krang_core import names
 from krang_ros import trace
 from krang_ros.session_client import SessionError, open_session_client
-from krang_sim.session_config import session_devices_file
+from krang_sim.session_config import private_port, session_devices_file
 from ros_latency_analysis import (
     JSON_KEYS,
     analyse,
@@ -223,7 +222,7 @@ def measure_robot(
     player_rt = min(priority + PLAYER_PRIORITY_ABOVE, 99) if priority > 0 else 0
     logs = os.path.join(tmp, 'logs')
     os.makedirs(logs)
-    port = random.Random().randrange(20000, 60000, 16)
+    port = private_port()
     devices_file = session_devices_file(
         tmp, port, wheels=None if tpdo_period_ms is None else {'tpdo_period_ms': tpdo_period_ms}
     )

@@ -62,13 +62,44 @@ def rate_overrides(rate_hz):
     }
 
 
+#: the lowest port a session's buses take (below it: well-known and registered services)
+PRIVATE_PORT_MIN = 20000
+#: DDS (RTPS) ports: 7400 + 250 * domain + an offset; the offsets below this one in each block
+#: of 250 are the discovery and user ports of up to 60 participants per domain
+_RTPS_BASE, _RTPS_DOMAIN_GAIN, _RTPS_OFFSETS = 7400, 250, 140
+
+
+def _ephemeral_port_min():
+    """The lowest port the kernel hands out to sockets bound to port 0 (any UDP sender, DDS's
+    among them), from /proc; 32768 (Linux's default) where that is not readable."""
+    try:
+        return int(Path('/proc/sys/net/ipv4/ip_local_port_range').read_text().split()[0])
+    except (OSError, ValueError, IndexError):
+        return 32768
+
+
+def private_port(n=16, rng=None):
+    """The first of `n` consecutive UDP ports for a session's udp_multicast buses, drawn at random
+    where nothing else on the machine binds: above PRIVATE_PORT_MIN, below the kernel's ephemeral
+    range and clear of DDS's ports. python-can's udp_multicast binds with SO_REUSEPORT, which a
+    port another program holds without it refuses ("could not create or configure socket"): a
+    bus that landed on a DDS participant's port or a sender's ephemeral one did not open."""
+    rng = rng or random.Random()
+    top = min(_ephemeral_port_min(), 65536) - n
+    while True:
+        port = rng.randrange(PRIVATE_PORT_MIN, top)
+        first, last = ((q - _RTPS_BASE) % _RTPS_DOMAIN_GAIN for q in (port, port + n - 1))
+        if first >= _RTPS_OFFSETS and last >= first:
+            return port
+
+
 def session_devices_file(directory, port=None, virtual=False, wheels=None):
     """Write <directory>/can_devices_session.yaml: the package's device map on private UDP ports
     (`port`, `port`+1, ... one per bus: a udp_multicast socket hears every group on its port), or
     with `virtual` on python-can's in-process `virtual` buses (a composed simulation,
     krang_cli.composed). `wheels`: keys of the map's `wheels` section to change (a benchmark's
     TPDO period, say)."""
-    port = port or random.Random().randrange(20000, 60000, 16)
+    port = port or private_port()
     base = default_devices_file()
     config = load_devices(base)
 

@@ -54,6 +54,7 @@ from std_srvs.srv import Trigger  # noqa: E402
 
 from krang_can_bridge.config import default_devices_file, load_devices, resolve_devices_file  # noqa: E402
 from krang_can_bridge.node import CanBridgeNode  # noqa: E402
+from krang_sim.session_config import private_port  # noqa: E402
 from krang_cli.node_set import file_parameter  # noqa: E402
 from krang_cli.processes import NodeSet, child_setup  # noqa: E402
 from krang_model.drivetrain import drivetrain  # noqa: E402
@@ -100,7 +101,7 @@ def peer_map(tmp_path):
     base = load_devices()
     data = yaml.safe_load(base.path.read_text())
     rng = random.Random()
-    group, port = f'239.74.{rng.randint(100, 250)}', rng.randrange(20000, 60000, 16)
+    group, port = f'239.74.{rng.randint(100, 250)}', private_port(rng=rng)
     for i, name in enumerate(data['buses']):
         data['buses'][name] = {
             'interface': 'udp_multicast',

@@ -23,6 +23,7 @@ from krang_can_bridge.protocols import FrameLayout, ValueOutOfRange, load_dbc
 from krang_can_bridge.protocols import powercube as pc
 from krang_model.config import config_path
 from krang_sim.devices import KrangCanDevices
+from krang_sim.session_config import private_port
 
 
 def _bus(port):
@@ -38,7 +39,7 @@ def _collect(buses, seconds=0.3):
 
 
 def test_udp_multicast_kernel_filter_passes_only_the_ids_asked_for():
-    port = random.Random().randrange(20000, 60000, 16)
+    port = private_port()
     rx, tx = _bus(port), _bus(port)
     try:
         keep = {0x05, 0x50, 0xA4, 0x2E3, 0x701}  # msgpack: fixint, uint8, uint16 encodings
@@ -61,7 +62,7 @@ RMEM = ('rmem_default', 'rmem_max')
 def test_an_enlarged_receive_queue_keeps_the_frames_of_a_stalled_reader():
     """1,000 frames (0.2 s of the benchmark's buses) sent while nobody reads: the default queue
     keeps only a few hundred, the enlarged one all of them, in order."""
-    port = random.Random().randrange(20000, 60000, 16)
+    port = private_port()
     n = 1000
 
     def kept(enlarge):
@@ -95,7 +96,7 @@ def test_an_enlarged_receive_queue_keeps_the_frames_of_a_stalled_reader():
 
 
 def test_reader_serves_every_bus_while_one_is_flooded():
-    port = random.Random().randrange(20000, 60000, 16)
+    port = private_port()
     a, b = _bus(port), can.Bus(interface='udp_multicast', channel='239.74.163.202', port=port + 1)
     tx_a, tx_b = (
         _bus(port),
@@ -120,7 +121,7 @@ def test_reader_serves_every_bus_while_one_is_flooded():
 def test_reader_serves_the_buses_in_the_order_given():
     """When several buses have frames waiting, the first bus given is read first: can_bridge gives
     the DMU's bus first, so a DMU frame never waits behind the PowerCube nets' frames."""
-    port = random.Random().randrange(20000, 60000, 16)
+    port = private_port()
     for order in (('a', 'b'), ('b', 'a')):
         rx = {'a': _bus(port), 'b': _bus(port + 1)}
         tx = {'a': _bus(port), 'b': _bus(port + 1)}

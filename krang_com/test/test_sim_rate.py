@@ -142,3 +142,23 @@ def test_the_composed_demo_at_500_hz_stands_learns_and_samples_at_500_hz(tmp_pat
     over_clock, stamps = imu_rate_over_clock_span(out / 'session.mcap')
     assert over_clock == pytest.approx(500, rel=0.05)
     assert stamps == pytest.approx(500, rel=0.05)
+
+
+def test_private_ports_stay_clear_of_dds_and_the_ephemeral_range():
+    """A session's bus ports (16 from the one drawn) lie below the kernel's ephemeral range and
+    off every DDS (RTPS) discovery and user port of domains 0-232 with up to 60 participants:
+    7400 + 250 d + {0, 1, 10, 11} + 2 p. A udp_multicast bus that landed on a port another
+    program held without SO_REUSEPORT did not open."""
+    import random
+
+    from krang_sim.session_config import PRIVATE_PORT_MIN, _ephemeral_port_min, private_port
+
+    rtps = {
+        7400 + 250 * d + o + 2 * p for d in range(233) for o in (0, 1, 10, 11) for p in range(60)
+    }
+    rng = random.Random(0)
+    for _ in range(2000):
+        port = private_port(rng=rng)
+        block = set(range(port, port + 16))
+        assert PRIVATE_PORT_MIN <= port and port + 16 <= _ephemeral_port_min()
+        assert not block & rtps, port
