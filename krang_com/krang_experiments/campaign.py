@@ -69,7 +69,7 @@ GOALS = {'median_m': 1.0e-3, 'worst_m': 1.5e-3}
 #: balanced point, and while it is held before they move (m). The wheels roll under a moving
 #: upper body, and the robot rests where its CoM error puts it (the controller's place tolerance
 #: is 0.8 m). A runaway goes beyond. The stand-up's excursion (to where the stand PD rests, a
-#: caught try's roll on its caster and re-pose, and the return to the reference while the first
+#: caught try's roll on its caster and re-pose, and the settling after the handover while the first
 #: move is held) is reported beside it, not bounded by it.
 TRAVEL_LIMIT_M = 1.5
 

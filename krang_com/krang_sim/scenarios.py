@@ -183,7 +183,7 @@ class SessionResult:
     # the wheels' largest excursion (m): per move from where its joints began to move until its
     # point; per move while it was held before its joints moved (the first move's hold is the
     # stand-up's, so 0); the stand-up, from where the robot sat until the first move's joints
-    # moved (the lift-off, a caught try's roll and re-pose, the return to its reference)
+    # moved (the lift-off, a caught try's roll and re-pose, the settling after the handover)
     travel_m: list = field(default_factory=list)
     hold_travel_m: list = field(default_factory=list)
     stand_travel_m: float = 0.0
