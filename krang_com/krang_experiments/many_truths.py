@@ -22,7 +22,7 @@ from krang_bag.session_report import held_out_configurations
 from krang_adrc_controller.adrc import drive_chain_overrides
 from krang_adrc_controller.controller import load_controller_config
 from krang_com_estimator import make_estimator
-from krang_model.com import balance_pitch, com_error
+from krang_model.com import PoseMoments, balance_pitch, com_error
 from krang_model.config import config_path
 from krang_model.drivetrain import drivetrain
 from krang_model.poses import load_poses
@@ -141,28 +141,102 @@ def exact_pitch_error(
 ):
     """The forward CoM error (m) after `n_poses` poses learned from their true balance pitch plus
     N(0, pitch_std_rad) noise, without the closed loop: what the choice of poses alone allows.
-    selection 'adaptive' (AdaptiveSelector on the pool, `selector_options` passed on) or 'first'
-    (the pool's first n_poses, a random draw)."""
+    selection 'adaptive' (AdaptiveSelector on the pool, `selector_options` passed on), 'first'
+    (the pool's first n_poses, a random draw) or a sequence of pool indices (``best_design``)."""
     held_out = held_out_configurations(robot) if held_out is None else held_out
     learner = make_estimator('map-online', robot, robot.nominal_beta)
     rng = np.random.default_rng(seed)
     pool = np.asarray(pool_joints, dtype=float)
     chooser = (
-        AdaptiveSelector(robot, pool, **selector_options) if selection == 'adaptive' else None
+        AdaptiveSelector(robot, pool, **selector_options)
+        if isinstance(selection, str) and selection == 'adaptive'
+        else None
     )
+    order = range(n_poses) if isinstance(selection, str) else list(selection)[:n_poses]
     current = np.zeros(pool.shape[1])
     for k in range(n_poses):
         joints = (
             chooser.choose(learner.beta, learner.covariance, current).joints
             if chooser is not None
-            else pool[k]
+            else pool[order[k]]
         )
         q = balance_pitch(robot, joints[None], true_beta)[0] + rng.normal(0.0, pitch_std_rad)
         learner.update(q, joints, sigma=pitch_std_rad)
         current = joints
-    if chooser is None:
+    if isinstance(selection, str) and selection == 'first':
         learner.finalize()
     return com_error(robot, learner.beta, true_beta, held_out)
+
+
+@dataclass
+class Design:
+    """A fixed set of pool poses and the mean squared forward error (m^2) over the reference
+    configurations that the learner's prior expects after learning from them."""
+
+    index: list
+    expected_ms: float
+
+
+class DesignObjective:
+    """The learner's own expectation of a fixed design, linearised at the nominal model: its prior
+    covariance Sigma0 (``map-online``), each pool pose's row g (phi at the balance pitch the
+    nominal model predicts) with noise variance (pitch_std z)^2, and the mean of r^T Sigma r over
+    the reference rows r (the held-out configurations). Plain numpy."""
+
+    def __init__(self, robot, pool_joints, pitch_std_rad=2e-4, reference_joints=None):
+        beta0 = robot.nominal_beta
+        self.prior = np.array(make_estimator('map-online', robot, beta0).covariance)
+        _, self.rows, z = PoseMoments(robot, np.asarray(pool_joints, float)).balance(beta0)
+        self.noise = (float(pitch_std_rad) * z) ** 2
+        ref = held_out_configurations(robot) if reference_joints is None else reference_joints
+        self.reference = PoseMoments(robot, np.asarray(ref, float)).balance(beta0)[1]
+
+    def value(self, cov) -> float:
+        return float(np.mean(np.einsum('ij,ij->i', self.reference @ cov, self.reference)))
+
+    def posterior(self, index, cov=None):
+        """Sigma after the poses `index`, by rank-one updates (the learner's own)."""
+        cov = self.prior.copy() if cov is None else cov.copy()
+        for i in index:
+            g = self.rows[i]
+            sg = cov @ g
+            cov -= np.outer(sg, sg) / (g @ sg + self.noise[i])
+        return cov
+
+    def best_addition(self, cov, exclude):
+        """The pose that lowers the objective most from `cov` (not in `exclude`)."""
+        sg = cov @ self.rows.T
+        s = np.einsum('ij,ji->i', self.rows, sg)
+        gain = np.mean((self.reference @ sg) ** 2, axis=0) / (s + self.noise)
+        gain[list(exclude)] = -np.inf
+        return int(np.argmax(gain))
+
+
+def best_design(objective: DesignObjective, n_poses, sweeps=10) -> Design:
+    """The fixed design of `n_poses` pool poses that the learner expects to leave the least
+    forward error: greedy, then exchange sweeps (each pose in turn replaced by the best other
+    while that lowers the objective; a local optimum, at least as good as the greedy one). A bound
+    on what the order and the choice of poses can do, not a selection to run: it knows the number
+    of poses in advance and ignores the cost of the moves."""
+    index = []
+    cov = objective.prior
+    for _ in range(n_poses):
+        i = objective.best_addition(cov, index)
+        index.append(i)
+        cov = objective.posterior([i], cov)
+    best = objective.value(cov)
+    for _ in range(sweeps):
+        changed = False
+        for k in range(n_poses):
+            rest = index[:k] + index[k + 1 :]
+            without = objective.posterior(rest)
+            i = objective.best_addition(without, rest)
+            value = objective.value(objective.posterior([i], without))
+            if i != index[k] and value < best:
+                index[k], best, changed = i, value, True
+        if not changed:
+            break
+    return Design(index, best)
 
 
 def run(params=None):

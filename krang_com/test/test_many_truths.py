@@ -7,10 +7,18 @@ Must show: 12 poses complete on every one of 10 truths, no safe stop, median for
 1.0 mm after 12 poses and the worst under 1.5 mm (slow). The fast variant runs 2 truths for 3
 poses: every pose completes without a safe stop and the error falls under 3 mm."""
 
+import itertools
+
 import numpy as np
 import pytest
 
-from krang_experiments.many_truths import Params, exact_pitch_error, run
+from krang_experiments.many_truths import (
+    DesignObjective,
+    Params,
+    best_design,
+    exact_pitch_error,
+    run,
+)
 from krang_model.robot import load_krang
 from krang_pose_server.pool import generate_pool
 from krang_pose_server.selection import AdaptiveSelector
@@ -227,3 +235,30 @@ def test_exact_pitch_error_falls_with_the_number_of_poses():
     assert first300 < first50 < first12
     assert first300 < 0.1e-3
     assert adaptive12 < first12
+
+
+def test_best_design_is_the_learners_own_expectation_and_beats_greedy():
+    """``best_design`` on a small pool: its posterior (the learner's rank-one updates) is the
+    batch Gaussian posterior of all its rows at once, its value is no worse than the greedy
+    start's, and it finds the best of all 3-pose subsets found by brute force (a local search
+    that could stop short: on this pool it does not)."""
+    robot = load_krang()
+    pool = generate_pool(14, seed=3, robot=robot).joints
+    reference = generate_pool(40, seed=4, robot=robot).joints
+    obj = DesignObjective(robot, pool, reference_joints=reference)
+    greedy = best_design(obj, 3, sweeps=0)
+    best = best_design(obj, 3)
+    assert best.expected_ms <= greedy.expected_ms
+
+    def batch(index):
+        g = obj.rows[list(index)]
+        s = obj.prior
+        k = s @ g.T @ np.linalg.inv(g @ s @ g.T + np.diag(obj.noise[list(index)]))
+        return s - k @ g @ s
+
+    cov = obj.posterior(best.index)
+    assert np.allclose(cov, batch(best.index), rtol=0, atol=1e-9 * np.abs(obj.prior).max())
+    assert obj.value(cov) == pytest.approx(best.expected_ms)
+    brute = min(obj.value(batch(c)) for c in itertools.combinations(range(len(pool)), 3))
+    assert best.expected_ms == pytest.approx(brute, rel=1e-6)
+    assert obj.value(obj.prior) > 2 * best.expected_ms  # three poses teach the learner something
