@@ -722,6 +722,7 @@ def real(kit, stride, keep=None):
             f'{sets} parameter sets in {calls} batched predictions, '
             f'{elements / 1e9:.3f} billion element sub-steps; ' + json.dumps(_brief(res['json']))
         )
+        print(f'  where its wall time went: {_where(res, wall)}')
     print(
         f'peak memory of this process and its workers together {sampler.peak / 2**20:.0f} MB '
         f'(sampled every {sampler.period:g} s; this process alone '
@@ -779,6 +780,21 @@ class _MemorySampler:
     def stop(self):
         self._stop.set()
         self._thread.join()
+
+
+def _where(res, wall):
+    """The workflow's stages (``run_discrepancy``'s timing, with the naming's own split) in s of
+    wall time; the closed-loop stage is the wait for its worker processes."""
+    t, n = res['timing'], res['result'].timing
+    split = ', '.join(
+        f'{k[:-2]} {n[k]:.1f}' for k in ('nominal_s', 'scan_s', 'singles_s', 'combos_s') if k in n
+    )
+    parts = [
+        f'{k[:-2]} {v:.1f}' + (f' ({split})' if k == 'naming_s' else '')
+        for k, v in t.items()
+        if v >= 0.05
+    ]
+    return ', '.join(parts) + f'; outside the stages {wall - sum(t.values()):.1f}'
 
 
 def _brief(js):
