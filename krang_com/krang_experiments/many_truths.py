@@ -11,6 +11,7 @@ The forward CoM error after each pose is measured as `krang demo` measures it (k
 com_error over the 2000 held-out configurations of krang_bag.session_report).
 """
 
+import copy
 import json
 import time
 from dataclasses import asdict, dataclass, field
@@ -22,6 +23,7 @@ from krang_bag.session_report import held_out_configurations
 from krang_adrc_controller.adrc import drive_chain_overrides
 from krang_adrc_controller.controller import load_controller_config
 from krang_com_estimator import make_estimator
+from krang_com_estimator.estimators import MAPEstimator
 from krang_model.com import PoseMoments, balance_pitch, com_error
 from krang_model.config import config_path
 from krang_model.drivetrain import drivetrain
@@ -29,7 +31,7 @@ from krang_model.poses import load_poses
 from krang_model.robot import KRANG_POSE_COLUMNS, load_krang
 from krang_model.files import save_figure, write_text
 from krang_pose_server.pool import PosePool
-from krang_pose_server.selection import AdaptiveSelector
+from krang_pose_server.selection import AdaptiveSelector, forward_gains
 from krang_sim.plant import plant_terms
 from krang_sim.scenarios import run_online_session
 from krang_sim.truths import TruthRecipe, generate_truth
@@ -178,36 +180,43 @@ class Design:
 
 
 class DesignObjective:
-    """The learner's own expectation of a fixed design, linearised at the nominal model: its prior
-    covariance Sigma0 (``map-online``), each pool pose's row g (phi at the balance pitch the
-    nominal model predicts) with noise variance (pitch_std z)^2, and the mean of r^T Sigma r over
-    the reference rows r (the held-out configurations). Plain numpy."""
+    """The learner's own expectation of a fixed design, linearised at the nominal model: the
+    linear-Gaussian core of ``map-online`` at its prior (``MAPEstimator``), each pool pose's row g
+    (phi at the balance pitch the nominal model predicts) with noise variance (pitch_std z)^2, and
+    the mean of r^T Sigma r over the reference rows r (the held-out configurations)."""
 
     def __init__(self, robot, pool_joints, pitch_std_rad=2e-4, reference_joints=None):
         beta0 = robot.nominal_beta
-        self.prior = np.array(make_estimator('map-online', robot, beta0).covariance)
+        learner = make_estimator('map-online', robot, beta0)
+        self._prior = MAPEstimator(learner.beta0, learner.prior_std, A=learner.A, b=learner.b)
         _, self.rows, z = PoseMoments(robot, np.asarray(pool_joints, float)).balance(beta0)
         self.noise = (float(pitch_std_rad) * z) ** 2
         ref = held_out_configurations(robot) if reference_joints is None else reference_joints
         self.reference = PoseMoments(robot, np.asarray(ref, float)).balance(beta0)[1]
 
+    @property
+    def prior(self):
+        return self._prior.covariance
+
     def value(self, cov) -> float:
         return float(np.mean(np.einsum('ij,ij->i', self.reference @ cov, self.reference)))
 
-    def posterior(self, index, cov=None):
-        """Sigma after the poses `index`, by rank-one updates (the learner's own)."""
-        cov = self.prior.copy() if cov is None else cov.copy()
+    def learner_after(self, index):
+        """The linear-Gaussian learner after the poses `index` (its own rank-one updates)."""
+        core = copy.deepcopy(self._prior)
         for i in index:
-            g = self.rows[i]
-            sg = cov @ g
-            cov -= np.outer(sg, sg) / (g @ sg + self.noise[i])
-        return cov
+            self.learn(core, i)
+        return core
+
+    def learn(self, core, i):
+        core.update_row(self.rows[i], 0.0, self.noise[i])
+
+    def posterior(self, index):
+        return self.learner_after(index).covariance
 
     def best_addition(self, cov, exclude):
         """The pose that lowers the objective most from `cov` (not in `exclude`)."""
-        sg = cov @ self.rows.T
-        s = np.einsum('ij,ji->i', self.rows, sg)
-        gain = np.mean((self.reference @ sg) ** 2, axis=0) / (s + self.noise)
+        gain, _ = forward_gains(cov, self.rows, self.reference, self.noise)
         gain[list(exclude)] = -np.inf
         return int(np.argmax(gain))
 
@@ -219,19 +228,20 @@ def best_design(objective: DesignObjective, n_poses, sweeps=10) -> Design:
     on what the order and the choice of poses can do, not a selection to run: it knows the number
     of poses in advance and ignores the cost of the moves."""
     index = []
-    cov = objective.prior
+    core = objective.learner_after(index)
     for _ in range(n_poses):
-        i = objective.best_addition(cov, index)
+        i = objective.best_addition(core.covariance, index)
         index.append(i)
-        cov = objective.posterior([i], cov)
-    best = objective.value(cov)
+        objective.learn(core, i)
+    best = objective.value(core.covariance)
     for _ in range(sweeps):
         changed = False
         for k in range(n_poses):
             rest = index[:k] + index[k + 1 :]
-            without = objective.posterior(rest)
-            i = objective.best_addition(without, rest)
-            value = objective.value(objective.posterior([i], without))
+            without = objective.learner_after(rest)
+            i = objective.best_addition(without.covariance, rest)
+            objective.learn(without, i)
+            value = objective.value(without.covariance)
             if i != index[k] and value < best:
                 index[k], best, changed = i, value, True
         if not changed:

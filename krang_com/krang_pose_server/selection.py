@@ -60,6 +60,15 @@ class Choice:
     # above the caster pitch
 
 
+def forward_gains(covariance, rows, reference, noise):
+    """(gain, s) (N,), (N,): for each candidate row g_c with noise variance r_c, the expected
+    reduction of the mean squared forward error over the reference rows (the module docstring's
+    gain_c) and its prior variance s_c = g_c^T Sigma g_c."""
+    sg = np.asarray(covariance, dtype=float) @ rows.T  # (n_beta, N)
+    s = np.einsum('ij,ji->i', rows, sg)
+    return np.mean((reference @ sg) ** 2, axis=0) / (s + noise), s
+
+
 def predicted_pitch(robot, joints, beta, covariance):
     """(pitch, std) (N,), (N,): the balance pitch `beta` predicts at each pose (rows of joints) and
     its posterior std, sqrt(g^T Sigma g) / |z| (g = phi at that pitch, z = d x_com / d pitch)."""
@@ -135,13 +144,10 @@ class AdaptiveSelector:
         sigma = self.sigma_pitch if sigma_pitch_rad is None else float(sigma_pitch_rad)
         q, G, z = self._pool_moments.balance(beta)
         r = (sigma * z) ** 2
-        SG = cov @ G.T  # (n_beta, N)
-        s = np.einsum('ij,ji->i', G, SG)  # g^T Sigma g
         R = G if self._reference_moments is None else self._reference_moments.balance(beta)[1]
         before = float(np.mean(np.einsum('ij,ji->i', R, cov @ R.T)))
-        if self.criterion == 'forward':
-            gain = np.mean((R @ SG) ** 2, axis=0) / (s + r)
-        else:
+        gain, s = forward_gains(cov, G, R, r)
+        if self.criterion != 'forward':
             gain = np.log1p(s / r)
         move = move_times(
             current_joints, self.pool, self.robot.velocity_limit, self.speed_fraction
