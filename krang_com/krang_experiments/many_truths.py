@@ -139,12 +139,19 @@ def exact_pitch_error(
     pitch_std_rad=5e-4,
     seed=0,
     held_out=None,
+    move_points=0,
+    move_std_rad=2e-3,
+    move_bias_rad=0.0,
     **selector_options,
 ):
     """The forward CoM error (m) after `n_poses` poses learned from their true balance pitch plus
     N(0, pitch_std_rad) noise, without the closed loop: what the choice of poses alone allows.
     selection 'adaptive' (AdaptiveSelector on the pool, `selector_options` passed on), 'first'
-    (the pool's first n_poses, a random draw) or a sequence of pool indices (``best_design``)."""
+    (the pool's first n_poses, a random draw) or a sequence of pool indices (``best_design``).
+    `move_points` > 0 also learns that many points evenly spaced on each straight-line move
+    before its pose, each at its true balance pitch plus N(0, move_std_rad) and, as a lag would
+    put it, `move_bias_rad` against the direction the move changes the balance pitch: what
+    points taken while moving would add."""
     held_out = held_out_configurations(robot) if held_out is None else held_out
     learner = make_estimator('map-online', robot, robot.nominal_beta)
     rng = np.random.default_rng(seed)
@@ -162,6 +169,13 @@ def exact_pitch_error(
             if chooser is not None
             else pool[order[k]]
         )
+        if move_points:
+            ends = balance_pitch(robot, np.stack([current, joints]), true_beta)
+            lag = move_bias_rad * np.sign(ends[1] - ends[0])
+            for a in np.linspace(0.0, 1.0, move_points + 2)[1:-1]:
+                on_the_way = current + a * (joints - current)
+                q = balance_pitch(robot, on_the_way[None], true_beta)[0] - lag
+                learner.update(q + rng.normal(0.0, move_std_rad), on_the_way, sigma=move_std_rad)
         q = balance_pitch(robot, joints[None], true_beta)[0] + rng.normal(0.0, pitch_std_rad)
         learner.update(q, joints, sigma=pitch_std_rad)
         current = joints
