@@ -53,13 +53,13 @@ STOP_REQUESTED = threading.Event()
 
 def _exit_quietly(signum, frame):
     """Unwind, so that the node's close() runs (the bridge zeroes the currents), within
-    STOP_DEADLINE_S. rclpy chains its own SIGINT and SIGTERM handlers to this one. Inside a
+    STOP_DEADLINE_S (rclpy's own handlers are not installed, krang_ros.spin). Inside a
     finalizer (`__del__`) Python prints an exception and ignores it: the node then ran on after
     `krang bringup` was killed, with a traceback in its log. There the handler only sets
-    STOP_REQUESTED, and run_node's loop ends at its next wake (rclpy's SIGINT guard condition
-    wakes it). A later signal while that SystemExit unwinds does nothing: a Ctrl-C in a terminal
-    reaches both the node and `krang bringup`, and one arriving while Python runs its exit hooks
-    was printed as a traceback in the node's log (test_node_exits.py, CI)."""
+    STOP_REQUESTED, and run_node's loop ends at its next wake (within spin.STOP_CHECK_S). A
+    later signal while that SystemExit unwinds does nothing: a Ctrl-C in a terminal reaches both
+    the node and `krang bringup`, and one arriving while Python runs its exit hooks was printed
+    as a traceback in the node's log (test_node_exits.py, CI)."""
     global _unwinding
     if _unwinding:
         return
@@ -109,7 +109,7 @@ def settle_garbage_collector():
 
 def run(executable, argv=None):
     """Run the node `executable`. A signal while its module imports ends it at once; a later one
-    unwinds it (rclpy's handlers chain to ours), with STOP_DEADLINE_S for its clean stop. A crash
+    unwinds it, with STOP_DEADLINE_S for its clean stop. A crash
     writes the threads' stacks to stderr (faulthandler)."""
     argv = sys.argv[1:] if argv is None else list(argv)
     # a crash in a C extension (a segfault, an abort) leaves every thread's Python stack in the

@@ -1,10 +1,15 @@
 """The one way our nodes run: init, spin until Ctrl-C or shutdown, then close and shut down
-cleanly, with exit code 0 and no traceback however early the signal comes."""
+cleanly, with exit code 0 and no traceback however early the signal comes. rclpy's own signal
+handlers are not installed: krang_ros.entry's handle the signals, and the loop checks
+STOP_REQUESTED every STOP_CHECK_S. rclpy's signal thread triggers a guard condition of every
+executor on a signal, and it did so on one that the stop had already destroyed: a pose server
+ended with SIGSEGV on SIGINT (docs/architecture.md)."""
 
 import sys
 
 import rclpy
 from rclpy.callback_groups import CallbackGroup
+from rclpy.signals import SignalHandlerOptions
 from rclpy.executors import ExternalShutdownException, TimeoutException
 
 from krang_core.params import ParameterError
@@ -13,7 +18,8 @@ from .entry import STOP_REQUESTED, settle_garbage_collector
 from .executor import StaticSingleThreadedExecutor
 
 
-#: The longest a node's loop waits before it checks STOP_REQUESTED (a signal wakes it at once)
+#: The longest a node's loop waits before it checks STOP_REQUESTED: a signal's handler runs once
+#: the wait returns, so a node stops within this of a SIGINT or SIGTERM
 STOP_CHECK_S = 0.5
 
 
@@ -21,7 +27,7 @@ def run_node(node_class, args=None):
     """Spin one node; `node.close()` (if the node has one) releases its hardware before
     destruction. A SIGINT or SIGTERM while the node is still being built (rclpy then shuts the
     context down under the constructor, whose next ROS call fails) is a clean exit too."""
-    rclpy.init(args=args)
+    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     node = None
     executor = StaticSingleThreadedExecutor()
     try:
@@ -46,8 +52,6 @@ def run_node(node_class, args=None):
                 node.close()
             node.destroy_node()
         rclpy.try_shutdown()
-        # last, as rclpy.spin's executor: shutdown() destroys the executor's SIGINT guard
-        # condition, and rclpy's signal thread may still be triggering it just after a signal
         executor.shutdown()
     return 0
 

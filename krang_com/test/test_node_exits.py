@@ -16,6 +16,7 @@ import pytest
 from krang_cli.node_set import node_set, params_files
 from krang_model.config import load_config
 from krang_ros.entry import NODE_MODULES, STOP_DEADLINE_S
+from krang_ros.spin import STOP_CHECK_S
 from krang_core.params import nested_to_dotted
 from krang_sim.session_config import session_devices_file
 
@@ -185,6 +186,42 @@ def test_a_node_that_crashes_leaves_its_stack_in_its_log():
     assert proc.returncode == -signal.SIGSEGV, out
     assert 'Fatal Python error: Segmentation fault' in out, out
     assert 'in main' in out and 'in run' in out, out
+
+
+IDLE_NODE = """
+import sys, types
+from rclpy.node import Node
+from rclpy.signals import get_current_signal_handlers_options
+from krang_ros import entry
+from krang_ros.spin import run_node
+
+class Idle(Node):
+    def __init__(self):
+        super().__init__('idle')  # no timer, no subscription: nothing wakes its executor
+        print('spinning', get_current_signal_handlers_options().name, flush=True)
+
+    def close(self):
+        print('closed', flush=True)
+""" + run_as_node('idle_node', 'lambda args: run_node(Idle, args)')
+
+
+@pytest.mark.ros
+def test_a_node_stops_on_its_own_handlers_without_rclpys():
+    """rclpy's signal handlers are not installed in a node (their thread triggered a guard
+    condition the stop had just destroyed: SIGSEGV on SIGINT). An idle node, whose executor
+    nothing wakes, still stops at its loop's next check, cleanly."""
+    proc = subprocess.Popen(
+        [sys.executable, '-c', IDLE_NODE],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
+    assert proc.stdout.readline().split() == ['spinning', 'NO']
+    start = time.monotonic()
+    proc.send_signal(signal.SIGINT)
+    out = finish(proc, 30)
+    assert proc.returncode == 0 and 'closed' in out and 'Traceback' not in out, out[-3000:]
+    assert time.monotonic() - start < 2 * STOP_CHECK_S + 1.0, 'it waited past the loop check'
 
 
 CHURNING_NODE = """
