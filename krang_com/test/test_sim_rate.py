@@ -4,6 +4,7 @@ before anything starts; the composed `krang demo --rate-hz 500` stands the robot
 records /imu/data at 500 Hz of simulated time (slow: 40 s of wall time, 2.5x the default rate)."""
 
 import json
+import random
 import subprocess
 import sys
 import time
@@ -12,7 +13,13 @@ import pytest
 
 from conftest import REPO
 from krang_model.config import load_config
-from krang_sim.session_config import rate_overrides, sim_rate_hz
+from krang_sim.session_config import (
+    PRIVATE_PORT_MIN,
+    _ephemeral_port_min,
+    private_port,
+    rate_overrides,
+    sim_rate_hz,
+)
 
 
 def test_500_hz_moves_the_samples_the_clock_the_imu_period_and_the_control_step():
@@ -149,10 +156,6 @@ def test_private_ports_stay_clear_of_dds_and_the_ephemeral_range():
     off every DDS (RTPS) discovery and user port of domains 0-232 with up to 60 participants:
     7400 + 250 d + {0, 1, 10, 11} + 2 p. A udp_multicast bus that landed on a port another
     program held without SO_REUSEPORT did not open."""
-    import random
-
-    from krang_sim.session_config import PRIVATE_PORT_MIN, _ephemeral_port_min, private_port
-
     rtps = {
         7400 + 250 * d + o + 2 * p for d in range(233) for o in (0, 1, 10, 11) for p in range(60)
     }
