@@ -63,6 +63,7 @@ from .design import PoseDesign
 from .detector import BalancedPoint, BalancedPoseDetector, DetectorConfig
 from .lqr import GainCache, LqrConfig, LqrDesigner
 from .modes import Mode, ModeInputs, ModeMachine, ModesConfig, SafetyConfig
+from .move_points import MovePointConfig, MovePoints
 from .requests import OperatorRequests
 from .samples import ControlOutput, ControlSample
 from .stand import StandUp
@@ -93,6 +94,7 @@ class ControllerConfig:
     modes: ModesConfig = ModesConfig()
     safety: SafetyConfig = SafetyConfig()
     detector: DetectorConfig = DetectorConfig()
+    move_points: MovePointConfig = MovePointConfig()
 
     def __post_init__(self):
         if self.rate_hz <= 0:
@@ -149,6 +151,7 @@ class BalanceController(OperatorRequests, PoseDesign):
         first = Mode.SIT if cfg.modes.start_enabled else Mode.SAFE_STOP
         self.modes = ModeMachine(cfg.modes, cfg.safety, initial_mode=first)
         self.detector = BalancedPoseDetector(cfg.detector)
+        self.move_points = MovePoints(cfg.move_points)
         self._detector_every = max(1, int(round(cfg.rate_hz / cfg.detector.rate_hz)))
         self._gravity_pitch = [0.0, 0]  # sum and count since the detector's last feed
         # read by every step: plain attributes, not nested lookups
@@ -244,6 +247,7 @@ class BalanceController(OperatorRequests, PoseDesign):
             raise ValueError(f'beta must be {self._beta.size} finite numbers')
         self._beta = beta
         self._beta_version += 1
+        self.move_points.reset()  # a move's estimates are of the model they were made with
         if self._pose is not None:
             self._redesign(self._pose)
 
@@ -306,10 +310,11 @@ class BalanceController(OperatorRequests, PoseDesign):
             )
         # 4./5. the mode's law, 6. clamping
         point = None
+        moved = ()
         trim = fx = ft = 0.0
         sat = converged = False
         if mode is Mode.BALANCE:
-            il, ir, fx, ft, sat, trim, point, converged = self._balance_law(
+            il, ir, fx, ft, sat, trim, point, moved, converged = self._balance_law(
                 sample, theta, x, dx, dth, psi, dpsi, dt, k_step + 1, events
             )
         elif ground_gains is None:
@@ -354,6 +359,7 @@ class BalanceController(OperatorRequests, PoseDesign):
             sat or clamped,
             trim,
             converged,
+            moved,
         )
         self.last_output = out
         return out
@@ -485,20 +491,24 @@ class BalanceController(OperatorRequests, PoseDesign):
                 self.balance_point.reset(theta, dth, x - self.x_ref, dx, delta=trim)
         else:
             self.detector.reset()
+        self.move_points.reset()
 
     def _balance_law(self, sample, theta, x, dx, dth, psi, dpsi, dt, k, events):
         """ADRC about the balance point, the BalLo spin PD, and the detector's feed. Returns
-        (i_left, i_right, f_hat_x, f_hat_theta, saturated, trim, balanced point or None,
-        converged). Converged, the flag the pose server pauses a move on: while the observer is
-        held (the joints move, measured, or stopped less than its hold ago) the robot keeps its
-        place (|x - x_ref| and |dx| within ``balance_point.place_tol_m`` / ``place_speed_m_s``:
-        the observer's raw estimate then carries the joints' reaction torques and says
-        nothing); at rest the joints have been still for the hold and one time constant and the
-        estimate has caught up (``BalancePointObserver.converged``). The detector takes no point
-        while a move is pending or the joints move."""
+        (i_left, i_right, f_hat_x, f_hat_theta, saturated, trim, balanced point or None, the
+        points read on a move that just ended, converged). Converged, the flag the pose server
+        pauses a move on: while the observer is held (the joints move, measured, or stopped less
+        than its hold ago) the robot keeps its place (|x - x_ref| and |dx| within
+        ``balance_point.place_tol_m`` / ``place_speed_m_s``: the observer's raw estimate then
+        carries the joints' reaction torques, and only its averages say something); at rest the
+        joints have been still for the hold and one time constant and the estimate has caught up
+        (``BalancePointObserver.converged``). The detector takes no point while a move is pending
+        or the joints move; meanwhile the observer's estimate of the balance pitch feeds
+        ``move_points``, which gives its points when the move ends."""
         t = sample.t
         trim = 0.0
         theta_c = theta
+        moved = ()
         bp = self.balance_point
         if bp is None:
             converged = not self._moving or self._keeps_place(x, dx)
@@ -511,6 +521,13 @@ class BalanceController(OperatorRequests, PoseDesign):
             hold = not bp.track_moves and held
             trim = bp.update(theta, dt, hold, x - self.x_ref)
             theta_c = theta - trim
+            mp = self.move_points
+            if mp.enabled:
+                if sample.joints_moving or sample.move_pending:
+                    # where the observer puts the balance: theta = raw there
+                    mp.add(t, bp.raw - self._offset, sample.joints)
+                elif mp.active:
+                    moved = mp.end()
             if not held:
                 converged = bool(  # a numpy bool would reach std_msgs/Bool as false
                     still >= bp.hold_s + bp.time_constant
@@ -549,7 +566,7 @@ class BalanceController(OperatorRequests, PoseDesign):
             if point is not None:
                 self.points.append(point)
                 events.append(f'balanced_point: q_base={point.q_base:.5f}')
-        return il, ir, c.fhat_x, c.fhat_theta, c.saturated, trim, point, converged
+        return il, ir, c.fhat_x, c.fhat_theta, c.saturated, trim, point, moved, converged
 
     def _stand_watch(self, t, qb, theta, x, dx, dth, dt) -> float:
         """STAND_UP: from lift-off the balance-point observer watches (stand.py); returns the

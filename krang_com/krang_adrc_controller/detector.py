@@ -155,6 +155,9 @@ class BalancedPoint:
     q_base_se: float = 0.0  # standard error of q_base [rad] (standard_error)
     joints_se: np.ndarray | None = None  # ... of the joints [rad]
     q_base_filter: float = math.nan  # window mean of the IMU filter's pitch [rad]
+    # read while the joints moved (move_points.py): q_base is then the window mean of the
+    # controller's balance-pitch estimate, not of the pitch
+    in_motion: bool = False
 
 
 def _slope(t, v) -> float:

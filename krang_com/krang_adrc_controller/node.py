@@ -506,6 +506,15 @@ class AdrcControllerNode(Node):
         if out.balance_converged != self.converged:
             self.converged = out.balance_converged
             self.converged_pub.publish(Bool(data=out.balance_converged))
+        if out.move_points:
+            stamp = self.get_clock().now().to_msg()
+            for point in out.move_points:
+                self.pose_pub.publish(messages.balanced_pose(stamp, self.robot.pose_joints, point))
+            self.get_logger().info(
+                f'{len(out.move_points)} points read on the move: balance pitch '
+                + ', '.join(f'{p.q_base:+.4f}' for p in out.move_points)
+                + ' rad'
+            )
         if out.balanced_point is not None:
             point = out.balanced_point
             self.pose_pub.publish(

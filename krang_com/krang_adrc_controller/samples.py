@@ -74,6 +74,7 @@ class ControlOutput:
     saturated: bool = False
     balance_trim: float = 0.0  # rad, the balance-point observer's delta_hat (0 when it is off)
     balance_converged: bool = False  # BALANCE with a settled balance estimate (see step)
+    move_points: tuple | list = ()  # BalancedPoints read on a move that ended at this step
 
 
 @dataclass(frozen=True)

@@ -15,9 +15,15 @@ from .reader import iter_messages
 @dataclass
 class RelearnResult:
     beta0: np.ndarray
-    betas: np.ndarray  # (n_poses + 1, n_beta): beta0 and after each pose
+    betas: np.ndarray  # (n_poses + 1, n_beta): beta0 and after each pose at rest
     recorded: np.ndarray  # betas the online estimator published, in order
-    poses: list  # (q_base, joints)
+    poses: list  # (q_base, joints, sigma, in_motion) of every point learned
+    beta: np.ndarray  # after every point (what the estimator's ~/save writes)
+
+    @property
+    def rest_poses(self):
+        """The points at rest (one published beta each)."""
+        return sum(1 for p in self.poses if not p[3])
 
     @property
     def max_deviation(self):
@@ -36,13 +42,13 @@ class RelearnResult:
 
 
 def balanced_poses(bag, robot):
-    """(q_base, joints, pitch standard error or None) of every /balanced_pose message, in order;
-    malformed ones are skipped."""
+    """(q_base, joints, pitch standard error or None, read while moving) of every
+    /balanced_pose message, in order; malformed ones are skipped."""
     poses = []
     for _, _, msg in iter_messages(bag, [BALANCED_POSE_TOPIC]):
         pose = balanced_pose_values(msg, robot.pose_joints)
         if pose is not None:
-            poses.append((pose.q_base, pose.joints, pose.q_base_se))
+            poses.append((pose.q_base, pose.joints, pose.q_base_se, pose.in_motion))
     return poses
 
 
@@ -64,6 +70,8 @@ def relearn(bag, robot, method='map-online', beta0=None):
         beta0 = recorded[0]
     learner = OnlineLearner(robot, beta0, method)
     poses = balanced_poses(bag, robot)
-    for q_base, joints, sigma in poses:
-        learner.add_balanced_pose(q_base, joints, sigma)
-    return RelearnResult(np.asarray(beta0), np.array(learner.history), recorded, poses)
+    for q_base, joints, sigma, in_motion in poses:
+        learner.add_balanced_pose(q_base, joints, sigma, in_motion)
+    return RelearnResult(
+        np.asarray(beta0), np.array(learner.history), recorded, poses, learner.beta
+    )

@@ -145,12 +145,24 @@ def timeline_figure(bag, effort):
             lw=0.9,
             label='pose move starts (new /pose_server/target)' if k == 0 else None,
         )
-    for k, t in enumerate(message_times(bag, BALANCED_POSE) - t0):
+    points = [
+        (t_ns * 1e-9 - t0, bool(getattr(msg, 'in_motion', False)))
+        for _, t_ns, msg in iter_messages(bag, [BALANCED_POSE])
+    ]
+    for k, t in enumerate(t for t, moving in points if not moving):
         ax.axvline(
             t,
             color='tab:green',
             lw=1.2,
             label='balanced pose detected and learned' if k == 0 else None,
+        )
+    for k, t in enumerate(t for t, moving in points if moving):
+        ax.axvline(
+            t,
+            color='tab:green',
+            ls=':',
+            lw=0.9,
+            label='point read while moving (learned with the next pose)' if k == 0 else None,
         )
     ax.set_xlim(0.0, t_end)
     ax.set_xlabel('time since the first wheel command (s)')

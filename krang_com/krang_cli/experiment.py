@@ -332,6 +332,14 @@ def _campaign_args(p):
         help='an extended model of `krang discrepancy` under every chain',
     )
     p.add_argument(
+        '--move-points',
+        type=int,
+        default=None,
+        metavar='N',
+        help='points the controller reads on each move (its move_points.per_move; default: the '
+        "shipped configuration's)",
+    )
+    p.add_argument(
         '--short', action='store_true', help="the default test run's version (about 30 s)"
     )
     p.add_argument(
@@ -350,6 +358,7 @@ def _run_campaign(args):
         chain_known=not args.chain_unknown,
         plant_model=args.plant_model,
         progress=True,
+        controller={} if args.move_points is None else {'move_points.per_move': args.move_points},
     )
     if args.short:
         params = campaign.short(params)

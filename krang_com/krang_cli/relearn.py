@@ -55,15 +55,17 @@ def run(args):
     result = relearn(args.bag, robot, args.method, beta0)
     save_beta(
         args.out,
-        result.betas[-1],
+        result.beta,
         robot,
         method=args.method,
-        poses=len(result.poses),
+        poses=result.rest_poses,
         source=str(args.bag),
     )
     deviation = result.relative_deviation
+    moving = len(result.poses) - result.rest_poses
     summary = {
-        'poses': len(result.poses),
+        'poses': result.rest_poses,
+        'points_while_moving': moving,
         'method': args.method,
         'out': str(args.out),
         'online_betas': int(len(result.recorded)),
@@ -73,8 +75,8 @@ def run(args):
         print_json(summary)
     else:
         print(
-            f'{len(result.poses)} balanced poses replayed with {args.method}; beta written to '
-            f'{args.out}'
+            f'{result.rest_poses} balanced poses and {moving} points read while moving replayed '
+            f'with {args.method}; beta written to {args.out}'
         )
         if not np.isnan(deviation):
             verdict = 'reproduces' if deviation <= REPRODUCTION_TOLERANCE else 'differs from'

@@ -102,10 +102,15 @@ class ComEstimatorNode(Node):
             )
             return
         try:
-            beta = self.learner.add_balanced_pose(pose.q_base, pose.joints, pose.q_base_se)
+            beta = self.learner.add_balanced_pose(
+                pose.q_base, pose.joints, pose.q_base_se, pose.in_motion
+            )
         except ValueError as err:
             self.rejected += 1
             self.get_logger().error(f'rejected balanced pose: {err}')
+            return
+        if pose.in_motion:  # its beta goes out with the next pose's
+            self.get_logger().debug(f'point read while moving: pitch {pose.q_base:+.5f} rad')
             return
         self.publish_beta()
         com = self.learner.com(pose.q_base, pose.joints)
@@ -143,7 +148,8 @@ class ComEstimatorNode(Node):
         )
         response.success, response.message = (
             True,
-            f'saved beta after {len(self.learner.poses)} poses to {path}',
+            f'saved beta after {len(self.learner.poses)} poses and '
+            f'{self.learner.moving_points} points read while moving to {path}',
         )
         self.get_logger().info(response.message)
         return response
@@ -164,6 +170,7 @@ class ComEstimatorNode(Node):
                 f'{len(self.learner.poses)} poses learned',
                 {
                     'poses': len(self.learner.poses),
+                    'points_while_moving': self.learner.moving_points,
                     'rejected': self.rejected,
                     'method': self.learner.method,
                 },

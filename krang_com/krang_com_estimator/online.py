@@ -24,14 +24,17 @@ class OnlineLearner:
         self.estimator = make_estimator(self.method, self.robot, self.beta0, noise=self.noise)
         self.history = [self.beta0.copy()]
         self.poses = []
+        self.moving_points = 0  # points read while moving, learned between the poses
 
     @property
     def beta(self):
         return self.estimator.beta
 
-    def add_balanced_pose(self, q_base, joints, sigma=None):
+    def add_balanced_pose(self, q_base, joints, sigma=None, in_motion=False):
         """Learn from one balanced pose (q_base in rad, joints in pose order; sigma: its pitch
-        standard error in rad, if known); returns the new beta."""
+        standard error in rad, if known); returns the new beta. A point read while moving
+        (`in_motion`) is learned alike but is no pose: ``poses`` and ``history`` (a beta per
+        pose, as the node publishes them) hold the points at rest."""
         joints = np.asarray(joints, dtype=float)
         if (
             joints.shape != (len(self.robot.pose_joints),)
@@ -47,8 +50,11 @@ class OnlineLearner:
             self.estimator.update(float(q_base), joints)
         else:
             self.estimator.update(float(q_base), joints, sigma=float(sigma))
-        self.poses.append((float(q_base), joints.copy()))
-        self.history.append(self.estimator.beta)
+        if in_motion:
+            self.moving_points += 1
+        else:
+            self.poses.append((float(q_base), joints.copy()))
+            self.history.append(self.estimator.beta)
         return self.estimator.beta
 
     def posterior(self):

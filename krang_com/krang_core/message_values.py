@@ -30,6 +30,7 @@ class BalancedPoseValues:
     joints: np.ndarray  # [rad], in the order asked for
     q_base_se: float | None  # standard error [rad]; None when not given or not positive
     joints_se: np.ndarray | None
+    in_motion: bool = False  # read while the joints moved (BalancedPose.in_motion)
 
 
 def _positive(value):
@@ -53,6 +54,7 @@ def balanced_pose_values(msg, joint_names):
             if len(se) == len(msg.joint_names)
             else None
         )
+        in_motion = bool(getattr(msg, 'in_motion', False))  # absent in older bags
     else:  # sensor_msgs/JointState: the pitch as one more joint, standard errors in effort
         index = {n: i for i, n in enumerate(msg.name)}
         names = list(joint_names) + [BASE_PITCH]
@@ -67,9 +69,10 @@ def balanced_pose_values(msg, joint_names):
         joints_se = (
             np.array([float(msg.effort[index[j]]) for j in joint_names]) if has_se else None
         )
+        in_motion = False
     if not (math.isfinite(q_base) and np.all(np.isfinite(joints))):
         return None
-    return BalancedPoseValues(q_base, joints, q_se, joints_se)
+    return BalancedPoseValues(q_base, joints, q_se, joints_se, in_motion)
 
 
 def mass_model_values(msg, n_beta):

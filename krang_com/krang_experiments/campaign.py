@@ -87,6 +87,7 @@ class Params:
     plant_model: str | None = None  # an extended model under every chain's effects
     progress: bool = False
     extra: dict = field(default_factory=dict)
+    controller: dict = field(default_factory=dict)  # dotted controller parameters of every cell
 
 
 def cell_params(params: Params, plant: str, chain: str) -> many_truths.Params:
@@ -102,6 +103,7 @@ def cell_params(params: Params, plant: str, chain: str) -> many_truths.Params:
         plant_model=params.plant_model,
         effects=tuple(CHAINS[chain]),
         chain_known=params.chain_known,
+        controller=dict(params.controller),
     )
 
 

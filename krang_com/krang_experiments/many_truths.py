@@ -116,7 +116,17 @@ def session(robot, true_beta, selection, params, pool=None, held_out=None, pose_
         'sim_s': res.sim_s,
         'wall_s': res.wall_s,
         'pitch_error_rad': [p.q_base - t for p, t in zip(res.points, res.true_pitch)],
+        # the points read while moving against the true balance pitch at their joints
+        'move_point_errors_rad': _move_point_errors(robot, res.loop.move_points, true_beta),
     }
+
+
+def _move_point_errors(robot, points, true_beta):
+    if not points:
+        return []
+    joints = np.array([p.joints for p in points])
+    true = balance_pitch(robot, joints, true_beta)
+    return [float(p.q_base - t) for p, t in zip(points, true)]
 
 
 def controller_config(robot, terms, params):

@@ -518,7 +518,7 @@ class PoseServer(ReposeAfterCaughtStand, Node):
 
     def on_balanced_pose(self, msg):
         goal = self.goal
-        if goal is not None and goal.settling:
+        if goal is not None and goal.settling and not msg.in_motion:  # a move ends at rest
             self.end_goal(
                 True,
                 f'balanced at base pitch {msg.base_pitch:+.4f} rad: {goal.text}',

@@ -180,6 +180,7 @@ def balanced_pose(stamp, joint_names, point):
         base_pitch_imu_filter=float(point.q_base_filter),
         settle_window=window,
         samples=int(point.n_samples),
+        in_motion=bool(point.in_motion),
     )
 
 

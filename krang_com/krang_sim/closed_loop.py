@@ -133,6 +133,7 @@ class ClosedLoop:
         self.log = {k: [] for k in LOG_COLUMNS}
         self.events: list[tuple[float, str]] = []
         self.points = []
+        self.move_points = []  # points read on the moves (the controller's move_points)
         self.disturbances: list[Disturbance] = []
         self._frozen = None
         self._extra_current = (0.0, 0.0, -1.0)  # (left, right, until)
@@ -298,6 +299,8 @@ class ClosedLoop:
                 self.events.extend((t, e) for e in out.events)
             if out.balanced_point is not None:
                 self.points.append(out.balanced_point)
+            if out.move_points:
+                self.move_points.extend(out.move_points)
             if lp and sample.t >= self._next_log - 1e-9:
                 self._next_log += lp
                 if self._next_log <= sample.t:

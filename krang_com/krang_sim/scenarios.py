@@ -238,7 +238,8 @@ def run_online_session(
     """Stand up in `start_pose` (default: ``stand_pose(robot, beta0)``, the Table II pose with the
     waist set so that beta0 agrees to stand up), then for each pose (rows of joints, pose order):
     command it, balance while the joints move, wait for the detector's point,
-    ``learner.update(q_base, joints)``, ``controller.set_beta(learner.beta)``. `learner`: an
+    ``learner.update(q_base, joints)`` (after the points read on the move, when the controller's
+    ``move_points`` reads them), ``controller.set_beta(learner.beta)``. `learner`: an
     estimator of the registry, by default ``make_estimator('paper-gd', robot, beta0)``. A pose
     without a point within `pose_timeout_s` is skipped (listed in failures); if the robot leaves
     BALANCE the session ends there.
@@ -292,6 +293,7 @@ def run_online_session(
     betas = [np.array(learner.beta, float)]
     points, idx, timings, true_pitch, failures, chosen = [], [], [], [], [], []
     travel, hold_travel = [], []  # per move (SessionResult.travel_m, hold_travel_m)
+    n_moved = 0  # the controller's points read on the moves that the learner has
     bar = None
     if progress:
         from tqdm import tqdm
@@ -341,6 +343,10 @@ def run_online_session(
                 continue
             p = out.balanced_point
             true_pitch.append(loop.plant.truth().balance_pitch)
+            # the points read on the moves since the last pose, learned with the pose's point
+            for m in loop.move_points[n_moved:]:
+                learner.update(m.q_base, m.joints, sigma=m.q_base_se)
+            n_moved = len(loop.move_points)
             if p.q_base_se > 0:  # the detector's standard error, as /balanced_pose carries it
                 learner.update(p.q_base, p.joints, sigma=p.q_base_se)
             else:

@@ -92,3 +92,59 @@ def test_a_balanced_pose_in_a_mass_model_out(tmp_path):
         names.BETA: ['krang_com_interfaces/msg/MassModel'],
         names.COM: ['geometry_msgs/msg/PointStamped'],
     }
+
+
+def test_points_read_while_moving_go_out_with_the_next_poses_beta(tmp_path):
+    """Two points read while moving (`in_motion`) are learned but publish nothing; the next point
+    at rest publishes one beta, that of all three (the offline learner's), counted as one pose."""
+    robot = load_krang()
+    rng = np.random.default_rng(12)
+    truth = robot.nominal_beta.copy()
+    truth[4 * robot.body_names.index('Spine') + 1] += 0.3
+    points = []
+    for k, moving in enumerate((True, True, False)):
+        joints = rng.uniform(robot.lower, robot.upper)
+        q = float(com.balance_pitch(robot, joints[None], truth)[0])
+        se = 1e-3 if moving else 3e-4
+        points.append(BalancedPoint(1.0 + k, q, joints, 0.002, 100, 1.0, se, in_motion=moving))
+    rclpy.init()
+    try:
+        node = ComEstimatorNode(
+            parameter_overrides=[Parameter('output', value=str(tmp_path / 'beta.yaml'))]
+        )
+        peer = rclpy.create_node('peer')
+        models = []
+        peer.create_subscription(MassModel, names.BETA, models.append, topics.QOS[names.BETA])
+        pub = peer.create_publisher(
+            BalancedPose, names.BALANCED_POSE, topics.QOS[names.BALANCED_POSE]
+        )
+        executor = SingleThreadedExecutor()
+        executor.add_node(node)
+        executor.add_node(peer)
+
+        def spin_until(condition, seconds=10.0):
+            end = time.monotonic() + seconds
+            while not condition() and time.monotonic() < end:
+                executor.spin_once(timeout_sec=0.02)
+
+        spin_until(lambda: models and pub.get_subscription_count())
+        for p in points[:2]:
+            pub.publish(messages.balanced_pose(messages.stamp(p.t), robot.pose_joints, p))
+        spin_until(lambda: node.learner.moving_points == 2)
+        spin_until(lambda: False, 0.3)
+        before_rest = len(models)
+        pub.publish(messages.balanced_pose(messages.stamp(3.0), robot.pose_joints, points[2]))
+        spin_until(lambda: len(models) >= 2)
+        spin_until(lambda: False, 0.3)
+        executor.shutdown()
+        node.destroy_node()
+        peer.destroy_node()
+    finally:
+        rclpy.try_shutdown()
+    assert before_rest == 1 and len(models) == 2
+    assert models[1].poses == 1 and node.learner.moving_points == 2
+    offline = OnlineLearner(robot, robot.nominal_beta)
+    for p in points:
+        offline.add_balanced_pose(p.q_base, p.joints, p.q_base_se)
+    close = {'rtol': 0.0, 'atol': REPRODUCTION_TOLERANCE * np.abs(robot.nominal_beta).max()}
+    np.testing.assert_allclose(models[1].beta, offline.beta, **close)
