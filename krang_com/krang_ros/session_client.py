@@ -11,6 +11,7 @@ from krang_com_interfaces.msg import ControllerMode, MassModel
 from rclpy.action import ActionClient
 from rclpy.node import Node
 from rclpy.qos import qos_profile_action_status_default
+from rclpy.signals import SignalHandlerOptions
 from std_srvs.srv import SetBool, Trigger
 from unique_identifier_msgs.msg import UUID
 
@@ -327,6 +328,8 @@ class SessionClient(Node):
 
 
 def open_session_client():
+    """A client in a context of its own. Ctrl-C stays the caller's (``krang demo`` reports it):
+    rclpy's signal handlers are not installed, as in the nodes (``spin.run_node``)."""
     context = rclpy.Context()
-    rclpy.init(context=context)
+    rclpy.init(context=context, signal_handler_options=SignalHandlerOptions.NO)
     return SessionClient(context=context), context
