@@ -95,6 +95,14 @@ def register(subparsers):
     add_sim_robot_arguments(p)
     add_rate_argument(p)
     p.add_argument(
+        '--move-points',
+        type=int,
+        default=None,
+        metavar='N',
+        help='points the controller reads on each move besides the one at rest (its '
+        'move_points.per_move, off by default: docs/learning.md, "Points read while moving")',
+    )
+    p.add_argument(
         '--processes',
         action='store_true',
         help='run each node in a process of its own, in lockstep with the simulator (as `krang '
@@ -114,6 +122,9 @@ def run(args):
         with_rate({}, args.rate_hz)  # a bad rate: refused before anything is written
     except ValueError as err:
         log.error('krang demo: --rate-hz %s', err)
+        return 2
+    if args.move_points is not None and args.move_points < 0:
+        log.error('krang demo: --move-points %d: must be >= 0', args.move_points)
         return 2
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -148,6 +159,9 @@ def run(args):
             },
             'can_bridge': {'devices_file': devices},
             'com_estimator': {'output': beta_file, 'method': args.method},
+            'adrc_controller': {}
+            if args.move_points is None
+            else {'move_points.per_move': args.move_points},
         },
         args.rate_hz,
     )
