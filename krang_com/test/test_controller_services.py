@@ -75,13 +75,13 @@ def test_operator_services_over_ros(tmp_path):
         watch = Watch(client)
         fault_pub = client.create_publisher(DriveFault, names.DRIVE_FAULT, topics.LATCHED)
         enable = client.enable
-        for _ in range(60):  # refused until the sensor data flow
+        for _ in range(300):  # refused until the sensor data flow
             try:
                 if client.call(enable, SetBool.Request(data=True), timeout=5.0).success:
                     break
             except SessionError:  # a lost first answer (SessionClient.enable_controller): retry
                 continue
-            client.pause(1.0)
+            client.pause(0.2)
         wait_mode(client, 'sit', 10.0)
         client.pause(3.0)
         assert client.mode == 'sit', 'enable must not stand the robot up'

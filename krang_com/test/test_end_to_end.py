@@ -16,8 +16,12 @@ import pytest
 from conftest import REPO
 from krang_cli.relearn import REPRODUCTION_TOLERANCE
 
-# In the default run: two demos of ~30 s on the 2-core machine.
+# In the default run: two demos (DEMO_POSES poses, then one) of about 20 and 12 s on the 2-core
+# machine.
 pytestmark = pytest.mark.ros
+
+#: poses of the demo the tests share: two take its error to a tenth, a third adds ~10 s
+DEMO_POSES = 2
 
 
 def run_demo(out, *args, timeout=420):
@@ -42,15 +46,14 @@ def run_demo(out, *args, timeout=420):
 @pytest.fixture(scope='module')
 def demo(tmp_path_factory):
     out = tmp_path_factory.mktemp('demo')
-    return out, run_demo(out, '--poses', '3')
+    return out, run_demo(out, '--poses', str(DEMO_POSES))
 
 
 def test_online_session_learns_and_reduces_the_com_error(demo):
     out, summary = demo
-    assert summary['poses'] == 3
-    # the forward CoM error (what balancing observes): with exact pitches these poses take it from
-    # 13.1 to 1.3 mm (an offline replay with the true balance pitches); the detector's 1-3 mrad
-    # leave it well below half
+    assert summary['poses'] == DEMO_POSES
+    # the forward CoM error (what balancing observes): the demo's two poses take it from 13.1 to
+    # 1.4 mm (three to 1.3 mm); the detector's 1-3 mrad leave it well below half
     assert summary['com_error_after_m'] < 0.5 * summary['com_error_before_m']
     from krang_model.beta import load_beta
     from krang_model.robot import load_krang
@@ -170,3 +173,30 @@ def test_processes_learn_too(tmp_path):
     summary = run_demo(tmp_path, '--processes', '--poses', '1')
     assert summary['poses'] == 1
     assert summary['com_error_after_m'] < summary['com_error_before_m']
+
+
+@pytest.mark.slow
+def test_points_read_while_moving_flow_through_the_node_set(tmp_path):
+    """`krang demo --move-points 3` at the robot's 500 Hz: the controller publishes points read
+    while moving, the pose server ends each move on the point at rest, the estimator publishes one
+    beta per pose that holds all points, and `krang relearn` replays the bag to those betas."""
+    from krang_bag.reader import iter_messages
+    from krang_bag.relearn import relearn
+    from krang_cli.relearn import REPRODUCTION_TOLERANCE
+    from krang_core import names
+    from krang_core.message_values import balanced_pose_values
+    from krang_model.robot import load_krang
+
+    summary = run_demo(tmp_path, '--poses', '2', '--move-points', '3', '--rate-hz', '500')
+    assert summary['poses'] == 2
+    robot = load_krang()
+    points = [
+        balanced_pose_values(msg, robot.pose_joints)
+        for _, _, msg in iter_messages(tmp_path / 'session.mcap', [names.BALANCED_POSE])
+    ]
+    moving = [p for p in points if p.in_motion]
+    assert len(points) - len(moving) == 2 and len(moving) >= 3
+    assert all(p.q_base_se == pytest.approx(1e-3) for p in moving)
+    result = relearn(tmp_path / 'session.mcap', robot)
+    assert result.rest_poses == 2 and len(result.recorded) == 3  # the initial beta and one a pose
+    assert result.relative_deviation <= REPRODUCTION_TOLERANCE

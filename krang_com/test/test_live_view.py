@@ -75,8 +75,12 @@ def test_core_poses_the_robot_and_its_com():
 
 async def read_session(port, publish, wanted, timeout=20.0):
     """Connect, check the advertised channels, subscribe to all, run `publish`, and collect the
-    payloads by topic until every topic in `wanted` has arrived."""
-    async with websockets.connect(f'ws://127.0.0.1:{port}', subprotocols=[SUBPROTOCOL]) as ws:
+    payloads by topic until every topic in `wanted` has arrived. The server drops a client that
+    closes without flushing its reply to the close, which the client would otherwise await for
+    its default close_timeout (10 s)."""
+    async with websockets.connect(
+        f'ws://127.0.0.1:{port}', subprotocols=[SUBPROTOCOL], close_timeout=0.5
+    ) as ws:
         assert ws.subprotocol == SUBPROTOCOL
         channels = {}
         while set(channels) != set(CHANNELS):

@@ -3,6 +3,8 @@ pitch the current beta predicts along the straight joint line, which may move at
 ``MAX_BALANCE_RATE_RAD_S``. The body follows its balance pitch with a lag; on a weak drive chain a
 fast sweep of it puts the wheels at their current limit (docs/mujoco.md, "The pace of a move")."""
 
+import copy
+
 import numpy as np
 import pytest
 
@@ -100,18 +102,19 @@ def test_a_paced_move_keeps_a_weak_drive_chain_off_its_current_limit(robot, pool
     truth = generate_truth(robot, 7301, TruthRecipe()).beta
     limit = drivetrain(robot).current_limit
     chain = terms_from_strings(robot, campaign.CHAINS['gear-hard'])
+    at_first = ClosedLoop(
+        robot, truth, beta, stand_pose(robot, beta), controller_config=load_controller_config(),
+        terms=chain, log_rate_hz=100.0,
+    )  # fmt: skip
+    at_first.run(0.5)
+    at_first.controller.set_enabled(True)
+    assert at_first.run(30.0, until=lambda o: o.mode == 'balance')
+    at_first.run(at_first.start_move(first) + 8.0)
+    t0 = at_first.plant.t
     out = {}
     for rate in (0.0, MAX_BALANCE_RATE_RAD_S):
-        cfg = load_controller_config()
-        loop = ClosedLoop(
-            robot, truth, beta, stand_pose(robot, beta), controller_config=cfg, terms=chain,
-            log_rate_hz=100.0,
-        )  # fmt: skip
-        loop.run(0.5)
-        loop.controller.set_enabled(True)
-        assert loop.run(30.0, until=lambda o: o.mode == 'balance')
-        loop.run(loop.start_move(first) + 8.0)
-        t0 = loop.plant.t
+        # both moves from the same simulated state at the first pose (a copy each)
+        loop = copy.deepcopy(at_first)
         loop.run(loop.start_move(second, max_balance_rate=rate) + 6.0)
         assert loop.controller.mode.value == 'balance', loop.events[-3:]
         log = {k: np.asarray(v) for k, v in loop.log.items()}

@@ -27,16 +27,31 @@ from std_msgs.msg import Bool  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
 
 from krang_adrc_controller.detector import BalancedPoint  # noqa: E402
-from krang_model.robot import load_krang  # noqa: E402
+from krang_model.com import balance_pitch  # noqa: E402
+from krang_model.config import config_path  # noqa: E402
+from krang_model.poses import load_poses, save_poses  # noqa: E402
+from krang_model.robot import KRANG_POSE_COLUMNS, load_krang  # noqa: E402
 from krang_core import names  # noqa: E402
 from krang_ros import messages, topics  # noqa: E402
 
 NS = '/robot7'
+#: the fixed poses the servers here move to: config/excitatory_poses.csv's first three, this
+#: fraction of the way from the zero pose the tests start at (moves of about 3 s, not 15 s)
+NEAR = 0.25
+
+
+def near_poses(directory):
+    """The fixed pose list of NEAR poses, written in `directory`; its path."""
+    robot = load_krang()
+    _, joints, _ = load_poses(config_path('excitatory_poses.csv'), KRANG_POSE_COLUMNS)
+    joints = NEAR * joints[:3]
+    pitch = balance_pitch(robot, joints, robot.nominal_beta)
+    return save_poses(directory / 'near_poses.csv', pitch, joints, KRANG_POSE_COLUMNS)
 
 
 @pytest.fixture
 def pose_server(tmp_path):
-    yield from start_pose_server(tmp_path)
+    yield from start_pose_server(tmp_path, f'poses_file:={near_poses(tmp_path)}')
 
 
 def start_pose_server(tmp_path, *parameters):
@@ -143,7 +158,9 @@ def test_next_pose_waits_for_the_controller(pose_server):
 
 @pytest.fixture
 def patient_pose_server(tmp_path):
-    yield from start_pose_server(tmp_path, 'max_pause_s:=60.0')
+    yield from start_pose_server(
+        tmp_path, 'max_pause_s:=60.0', f'poses_file:={near_poses(tmp_path)}'
+    )
 
 
 def test_a_move_holds_while_the_balance_estimate_is_unconverged(patient_pose_server):
