@@ -26,6 +26,41 @@ from krang_model.robot import load_krang  # noqa: E402
 from krang_ros import messages, topics  # noqa: E402
 
 
+class EstimatorPeer:
+    """com_estimator and a peer node on one executor: the peer publishes /balanced_pose and
+    collects ~/beta and ~/com."""
+
+    def __init__(self, tmp_path):
+        self.node = ComEstimatorNode(
+            parameter_overrides=[Parameter('output', value=str(tmp_path / 'beta.yaml'))]
+        )
+        self.peer = rclpy.create_node('peer')
+        self.models, self.points = [], []
+        self.peer.create_subscription(
+            MassModel, names.BETA, self.models.append, topics.QOS[names.BETA]
+        )
+        self.peer.create_subscription(
+            PointStamped, names.COM, self.points.append, topics.QOS[names.COM]
+        )
+        self.pub = self.peer.create_publisher(
+            BalancedPose, names.BALANCED_POSE, topics.QOS[names.BALANCED_POSE]
+        )
+        self.executor = SingleThreadedExecutor()
+        self.executor.add_node(self.node)
+        self.executor.add_node(self.peer)
+        self.spin_until(lambda: self.models and self.pub.get_subscription_count())
+
+    def spin_until(self, condition, seconds=10.0):
+        end = time.monotonic() + seconds
+        while not condition() and time.monotonic() < end:
+            self.executor.spin_once(timeout_sec=0.02)
+
+    def close(self):
+        self.executor.shutdown()
+        self.node.destroy_node()
+        self.peer.destroy_node()
+
+
 def test_a_balanced_pose_in_a_mass_model_out(tmp_path):
     robot = load_krang()
     joints = np.random.default_rng(11).uniform(robot.lower, robot.upper)
@@ -36,36 +71,16 @@ def test_a_balanced_pose_in_a_mass_model_out(tmp_path):
     point = BalancedPoint(3.0, q_base, joints, q_base_std=0.002, n_samples=100, window_s=2.0, **se)
     rclpy.init()
     try:
-        node = ComEstimatorNode(
-            parameter_overrides=[Parameter('output', value=str(tmp_path / 'beta.yaml'))]
-        )
-        peer = rclpy.create_node('peer')
-        models, points = [], []
-        peer.create_subscription(MassModel, names.BETA, models.append, topics.QOS[names.BETA])
-        peer.create_subscription(PointStamped, names.COM, points.append, topics.QOS[names.COM])
-        pub = peer.create_publisher(
-            BalancedPose, names.BALANCED_POSE, topics.QOS[names.BALANCED_POSE]
-        )
-        executor = SingleThreadedExecutor()
-        executor.add_node(node)
-        executor.add_node(peer)
-
-        def spin_until(condition, seconds=10.0):
-            end = time.monotonic() + seconds
-            while not condition() and time.monotonic() < end:
-                executor.spin_once(timeout_sec=0.02)
-
-        spin_until(lambda: models and pub.get_subscription_count())
+        est = EstimatorPeer(tmp_path)
+        node, models, points = est.node, est.models, est.points
         incomplete = messages.balanced_pose(messages.stamp(2.0), robot.pose_joints[1:], point)
         incomplete.positions = incomplete.positions[1:]
-        pub.publish(incomplete)
-        pub.publish(messages.balanced_pose(messages.stamp(3.0), robot.pose_joints, point))
-        spin_until(lambda: len(models) >= 2 and points)
-        spin_until(lambda: False, 0.3)  # nothing more comes
+        est.pub.publish(incomplete)
+        est.pub.publish(messages.balanced_pose(messages.stamp(3.0), robot.pose_joints, point))
+        est.spin_until(lambda: len(models) >= 2 and points)
+        est.spin_until(lambda: False, 0.3)  # nothing more comes
         published = dict(node.get_publisher_names_and_types_by_node('com_estimator', '/'))
-        executor.shutdown()
-        node.destroy_node()
-        peer.destroy_node()
+        est.close()
     finally:
         rclpy.try_shutdown()
     assert node.rejected == 1 and len(models) == 2 and len(points) == 1
@@ -109,36 +124,17 @@ def test_points_read_while_moving_go_out_with_the_next_poses_beta(tmp_path):
         points.append(BalancedPoint(1.0 + k, q, joints, 0.002, 100, 1.0, se, in_motion=moving))
     rclpy.init()
     try:
-        node = ComEstimatorNode(
-            parameter_overrides=[Parameter('output', value=str(tmp_path / 'beta.yaml'))]
-        )
-        peer = rclpy.create_node('peer')
-        models = []
-        peer.create_subscription(MassModel, names.BETA, models.append, topics.QOS[names.BETA])
-        pub = peer.create_publisher(
-            BalancedPose, names.BALANCED_POSE, topics.QOS[names.BALANCED_POSE]
-        )
-        executor = SingleThreadedExecutor()
-        executor.add_node(node)
-        executor.add_node(peer)
-
-        def spin_until(condition, seconds=10.0):
-            end = time.monotonic() + seconds
-            while not condition() and time.monotonic() < end:
-                executor.spin_once(timeout_sec=0.02)
-
-        spin_until(lambda: models and pub.get_subscription_count())
+        est = EstimatorPeer(tmp_path)
+        node, models = est.node, est.models
         for p in points[:2]:
-            pub.publish(messages.balanced_pose(messages.stamp(p.t), robot.pose_joints, p))
-        spin_until(lambda: node.learner.moving_points == 2)
-        spin_until(lambda: False, 0.3)
+            est.pub.publish(messages.balanced_pose(messages.stamp(p.t), robot.pose_joints, p))
+        est.spin_until(lambda: node.learner.moving_points == 2)
+        est.spin_until(lambda: False, 0.3)
         before_rest = len(models)
-        pub.publish(messages.balanced_pose(messages.stamp(3.0), robot.pose_joints, points[2]))
-        spin_until(lambda: len(models) >= 2)
-        spin_until(lambda: False, 0.3)
-        executor.shutdown()
-        node.destroy_node()
-        peer.destroy_node()
+        est.pub.publish(messages.balanced_pose(messages.stamp(3.0), robot.pose_joints, points[2]))
+        est.spin_until(lambda: len(models) >= 2)
+        est.spin_until(lambda: False, 0.3)
+        est.close()
     finally:
         rclpy.try_shutdown()
     assert before_rest == 1 and len(models) == 2
