@@ -525,7 +525,7 @@ class BalanceController(OperatorRequests, PoseDesign):
             if mp.enabled:
                 if sample.joints_moving or sample.move_pending:
                     # where the observer puts the balance: theta = raw there
-                    mp.add(t, bp.raw - self._offset, sample.joints)
+                    mp.add(t, bp.raw - self._offset, sample.joints, sample.joints_moving)
                 elif mp.active:
                     moved = mp.end()
             if not held:

@@ -8,13 +8,17 @@ balance-point observer models that lean: its raw estimate of the CoM-angle error
 CoM offset at the joints of that moment, is its estimate of the true balance pitch, every step.
 Noisy step by step (several mrad), it is within about 1 mrad averaged over a second in the
 offline closed loop, except where the arms accelerate (the start of a move) and decelerate (its
-end), whose reaction the reduced model does not hold. Over the simulated node set it lags the
-moving joints (2.4-3.2 mrad), and a stick-slip drive chain moves it (3.4 mrad on MuJoCo's
-stiffest): off by default (docs/learning.md, "Points read while moving").
+end), whose reaction the reduced model does not hold. Averaged over a second it is 0.7-2.2 mrad
+rms off offline and 1.5-2.3 mrad over the simulated node set (docs/learning.md, "Points read while
+moving").
 
 ``MovePoints`` collects those estimates and the measured joints in bins of ``BIN_S`` while a move
 is under way, and when the move ends gives ``per_move`` points: window means of ``window_s``,
-spread evenly from ``head_s`` after the move's start to ``tail_s`` before its end.
+spread evenly over the stretches of steady motion. A stretch is a run of bins in each of which
+the joints moved (a bin in which they never did is a pause; a stop of a few tens of ms at each
+streamed setpoint is not); its windows start ``head_s`` after it starts and end ``tail_s`` before
+it ends. A move the pose server pauses is several stretches: the arms stop and start again inside
+it, and a window across a stop held their reaction (15.8 mrad off in the offline closed loop).
 Each is a ``BalancedPoint`` with ``in_motion`` set and ``sigma_rad`` as its standard error, so the
 learner weighs it below a point at rest. A move too short for one window gives none. The bins keep
 the cost per control step to a few additions and the work at the move's end to a few hundred bins.
@@ -41,18 +45,21 @@ class MovePointConfig:
     """Points read while moving (parameters ``move_points.*``); off with ``per_move`` 0."""
 
     per_move: int = field(
-        default=0, metadata={'doc': 'points read on each move, >= 0 (0 = none: rest points only)'}
+        default=3, metadata={'doc': 'points read on each move, >= 0 (0 = none: rest points only)'}
     )
     window_s: float = field(
         default=1.0, metadata={'doc': "each point's averaging window, s (a multiple of 0.1)"}
     )
     head_s: float = field(
         default=2.0,
-        metadata={'doc': "no window starts within this of a move's start, s (arms accelerate)"},
+        metadata={
+            'doc': 'no window starts within this of the start of a stretch of steady motion, s '
+            '(the arms accelerate)'
+        },
     )
     tail_s: float = field(
         default=1.0,
-        metadata={'doc': "no window ends within this of the move's end, s (they decelerate)"},
+        metadata={'doc': 'no window ends within this of its end, s (they decelerate)'},
     )
     sigma_rad: float = field(
         default=1e-3,
@@ -84,14 +91,16 @@ class MovePoints:
         self._bin = -1
         self._sums = []  # per bin: [sum of estimates, sum of squares, count]
         self._joints = []  # per bin: sum of joints
+        self._moved = []  # per bin: the joints moved at one of its samples at least
 
     @property
     def active(self) -> bool:
         """A move is being collected."""
         return self._t0 is not None
 
-    def add(self, t: float, balance_pitch: float, joints) -> None:
-        """One control step of a move: the estimated balance pitch (rad), the measured joints."""
+    def add(self, t: float, balance_pitch: float, joints, moving: bool = True) -> None:
+        """One control step of a move: the estimated balance pitch (rad), the measured joints,
+        whether they move (False: the move is pending but the joints are still)."""
         if self._t0 is None:
             self._t0 = t
         if t - self._t0 > MAX_MOVE_S or not balance_pitch == balance_pitch:
@@ -101,7 +110,10 @@ class MovePoints:
         while self._bin < k:
             self._sums.append([0.0, 0.0, 0])
             self._joints.append(np.zeros(len(joints)))
+            self._moved.append(False)
             self._bin += 1
+        if moving:
+            self._moved[k] = True
         s = self._sums[k]
         s[0] += balance_pitch
         s[1] += balance_pitch * balance_pitch
@@ -114,17 +126,30 @@ class MovePoints:
         self.reset()
         return points
 
+    def _window_starts(self) -> list[int]:
+        """The first bins of the windows that fit the stretches of steady motion (see the module
+        docstring), in order."""
+        c, w = self.config, self._width
+        head = int(np.ceil(c.head_s / BIN_S - 1e-9))
+        tail = int(np.ceil(c.tail_s / BIN_S - 1e-9))
+        end = int((self._t_last - self._t0) / BIN_S + 1e-9)  # one past the move's last full bin
+        starts, first = [], 0
+        for b in range(end + 1):
+            if b == end or (self._sums[b][2] and not self._moved[b]):  # a bin of a pause
+                starts += range(first + head, b - tail - w + 1)
+                first = b + 1
+        return starts
+
     def _points(self) -> list[BalancedPoint]:
         c, w = self.config, self._width
-        first = int(np.ceil(c.head_s / BIN_S - 1e-9))  # the first bin a window may hold
-        last = int((self._t_last - self._t0 - c.tail_s) / BIN_S + 1e-9)  # one past the last
-        if last - first < w:
+        candidates = self._window_starts()
+        if not candidates:
             return []
         counts = np.array([s[2] for s in self._sums], float)
         per_bin = np.median(counts[counts > 0]) if np.any(counts > 0) else 0.0
-        starts = np.round(np.linspace(first, last - w, c.per_move)).astype(int)
+        picks = np.round(np.linspace(0, len(candidates) - 1, c.per_move)).astype(int)
         points = []
-        for b in dict.fromkeys(starts.tolist()):
+        for b in dict.fromkeys(candidates[i] for i in picks.tolist()):
             sums = self._sums[b : b + w]
             n = sum(s[2] for s in sums)
             if n == 0 or n < MIN_COVERAGE * per_bin * w:

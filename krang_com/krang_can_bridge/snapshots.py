@@ -71,6 +71,7 @@ class ModuleState:
     position: float | None = None  # module coordinates
     velocity: float | None = None
     short_state: int | None = None
+    position_at: float | None = None  # when the position was read (the bridge's clock)
 
 
 @dataclass

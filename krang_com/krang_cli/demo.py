@@ -100,7 +100,8 @@ def register(subparsers):
         default=None,
         metavar='N',
         help='points the controller reads on each move besides the one at rest (its '
-        'move_points.per_move, off by default: docs/learning.md, "Points read while moving")',
+        'move_points.per_move, default 3; 0: points at rest only; docs/learning.md, "Points '
+        'read while moving")',
     )
     p.add_argument(
         '--processes',

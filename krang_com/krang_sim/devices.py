@@ -16,7 +16,8 @@ notices the silence.
 
 from __future__ import annotations
 
-from typing import Mapping, Sequence
+import functools
+from typing import Callable, Mapping, Sequence
 
 import can
 
@@ -137,6 +138,19 @@ class KrangCanDevices:
             for j, mods in self.joint_modules.items()
         }
 
+    def read_joints_from(self, joints: Callable[[], Mapping[str, float]] | None) -> None:
+        """The modules' encoders read the joint angles `joints()` gives (rad, by joint; a
+        simulator's plant through its sensor model), asked at each poll; None: each module
+        reports its own motion profile. A module's servo trails its profile under load, and the
+        encoder reads the joint, not the profile."""
+        for joint, mods in self.joint_modules.items():
+            for m, em in mods:
+                em.encoder = (
+                    None
+                    if joints is None
+                    else functools.partial(_module_angle, joints, joint, m.sign)
+                )
+
     def joint_velocities(self) -> dict[str, float]:
         return {
             j: sum(m.sign * em.velocity for m, em in mods) / len(mods)
@@ -186,3 +200,7 @@ class KrangCanDevices:
     def imu_frames_from_pitch(self, pitch: float, pitch_rate: float, **kwargs) -> list[BusFrame]:
         frames = self.imu.frames_from_pitch(pitch, pitch_rate, **kwargs)
         return [BusFrame(self.config.imu.bus, m) for m in self._unless_silent('imu', frames)]
+
+
+def _module_angle(joints, joint: str, sign: float) -> float:
+    return sign * joints()[joint]

@@ -27,7 +27,7 @@ assumption):
 from __future__ import annotations
 
 import math
-from typing import Sequence
+from typing import Callable, Sequence
 
 import can
 import canopen
@@ -307,7 +307,12 @@ class DmuImuEmulator:
 
 
 class PowerCubeEmulator:
-    """One kinematic PowerCube module in module coordinates [rad, rad/s]."""
+    """One kinematic PowerCube module in module coordinates [rad, rad/s].
+
+    ``position`` and ``velocity`` are the module's motion profile, which its servo follows. What
+    it reports as its position (``ACT_FPOS`` and the motion replies) is its encoder: the profile
+    itself, or, when a simulator with joint dynamics sets ``encoder`` (a callable), that joint's
+    angle, which trails the profile under load as a real module's does."""
 
     def __init__(
         self,
@@ -337,6 +342,13 @@ class PowerCubeEmulator:
         self.error = False
         self.params: dict[int, float | int] = {}
         self.malformed = 0
+        self.encoder: Callable[[], float] | None = None
+
+    @property
+    def measured_position(self) -> float:
+        """What the module's encoder reads: the joint if a simulator gives it, else the
+        profile."""
+        return self.position if self.encoder is None else self.encoder()
 
     @classmethod
     def from_config(cls, joint: BodyJointConfig, module: PowerCubeModuleConfig, q: float = 0.0):
@@ -382,8 +394,9 @@ class PowerCubeEmulator:
 
     # ---- protocol -------------------------------------------------------------------------------
     def _param_value(self, param: int) -> float | int | None:
+        if param == pc.ACT_FPOS:
+            return self.measured_position  # (read only when asked: a simulator's joint)
         values = {
-            pc.ACT_FPOS: self.position,
             pc.ACT_FVEL: self.velocity,
             pc.MIN_FPOS: self.min_position,
             pc.MAX_FPOS: self.max_position,
@@ -453,7 +466,7 @@ class PowerCubeEmulator:
                 )
             else:
                 self.mode, self.commanded_current, self.velocity = 'current', req.value, 0.0
-        return [pc.reply_motion(mid, req.selector, self.position, self.short_state())]
+        return [pc.reply_motion(mid, req.selector, self.measured_position, self.short_state())]
 
     def step(self, dt: float) -> bool:
         """Advance the module by dt seconds within its velocity and acceleration limits; whether

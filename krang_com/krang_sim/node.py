@@ -233,6 +233,11 @@ class SimKrangNode(Node):
             initial_joint_positions=dict(zip(self.robot.pose_joints, pose)),
         )
         self._command_joints()  # the modules clamp the pose to their limits
+        self.k = 0  # physics steps taken
+        # the modules' encoders read the plant's joints (its servos trail the modules' profiles)
+        self._encoders_at = -1
+        self._encoders: dict[str, float] = {}
+        self.devices.read_joints_from(self._joint_encoders)
         self.lock = threading.Lock()
         self.sent_frames = 0
         self._warn_send = Throttled(self.get_logger().warning, 5.0)
@@ -297,7 +302,6 @@ class SimKrangNode(Node):
         if silent:
             self.silence(silent)
         self.add_on_set_parameters_callback(self.on_parameters)
-        self.k = 0  # physics steps taken
         self.answer_due = None  # the step from which the answer to the last sample acts
         self.thread = None
         if pump is None:
@@ -382,6 +386,15 @@ class SimKrangNode(Node):
                 self.sent_frames += 1
             except can.CanError as err:
                 self._warn_send(f'send on {frame.bus} failed: {err}')
+
+    def _joint_encoders(self) -> dict[str, float]:
+        """The body joints as their encoders read them now (a module's poll, with self.lock
+        held): the plant's joints through the sensor model, once per physics step."""
+        if self._encoders_at != self.k:
+            joints = self.sensor_model.joint_encoders(self.sim.joints)
+            self._encoders = dict(zip(self.robot.pose_joints, joints.tolist()))
+            self._encoders_at = self.k
+        return self._encoders
 
     def _command_joints(self):
         joints = self.devices.joint_positions()

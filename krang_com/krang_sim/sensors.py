@@ -160,6 +160,15 @@ class SensorModel:
             round(motion.wheel_right * cpr) / cpr,
         ), (motion.wheel_left_rate, motion.wheel_right_rate)
 
+    def joint_encoders(self, joints) -> np.ndarray:
+        """What the body joints' encoders read of the true `joints` (rad, pose order): the offset
+        of ``joint_offsets`` and the encoders' noise."""
+        return (
+            joints
+            + self.joint_offset
+            + self.rng.normal(0.0, self.noise.joint_std_rad, len(joints))
+        )
+
     def dmu_inputs(self, motion):
         """What the DMU emulator is given (``frames_from_pitch``): the pitch the misaligned IMU
         sees, the pitch rate, and the specific force along the world's forward and up directions
@@ -190,11 +199,7 @@ class SensorModel:
         gyro = tuple(q(w + rng.normal(0.0, noise.gyro_std_rad_s), glsb) for w in gyro)
         force = tuple(q(f + rng.normal(0.0, noise.accel_std_m_s2), alsb) for f in force)
         (wl, wr), (dwl, dwr) = self.encoders(motion)
-        joints = (
-            motion.joints
-            + self.joint_offset
-            + rng.normal(0.0, noise.joint_std_rad, len(motion.joints))
-        )
+        joints = self.joint_encoders(motion.joints)
         il, ir = motion.applied_current
         return Sensors(motion.t, q_base, pitch_rate, gyro, force, wl, wr, dwl, dwr, joints, il, ir)
 

@@ -305,6 +305,35 @@ def test_malformed_and_unknown_frames_are_counted_and_survived():
     assert js['JLWheel'] == pytest.approx(math.pi) and js['JRWheel'] == pytest.approx(-math.pi)
 
 
+def test_a_moving_joint_is_reported_where_its_polled_speed_has_taken_it():
+    """A module speaks only when polled: between polls the bridge reports its joint advanced by
+    the polled speed, from the reading's time on and for at most one poll period."""
+    core, dev, t = healthy_core()
+    (jt,) = [j for j in CFG.powercube.joints if j.joint == 'JTorso']
+    (mod,) = jt.modules
+    q, v = 0.3, 0.25  # joint coordinates
+    read = lambda sel, value: msg(  # noqa: E731
+        0x0A0 + mod.module_id, bytes([0x0A, sel]) + struct.pack('<f', mod.sign * value)
+    )
+    core.on_frame(read(0x3C, q), t, mod.bus)
+    core.on_frame(read(0x41, v), t + 0.001, mod.bus)
+    period = 1.0 / CFG.powercube.poll_rate_hz
+
+    def torso(now):
+        js = core.joint_state(now)
+        return dict(zip(js.names, js.positions))['JTorso']
+
+    assert torso(t) == pytest.approx(q, abs=1e-6)
+    assert torso(t + 0.02) == pytest.approx(q + 0.02 * v, abs=1e-6)
+    assert torso(t + 5 * period) == pytest.approx(q + period * v, abs=1e-6)  # no further
+    core.on_frame(read(0x41, 0.0), t + 0.03, mod.bus)  # it stopped
+    assert torso(t + 0.04) == pytest.approx(q, abs=1e-6)
+    # a silent module is held where it was last read
+    core.on_frame(read(0x41, v), t + 0.05, mod.bus)
+    late = t + CFG.powercube.silence_timeout_s + 0.1
+    assert torso(late) == pytest.approx(q, abs=1e-6)
+
+
 def test_imu_state_and_stream_toggle():
     core, dev, t = healthy_core()
     imu = core.imu_state()

@@ -98,3 +98,39 @@ def test_same_seed_same_states_to_the_bit(tmp_path):
     t3, state3, _ = balance(tmp_path / 'c', seed=4)
     assert t1 == t2 and np.array_equal(state1, state2) and currents1 == currents2
     assert not np.array_equal(state1, state3)  # the noise matters: the check could fail
+
+
+def test_the_bridge_reads_the_plants_joints_through_their_encoders(tmp_path):
+    """The modules report the plant's joints as the sensor model's encoders read them (an encoder
+    offset of the true robot included), not the modules' own motion profiles, which the plant
+    follows."""
+    next_ros_domain()
+    devices = str(session_devices_file(tmp_path, virtual=True))
+    composed = ComposedSimulation(
+        {
+            'sim_krang': {
+                'devices_file': devices,
+                'plant': 'mujoco',
+                'effects': ['encoder_offset@JWaist=0.02'],
+            },
+            'can_bridge': {'devices_file': devices},
+        }
+    )
+    try:
+        client = composed.session_client()
+        client.enable_controller(timeout=60.0)
+        client.wait_for_balance(timeout=60.0)
+        client.pause(0.5)
+        sim = composed.sim
+        with sim.lock:
+            plant = dict(zip(sim.robot.pose_joints, sim.sim.joints))
+            profile = sim.devices.joint_positions()
+        js = composed.nodes['can_bridge'].core.joint_state()
+        reported = dict(zip(js.names, js.positions))
+        assert reported['JWaist'] == pytest.approx(plant['JWaist'] + 0.02, abs=1e-3)
+        assert reported['JWaist'] == pytest.approx(profile['JWaist'] + 0.02, abs=1e-3)
+        for joint in sim.robot.pose_joints:
+            if joint != 'JWaist':
+                assert reported[joint] == pytest.approx(plant[joint], abs=1e-3), joint
+    finally:
+        composed.close()

@@ -277,6 +277,33 @@ def test_emulated_joint_states_and_position_commands():
         ), waist_modules()
 
 
+def test_modules_report_the_joints_a_simulator_gives_not_their_profile():
+    """A simulator with joint dynamics (its servos trail the modules' profiles) hands the modules
+    its joints: the bridge then decodes those, through both waist modules, while the profile is
+    where it was."""
+    joints = {'JWaist': 0.7, 'JTorso': -0.2, 'LJ2': 1.25}
+    with Rig(initial_joint_positions={'JWaist': 1.0}) as rig:
+
+        def decoded():
+            js = rig.core.joint_state()
+            return dict(zip(js.names, js.positions))
+
+        assert wait_for(lambda: decoded().get('JWaist') == pytest.approx(1.0, abs=1e-6))
+        with rig.lock:
+            rig.devices.read_joints_from(
+                lambda: {j: joints.get(j, -0.05) for j in rig.cfg.body_joint_names}
+            )
+        assert wait_for(
+            lambda: all(decoded().get(j) == pytest.approx(q, abs=1e-6) for j, q in joints.items())
+        ), decoded()
+        assert decoded()['RJ1'] == pytest.approx(-0.05, abs=1e-6)
+        waist = [em.position for _, em in rig.devices.joint_modules['JWaist']]
+        assert waist == pytest.approx([1.0, -1.0], abs=1e-9)  # the profiles did not move
+        with rig.lock:
+            rig.devices.read_joints_from(None)
+        assert wait_for(lambda: decoded()['JWaist'] == pytest.approx(1.0, abs=1e-6))
+
+
 def test_emulated_imu_is_decoded_to_the_pitch_put_in():
     with Rig(pitch=-1.76) as rig:
         assert wait_for(lambda: rig.core.imu_state() is not None and rig.core.imu_state().ready)

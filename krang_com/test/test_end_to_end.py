@@ -14,6 +14,9 @@ import numpy as np
 import pytest
 
 from conftest import REPO
+from krang_adrc_controller.move_points import MovePointConfig
+from krang_bag.relearn import balanced_poses
+from krang_model.robot import load_krang
 from krang_cli.relearn import REPRODUCTION_TOLERANCE
 
 # In the default run: two demos (DEMO_POSES poses, then one) of about 20 and 12 s on the 2-core
@@ -56,7 +59,6 @@ def test_online_session_learns_and_reduces_the_com_error(demo):
     # 1.4 mm (three to 1.3 mm); the detector's 1-3 mrad leave it well below half
     assert summary['com_error_after_m'] < 0.5 * summary['com_error_before_m']
     from krang_model.beta import load_beta
-    from krang_model.robot import load_krang
 
     robot = load_krang()
     learned = load_beta(out / 'beta.yaml', robot)
@@ -81,9 +83,13 @@ def test_bag_is_read_identically_by_rosbags_and_mcap_ros2(demo):
         rosbags_counts = Counter(conn.topic for conn, _, _ in reader.messages())
     assert mcap_counts == rosbags_counts
     # what the session saw published: the initial beta plus one per learned pose, one balanced pose
-    # each
+    # at rest each and the points read on its move
     assert mcap_counts['/com_estimator/beta'] == 1 + summary['poses']
-    assert mcap_counts['/balanced_pose'] == summary['poses']
+    points = balanced_poses(bag, load_krang())
+    assert sum(not p[3] for p in points) == summary['poses']
+    per_move = MovePointConfig().per_move
+    assert 0 < sum(p[3] for p in points) <= per_move * summary['poses']
+    assert mcap_counts['/balanced_pose'] == len(points)
     for topic in (
         '/joint_states',
         '/imu/data',
@@ -127,7 +133,6 @@ def test_same_seed_learns_the_same_beta(demo, tmp_path):
     again = run_demo(tmp_path, '--poses', '1')
     from krang_bag.reader import iter_messages
     from krang_model.beta import load_beta
-    from krang_model.robot import load_krang
 
     robot = load_krang()
     published = [m for _, _, m in iter_messages(out / 'session.mcap', ['/com_estimator/beta'])]

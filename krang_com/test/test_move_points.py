@@ -13,15 +13,16 @@ from krang_sim.truths import generate_truth
 RATE = 500.0
 
 
-def feed(points, t0, duration, estimate, joints, skip=None):
-    """Feed a move of `duration` s at RATE: estimate(t), joints(t); `skip(t)` drops samples.
-    Returns the samples fed, (t, estimate, joints) arrays."""
+def feed(points, t0, duration, estimate, joints, skip=None, moving=None):
+    """Feed a move of `duration` s at RATE: estimate(t), joints(t); `skip(t)` drops samples,
+    `moving(t)` says whether the joints move (default: always). Returns the samples fed,
+    (t, estimate, joints) arrays."""
     ts = t0 + np.arange(int(round(duration * RATE)) + 1) / RATE
     kept = [t for t in ts if skip is None or not skip(t)]
     est = np.array([estimate(t) for t in kept])
     jts = np.array([joints(t) for t in kept])
     for t, e, j in zip(kept, est, jts):
-        points.add(float(t), float(e), j)
+        points.add(float(t), float(e), j, True if moving is None else moving(t))
     return np.array(kept), est, jts
 
 
@@ -53,8 +54,32 @@ def test_windows_lie_inside_the_move_and_hold_the_means_of_their_samples():
     assert got[-1].t == pytest.approx(t0 + duration - 1.0, abs=BIN_S)
 
 
+def test_windows_keep_clear_of_a_pause_in_the_move():
+    """A paused move is two stretches of motion: each window lies head_s after a start and
+    tail_s before a stop of the joints, and none holds a sample of the pause."""
+    cfg = MovePointConfig(per_move=4, window_s=1.0, head_s=2.0, tail_s=1.0)
+    mp = MovePoints(cfg)
+    t0, pause = 5.0, (5.0, 6.5)  # the joints still from 5 to 6.5 s into a 12 s move
+    still = lambda t: pause[0] <= t - t0 < pause[1]  # noqa: E731
+    estimate = lambda t: 1.0 if pause[0] - 1.0 <= t - t0 < pause[1] + 2.0 else 0.0  # noqa: E731
+    feed(mp, t0, 12.0, estimate, lambda t: np.zeros(16), moving=lambda t: not still(t))
+    got = mp.end()
+    assert len(got) == 4
+    for p in got:
+        lo, hi = p.t - p.window_s - t0, p.t - t0
+        assert hi <= pause[0] - 1.0 + 1e-9 or lo >= pause[1] + 2.0 - BIN_S - 1e-9, (lo, hi)
+        assert p.q_base == 0.0  # no sample of the stop, the pause or the restart
+    assert got[0].t - got[0].window_s == pytest.approx(t0 + 2.0)
+    assert got[-1].t == pytest.approx(t0 + 11.0, abs=BIN_S)
+    # joints that stop for a moment at each streamed setpoint (20 Hz) move steadily
+    feed(mp, 0.0, 9.0, lambda t: 0.0, lambda t: np.zeros(16), moving=lambda t: (20 * t) % 1 < 0.6)
+    assert len(mp.end()) == 4
+    # stretches too short for a window give none
+    feed(mp, 0.0, 12.0, lambda t: 0.0, lambda t: np.zeros(16), moving=lambda t: t % 3.5 < 3.0)
+    assert mp.end() == []
+
+
 def test_short_moves_gaps_and_a_reset_give_no_points():
-    assert MovePointConfig().per_move == 0  # off unless asked for (docs/learning.md says why)
     cfg = MovePointConfig(per_move=3)
     mp = MovePoints(cfg)
     feed(mp, 0.0, 3.9, lambda t: 0.0, lambda t: np.zeros(16))  # < head + window + tail
