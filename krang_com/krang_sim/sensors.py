@@ -4,7 +4,8 @@ and when the drives apply what they were asked for.
 Every plant (``krang_sim.plant``) gives its true ``Motion``; ``SensorModel`` turns it into what
 the robot's devices report, for the offline closed loop (``control_sample``: the controller's
 sample, the hot path) and for the CAN device emulators of ``sim_krang`` (``encoders``,
-``dmu_inputs``; the DMU emulator adds this model's noise and quantises with the DBC's scales). The
+``joint_encoders``, ``dmu_inputs``; the DMU emulator adds this model's noise and quantises with the
+DBC's scales). The
 resolutions are the hardware's, read from their one source: the DMU's LSB scales from the DBC
 (``krang_can_bridge.protocols.dmu_imu.DmuCodec``), the wheel encoders' counts per radian from the
 device map (config/can_devices.yaml). The sensor-side terms of ``krang_model.effects.ModelTerms``
