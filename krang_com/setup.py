@@ -23,6 +23,7 @@ setup(
         'ros-jazzy-rclpy[fastrtps]',
         'ros-jazzy-common-interfaces',
         'numpy',
+        'numba',  # krang_model.wip_batch: the discrepancy replay's compiled batch integrator
         'scipy',
         'pin',
         'control',

@@ -119,8 +119,9 @@ def write_report(
         f'viscous {model.drive.viscous_friction} N m s, Coulomb {model.drive.coulomb_friction} N '
         f'm. '
         f'Replay: {replay.horizon:.3g} s predictions from every measured state (stride '
-        f'{replay.cfg.stride_s} s), {len(replay.eval_steps)} comparison points, sub-step '
-        f'{replay.substep * 1e3:.2f} ms; fitting phases: {", ".join(replay.phases)}.\n'
+        f'{replay.stride_s:.3g} s{_widened(replay)}), {len(replay.eval_steps)} comparison '
+        f'points, sub-step {replay.substep * 1e3:.2f} ms; fitting phases: '
+        f'{", ".join(replay.phases)}.\n'
     )
     L.append('## 1. Where the model and the data disagree (nominal model)\n')
     for s in loc.summary:
@@ -366,4 +367,15 @@ def ambiguity(result) -> str:
         'Runner-up explanations and how well the data separate them from the selected one: '
         + '; '.join(msgs)
         + '. t >= 3 means the data distinguish them.'
+    )
+
+
+def _widened(replay) -> str:
+    """Why the stride is wider than asked, if it is."""
+    cfg = replay.cfg
+    if replay.stride_s <= cfg.stride_s * (1 + 1e-9):
+        return ''
+    return (
+        f', widened from {cfg.stride_s:g} s: {replay.unwidened_windows} windows exceed the '
+        f'budget of {cfg.max_total_windows} (--max-windows)'
     )

@@ -12,10 +12,9 @@ Why short horizons (multiple shooting) and not one long rollout
     compares the predicted signals with the measured ones along the horizon. Errors cannot compound
     across windows; a missing effect shows up as a systematic prediction error.
 
-The model is ``krang_model.wip.WipDynamics`` itself, stepped by its one integrator
-``step_pitch``: all windows and all parameter sets of a fit step at once, in place
-(``krang_model.wip.PitchBatch``: buffers, and sines and cosines carried between exact anchors), in
-cache-sized chunks on a few threads. The effects are those of
+The model is ``krang_model.wip``'s one statement of the equations and its one integrator,
+compiled over the batch (``krang_model.wip_batch.integrate``): all windows and all parameter sets
+of a fit step at once, in chunks on a few threads. The effects are those of
 ``krang_model.effects`` (``ModelTerms``); the commands reach the model as the drives apply them
 (``krang_model.drivetrain.HeldCommand``: held, delayed by the actuation delay). Poses are reduced
 with ``krang_model.wip.reduce_placements`` and payloads added with ``point_mass_beta``, as the
@@ -32,10 +31,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from krang_model.drivetrain import HeldCommand, stack
+from krang_model.drivetrain import HeldCommand
 from krang_model.effects import ModelTerms
 from krang_model.kinematics import body_placements
-from krang_model.wip import PitchBatch, WipBody, WipDynamics, point_mass_beta, reduce_placements
+from krang_model.wip import point_mass_beta, reduce_placements
+from krang_model.wip_batch import drive_table, integrate
 
 from .nominal import NominalModel
 from .phases import PHASES, label_phases
@@ -53,6 +53,10 @@ class ReplayConfig:
     pose_delay_s: float = 0.0  # the body follows the measured joints this much later
     caster_margin: float = 0.02  # windows that come this close to the caster pitch are 'sitting'
     max_windows: int = 4000  # per record (stride is widened beyond)
+    # over all records: the stride widens, for all of them alike, until they hold at most this
+    # many windows (0: no limit). 20 000 takes 30 min of 30 Hz logs (the Table II baseline) at a
+    # stride of 0.1 s, where every instant is still in three windows (docs/discrepancy.md §8)
+    max_total_windows: int = 20_000
     workers: int = 0  # threads of the prediction (0: the machine's cores, at most 4)
 
 
@@ -86,6 +90,7 @@ class Replay:
         self._recs = []
         starts, t_start, rec_id, phase, inits, meas = [], [], [], [], [], []
         self._h = None
+        strides = self._strides()
         for ri, rec in enumerate(self.records):
             h, n_steps, step_samples, eval_samples = self._grid(rec.period)
             if self._h is None:
@@ -100,8 +105,7 @@ class Replay:
             n_h = int(eval_samples[-1])
             eval_off = eval_samples
             labels = label_phases(rec, d.caster_pitch)
-            stride = max(1, int(round(cfg.stride_s / rec.period)))
-            ks = np.arange(0, len(rec) - n_h, stride)
+            ks = np.arange(0, len(rec) - n_h, strides[ri])
             if ks.size > cfg.max_windows:
                 ks = ks[np.linspace(0, ks.size - 1, cfg.max_windows).astype(int)]
             eval_off = np.round(np.linspace(n_h / cfg.n_eval, n_h, cfg.n_eval)).astype(int)
@@ -144,7 +148,7 @@ class Replay:
         self.select(phases)
         self.scales = None
         self.timing = {}
-        self.trig_anchor = 16  # exact sines and cosines every this many sub-steps (PitchBatch)
+        self.trig_anchor = 16  # exact sines and cosines every this many sub-steps (wip_batch)
         self.workers = cfg.workers or min(4, os.cpu_count() or 1)
 
     # ------------------------------------------------------------------ set-up helpers
@@ -168,6 +172,28 @@ class Replay:
         self.phases = tuple(phases)
         self.active = np.isin(self.win_phase, self.phases)
         return self.active
+
+    def _strides(self):
+        """Samples between window starts, per record: ``stride_s``, widened alike for every
+        record until they hold at most ``max_total_windows`` windows. ``stride_s`` (the
+        attribute) is the stride in seconds the windows start at."""
+        cfg = self.cfg
+
+        def windows(stride_s, to_int):
+            ks = [max(1, to_int(stride_s / r.period)) for r in self.records]
+            ends = [len(r) - int(self._grid(r.period)[3][-1]) for r in self.records]
+            return ks, sum(len(range(0, e, k)) for e, k in zip(ends, ks))
+
+        ks, total = windows(cfg.stride_s, lambda x: int(round(x)))
+        self.unwidened_windows = total
+        self.stride_s = cfg.stride_s
+        while cfg.max_total_windows and total > cfg.max_total_windows:
+            # from the stride the samples give (a whole number of them) to one that fits
+            wider = max(k * r.period for k, r in zip(ks, self.records))
+            wider *= total / cfg.max_total_windows
+            ks, total = windows(wider, lambda x: int(math.ceil(x - 1e-9)))
+            self.stride_s = max(k * r.period for k, r in zip(ks, self.records))
+        return ks
 
     def _grid(self, period):
         """(sub-step h, steps per horizon, samples per step, eval offsets in samples) for a
@@ -308,12 +334,11 @@ class Replay:
         states (P, S, J+1, 4) as measured channels.
 
         All P parameter sets step together; body variants (payloads, encoder offsets) and delays
-        are computed once per distinct value and gathered per step. The windows go in chunks
-        that keep (parameter sets x windows) below `max_elements`: the stepper's dozen working
-        arrays then stay in the processor's cache (per element and step about 20 ns of CPU at
-        16k-64k elements, 33 ns at 300k). The chunks run on ``workers`` threads (numpy releases
-        the interpreter lock in its array operations); every element's result is independent of
-        the chunk and the thread it runs in. So there is at least one chunk per worker when the
+        are computed once per distinct value and gathered per element. The windows go in chunks
+        that keep (parameter sets x windows) below `max_elements`, whose tables of body and
+        torque per sub-step stay in the processor's cache. The chunks run on ``workers`` threads
+        (the compiled loop releases the interpreter lock); every element's result is independent
+        of the chunk and the thread it runs in. So there is at least one chunk per worker when the
         batch is large enough (a single run's windows, one parameter set)."""
         t_start = time.perf_counter()
         if isinstance(terms_list, ModelTerms):
@@ -353,101 +378,86 @@ class Replay:
         return out
 
     def _prepare(self, terms_list) -> dict:
-        """What the chunks of one prediction share: the stacked drive trains, the distinct body
-        variants and delayed torques over all windows (computed here, in the calling thread, so
-        that the caches are only read by the workers)."""
-        drive = stack([tm.drive for tm in terms_list])  # shared fields stay floats
-        col = lambda name: np.array([getattr(tm, name) for tm in terms_list], float)[:, None]  # noqa: E731
-        ia, dl = col('inertia_add'), col('com_shift')
+        """What the chunks of one prediction share: the distinct body variants and delayed
+        torques over all windows (computed here, in the calling thread, so that the caches are
+        only read by the workers) and each set's index into them and its drive train."""
+        col = lambda name: np.array([float(getattr(tm, name)) for tm in terms_list])  # noqa: E731
         bkeys = [tm.body_key() for tm in terms_list]
         ukeys = list(dict.fromkeys(bkeys))
-        bidx = np.array([ukeys.index(k) for k in bkeys]) if len(ukeys) > 1 else None
         first = {k: terms_list[bkeys.index(k)] for k in ukeys}
         bodies = [self._body_arrays(first[k]) for k in ukeys]
         delays = [(tm.actuation_delay, tm.drive.current_limit) for tm in terms_list]
         udel = list(dict.fromkeys(delays))
-        extra = [tm.extra_forces for tm in terms_list]
+        nominal_kt = self.model.drive.torque_constant
         return {
-            'drive': drive,
             'bias': col('imu_pitch_bias'),
-            'ia': ia,
-            'dl': dl,
-            'adjust': bool(np.any(ia)) or bool(np.any(dl)),
+            'com_shift': col('com_shift'),
+            'inertia_add': col('inertia_add'),
             # applied / commanded torque: the commands were computed with the nominal Kt
-            't_scale': drive.torque_constant / self.model.drive.torque_constant,
-            'bidx': bidx,
+            't_scale': np.array([tm.drive.torque_constant / nominal_kt for tm in terms_list]),
+            'drive': drive_table([tm.drive for tm in terms_list]),
+            'mass': np.array([bd[0] for bd in bodies]),
             'bodies': bodies,
-            'mass': np.array([bd[0] for bd in bodies])[bidx if bidx is not None else [0]][:, None],
-            'didx': np.array([udel.index(d) for d in delays]) if len(udel) > 1 else None,
+            'bidx': np.array([ukeys.index(k) for k in bkeys], np.int64),
+            'didx': np.array([udel.index(d) for d in delays], np.int64),
             'torques': [self._torque_arrays(*d) for d in udel],
-            'extra': extra,
-            'any_extra': any(extra),
+            'extra': [tm.extra_forces for tm in terms_list],
         }
 
     def _predict_chunk(self, prep: dict, sel, trajectory=False):
-        """``predict`` on the windows `sel` (an index array)."""
-        P, S, J = len(prep['extra']), sel.size, self._n_steps
-        h = self._h
-        bias, bidx, didx = prep['bias'], prep['bidx'], prep['didx']
-        mass, t_scale, extra = prep['mass'], prep['t_scale'], prep['extra']
-        # distinct body variants: (J, n_u, S) arrays, gathered per step when n_u > 1
-        bodies = prep['bodies']
-        dist = np.stack([bd[1][sel].T for bd in bodies], axis=1)  # (J or 1, n_u, S)
-        off = np.stack([bd[2][sel].T for bd in bodies], axis=1)
-        inertia = np.stack([bd[3][sel].T for bd in bodies], axis=1)
-        jb_last = dist.shape[0] - 1
-        tq_u = np.stack([tq[sel].T for tq in prep['torques']], axis=1)  # (J, n_d, S)
+        """``predict`` on the windows `sel` (an index array): ``krang_model.wip_batch.integrate``
+        over all sub-steps at once, or sub-step by sub-step where a set has extra forces (Python
+        callables of the state)."""
+        extra = prep['extra']
+        P, S, J = len(extra), sel.size, self._n_steps
+        # (variants, windows, sub-steps): each window's sub-steps in one stretch of memory
+        table = lambda arrays: np.stack([a[sel] for a in arrays])  # noqa: E731
+        dist, offset, inertia = (table([bd[k] for bd in prep['bodies']]) for k in (1, 2, 3))
+        torque = table(prep['torques'])
         # initial state (true pitch = measured - bias)
         x0 = self.init[sel]
-        qb = x0[:, 0][None] - bias + np.zeros((P, 1))
-        dqb = x0[:, 1][None] + np.zeros((P, 1))
-        phi = qb + x0[:, 2][None]
-        dphi = dqb + x0[:, 3][None]
-        out = np.empty((P, S, len(self.eval_steps), 4))
-        traj = np.empty((P, S, J + 1, 4)) if trajectory else None
+        state = np.empty((P, S, 4))
+        state[..., 1] = x0[:, 0][None] - prep['bias'][:, None]
+        state[..., 3] = x0[:, 1]
+        state[..., 0] = state[..., 1] + x0[:, 2]
+        state[..., 2] = state[..., 3] + x0[:, 3]
+        trig = np.zeros((P, S, 2))
+        steps = np.arange(J + 1) if trajectory else self.eval_steps
+        slot = np.full(J + 1, -1, np.int64)
+        slot[steps] = np.arange(steps.size)
+        rec = np.empty((P, S, steps.size, 4))
         if trajectory:
-            traj[:, :, 0] = np.stack([qb + bias, dqb, phi - qb, dphi - dqb], axis=-1)
-        e_index = {int(s): i for i, s in enumerate(self.eval_steps)}
-        stepper = PitchBatch((P, S), self.trig_anchor)
-        dyn = None
-        for j in range(J):
-            jb = j if j < jb_last else jb_last
-            if j == 0 or jb == j:  # the body moves (or the first step)
-                pick = (lambda a: a[jb]) if bidx is None else (lambda a: a[jb][bidx])  # noqa: E731
-                body = WipBody(
-                    mass=mass,
-                    com_distance=pick(dist),
-                    com_offset=pick(off),
-                    inertia_axle=pick(inertia),
+            rec[:, :, 0] = state
+        f_phi, f_qbase = np.zeros((P, S)), np.zeros((P, S))
+        args = (
+            *(self._h, self.trig_anchor, prep['mass'], dist, offset, inertia, prep['bidx']),
+            *(torque, prep['didx'], prep['t_scale'], prep['com_shift'], prep['inertia_add']),
+            prep['drive'],
+        )
+        if not any(extra):
+            integrate(state, trig, 0, J, *args, f_phi, f_qbase, slot, rec)
+        for j in range(J) if any(extra) else ():
+            jb = min(j, dist.shape[2] - 1)
+            for p, forces in enumerate(extra):
+                u, qb = prep['bidx'][p], state[p, :, 1]
+                st = _State(
+                    *(state[p, :, 0], qb, state[p, :, 2], state[p, :, 3], qb + offset[u, :, jb]),
+                    torque[prep['didx'][p], :, j] * prep['t_scale'][p],
+                    self.sub_t[sel, j],
                 )
-                if prep['adjust']:
-                    body = body.adjusted(com_shift=prep['dl'], inertia_add=prep['ia'])
-                dyn = WipDynamics(body, prep['drive']) if dyn is None else dyn.with_body(body)
-                stepper.set_dynamics(dyn)
-            tau = (tq_u[j] if didx is None else tq_u[j][didx]) * t_scale
-            f_phi = f_qbase = None
-            if prep['any_extra']:
-                f_phi, f_qbase = np.zeros((P, S)), np.zeros((P, S))
-                theta = qb + body.com_offset
-                tau_p = np.broadcast_to(tau, qb.shape)
-                for p, fl in enumerate(extra):
-                    st = _State(
-                        phi[p], qb[p], dphi[p], dqb[p], theta[p], tau_p[p], self.sub_t[sel, j]
-                    )
-                    for fn in fl:
-                        a1, a2 = fn(st)
-                        f_phi[p] += a1
-                        f_qbase[p] += a2
-            stepper.step(phi, qb, dphi, dqb, tau, h, f_phi, f_qbase)
-            if trajectory:
-                traj[:, :, j + 1] = np.stack([qb + bias, dqb, phi - qb, dphi - dqb], axis=-1)
-            e = e_index.get(j + 1)
-            if e is not None:
-                out[:, :, e, 0] = qb + bias
-                out[:, :, e, 1] = dqb
-                out[:, :, e, 2] = phi - qb
-                out[:, :, e, 3] = dphi - dqb
-        return (out, traj) if trajectory else out
+                f_phi[p], f_qbase[p] = 0.0, 0.0
+                for fn in forces:
+                    a1, a2 = fn(st)
+                    f_phi[p] += a1
+                    f_qbase[p] += a2
+            integrate(state, trig, j, j + 1, *args, f_phi, f_qbase, slot, rec)
+        # measured channels: pitch (+ bias), pitch rate, wheel relative to the body, its rate
+        out = np.empty_like(rec)
+        out[..., 0] = rec[..., 1] + prep['bias'][:, None, None]
+        out[..., 1] = rec[..., 3]
+        out[..., 2] = rec[..., 0] - rec[..., 1]
+        out[..., 3] = rec[..., 2] - rec[..., 3]
+        return (out[:, :, self.eval_steps], out) if trajectory else out
 
     def residuals(self, terms_list, windows=None):
         """measured - predicted, (P, S, E, 4)."""

@@ -1,11 +1,12 @@
 """The robot as a wheeled inverted pendulum: reduction of locked poses, dynamics, linearisation.
 
-This module is the one statement of the WIP physics. The reduced plant (krang_sim.reduced_plant),
-the controller's design (``linearize``), the discrepancy replay and its named effects
-(krang_model.effects) all evaluate ``WipDynamics.pitch_accelerations`` and step it with its one
-integrator, ``step_pitch`` (the replay's large batches in place, through ``PitchBatch``, which
-holds buffers and trigonometry and no physics); a new physical term is added here (its parameter
-in ``krang_model.drivetrain.Drivetrain``, its line in ``pitch_accelerations``) and nowhere else.
+This module is the one statement of the WIP physics: ``pitch_equations`` (the accelerations),
+``body_terms`` (their coefficients) and ``semi_implicit_euler`` (the one integrator). The reduced
+plant (krang_sim.reduced_plant), the controller's design (``linearize``) and the named effects
+(krang_model.effects) evaluate them through ``WipDynamics``; the discrepancy replay runs the same
+functions compiled over its large batches (``krang_model.wip_batch``). A new physical term is
+added here (its parameter in ``krang_model.drivetrain.Drivetrain``, its line in
+``pitch_equations``) and nowhere else.
 
 With the body joints locked the robot is one rigid body on two wheels. Its state is the
 ground-referenced wheel angle phi (x = r phi, as the hardware's "x_wheel = encoders + IMU
@@ -25,9 +26,8 @@ torques and tau_c the wheels' Coulomb friction.
 
 Broadcasting. Every field of a ``WipBody`` and of a ``Drivetrain`` may be a float or a numpy array,
 and so may the state and the torques: a batch of poses, of parameter sets (one per row of a fit)
-and of states steps in one call. Python floats take the ``math`` path, which keeps one simulator
-step near a microsecond; arrays take the numpy path, in place in ``PitchBuffers``. Both paths run
-the same lines.
+and of states steps in one call. The equations are written with operators and ``smooth_sign``
+alone (no branches), so floats, arrays and the compiled batch run the same lines.
 """
 
 import copy
@@ -66,13 +66,12 @@ class WipBody:
     def adjusted(self, com_shift=0.0, inertia_add=0.0):
         """The body with its CoM moved `com_shift` (m) farther from the axle along its direction
         (a point-mass shift: M l -> M (l + dl), I += M ((l + dl)^2 - l^2)) and `inertia_add`
-        (kg m^2) more inertia about the axle: the named effects com_height and body_inertia."""
-        dist, m = self.com_distance, self.mass
-        return replace(
-            self,
-            com_distance=dist + com_shift,
-            inertia_axle=self.inertia_axle + inertia_add + m * com_shift * (2 * dist + com_shift),
+        (kg m^2) more inertia about the axle (``adjusted_body``): the named effects com_height
+        and body_inertia."""
+        dist, inertia = adjusted_body(
+            self.mass, self.com_distance, self.inertia_axle, com_shift, inertia_add
         )
+        return replace(self, com_distance=dist, inertia_axle=inertia)
 
 
 def reduce_poses(robot, joints, beta):
@@ -165,44 +164,109 @@ def point_mass_beta(robot, beta, body, point, kg):
 _ndarray = np.ndarray
 
 
-def _nonzero(x):
-    return bool(np.any(x)) if isinstance(x, np.ndarray) else x != 0.0
+def smooth_sign(x):
+    """tanh(x), the Coulomb friction's smoothing of its sign (compiled, ``wip_batch`` runs a tanh
+    that SIMD lanes can take, within a few ulp of this one)."""
+    return np.tanh(x) if isinstance(x, _ndarray) else math.tanh(x)
 
 
-class PitchBuffers:
-    """The work arrays of ``WipDynamics``'s pitch equations and integrator for one shape: given
-    as ``out``, every intermediate and result is written into them and nothing is allocated.
-    ``sin_theta`` ... ``cos_tilt`` hold the exact sines and cosines of the last evaluation that
-    computed them (``trig``: the four it used); ``a``-``d`` are scratch, ``m12`` the mass
-    matrix's coupling, ``f1``/``f2`` the generalised forces and then the accelerations, ``inc``
-    the last step's pitch increment, ``mask`` the caster contact."""
+def body_terms(
+    mass,
+    com_distance,
+    inertia_axle,
+    wheel_mass,
+    wheel_radius,
+    wheel_inertia,
+    rotor,
+    gravity,
+    sin_slope,
+):
+    """The pitch equations' coefficients of a body on a drive train: (m11, M r l, m22, m11 m22,
+    M g l, the slope's grade torque), rotor = J the reflected rotor inertia. Floats, arrays or
+    compiled, like ``pitch_equations``."""
+    m11 = (mass + wheel_mass) * (wheel_radius * wheel_radius) + wheel_inertia + rotor
+    mrl = mass * wheel_radius * com_distance
+    m22 = inertia_axle + rotor
+    mgl = mass * gravity * com_distance
+    grade = (mass + wheel_mass) * gravity * wheel_radius * sin_slope
+    return m11, mrl, m22, m11 * m22, mgl, grade
 
-    __slots__ = (
-        *('shape', 'trig', 'sin_theta', 'cos_theta', 'sin_tilt', 'cos_tilt'),
-        *('a', 'b', 'c', 'd', 'm12', 'f1', 'f2', 'inc', 'mask'),
-    )
 
-    def __init__(self, shape):
-        self.shape = tuple(shape)
-        self.trig = None
-        for name in self.__slots__[2:-1]:
-            setattr(self, name, np.empty(self.shape))
-        self.mask = np.empty(self.shape, bool)
+def adjusted_body(mass, com_distance, inertia_axle, com_shift, inertia_add):
+    """(com distance, inertia about the axle) with the CoM moved `com_shift` (m) farther from the
+    axle along its direction (a point-mass shift: M l -> M (l + dl), I += M ((l + dl)^2 - l^2))
+    and `inertia_add` (kg m^2) more inertia: the named effects com_height and body_inertia."""
+    inertia = inertia_axle + inertia_add + mass * com_shift * (2 * com_distance + com_shift)
+    return com_distance + com_shift, inertia
+
+
+def caster_torque(q_base, dq_base, caster_pitch, stiffness, damping):
+    """The caster's unilateral penalty torque on the body (zero out of contact, never pulling)."""
+    pen = caster_pitch - q_base
+    torque = pen * stiffness - dq_base * damping
+    return torque * (pen > 0.0) * (torque > 0.0)
+
+
+def pitch_equations(
+    q_base,
+    dphi,
+    dq_base,
+    tau,
+    f_phi,
+    f_qbase,
+    sin_theta,
+    sin_tilt,
+    cos_tilt,
+    m11,
+    mrl,
+    m22,
+    m11m22,
+    mgl,
+    grade,
+    rotor,
+    viscous,
+    coulomb,
+    ground,
+    caster_pitch,
+    caster_stiffness,
+    caster_damping,
+):
+    """(phi'', q_base'') of the module docstring's equations: the one statement of the pitch
+    physics. Operators and ``smooth_sign`` only, no branches, so the same lines run on floats
+    (a simulator step), on numpy arrays (a batch) and compiled (``krang_model.wip_batch``).
+    theta is the CoM angle from vertical, tilt = theta + the floor slope; coulomb is each wheel's
+    Coulomb friction (N m); f_phi and f_qbase extra generalised forces (N m)."""
+    # the wheels' friction against the body is a torque between the two, like the motors': it
+    # enters the wheel and the pitch equations with opposite signs
+    rel = dphi - dq_base
+    internal = rel * viscous + 2.0 * coulomb * smooth_sign(rel / 1e-2)
+    # the mass matrix [[m11, m12], [m12, m22]]
+    m12 = mrl * cos_tilt - rotor
+    # wheel: centripetal, slope, motors, friction; pitch: gravity, motors, friction, caster
+    f1 = mrl * sin_tilt * dq_base * dq_base - grade + tau - internal - dphi * ground + f_phi
+    f2 = mgl * sin_theta - tau + internal + f_qbase
+    f2 = f2 + caster_torque(q_base, dq_base, caster_pitch, caster_stiffness, caster_damping)
+    det = m11m22 - m12 * m12
+    return (f1 * m22 - m12 * f2) / det, (f2 * m11 - m12 * f1) / det
+
+
+def semi_implicit_euler(phi, q_base, dphi, dq_base, ddphi, ddqb, dt):
+    """The one integrator of the model: velocities first, then positions with the new velocities
+    (symplectic, one force evaluation per step)."""
+    dphi = dphi + ddphi * dt
+    dq_base = dq_base + ddqb * dt
+    return phi + dphi * dt, q_base + dq_base * dt, dphi, dq_base
 
 
 class WipDynamics:
-    """The nonlinear WIP with caster contact: the one implementation of the equations above.
+    """The nonlinear WIP with caster contact, around the one statement of its equations
+    (``pitch_equations``) and its one integrator (``semi_implicit_euler``).
 
     State: [phi, q_base, phi', q_base', psi, psi'] (phi: ground-referenced wheel angle, psi: yaw).
     Inputs: left and right wheel torques at the wheels (N m, after the gearbox). `body` and `drive`
-    may hold arrays (poses, parameter sets); everything broadcasts against the state.
-
-    ``pitch_accelerations`` states the pitch plane's equations once and ``step_pitch`` is the one
-    integrator around them. Both take floats (a simulator step: math functions and Python
-    operators, near a microsecond) or arrays, computed in place in ``PitchBuffers`` (``out``): the
-    float form of an assignment and its in-place form (a numpy ufunc into ``out``) stand on one
-    line, and the augmented assignments between them serve both (they rebind floats and update
-    arrays in place)."""
+    may hold arrays (poses, parameter sets); everything broadcasts against the state. Floats take
+    ``math`` (a simulator step, a few microseconds), arrays numpy; the replay's large batches run
+    the same functions compiled (``krang_model.wip_batch``)."""
 
     def __init__(self, body, drive):
         self.drive = d = drive
@@ -211,17 +275,11 @@ class WipDynamics:
         self._sin_slope = sin(d.floor_slope)
         self._yaw_arm = 0.5 * d.track_width / d.wheel_radius
         self._slope = d.floor_slope
-        self._sloped = _nonzero(d.floor_slope)
-        self._coulomb = _nonzero(d.coulomb_friction)
-        self._coulomb2 = 2.0 * d.coulomb_friction
-        self._ground = _nonzero(d.ground_viscous)
-        self._caster_pitch = cp = d.caster_contact_pitch
-        self._caster_max = float(cp.max()) if isinstance(cp, _ndarray) else cp
+        self._sloped = bool(np.any(d.floor_slope))
         self._set_body(body)
 
     def with_body(self, body):
-        """The dynamics of another body on the same drive train (only the body's terms are
-        computed again: the replay's moving poses)."""
+        """The dynamics of another body on the same drive train."""
         dyn = copy.copy(self)
         dyn._set_body(body)
         return dyn
@@ -229,129 +287,57 @@ class WipDynamics:
     def _set_body(self, body):
         self.body = body
         d, j = self.drive, self._j
-        self._m11 = (body.mass + d.wheel_mass) * d.wheel_radius**2 + d.wheel_inertia + j
-        self._mrl = body.mass * d.wheel_radius * body.com_distance
-        self._m22 = body.inertia_axle + j
-        self._m11m22 = self._m11 * self._m22
-        self._mgl = body.mass * d.gravity * body.com_distance
-        self._grade = (body.mass + d.wheel_mass) * d.gravity * d.wheel_radius * self._sin_slope
-        half = self._yaw_arm
-        self._yaw_inertia = body.yaw_inertia + 2.0 * (d.wheel_inertia / 2 + j / 2) * half**2
+        self._m11, self._mrl, m22, m11m22, self._mgl, grade = terms = body_terms(
+            body.mass,
+            body.com_distance,
+            body.inertia_axle,
+            d.wheel_mass,
+            d.wheel_radius,
+            d.wheel_inertia,
+            j,
+            d.gravity,
+            self._sin_slope,
+        )
+        self._coefficients = (*terms, j, d.viscous_friction, d.coulomb_friction, d.ground_viscous)
+        self._caster = (d.caster_contact_pitch, d.caster_stiffness, d.caster_damping)
+        self._yaw_inertia = (
+            body.yaw_inertia + 2.0 * (d.wheel_inertia / 2 + j / 2) * self._yaw_arm**2
+        )
         self._offset = body.com_offset
-        self._terms = (
-            *(self._offset, self._slope, self._coulomb2, self._grade, self._caster_pitch, j),
-            *(self._m11, self._mrl, self._m22, self._m11m22, self._mgl),
-            *(d.viscous_friction, d.ground_viscous, d.caster_stiffness, d.caster_damping),
+        self._numpy = any(isinstance(x, _ndarray) for x in (*self._coefficients, self._offset))
+
+    def caster_torque(self, q_base, dq_base):
+        """The caster's torque on the body (zero out of contact), at the pitch the caster
+        geometry, the wheel radius and the floor slope give
+        (``Drivetrain.caster_contact_pitch``)."""
+        return caster_torque(q_base, dq_base, *self._caster)
+
+    def _sin_cos(self, q_base):
+        """(sin theta, sin tilt, cos tilt) at q_base."""
+        arrays = self._numpy or isinstance(q_base, _ndarray)
+        sin, cos = (np.sin, np.cos) if arrays else (math.sin, math.cos)
+        theta = q_base + self._offset
+        sin_theta = sin(theta)
+        if not self._sloped:  # tilt = theta: the same numbers, two calls fewer
+            return sin_theta, sin_theta, cos(theta)
+        tilt = theta + self._slope
+        return sin_theta, sin(tilt), cos(tilt)
+
+    def pitch_accelerations(self, q_base, dphi, dq_base, tau, f_phi=0.0, f_qbase=0.0):
+        """(phi'', q_base'') under the total wheel torque `tau` and optional extra generalised
+        forces on the wheel and the pitch equations (N m): ``pitch_equations`` at this body and
+        drive train."""
+        return pitch_equations(
+            q_base,
+            dphi,
+            dq_base,
+            tau,
+            f_phi,
+            f_qbase,
+            *self._sin_cos(q_base),
+            *self._coefficients,
+            *self._caster,
         )
-        self._numpy = any(isinstance(x, _ndarray) for x in self._terms)
-
-    def _buffers(self, *xs):
-        """New ``PitchBuffers`` of the shape the model's terms and `xs` broadcast to."""
-        return PitchBuffers(np.broadcast_shapes(*map(np.shape, (*self._terms, *xs))))
-
-    def caster_torque(self, q_base, dq_base, out=None):
-        """The caster's unilateral penalty torque on the body (zero out of contact), at the pitch
-        the caster geometry, the wheel radius and the floor slope give
-        (``Drivetrain.caster_contact_pitch``). Floats, or into `out`'s arrays."""
-        o = out
-        if o is None and (self._numpy or type(q_base) is _ndarray or type(dq_base) is _ndarray):
-            o = self._buffers(q_base, dq_base)
-        return self._caster(q_base, dq_base, o)
-
-    def _caster(self, q_base, dq_base, o):
-        """``caster_torque`` for floats (`o` None) or into the ``PitchBuffers`` `o`."""
-        floats = o is None
-        k, c = self.drive.caster_stiffness, self.drive.caster_damping
-        cp = self._caster_pitch
-        pen = cp - q_base if floats else np.subtract(cp, q_base, o.a)
-        touching = pen > 0.0 if floats else np.greater(pen, 0.0, o.mask)
-        torque = pen * k if floats else np.multiply(pen, k, o.a)
-        torque -= dq_base * c if floats else np.multiply(dq_base, c, o.b)
-        torque = (torque if torque > 0.0 else 0.0) if floats else np.maximum(0.0, torque, o.a)
-        torque *= touching
-        return torque
-
-    def pitch_accelerations(
-        self, q_base, dphi, dq_base, tau, f_phi=None, f_qbase=None, trig=None, out=None
-    ):
-        """(phi'', q_base'') of the equations of the module docstring under the total wheel
-        torque `tau` and optional extra generalised forces on the wheel and the pitch equations
-        (N m): the one statement of the pitch physics.
-
-        Floats, or arrays (new ones, of the broadcast shape); with `out` (``PitchBuffers`` of
-        that shape) in place, the results then being ``out.f1`` and ``out.f2``. `trig`: (sin
-        theta, cos theta, sin tilt, cos tilt) at q_base, theta = q_base + com_offset being the
-        CoM angle from vertical and tilt = theta + floor slope; computed exactly if not given
-        (with `out` into its arrays, ``out.trig``)."""
-        d, o = self.drive, out
-        if o is None and (
-            self._numpy
-            or type(q_base) is _ndarray
-            or type(dphi) is _ndarray
-            or type(dq_base) is _ndarray
-            or type(tau) is _ndarray
-        ):
-            o = self._buffers(q_base, dphi, dq_base, tau, f_phi, f_qbase)
-        floats = o is None
-        if trig is None:  # exact, at the CoM angle theta and at the tilt theta + floor slope
-            theta = q_base + self._offset if floats else np.add(q_base, self._offset, o.a)
-            sin_theta = math.sin(theta) if floats else np.sin(theta, o.sin_theta)
-            cos_theta = math.cos(theta) if floats else np.cos(theta, o.cos_theta)
-            sin_tilt, cos_tilt = sin_theta, cos_theta
-            if self._sloped:
-                tilt = theta + self._slope if floats else np.add(theta, self._slope, o.a)
-                sin_tilt = math.sin(tilt) if floats else np.sin(tilt, o.sin_tilt)
-                cos_tilt = math.cos(tilt) if floats else np.cos(tilt, o.cos_tilt)
-            if not floats:
-                o.trig = (sin_theta, cos_theta, sin_tilt, cos_tilt)
-        else:
-            sin_theta, _, sin_tilt, cos_tilt = trig
-        mrl = self._mrl
-        # the wheels' friction against the body is a torque between the two, like the motors':
-        # it enters the wheel and the pitch equations with opposite signs
-        rel = dphi - dq_base if floats else np.subtract(dphi, dq_base, o.c)
-        visc = d.viscous_friction
-        internal = rel * visc if floats else np.multiply(rel, visc, o.d)
-        if self._coulomb:
-            coulomb = math.tanh(rel / 1e-2) if floats else np.tanh(np.divide(rel, 1e-2, o.a), o.a)
-            coulomb *= self._coulomb2
-            internal += coulomb
-        # the mass matrix [[m11, m12], [m12, m22]]
-        m12 = mrl * cos_tilt if floats else np.multiply(mrl, cos_tilt, o.m12)
-        m12 -= self._j
-        # wheel: centripetal, slope, motors, friction
-        f1 = mrl * sin_tilt if floats else np.multiply(mrl, sin_tilt, o.f1)
-        f1 *= dq_base
-        f1 *= dq_base
-        f1 -= self._grade
-        f1 += tau
-        f1 -= internal
-        if self._ground:
-            gv = d.ground_viscous
-            f1 -= dphi * gv if floats else np.multiply(dphi, gv, o.a)
-        # pitch: gravity, motors, friction, caster
-        f2 = self._mgl * sin_theta if floats else np.multiply(self._mgl, sin_theta, o.f2)
-        f2 -= tau
-        f2 += internal
-        if (q_base if floats else np.min(q_base)) < self._caster_max:  # on the caster
-            f2 += self._caster(q_base, dq_base, o)
-        if f_phi is not None:
-            f1 += f_phi
-            f2 += f_qbase
-        # solved for the accelerations
-        m11m22 = self._m11m22
-        det = (
-            m11m22 - m12 * m12 if floats else np.subtract(m11m22, np.multiply(m12, m12, o.a), o.a)
-        )
-        m12_f2 = m12 * f2 if floats else np.multiply(m12, f2, o.b)
-        m12_f1 = m12 * f1 if floats else np.multiply(m12, f1, o.c)
-        f1 *= self._m22
-        f1 -= m12_f2
-        f1 /= det
-        f2 *= self._m11
-        f2 -= m12_f1
-        f2 /= det
-        return f1, f2
 
     def yaw_acceleration(self, dpsi, tau_left, tau_right):
         """psi'' under the given wheel torques (the yaw is decoupled from the pitch plane)."""
@@ -370,38 +356,21 @@ class WipDynamics:
         phi, qb, dphi, dqb, psi, dpsi = state
         cos = np.cos if self._numpy or isinstance(qb, _ndarray) else math.cos
         theta = qb + self.body.com_offset
+        m22 = self._coefficients[2]
         kinetic = (
             0.5 * self._m11 * dphi**2
             + (self._mrl * cos(theta) - self._j) * dphi * dqb
-            + 0.5 * self._m22 * dqb**2
+            + 0.5 * m22 * dqb**2
             + 0.5 * self._yaw_inertia * dpsi**2
         )
         return kinetic + self._mgl * cos(theta)
 
-    def step_pitch(
-        self, phi, q_base, dphi, dq_base, tau, dt, f_phi=None, f_qbase=None, trig=None, out=None
-    ):
+    def step_pitch(self, phi, q_base, dphi, dq_base, tau, dt, f_phi=0.0, f_qbase=0.0):
         """One step of the pitch plane: (phi, q_base, phi', q_base') after `dt` under the total
-        wheel torque `tau` (and optional extra generalised forces and sines and cosines, as
-        ``pitch_accelerations``). The one integrator of the model: semi-implicit Euler
-        (velocities first), symplectic, one force evaluation per step. Floats (a simulator step)
-        or arrays (new ones, of the broadcast shape); with `out` (``PitchBuffers``) the four state
-        arrays, of its shape, are updated in place (``PitchBatch``: the replay's batches)."""
-        o, floats = out, out is None
-        ddphi, ddqb = self.pitch_accelerations(q_base, dphi, dq_base, tau, f_phi, f_qbase, trig, o)
-        if o is None and type(ddphi) is _ndarray:  # arrays: new ones, stepped in place
-            phi, q_base, dphi, dq_base = (
-                np.array(np.broadcast_to(x, ddphi.shape), float)
-                for x in (phi, q_base, dphi, dq_base)
-            )
-        ddphi *= dt
-        dphi += ddphi
-        ddqb *= dt
-        dq_base += ddqb
-        phi += dphi * dt if floats else np.multiply(dphi, dt, o.a)
-        inc = dq_base * dt if floats else np.multiply(dq_base, dt, o.inc)
-        q_base += inc
-        return phi, q_base, dphi, dq_base
+        wheel torque `tau` (and optional extra generalised forces): ``semi_implicit_euler`` of
+        ``pitch_accelerations``. Floats, or new arrays of the broadcast shape."""
+        ddphi, ddqb = self.pitch_accelerations(q_base, dphi, dq_base, tau, f_phi, f_qbase)
+        return semi_implicit_euler(phi, q_base, dphi, dq_base, ddphi, ddqb, dt)
 
     def step(self, state, tau_left, tau_right, dt):
         """One step of the whole state: ``step_pitch`` and the decoupled yaw, integrated alike."""
@@ -431,75 +400,6 @@ class WipDynamics:
         k = d.torque_constant * d.gear_ratio
         lim = d.current_limit
         return k * min(max(current_left, -lim), lim), k * min(max(current_right, -lim), lim)
-
-
-class PitchBatch:
-    """In-place stepping of a large batch (the replay: parameter sets x windows, (P, S) arrays)
-    with ``WipDynamics.step_pitch``: one set of ``PitchBuffers`` reused at every step, and the
-    sines and cosines the equations take computed exactly every ``anchor`` steps and carried by
-    rotation through each step's pitch increment in between (``_rotate``; in numpy's float64 path
-    a sine or cosine costs about 50 multiplies). With ``anchor=1`` every step is ``step_pitch``
-    bit for bit; otherwise they agree to rounding (1e-14). Buffers and trigonometry only: the
-    physics is the dynamics'.
-
-    ``set_dynamics(dyn)`` (a ``WipDynamics`` whose arrays broadcast to the shape) before the
-    first step and whenever the body changes; ``step(phi, q_base, dphi, dq_base, tau, dt, f_phi,
-    f_qbase)`` updates the four state arrays in place."""
-
-    def __init__(self, shape, anchor: int = 16):
-        self.shape = tuple(shape)
-        self.anchor = max(1, int(anchor))
-        self.buffers = PitchBuffers(self.shape)
-        self._dyn = None
-        self._offset = None
-        self._trig = None
-        self._steps = 0
-
-    def set_dynamics(self, dyn):
-        """The dynamics of the coming steps; the carried sines and cosines follow a change of the
-        body's CoM offset (theta = q_base + com_offset)."""
-        offset = np.array(np.broadcast_to(dyn.body.com_offset, self.shape), float)
-        if self._trig is not None:
-            self._rotate(offset - self._offset)
-        self._offset = offset
-        self._dyn = dyn
-
-    def _rotate(self, delta):
-        """Advance the sines and cosines by the angle increments `delta`: Taylor series to the
-        6th order, off by less than 5e-15 for increments up to 0.03 rad (a pitch rate of 15 rad/s
-        over a 2 ms step) and 1e-11 up to 0.09 rad, until the next exact anchor. Each element's
-        result depends on its own increment alone, not on the batch it is in."""
-        o = self.buffers
-        d2 = np.multiply(delta, delta, out=o.d)
-        sd = np.multiply(d2, 1.0 / 120.0, out=o.a)
-        sd -= 1.0 / 6.0
-        sd *= d2
-        sd += 1.0
-        sd *= delta  # sin(delta)
-        cm = np.multiply(d2, -1.0 / 720.0, out=o.b)
-        cm += 1.0 / 24.0
-        cm *= d2
-        cm -= 0.5
-        cm *= d2  # cos(delta) - 1
-        t = self._trig
-        for s, c in ((t[0], t[1]),) if t[2] is t[0] else ((t[0], t[1]), (t[2], t[3])):
-            ns = np.multiply(s, cm, out=o.c)
-            ns += np.multiply(c, sd, out=o.m12)
-            nc = np.multiply(c, cm, out=o.f1)
-            nc -= np.multiply(s, sd, out=o.m12)
-            s += ns
-            c += nc
-
-    def step(self, phi, q_base, dphi, dq_base, tau, dt, f_phi=None, f_qbase=None):
-        exact = self._steps % self.anchor == 0
-        trig = None if exact else self._trig
-        o = self.buffers
-        self._dyn.step_pitch(phi, q_base, dphi, dq_base, tau, dt, f_phi, f_qbase, trig, o)
-        if exact:
-            self._trig = o.trig
-        self._steps += 1
-        if self._steps % self.anchor:
-            self._rotate(o.inc)
 
 
 #: step of the central differences in ``linearize`` (rad, rad/s, N m): the model is linear in the

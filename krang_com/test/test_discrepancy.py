@@ -399,8 +399,35 @@ def test_cli_help_explains():
         'held-out',
         'imu_pitch_bias',
         'extended_model.yaml',
+        '--max-windows N at most N windows',
+        f'(default {ReplayConfig.max_total_windows}:',  # the help names the replay's budget
     ):
-        assert word in out
+        assert word in ' '.join(out.split())
+
+
+def test_records_beyond_the_window_budget_widen_the_stride_alike():
+    """Over ``max_total_windows`` the stride widens, for every record alike, to the narrowest
+    whole number of samples that keeps the total within the budget; below it nothing changes."""
+    recs = [simulate_record({}, seconds=s, seed=k, hold_s=1.5) for k, s in ((3, 12.0), (4, 20.0))]
+    model = NominalModel.default()
+    free = Replay(recs, model, ReplayConfig(stride_s=0.02, max_total_windows=0))
+    assert free.stride_s == 0.02 and free.unwidened_windows == len(free)
+    budget = len(free) // 3 + 7
+    tight = Replay(recs, model, ReplayConfig(stride_s=0.02, max_total_windows=budget))
+    assert tight.unwidened_windows == len(free) and len(tight) <= budget
+    period = recs[0].period
+    samples = round(tight.stride_s / period)
+    assert tight.stride_s == pytest.approx(samples * period)
+    for ri in range(2):  # every record's windows at that stride
+        starts = tight.win_t[tight.win_record == ri]
+        assert np.allclose(np.diff(starts), samples * period)
+    # one sample narrower would hold more windows than the budget
+    narrower = Replay(
+        recs, model, ReplayConfig(stride_s=(samples - 1) * period, max_total_windows=0)
+    )
+    assert len(narrower) > budget
+    same = Replay(recs, model, ReplayConfig(stride_s=0.02, max_total_windows=len(free)))
+    assert np.array_equal(same.win_t, free.win_t)
 
 
 # ----------------------------------------------------------------------------- combinations; slow

@@ -1,15 +1,13 @@
-"""The replay's fast path is the model's one integrator.
+"""The replay's fast path is the model's one statement of the equations and its one integrator.
 
-``krang_model.wip.PitchBatch`` steps the replay's batches with ``WipDynamics.step_pitch`` in place
-(``PitchBuffers``, the CoM angle's sine and cosine carried by rotation between exact anchors): the
-same equations as a simulator's float step and an array step, bit for bit with an exact anchor at
-every step, to rounding otherwise. A prediction does not depend on how its windows are chunked or
+``krang_model.wip_batch.integrate`` steps the replay's batches with the model's functions compiled
+(the CoM angle's sine and cosine carried by rotation between exact anchors): a simulator's float
+step to rounding. A prediction does not depend on how its windows are chunked or
 on the threads that run the chunks, nor on the other parameter sets of its batch (a set asked for
 twice is predicted once); the fits' Levenberg-Marquardt skips the Jacobian of a rejected step,
 and the prediction of a step that repeats one it has just rejected, without changing its path.
 """
 
-import tracemalloc
 from dataclasses import replace
 
 import numpy as np
@@ -26,13 +24,16 @@ from krang_discrepancy.fitting import (
 from krang_discrepancy.nominal import NominalModel
 from krang_discrepancy.replay import Replay, ReplayConfig
 from krang_discrepancy.synthetic import simulate_record
-from krang_model.drivetrain import drivetrain, stack
+from krang_model.drivetrain import drivetrain
 from krang_model.effects import apply_effects, library, model_terms
 from krang_model.robot import load_krang
-from krang_model.wip import PitchBatch, WipBody, WipDynamics
+from krang_model.wip import WipBody, WipDynamics
+from krang_model.wip_batch import drive_table, integrate, simd_tanh
 
 
 def _batch(p=3, s=40, seed=0):
+    """Drive trains (friction, slope, ground damping differ), per-window bodies, states around
+    the balance and on the caster (-1.76 rad, so the contact acts in some) and torques."""
     rng = np.random.default_rng(seed)
     nominal = drivetrain(load_krang())
     drives = [
@@ -40,114 +41,108 @@ def _batch(p=3, s=40, seed=0):
         for c, a, g in ((0.0, 0.0, 0.0), (2.0, 0.02, 0.0), (5.0, -0.01, 3.0))[:p]
     ]
     body = WipBody(
-        mass=np.full((p, 1), 140.0),
-        com_distance=rng.uniform(0.15, 0.3, (1, s)),
-        com_offset=rng.normal(0.0, 0.05, (1, s)),
-        inertia_axle=rng.uniform(15.0, 25.0, (1, s)),
+        mass=140.0,
+        com_distance=rng.uniform(0.15, 0.3, s),
+        com_offset=rng.normal(0.0, 0.05, s),
+        inertia_axle=rng.uniform(15.0, 25.0, s),
     )
-    # pitches around the balance and on the caster (-1.76 rad), so the contact acts in some
     qb = rng.uniform(-1.8, -1.45, (p, s))
-    state = [rng.normal(0, 1, (p, s)), qb, rng.normal(0, 2, (p, s)), rng.normal(0, 0.5, (p, s))]
-    return stack(drives), body, state, rng.normal(0, 15, (1, s))
+    state = np.stack(
+        [rng.normal(0, 1, (p, s)), qb, rng.normal(0, 2, (p, s)), rng.normal(0, 0.5, (p, s))], -1
+    )
+    return drives, body, state, rng.normal(0, 15, s)
 
 
-def _run(drive, body, state, tau, steps, anchor=None, force=None):
-    phi, qb, dphi, dqb = (x.copy() for x in state)
-    f = None if force is None else (force, -force)
-    if anchor is None:
-        dyn = WipDynamics(body, drive)
-        for _ in range(steps):
-            phi, qb, dphi, dqb = dyn.step_pitch(phi, qb, dphi, dqb, tau, 2e-3, *(f or ()))
-        return phi, qb, dphi, dqb
-    stepper = PitchBatch(qb.shape, anchor)
-    stepper.set_dynamics(WipDynamics(body, drive))
-    for _ in range(steps):
-        stepper.step(phi, qb, dphi, dqb, tau, 2e-3, *(f or (None, None)))
-    return phi, qb, dphi, dqb
+def _integrate(drives, bodies, state, tau, steps, anchor, force=None, calls=1):
+    """``integrate`` of `state` (P, S, 4) over `steps` sub-steps of 2 ms under the torque `tau`
+    (S,), one body per stretch of steps (`bodies`: WipBody of (S,) fields each, the stretches
+    equal), in `calls` calls: every sub-step's state (P, S, steps + 1, 4)."""
+    p, s = state.shape[:2]
+    per = steps // len(bodies)
+    table = lambda f: np.repeat(np.stack([getattr(b, f) for b in bodies], -1)[None], per, axis=2)  # noqa: E731
+    f = np.zeros((p, s)) if force is None else force
+    rec = np.empty((p, s, steps + 1, 4))
+    rec[:, :, 0] = state
+    x, trig = state.copy(), np.zeros((p, s, 2))
+    cuts = np.linspace(0, steps, calls + 1).astype(int)
+    for j0, j1 in zip(cuts[:-1], cuts[1:]):
+        integrate(
+            x, trig, j0, j1, 2e-3, anchor, np.array([bodies[0].mass]),
+            *(table('com_distance'), table('com_offset'), table('inertia_axle')),
+            np.zeros(p, np.int64), np.repeat(tau[None, :, None], steps, axis=2),
+            np.zeros(p, np.int64), np.ones(p), np.zeros(p), np.zeros(p), drive_table(drives),
+            f, -f, np.arange(steps + 1), rec,
+        )  # fmt: skip
+    return rec
+
+
+def _float_steps(drives, bodies, state, tau, steps, force=None):
+    """The same sub-steps, element by element, with a simulator's float step (``step_pitch``)."""
+    p, s = state.shape[:2]
+    per = steps // len(bodies)
+    out = np.empty((p, s, steps + 1, 4))
+    touching = 0
+    for k, d in enumerate(drives):
+        for i in range(s):
+            x = tuple(float(v) for v in state[k, i])
+            out[k, i, 0] = x
+            f = 0.0 if force is None else float(force[k, i])
+            for j in range(steps):
+                dyn = WipDynamics(bodies[j // per][i], d)
+                touching += dyn.caster_torque(x[1], x[3]) > 0
+                x = dyn.step_pitch(*x, float(tau[i]), 2e-3, f, -f)
+                assert all(type(v) is float for v in x)
+                out[k, i, j + 1] = x
+    return out, touching
+
+
+def test_the_compiled_tanh_is_tanh_to_a_few_ulp():
+    """``simd_tanh`` (what the compiled equations run for ``smooth_sign``) against numpy's tanh:
+    within 4 ulp relative everywhere, near zero and in saturation too, odd, and exactly +-1
+    beyond saturation."""
+    x = np.concatenate([np.linspace(-30, 30, 200_001), np.logspace(-300, 1.5, 5000)])
+    x = np.concatenate([x, -x])
+    want = np.tanh(x)
+    got = simd_tanh(x)
+    nonzero = want != 0
+    ulp = np.abs(got - want)[nonzero] / (np.abs(want[nonzero]) * np.finfo(float).eps)
+    assert ulp.max() <= 4
+    assert np.array_equal(simd_tanh(-x), -got)
+    assert simd_tanh(1e300) == 1.0 and simd_tanh(-1e300) == -1.0 and simd_tanh(0.0) == 0.0
 
 
 @pytest.mark.parametrize('force', [False, True])
-def test_pitch_batch_is_step_pitch_bit_for_bit_with_exact_trigonometry(force):
-    drive, body, state, tau = _batch()
-    f = np.full(state[0].shape, 1.5) if force else None
-    want = _run(drive, body, state, tau, 60, force=f)
-    got = _run(drive, body, state, tau, 60, anchor=1, force=f)
-    for a, b in zip(want, got):
-        assert np.array_equal(a, b)
+def test_the_compiled_batch_is_the_float_step_with_exact_trigonometry(force):
+    """Element by element, the compiled batch and a simulator's float step run the one statement
+    of the equations and the one integrator (friction, slope, ground damping, caster contact and
+    extra forces included): equal to rounding with exact sines and cosines at every step."""
+    drives, body, state, tau = _batch(s=12, seed=5)
+    f = np.linspace(-2.0, 2.0, 12)[None] + np.zeros((3, 1)) if force else None
+    want, touching = _float_steps(drives, [body], state, tau, 40, f)
+    got = _integrate(drives, [body], state, tau, 40, anchor=1, force=f)
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-13 * (1 + np.abs(want).max()))
+    assert touching > 0  # the caster's contact acted
 
 
-def test_the_batch_steps_the_float_equations_bit_for_bit():
-    """Element by element, a simulator's float step (math functions, Python operators) and the
-    batch's in-place step run the one statement of the equations: friction, slope, ground
-    damping, caster contact and extra forces included."""
-    drive, body, state, tau = _batch(s=12, seed=5)
-    force = np.linspace(-2.0, 2.0, 12)[None] + np.zeros((3, 1))
-    got = _run(drive, body, state, tau, 40, anchor=1, force=force)
-    touching = 0
-    for p in range(3):
-        d = replace(drive, **{k: float(v[p, 0]) for k, v in vars(drive).items() if np.ndim(v)})
-        for i in range(12):
-            one = WipBody(*(float(np.broadcast_to(v, (3, 12))[p, i]) for v in vars(body).values()))
-            dyn = WipDynamics(one, d)
-            x = tuple(float(v[p, i]) for v in state)
-            f = float(force[p, i])
-            for _ in range(40):
-                touching += dyn.caster_torque(x[1], x[3]) > 0
-                x = dyn.step_pitch(*x, float(tau[0, i]), 2e-3, f, -f)
-            assert all(type(v) is float for v in x)
-            assert x == tuple(float(v[p, i]) for v in got)
-    assert touching > 0  # the caster's branch ran
-
-
-def test_pitch_batch_carries_sines_and_cosines_to_rounding():
-    drive, body, state, tau = _batch(seed=3)
-    want = _run(drive, body, state, tau, 150)
-    got = _run(drive, body, state, tau, 150, anchor=16)
-    for a, b in zip(want, got):
-        assert np.all(np.isfinite(a))
-        np.testing.assert_allclose(b, a, rtol=0, atol=1e-11 * (1 + np.abs(a).max()))
+def test_the_batch_carries_sines_and_cosines_to_rounding():
+    drives, body, state, tau = _batch(seed=3)
+    want = _integrate(drives, [body], state, tau, 150, anchor=1)
+    got = _integrate(drives, [body], state, tau, 150, anchor=16)
+    assert np.all(np.isfinite(want))
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-11 * (1 + np.abs(want).max()))
 
 
 def test_the_carried_sines_and_cosines_follow_a_body_change():
     """A new body mid-horizon (the replay's moving pose) turns the carried sines and cosines by
-    the change of the CoM offset, and the batch still agrees with exact steps to rounding."""
-    drive, body, state, tau = _batch(seed=6)
+    the change of the CoM offset, and the batch agrees with float steps to rounding, in one call
+    or in several (the replay's sub-step by sub-step calls when a set has extra forces)."""
+    drives, body, state, tau = _batch(s=10, seed=6)
     moved = replace(body, com_offset=body.com_offset + 0.03, com_distance=body.com_distance * 0.9)
-    want = [x.copy() for x in state]
-    for b in (body, moved):
-        dyn = WipDynamics(b, drive)
-        for _ in range(70):
-            want = dyn.step_pitch(*want, tau, 2e-3)
-    got = [x.copy() for x in state]
-    stepper = PitchBatch(got[1].shape, 16)
-    dyn = WipDynamics(body, drive)
-    for b in (body, moved):  # 70 steps: the change falls between two anchors
-        dyn = dyn.with_body(b)
-        stepper.set_dynamics(dyn)
-        for _ in range(70):
-            stepper.step(*got, tau, 2e-3)
-    for a, b in zip(want, got):
-        np.testing.assert_allclose(b, a, rtol=0, atol=1e-11 * (1 + np.abs(a).max()))
-
-
-def test_a_batch_step_allocates_no_arrays():
-    """The batch steps in its ``PitchBuffers``: no array of the batch's size is allocated (numpy's
-    own iteration buffers are at most 64 kB, an array of this batch is 960 kB)."""
-    drive, body, state, tau = _batch(s=40_000, seed=2)
-    phi, qb, dphi, dqb = (x.copy() for x in state)
-    f_phi = np.full(qb.shape, 0.5)
-    f_qbase = -f_phi
-    stepper = PitchBatch(qb.shape, 4)
-    stepper.set_dynamics(WipDynamics(body, drive))
-    assert np.any(qb < drive.caster_contact_pitch)  # the caster's branch runs too
-    tracemalloc.start()
-    try:
-        for _ in range(8):  # exact anchors and rotations
-            stepper.step(phi, qb, dphi, dqb, tau, 2e-3, f_phi, f_qbase)
-        peak = tracemalloc.get_traced_memory()[1]
-    finally:
-        tracemalloc.stop()
-    assert peak < qb.nbytes / 4
+    want, _ = _float_steps(drives, [body, moved], state, tau, 140)  # the change between anchors
+    tol = 1e-11 * (1 + np.abs(want).max())
+    for calls in (1, 7, 140):
+        got = _integrate(drives, [body, moved], state, tau, 140, anchor=16, calls=calls)
+        np.testing.assert_allclose(got, want, rtol=0, atol=tol)
 
 
 @pytest.fixture(scope='module')
