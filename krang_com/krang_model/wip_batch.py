@@ -14,6 +14,9 @@ sub-steps and carried in between by rotation through each sub-step's angle incre
 series to the 6th order: off by less than 5e-15 for increments up to 0.03 rad); the floor slope's
 tilt is theta rotated by the slope. With ``anchor=1`` every sub-step is ``WipDynamics.step_pitch``
 on floats to rounding.
+
+The loop is compiled once per process, on first use (about 1.5 s), and never cached on disk:
+numba's cache would not see a change of ``krang_model.wip``, where the physics is.
 """
 
 from __future__ import annotations
@@ -111,7 +114,7 @@ def _rotate(s, c, delta):
     return s + (s * cm + c * sd), c + (c * cm - s * sd)
 
 
-@njit(nogil=True, cache=True, error_model='numpy')
+@njit(nogil=True, error_model='numpy')
 def integrate(
     state, trig, j0, j1, dt, anchor,
     mass, dist, offset, inertia, body_index,
