@@ -43,6 +43,7 @@ ROSDEP_KEYS = {
     'pinocchio': 'pinocchio',
     'coal': 'coal',  # the collision library pinocchio builds on; its own ROS package
     'numpy': 'python3-numpy',
+    'numba': 'python3-numba',
     'scipy': 'python3-scipy',
     'yaml': 'python3-yaml',
     'matplotlib': 'python3-matplotlib',
