@@ -8,7 +8,9 @@ twice is predicted once); the fits' Levenberg-Marquardt skips the Jacobian of a 
 and the prediction of a step that repeats one it has just rejected, without changing its path.
 """
 
+import hashlib
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -26,6 +28,7 @@ from krang_discrepancy.replay import Replay, ReplayConfig
 from krang_discrepancy.synthetic import simulate_record
 from krang_model.drivetrain import drivetrain
 from krang_model.effects import apply_effects, library, model_terms
+from krang_model import wip
 from krang_model.robot import load_krang
 from krang_model.wip import WipBody, WipDynamics
 from krang_model.wip_batch import drive_table, integrate, simd_tanh
@@ -94,6 +97,15 @@ def _float_steps(drives, bodies, state, tau, steps, force=None):
                 assert all(type(v) is float for v in x)
                 out[k, i, j + 1] = x
     return out, touching
+
+
+def test_the_compiled_loops_disk_cache_is_keyed_on_the_physics():
+    """numba keys its on-disk cache on the loop's own file and on the cells of its closure: the
+    hash of ``krang_model/wip.py`` must be one of them, or a change of the physics would reuse a
+    stale compiled loop."""
+    physics = hashlib.sha256(Path(wip.__file__).read_bytes()).hexdigest()
+    cells = [c.cell_contents for c in integrate.py_func.__closure__ or ()]
+    assert physics in cells
 
 
 def test_the_compiled_tanh_is_tanh_to_a_few_ulp():
