@@ -112,6 +112,7 @@ def write_report(
             f'{int((m & replay.active).sum())} / {int(m.sum())} |'
         )
     L.append('')
+    widened = f'; {replay.widened()}' if replay.widened() else ''
     L.append(
         f'Nominal model: `krang_model.wip` with beta `{model.beta_source}`, wheel radius '
         f'{model.drive.wheel_radius} m, Kt {model.drive.torque_constant} N m/A x '
@@ -119,9 +120,8 @@ def write_report(
         f'viscous {model.drive.viscous_friction} N m s, Coulomb {model.drive.coulomb_friction} N '
         f'm. '
         f'Replay: {replay.horizon:.3g} s predictions from every measured state (stride '
-        f'{replay.stride_s:.3g} s{_widened(replay)}), {len(replay.eval_steps)} comparison '
-        f'points, sub-step {replay.substep * 1e3:.2f} ms; fitting phases: '
-        f'{", ".join(replay.phases)}.\n'
+        f'{replay.stride_s:.3g} s{widened}), {len(replay.eval_steps)} comparison points, '
+        f'sub-step {replay.substep * 1e3:.2f} ms; fitting phases: {", ".join(replay.phases)}.\n'
     )
     L.append('## 1. Where the model and the data disagree (nominal model)\n')
     for s in loc.summary:
@@ -369,13 +369,3 @@ def ambiguity(result) -> str:
         + '. t >= 3 means the data distinguish them.'
     )
 
-
-def _widened(replay) -> str:
-    """Why the stride is wider than asked, if it is."""
-    cfg = replay.cfg
-    if replay.stride_s <= cfg.stride_s * (1 + 1e-9):
-        return ''
-    return (
-        f', widened from {cfg.stride_s:g} s: {replay.unwidened_windows} windows exceed the '
-        f'budget of {cfg.max_total_windows} (--max-windows)'
-    )

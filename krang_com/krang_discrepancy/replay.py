@@ -195,6 +195,17 @@ class Replay:
             self.stride_s = max(k * r.period for k, r in zip(ks, self.records))
         return ks
 
+    def widened(self) -> str:
+        """Why the windows start farther apart than ``stride_s`` asked ('' if they do not)."""
+        cfg = self.cfg
+        if self.stride_s <= cfg.stride_s * (1 + 1e-9):
+            return ''
+        return (
+            f'{self.unwidened_windows} windows at a stride of {cfg.stride_s:g} s exceed the '
+            f'budget of {cfg.max_total_windows} (--max-windows): a window every '
+            f'{self.stride_s:.3g} s, {len(self)} windows'
+        )
+
     def _grid(self, period):
         """(sub-step h, steps per horizon, samples per step, eval offsets in samples) for a
         measurement period: h divides the period (slow data) or is a multiple of it (fast data),

@@ -174,12 +174,8 @@ def _workflow(
     t = time.perf_counter()
     replay = Replay(records, model, replay_config, phases)
     timing['replay_setup_s'] = time.perf_counter() - t
-    if replay.stride_s > replay.cfg.stride_s * (1 + 1e-9):
-        say(
-            f'{replay.unwidened_windows} windows at a stride of {replay.cfg.stride_s:g} s exceed '
-            f'the budget of {replay.cfg.max_total_windows} (--max-windows): a window every '
-            f'{replay.stride_s:.3g} s, {len(replay)} windows'
-        )
+    if replay.widened():
+        say(replay.widened())
     t = time.perf_counter()
     loc = locate(replay, base)
     timing['locate_s'] = time.perf_counter() - t
