@@ -175,14 +175,15 @@ class Replay:
 
     def _strides(self):
         """Samples between window starts, per record: ``stride_s``, widened alike for every
-        record until they hold at most ``max_total_windows`` windows. ``stride_s`` (the
-        attribute) is the stride in seconds the windows start at."""
+        record until they hold at most ``max_total_windows`` windows (each record's counted up to
+        ``max_windows``, where it is thinned anyway). ``stride_s`` (the attribute) is the stride
+        in seconds the windows start at."""
         cfg = self.cfg
 
         def windows(stride_s, to_int):
             ks = [max(1, to_int(stride_s / r.period)) for r in self.records]
             ends = [len(r) - int(self._grid(r.period)[3][-1]) for r in self.records]
-            return ks, sum(len(range(0, e, k)) for e, k in zip(ends, ks))
+            return ks, sum(min(len(range(0, e, k)), cfg.max_windows) for e, k in zip(ends, ks))
 
         ks, total = windows(cfg.stride_s, lambda x: int(round(x)))
         self.unwidened_windows = total
