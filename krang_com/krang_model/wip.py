@@ -171,16 +171,9 @@ def smooth_sign(x):
 
 
 def body_terms(
-    mass,
-    com_distance,
-    inertia_axle,
-    wheel_mass,
-    wheel_radius,
-    wheel_inertia,
-    rotor,
-    gravity,
+    mass, com_distance, inertia_axle, wheel_mass, wheel_radius, wheel_inertia, rotor, gravity,
     sin_slope,
-):
+):  # fmt: skip
     """The pitch equations' coefficients of a body on a drive train: (m11, M r l, m22, m11 m22,
     M g l, the slope's grade torque), rotor = J the reflected rotor inertia. Floats, arrays or
     compiled, like ``pitch_equations``."""
@@ -208,29 +201,10 @@ def caster_torque(q_base, dq_base, caster_pitch, stiffness, damping):
 
 
 def pitch_equations(
-    q_base,
-    dphi,
-    dq_base,
-    tau,
-    f_phi,
-    f_qbase,
-    sin_theta,
-    sin_tilt,
-    cos_tilt,
-    m11,
-    mrl,
-    m22,
-    m11m22,
-    mgl,
-    grade,
-    rotor,
-    viscous,
-    coulomb,
-    ground,
-    caster_pitch,
-    caster_stiffness,
-    caster_damping,
-):
+    q_base, dphi, dq_base, tau, f_phi, f_qbase, sin_theta, sin_tilt, cos_tilt,
+    m11, mrl, m22, m11m22, mgl, grade, rotor, viscous, coulomb, ground,
+    caster_pitch, caster_stiffness, caster_damping,
+):  # fmt: skip
     """(phi'', q_base'') of the module docstring's equations: the one statement of the pitch
     physics. Operators and ``smooth_sign`` only, no branches, so the same lines run on floats
     (a simulator step), on numpy arrays (a batch) and compiled (``krang_model.wip_batch``).
@@ -327,16 +301,9 @@ class WipDynamics:
         """(phi'', q_base'') under the total wheel torque `tau` and optional extra generalised
         forces on the wheel and the pitch equations (N m): ``pitch_equations`` at this body and
         drive train."""
+        trig = self._sin_cos(q_base)
         return pitch_equations(
-            q_base,
-            dphi,
-            dq_base,
-            tau,
-            f_phi,
-            f_qbase,
-            *self._sin_cos(q_base),
-            *self._coefficients,
-            *self._caster,
+            q_base, dphi, dq_base, tau, f_phi, f_qbase, *trig, *self._coefficients, *self._caster
         )
 
     def yaw_acceleration(self, dpsi, tau_left, tau_right):
